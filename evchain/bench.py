@@ -1,0 +1,85 @@
+"""``evchain bench``: standard workloads, each row a throughput next to the error it reached.
+
+Workloads come from ``evchain.benchmarks`` modules (a ``WORKLOADS`` dict) and from plugins'
+``evchain_bench_workloads`` hook: ``{name: function(quick: bool) -> list[BenchRow]}``. Prefixes on
+the command line select workloads by name. ``limit_ratio`` compares the stage with a physical
+limit measured in the same run (e.g. a plain numpy pass over the same bytes): limit time / stage
+time, so 1.0 means "as fast as touching the data once".
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from evchain.io.atomic import atomic_write_text
+
+
+@dataclass
+class BenchRow:
+    workload: str
+    stage: str
+    throughput: float
+    unit: str
+    error: float | None = None
+    error_name: str | None = None
+    limit_ratio: float | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        extra = d.pop("extra")
+        d.update(extra)
+        return d
+
+
+def best_time(fn: Callable[[], object], repeat: int = 3, min_time_s: float = 0.0) -> float:
+    """Best wall time of ``repeat`` calls (after one warm-up call that also compiles)."""
+    fn()
+    best = float("inf")
+    start = time.perf_counter()
+    n = 0
+    while n < repeat or time.perf_counter() - start < min_time_s:
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+        n += 1
+    return best
+
+
+def select(workloads: dict[str, Callable], prefixes: list[str]) -> dict[str, Callable]:
+    if not prefixes:
+        return dict(workloads)
+    return {k: v for k, v in workloads.items() if any(k.startswith(p) for p in prefixes)}
+
+
+def run(workloads: dict[str, Callable], quick: bool = False, echo=print) -> list[BenchRow]:
+    rows: list[BenchRow] = []
+    for name in sorted(workloads):
+        got = workloads[name](quick)
+        for row in got:
+            echo(format_row(row))
+        rows.extend(got)
+    return rows
+
+
+HEADER = (f"{'workload':34s} {'stage':16s} {'throughput':>14s} {'unit':10s} "
+          f"{'error':>12s} {'error_name':24s} {'limit':>7s}")
+
+
+def _num(v: float | None, fmt: str) -> str:
+    return "-" if v is None else format(v, fmt)
+
+
+def format_row(r: BenchRow) -> str:
+    return (f"{r.workload:34s} {r.stage:16s} {_num(r.throughput, '14.4g')} {r.unit:10s} "
+            f"{_num(r.error, '12.4g')} {(r.error_name or '-'):24s} "
+            f"{_num(r.limit_ratio, '7.3f')}")
+
+
+def write_json(rows: list[BenchRow], path: str | Path) -> None:
+    atomic_write_text(path, json.dumps([r.as_dict() for r in rows], indent=2))

@@ -1,0 +1,156 @@
+"""The ``evchain`` command: run, validate, filters, plugins, bench.
+
+User mistakes (an :class:`EvchainError`) print one line and exit with code 2; ``--debug`` shows
+the traceback. Unexpected errors are bugs: they exit with code 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import traceback
+from pathlib import Path
+
+from evchain.errors import EvchainError, FilterError
+
+
+def _registry():
+    from evchain.core.registry import make_registry
+
+    return make_registry()
+
+
+def cmd_run(args) -> int:
+    from evchain.core.chain import run_pipeline
+    from evchain.core.config import load_pipeline
+
+    registry = _registry()
+    spec = load_pipeline(args.pipeline, registry, args.set)
+    out = Path(args.out) if args.out else Path("out") / spec.name
+    result = run_pipeline(spec, registry, out, progress=not args.no_progress, debug=args.debug)
+    rep = result.report
+    print(f"{spec.name}: done in {rep['wall_s']:.2f} s, results in {out}/")
+    for f in rep["filters"]:
+        eps = f["throughput_eps"]
+        rate = f"{eps / 1e6:9.2f} M/s" if eps else "        -   "
+        print(f"  {f['id']:18s} in {f['events_in']:>11,d}  out {f['events_out']:>11,d}  "
+              f"{f['wall_s']:8.3f} s {rate}")
+    for group, values in rep["metrics"].items():
+        if isinstance(values, dict):
+            shown = ", ".join(f"{k}={_fmt(v)}" for k, v in values.items()
+                              if not isinstance(v, dict | list))
+            print(f"  metrics.{group}: {shown}")
+    return 0
+
+
+def _fmt(v) -> str:
+    return f"{v:.4g}" if isinstance(v, float) else str(v)
+
+
+def cmd_validate(args) -> int:
+    from evchain.core.config import load_pipeline
+
+    for path in args.pipeline:
+        spec = load_pipeline(path, _registry(), args.set)
+        print(f"{path}: ok ({len(spec.stages)} stages: "
+              f"{' -> '.join(s.id for s in spec.stages)})")
+    return 0
+
+
+def cmd_filters(args) -> int:
+    from evchain.core.registry import unknown_filter_message
+    from evchain.core.schema import describe_filter
+
+    registry = _registry()
+    if args.name:
+        if args.name not in registry.filters:
+            raise EvchainError(unknown_filter_message(args.name, registry.filters))
+        info = registry.filters[args.name]
+        print(describe_filter(info.cls, info.distribution))
+        return 0
+    for name in sorted(registry.filters):
+        info = registry.filters[name]
+        cls = info.cls
+        wiring = (f"{cls.consumes.__name__ if cls.consumes else 'source'} -> "
+                  f"{cls.produces.__name__ if cls.produces else 'same'}")
+        print(f"{name:18s} {info.distribution:18s} {wiring:28s} {cls.summary()}")
+    return 0
+
+
+def cmd_plugins(args) -> int:
+    registry = _registry()
+    for dist, version in sorted(registry.distributions.items()):
+        names = sorted(n for n, i in registry.filters.items() if i.distribution == dist)
+        print(f"{dist:24s} {version:10s} {', '.join(names)}")
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from evchain import bench
+
+    workloads = bench.select(_registry().workloads, args.prefix)
+    if not workloads:
+        raise EvchainError(f"no benchmark workload matches {args.prefix}; known: "
+                           f"{', '.join(sorted(_registry().workloads))}")
+    print(bench.HEADER)
+    rows = bench.run(workloads, quick=args.quick)
+    if args.json:
+        bench.write_json(rows, args.json)
+        print(f"wrote {len(rows)} rows to {args.json}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="evchain", description=__doc__.splitlines()[0])
+    p.add_argument("--debug", action="store_true", help="show tracebacks; check every packet")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    r = sub.add_parser("run", help="run a pipeline")
+    r.add_argument("pipeline")
+    r.add_argument("--set", action="append", default=[], metavar="STAGE.PARAM=VALUE",
+                   help="override a parameter (stage by 'use' name or 'id'); repeatable")
+    r.add_argument("--out", help="output folder (default out/NAME)")
+    r.add_argument("--no-progress", action="store_true", help="no progress bar")
+    r.set_defaults(fn=cmd_run)
+
+    v = sub.add_parser("validate", help="check pipelines without running them")
+    v.add_argument("pipeline", nargs="+")
+    v.add_argument("--set", action="append", default=[], metavar="STAGE.PARAM=VALUE")
+    v.set_defaults(fn=cmd_validate)
+
+    f = sub.add_parser("filters", help="list filters, or show one filter's parameters")
+    f.add_argument("name", nargs="?")
+    f.set_defaults(fn=cmd_filters)
+
+    pl = sub.add_parser("plugins", help="list plugin distributions and versions")
+    pl.set_defaults(fn=cmd_plugins)
+
+    b = sub.add_parser("bench", help="benchmarks: throughput next to error")
+    b.add_argument("prefix", nargs="*", help="workload name prefixes (default: all)")
+    b.add_argument("--quick", action="store_true", help="smaller workloads")
+    b.add_argument("--json", help="write the rows to this JSON file")
+    b.set_defaults(fn=cmd_bench)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.fn(args)
+    except EvchainError as exc:
+        if args.debug:
+            traceback.print_exc()
+        print(f"evchain: error: {exc}", file=sys.stderr)
+        if isinstance(exc, FilterError) and exc.internal:
+            if not args.debug:
+                print("evchain: this looks like a bug; rerun with --debug for the traceback",
+                      file=sys.stderr)
+            return 1
+        return 2
+    except KeyboardInterrupt:
+        print("evchain: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""The framework: packets, the filter contract, the registry, pipelines and the chain."""

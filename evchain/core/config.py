@@ -1,0 +1,306 @@
+"""Pipelines: YAML (safe loading only), validated in two passes, with command-line overrides.
+
+A pipeline file::
+
+    name: quickstart        # optional, defaults to the file's stem
+    seed: 7                 # optional, default 0
+    description: ...        # optional
+    chain:
+      - use: aedat          # a registered filter name
+        id: reader          # optional, to address one of two stages of the same filter
+        path: tests/data/x.aedat   # every other key is a parameter of that filter
+
+Pass 1 checks this shape; pass 2 checks each stage's keys against its filter's ``Params``, then
+the wiring (each stage consumes what its predecessor produces). Every error names
+``file:line:column``, the key and what is allowed. Overrides ``STAGE.PARAM=VALUE`` address a
+stage by ``id`` or ``use`` name; the value is parsed as YAML (``0.3``, ``true``, ``[1, 2]``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import ValidationError
+
+from evchain.core.filter import Filter, FilterParams
+from evchain.core.packets import Packet
+from evchain.core.registry import Registry, unknown_filter_message
+from evchain.errors import ConfigError, WiringError
+
+TOP_KEYS = {"name": "a string", "seed": "an integer", "description": "a string",
+            "chain": "a list of stages"}
+
+
+@dataclass(frozen=True)
+class Mark:
+    """A place in a pipeline file (1-based line and column)."""
+
+    file: str
+    line: int | None = None
+    column: int | None = None
+
+
+@dataclass
+class StageSpec:
+    """One validated stage of a chain."""
+
+    use: str
+    id: str
+    cls: type[Filter]
+    params: FilterParams
+    mark: Mark
+    key_marks: dict[str, Mark] = field(default_factory=dict)
+
+
+@dataclass
+class PipelineSpec:
+    """A validated pipeline: name, seed and stages in chain order."""
+
+    name: str
+    seed: int
+    stages: list[StageSpec]
+    file: str
+    description: str = ""
+
+    def resolved(self) -> dict[str, Any]:
+        """Every parameter spelled out, defaults included: what the run really used."""
+        chain = []
+        for s in self.stages:
+            entry: dict[str, Any] = {"use": s.use}
+            if s.id != s.use:
+                entry["id"] = s.id
+            entry.update(s.params.model_dump(mode="json"))
+            chain.append(entry)
+        out: dict[str, Any] = {"name": self.name, "seed": self.seed}
+        if self.description:
+            out["description"] = self.description
+        out["chain"] = chain
+        return out
+
+    def stage(self, key: str) -> StageSpec:
+        return _find_stage(self.stages, key, lambda s: (s.id, s.use), Mark(self.file))
+
+
+def _raise(message: str, mark: Mark, key: str | None = None, cls=ConfigError):
+    raise cls(message, file=mark.file, line=mark.line, column=mark.column, key=key)
+
+
+def _mark_of(node: yaml.Node | None, file: str) -> Mark:
+    if node is None:
+        return Mark(file)
+    return Mark(file, node.start_mark.line + 1, node.start_mark.column + 1)
+
+
+def _child_nodes(node: yaml.MappingNode) -> dict[Any, tuple[yaml.Node, yaml.Node]]:
+    return {k.value: (k, v) for k, v in node.value if isinstance(k, yaml.ScalarNode)}
+
+
+def parse_yaml(text: str, file: str) -> tuple[Any, yaml.Node | None]:
+    """Safe-load ``text`` keeping the node tree for line numbers."""
+    try:
+        loader = yaml.SafeLoader(text)
+        try:
+            node = loader.get_single_node()
+            data = loader.construct_document(node) if node is not None else None
+        finally:
+            loader.dispose()
+    except yaml.MarkedYAMLError as exc:
+        m = exc.problem_mark
+        raise ConfigError(f"not valid YAML: {exc.problem}", file=file,
+                          line=m.line + 1 if m else None,
+                          column=m.column + 1 if m else None) from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"not valid YAML: {exc}", file=file) from None
+    return data, node
+
+
+def load_pipeline(path: str | Path, registry: Registry, overrides: list[str] = ()) -> PipelineSpec:
+    """Read, validate and wire a pipeline file, applying ``--set`` overrides."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError("pipeline file not found", file=str(path)) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"cannot read pipeline file: {exc}", file=str(path)) from None
+    return pipeline_from_text(text, str(path), registry, overrides)
+
+
+def pipeline_from_text(text: str, file: str, registry: Registry,
+                       overrides: list[str] = ()) -> PipelineSpec:
+    data, node = parse_yaml(text, file)
+    raw_stages, name, seed, description = _check_shape(data, node, file)
+    for item in overrides:
+        seed = _apply_override(item, raw_stages, seed)
+    stages = [_validate_stage(raw, registry) for raw in raw_stages]
+    _check_ids(stages)
+    check_wiring(stages)
+    return PipelineSpec(name=name or Path(file).stem, seed=seed, stages=stages, file=file,
+                        description=description)
+
+
+@dataclass
+class _RawStage:
+    values: dict[str, Any]
+    mark: Mark
+    key_marks: dict[str, Mark]
+
+
+def _check_shape(data, node, file) -> tuple[list[_RawStage], str, int, str]:
+    top = Mark(file, 1, 1)
+    if not isinstance(data, dict):
+        _raise("a pipeline must be a mapping with a 'chain' list of stages", _mark_of(node, file))
+    nodes = _child_nodes(node)
+    for key in data:
+        if key not in TOP_KEYS:
+            allowed = ", ".join(f"{k} ({v})" for k, v in TOP_KEYS.items())
+            _raise(f"unknown key; allowed: {allowed}", _mark_of(nodes.get(key, (None,))[0], file),
+                   str(key))
+    if "chain" not in data:
+        _raise("missing key 'chain' (a list of stages, each with 'use: FILTER')", top)
+    name, seed, description = data.get("name"), data.get("seed", 0), data.get("description", "")
+    for key, value, kind in (("name", name, str), ("description", description, str),
+                             ("seed", seed, int)):
+        if value is not None and (not isinstance(value, kind) or isinstance(value, bool)):
+            _raise(f"must be {TOP_KEYS[key]}, got {value!r}", _mark_of(nodes[key][1], file), key)
+    chain_node = nodes["chain"][1]
+    chain = data["chain"]
+    if not isinstance(chain, list) or not chain:
+        _raise("must be a non-empty list of stages, each a mapping with 'use: FILTER'",
+               _mark_of(chain_node, file), "chain")
+    stages = []
+    for i, (item, item_node) in enumerate(zip(chain, chain_node.value, strict=True)):
+        mark = _mark_of(item_node, file)
+        if not isinstance(item, dict):
+            _raise("a stage must be a mapping with 'use: FILTER' and its parameters", mark,
+                   f"chain[{i}]")
+        if "use" not in item:
+            _raise("missing key 'use' (the filter's name; see 'evchain filters')", mark,
+                   f"chain[{i}]")
+        if not isinstance(item["use"], str):
+            _raise("'use' must be a filter name", mark, f"chain[{i}].use")
+        key_marks = {k: _mark_of(v, file) for k, (_, v) in _child_nodes(item_node).items()}
+        stages.append(_RawStage(dict(item), mark, key_marks))
+    return stages, name, seed, description
+
+
+def _stage_label(raw: _RawStage) -> str:
+    return str(raw.values.get("id", raw.values["use"]))
+
+
+def _validate_stage(raw: _RawStage, registry: Registry) -> StageSpec:
+    values = dict(raw.values)
+    use = values.pop("use")
+    stage_id = str(values.pop("id", use))
+    if use not in registry.filters:
+        _raise(unknown_filter_message(use, registry.filters), raw.key_marks.get("use", raw.mark),
+               f"{stage_id}.use")
+    cls = registry.get(use)
+    try:
+        params = cls.Params(**values)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        key = str(err["loc"][0]) if err["loc"] else None
+        mark = raw.key_marks.get(key, raw.mark) if key else raw.mark
+        if err["type"] == "extra_forbidden":
+            allowed = sorted(cls.Params.model_fields)
+            import difflib
+
+            close = difflib.get_close_matches(key, allowed, n=1)
+            hint = f"did you mean {close[0]!r}? " if close else ""
+            msg = (f"unknown parameter of filter {use!r}; {hint}allowed: "
+                   f"{', '.join(allowed) or '(none)'}")
+        else:
+            msg = f"{err['msg']} (got {err.get('input')!r}); {_describe_field(cls, key)}"
+        _raise(msg, mark, f"{stage_id}.{key}" if key else stage_id)
+    return StageSpec(use=use, id=stage_id, cls=cls, params=params, mark=raw.mark,
+                     key_marks=raw.key_marks)
+
+
+def _describe_field(cls: type[Filter], key: str | None) -> str:
+    if key is None or key not in cls.Params.model_fields:
+        return f"see 'evchain filters {cls.name}'"
+    from evchain.core.schema import field_rows
+
+    row = next(r for r in field_rows(cls) if r["name"] == key)
+    bounds = f", {row['bounds']}" if row["bounds"] else ""
+    return f"expected {row['type']}{bounds}"
+
+
+def _check_ids(stages: list[StageSpec]) -> None:
+    seen: dict[str, StageSpec] = {}
+    for s in stages:
+        if s.id in seen and s.id != s.use:
+            _raise(f"id {s.id!r} is used twice", s.mark, f"{s.id}.id")
+        seen[s.id] = s
+
+
+def output_type(stages: list[StageSpec], upto: int) -> type[Packet] | None:
+    """The packet type stage ``upto`` emits (pass-through filters keep their input's type)."""
+    kind = None
+    for s in stages[: upto + 1]:
+        kind = s.cls.produces or kind
+    return kind
+
+
+def check_wiring(stages: list[StageSpec]) -> None:
+    """The first stage is a source, no later one is, and each consumes what it is given."""
+    first = stages[0]
+    if not first.cls.is_source():
+        _raise(f"the first stage must be a source (a filter that consumes nothing), but "
+               f"{first.use!r} consumes {first.cls.consumes.__name__}", first.mark,
+               f"{first.id}.use", WiringError)
+    for i in range(1, len(stages)):
+        s, given = stages[i], output_type(stages, i - 1)
+        if s.cls.is_source():
+            _raise(f"source {s.use!r} can only be the first stage", s.mark, f"{s.id}.use",
+                   WiringError)
+        if given is None or not issubclass(given, s.cls.consumes):
+            _raise(f"{s.use!r} consumes {s.cls.consumes.__name__} but {stages[i - 1].use!r} "
+                   f"before it produces {getattr(given, '__name__', 'nothing')}", s.mark,
+                   f"{s.id}.use", WiringError)
+
+
+def _find_stage(items, key, names, mark):
+    hits = [it for it in items if key in names(it)]
+    by_id = [it for it in hits if names(it)[0] == key]
+    if len(by_id) == 1:
+        return by_id[0]
+    if len(hits) == 1:
+        return hits[0]
+    labels = sorted({n for it in items for n in names(it)})
+    if not hits:
+        raise ConfigError(f"no stage {key!r} in the chain; stages: {', '.join(labels)}",
+                          file=mark.file, key=key)
+    raise ConfigError(f"{len(hits)} stages use {key!r}; give them 'id:' keys and address one "
+                      "by its id", file=mark.file, key=key)
+
+
+def _apply_override(item: str, stages: list[_RawStage], seed: int) -> int:
+    where = Mark("--set")
+    if "=" not in item:
+        raise ConfigError(f"override {item!r} must look like STAGE.PARAM=VALUE or seed=N",
+                          file="--set")
+    target, value_text = item.split("=", 1)
+    try:
+        value = yaml.safe_load(value_text) if value_text.strip() else ""
+    except yaml.YAMLError:
+        value = value_text
+    if target == "seed":
+        if not isinstance(value, int) or isinstance(value, bool):
+            raise ConfigError(f"seed must be an integer, got {value_text!r}", file="--set")
+        return value
+    if "." not in target:
+        raise ConfigError(f"override {item!r} must look like STAGE.PARAM=VALUE or seed=N",
+                          file="--set")
+    stage_key, param = target.split(".", 1)
+    raw = _find_stage(stages, stage_key,
+                      lambda s: (str(s.values.get("id", s.values["use"])), s.values["use"]), where)
+    if param in ("use", "id"):
+        raise ConfigError(f"cannot override {param!r} of a stage", file="--set", key=target)
+    raw.values[param] = value
+    raw.key_marks[param] = Mark(f"--set {item}")
+    return seed

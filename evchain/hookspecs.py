@@ -1,0 +1,40 @@
+"""Hooks a plugin implements; these docstrings are the plugin author's reference.
+
+A plugin is a module or object registered under the entry-point group ``evchain``::
+
+    # pyproject.toml of your distribution
+    [project.entry-points.evchain]
+    my_filters = "my_package.plugin"
+
+    # my_package/plugin.py
+    import evchain
+
+    @evchain.hookimpl
+    def evchain_filters():
+        return [MyFilter]
+
+Hooks only register things; none runs per event.
+"""
+
+from __future__ import annotations
+
+import pluggy
+
+hookspec = pluggy.HookspecMarker("evchain")
+hookimpl = pluggy.HookimplMarker("evchain")
+
+
+@hookspec
+def evchain_filters() -> list[type]:
+    """Return the :class:`evchain.Filter` subclasses this plugin provides.
+
+    Each class needs a unique ``name`` (the ``use:`` key in pipelines), ``consumes`` and
+    ``produces`` packet types and a nested pydantic ``Params`` model. Two plugins claiming one
+    name is an error that names both distributions.
+    """
+
+
+@hookspec
+def evchain_bench_workloads() -> dict[str, object]:
+    """Return benchmark workloads ``{name: function(quick: bool) -> list[BenchRow]}`` for
+    ``evchain bench``. Names start with the stage's prefix (e.g. ``flow-``)."""
