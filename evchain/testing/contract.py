@@ -1,0 +1,192 @@
+"""The filter contract suite: properties every filter must have, for built-in and third-party
+filters alike.
+
+* cutting the same input stream into packets at different places gives the same output;
+* ``reset()`` and a replay give the same output;
+* empty packets flow: each input packet gives one output packet, and output slices are
+  consecutive, ordered and valid (a filter that holds data back may lag, never overlap);
+* inputs are not mutated.
+
+Use :func:`check_filter` and :func:`check_source` directly, or the ``filter_contract`` fixture of
+the pytest plugin (``evchain.testing.pytest_plugin``, active once evchain is installed).
+"""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from evchain.core.filter import Context, Filter
+from evchain.core.packets import Packet
+
+
+class ContractError(AssertionError):
+    """A filter breaks the contract (says which property and where)."""
+
+
+def slice_packet(packet: Packet, t_start: int, t_end: int) -> Packet:
+    """The part of ``packet`` inside ``[t_start, t_end)``, series included."""
+    keep = (packet.t >= t_start) & (packet.t < t_end)
+    cols = {name: getattr(packet, name)[keep] for name in packet.columns}
+    series = {k: v[(v["t"] >= t_start) & (v["t"] < t_end)] for k, v in packet.series.items()}
+    return packet.replace(t_start=t_start, t_end=t_end, series=series, **cols)
+
+
+def recut(packets: list[Packet], boundaries: list[int]) -> list[Packet]:
+    """The same stream cut at ``boundaries`` (times strictly inside the stream's span)."""
+    whole = type(packets[0]).concat(packets)
+    edges = [whole.t_start, *sorted(b for b in boundaries if whole.t_start < b < whole.t_end),
+             whole.t_end]
+    return [slice_packet(whole, a, b) for a, b in zip(edges[:-1], edges[1:], strict=True)]
+
+
+def standard_cuts(packets: list[Packet]) -> dict[str, list[Packet]]:
+    """Several cuttings of one stream: whole, many small, with empty slices, at event times."""
+    whole = type(packets[0]).concat(packets)
+    t0, t1 = whole.t_start, whole.t_end
+    span = max(t1 - t0, 1)
+    cuts = {"whole": recut(packets, []),
+            "eleven": recut(packets, [t0 + span * k // 11 for k in range(1, 11)]),
+            "uneven": recut(packets, [t0 + span // 97, t0 + span // 3, t0 + span // 3 + 1,
+                                      t0 + span * 4 // 5])}
+    if len(whole):
+        t = whole.t
+        at_events = [int(t[len(t) // 4]), int(t[len(t) // 2]), int(t[len(t) // 2]) + 1]
+        cuts["at_events"] = recut(packets, at_events)
+    empties = []
+    for p in cuts["eleven"]:
+        mid = (p.t_start + p.t_end) // 2
+        empty = slice_packet(p, p.t_start, p.t_start)  # zero-length slice
+        empties += [empty, *recut([p], [mid])] if p.t_end - p.t_start > 1 else [p]
+    cuts["with_empties"] = empties
+    return cuts
+
+
+def _snapshot(packets: list[Packet]) -> list[dict[str, np.ndarray]]:
+    return [{**{n: getattr(p, n).copy() for n in p.columns},
+             **{f"series:{k}": v.copy() for k, v in p.series.items()}} for p in packets]
+
+
+def _same_arrays(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> list[str]:
+    if a.keys() != b.keys():
+        return [f"keys {sorted(a)} vs {sorted(b)}"]
+    return [k for k in a if a[k].shape != b[k].shape or not np.array_equal(a[k], b[k])]
+
+
+def make_context(geometry, truth=None, out_dir: Path | None = None, seed: int = 0) -> Context:
+    out = Path(out_dir) if out_dir else Path(tempfile.mkdtemp(prefix="evchain-contract-"))
+    return Context(seed=seed, out_dir=out, geometry=geometry, truth=truth, debug=True)
+
+
+def run_filter(f: Filter, packets: list[Packet], check: bool = True) -> list[Packet]:
+    """Process ``packets`` then flush; returns every output packet (checked if ``check``)."""
+    outs = []
+    for i, p in enumerate(packets):
+        out = f.process(p)
+        if out is None:
+            raise ContractError(f"{f.name}: process() returned None for input packet {i}; "
+                                "return an (empty) packet")
+        outs.append(out)
+    last = f.flush()
+    if last is not None:
+        outs.append(last)
+    if check:
+        for i, out in enumerate(outs):
+            out.validate(f"{f.name} output packet {i}")
+            if i and out.t_start != outs[i - 1].t_end:
+                raise ContractError(f"{f.name}: output slices not consecutive: packet {i} starts "
+                                    f"at {out.t_start} us, the previous ended at "
+                                    f"{outs[i - 1].t_end} us")
+    return outs
+
+
+def flatten(outs: list[Packet]) -> dict[str, np.ndarray]:
+    """Output columns and series of a list of packets, concatenated."""
+    whole = type(outs[0]).concat(outs)
+    d = {n: getattr(whole, n) for n in whole.columns}
+    d.update({f"series:{k}": v for k, v in whole.series.items()})
+    return d
+
+
+def check_filter(cls: type[Filter], params: dict[str, Any], packets: list[Packet],
+                 truth=None, out_dir: Path | None = None, seed: int = 0) -> dict[str, np.ndarray]:
+    """Check the contract for ``cls`` with ``params`` on the stream ``packets``.
+
+    Returns the reference output (columns and series, concatenated) for further checks.
+    """
+    if not packets:
+        raise ValueError("check_filter needs a non-empty input stream")
+    geometry = packets[0].geometry
+    p = cls.Params(**params)
+
+    def fresh() -> Filter:
+        f = cls()
+        f.id = cls.name
+        f.setup(p, make_context(geometry, truth, out_dir, seed))
+        return f
+
+    before = _snapshot(packets)
+    f = fresh()
+    reference = flatten(run_filter(f, packets))
+    if bad := _mutated(before, packets):
+        raise ContractError(f"{cls.name}: mutated its input ({bad})")
+    f.reset()
+    replay = flatten(run_filter(f, packets))
+    f.close()
+    if bad := _same_arrays(reference, replay):
+        raise ContractError(f"{cls.name}: reset() then replay changed the output in {bad}")
+    for label, cut in standard_cuts(packets).items():
+        g = fresh()
+        try:
+            got = flatten(run_filter(g, cut))
+        finally:
+            g.close()
+        if bad := _same_arrays(reference, got):
+            raise ContractError(f"{cls.name}: cutting the stream ({label}, {len(cut)} packets) "
+                                f"changed the output in {bad}")
+    return reference
+
+
+def _mutated(before: list[dict[str, np.ndarray]], packets: list[Packet]) -> list[str]:
+    bad = []
+    for i, (snap, now) in enumerate(zip(before, _snapshot(packets), strict=True)):
+        bad += [f"packet {i} {k}" for k in _same_arrays(snap, now)]
+    return bad
+
+
+def check_source(cls: type[Filter], params: dict[str, Any], out_dir: Path | None = None,
+                 seed: int = 0, max_packets: int = 50) -> list[Packet]:
+    """A source yields valid packets with consecutive slices, and the same after reset()."""
+    context = Context(seed=seed, out_dir=Path(out_dir or tempfile.mkdtemp()), debug=True)
+    f = cls()
+    f.id = cls.name
+    f.setup(cls.Params(**params), context)
+
+    def take() -> list[Packet]:
+        got = []
+        for i, packet in enumerate(f.packets()):
+            packet.validate(f"{cls.name} packet {i}")
+            if got and packet.t_start != got[-1].t_end:
+                raise ContractError(f"{cls.name}: packet {i} starts at {packet.t_start} us, the "
+                                    f"previous ended at {got[-1].t_end} us")
+            got.append(packet)
+            if len(got) >= max_packets:
+                break
+        return got
+
+    try:
+        first = take()
+        if context.geometry is None:
+            raise ContractError(f"{cls.name}: a source must set context.geometry in setup()")
+        f.reset()
+        second = take()
+    finally:
+        f.close()
+    if not first:
+        raise ContractError(f"{cls.name}: produced no packets")
+    if bad := _same_arrays(flatten(first), flatten(second)):
+        raise ContractError(f"{cls.name}: reset() then replay changed the output in {bad}")
+    return first

@@ -1,0 +1,40 @@
+import subprocess
+import sys
+
+import pytest
+
+from evchain import cli
+
+
+@pytest.fixture
+def pipeline(tmp_path):
+    p = tmp_path / "p.yaml"
+    p.write_text("chain:\n  - use: aedat_readerr\n")
+    return p
+
+
+def test_user_mistake_exits_2_without_traceback(pipeline, capsys):
+    assert cli.main(["validate", str(pipeline)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("evchain: error: ") and f"{pipeline}:2:" in err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def test_debug_shows_traceback(pipeline, capsys):
+    assert cli.main(["--debug", "validate", str(pipeline)]) == 2
+    assert "Traceback" in capsys.readouterr().err
+
+
+def test_missing_pipeline_file(tmp_path, capsys):
+    assert cli.main(["run", str(tmp_path / "nope.yaml")]) == 2
+    assert "pipeline file not found" in capsys.readouterr().err
+
+
+def test_unknown_filter_in_filters_command(capsys):
+    assert cli.main(["filters", "no_such_filter"]) == 2
+
+
+def test_console_script_entry():
+    out = subprocess.run([sys.executable, "-m", "evchain.cli", "plugins"], capture_output=True,
+                         text=True, check=True).stdout
+    assert out.startswith("evchain")

@@ -1,0 +1,90 @@
+import pytest
+
+from evchain import ConfigError, WiringError
+from evchain.core.config import pipeline_from_text
+
+
+def load(text, registry, overrides=()):
+    return pipeline_from_text(text, "p.yaml", registry, list(overrides))
+
+
+GOOD = """\
+name: demo
+seed: 3
+chain:
+  - use: toy_source
+    packets: 2
+  - use: toy_flow
+    gain: 2.0
+"""
+
+
+def test_good_pipeline_resolves_defaults(registry):
+    spec = load(GOOD, registry)
+    r = spec.resolved()
+    assert r["seed"] == 3
+    assert r["chain"][0] == {"use": "toy_source", "packets": 2, "events_per_packet": 100,
+                             "fail_at_packet": None, "width": 32}
+    assert r["chain"][1]["mode"] == "a"
+
+
+@pytest.mark.parametrize("text, pattern", [
+    ("chain:\n  - use: toy_sorce\n", r"p.yaml:2:\d+: toy_sorce.use: unknown filter 'toy_sorce'; "
+                                    r"did you mean 'toy_source'"),
+    ("chain:\n  - use: toy_source\n    pakets: 2\n",
+     r"p.yaml:3:\d+: toy_source.pakets: unknown parameter .*did you mean 'packets'"),
+    ("chain:\n  - use: toy_source\n    packets: many\n",
+     r"p.yaml:3:14: toy_source.packets: .*integer.*expected int"),
+    ("chain:\n  - use: toy_source\n  - use: toy_flow\n    gain: 20\n",
+     r"p.yaml:4:\d+: toy_flow.gain: .*less than or equal to 10.*<= 10"),
+    ("chain:\n  - use: toy_source\n  - use: toy_flow\n    mode: c\n",
+     r"p.yaml:4:\d+: toy_flow.mode: .*'a' or 'b'"),
+    ("chian: []\n", r"p.yaml:1:1: chian: unknown key; allowed: name"),
+    ("name: x\n", r"missing key 'chain'"),
+    ("chain: [\n", r"p.yaml:\d+:\d+: not valid YAML"),
+    ("chain:\n  - packets: 2\n", r"p.yaml:2:\d+: chain\[0\]: missing key 'use'"),
+    ("seed: abc\nchain:\n  - use: toy_source\n", r"p.yaml:1:7: seed: must be an integer"),
+    ("chain: !!python/object:os.system {}\n", r"not valid YAML"),
+])
+def test_config_errors_name_place(registry, text, pattern):
+    with pytest.raises(ConfigError, match=pattern):
+        load(text, registry)
+
+
+@pytest.mark.parametrize("text, pattern", [
+    ("chain:\n  - use: toy_flow\n", "first stage must be a source"),
+    ("chain:\n  - use: toy_frames\n  - use: toy_flow\n",
+     "'toy_flow' consumes EventPacket but 'toy_frames' before it produces FramePacket"),
+    ("chain:\n  - use: toy_source\n  - use: toy_source\n", "can only be the first stage"),
+])
+def test_wiring_errors(registry, text, pattern):
+    with pytest.raises(WiringError, match=pattern):
+        load(text, registry)
+
+
+def test_pass_through_keeps_type(registry):
+    text = "chain:\n  - use: toy_source\n  - use: toy_writer\n  - use: toy_flow\n"
+    assert [s.use for s in load(text, registry).stages][-1] == "toy_flow"
+
+
+def test_overrides(registry):
+    spec = load(GOOD, registry, ["toy_flow.gain=3.5", "toy_source.packets=5", "seed=9"])
+    assert spec.stage("toy_flow").params.gain == 3.5
+    assert spec.stage("toy_source").params.packets == 5
+    assert spec.seed == 9
+
+
+def test_override_by_id_and_errors(registry):
+    text = ("chain:\n  - use: toy_source\n  - use: toy_writer\n    id: a\n"
+            "  - use: toy_writer\n    id: b\n")
+    spec = load(text, registry, ["b.path=other.txt"])
+    assert spec.stage("b").params.path == "other.txt"
+    assert spec.stage("a").params.path == "count.txt"
+    with pytest.raises(ConfigError, match="2 stages use 'toy_writer'"):
+        load(text, registry, ["toy_writer.path=x"])
+    with pytest.raises(ConfigError, match="no stage 'nope'"):
+        load(GOOD, registry, ["nope.x=1"])
+    with pytest.raises(ConfigError, match=r"--set toy_flow.gain=-1.*toy_flow.gain"):
+        load(GOOD, registry, ["toy_flow.gain=-1"])
+    with pytest.raises(ConfigError, match="STAGE.PARAM=VALUE"):
+        load(GOOD, registry, ["gain"])
