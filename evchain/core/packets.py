@@ -66,7 +66,7 @@ class Packet:
     columns: ClassVar[dict[str, type]] = {}
 
     def __len__(self) -> int:
-        return len(getattr(self, "t"))
+        return len(self.t)
 
     def replace(self, **changes) -> Self:
         """A copy with some fields changed (columns are shared, not copied)."""
@@ -79,7 +79,7 @@ class Packet:
         return self.replace(series=series)
 
     def validate(self, where: str = "packet") -> Self:
-        """Check the invariants of the module docstring; raise :class:`DataError` naming ``where``."""
+        """Check the invariants of the module docstring; a :class:`DataError` names ``where``."""
         if self.t_start > self.t_end:
             raise DataError(f"{where}: slice start {self.t_start} us after end {self.t_end} us")
         n = None

@@ -89,3 +89,52 @@ def textured_frames(n: int, geometry: Geometry = Geometry(64, 48), dt_us: int = 
         frames[i] = 0.55 + 0.125 * img
     return FramePacket(geometry=geometry, t_start=int(t[0]), t_end=int(t[-1]) + 1,
                        frames=np.clip(frames, 0.0, None), t=t)
+
+
+class ExpansionTruth:
+    """Ground truth of a pure expansion towards a fixed FOE: the camera approaches a
+    fronto-parallel plane and collides at ``t_collision_s``; flow v = (p - foe) / tau(t) with
+    tau(t) = t_collision - t."""
+
+    def __init__(self, foe: tuple[float, float], t_collision_s: float, depth_m: float = 10.0):
+        self.foe_xy = foe
+        self.t_collision_s = t_collision_s
+        self.depth_m = depth_m
+
+    def ttc(self, t_us):
+        tau = self.t_collision_s - np.asarray(t_us, np.float64) * 1e-6
+        return np.where(tau > 0, tau, np.nan)
+
+    def foe(self, t_us):
+        shape = np.shape(t_us)
+        return np.full(shape, self.foe_xy[0]), np.full(shape, self.foe_xy[1])
+
+    def flow(self, x, y, t_us):
+        tau = self.ttc(t_us)
+        return ((np.asarray(x, np.float64) - self.foe_xy[0]) / tau,
+                (np.asarray(y, np.float64) - self.foe_xy[1]) / tau)
+
+    def depth(self, x, y, t_us):
+        return np.broadcast_to(self.ttc(t_us) / self.t_collision_s * self.depth_m,
+                               np.broadcast_shapes(np.shape(x), np.shape(t_us)))
+
+
+def expansion_stream(n_packets: int = 4, events_per_packet: int = 400,
+                     geometry: Geometry = Geometry(128, 96, f=100.0), packet_us: int = 25_000,
+                     foe: tuple[float, float] = (70.0, 40.0), t_collision_s: float = 2.0,
+                     seed: int = 0) -> tuple[list[FlowPacket], ExpansionTruth]:
+    """Flow packets of a pure expansion (normal flow on random edge normals) with a ``foe``
+    series (t, x, y, support) at each packet start, and the matching ground truth."""
+    from evchain.core.packets import series_array
+
+    truth = ExpansionTruth(foe, t_collision_s)
+    packets = []
+    for i in range(n_packets):
+        t0 = i * packet_us
+        tau = float(truth.ttc(t0 + packet_us // 2))
+        p = expansion_flow(foe, tau, events_per_packet, geometry, t0, t0 + packet_us,
+                           seed=seed + i, normal_only=True)
+        entry = series_array([("t", "i8"), ("x", "f8"), ("y", "f8"), ("support", "f8")],
+                             t=[t0], x=[foe[0]], y=[foe[1]], support=[1.0])
+        packets.append(p.with_series("foe", entry))
+    return packets, truth
