@@ -1,4 +1,4 @@
-"""The ``evchain`` command: run, validate, filters, plugins, bench.
+"""The ``evchain`` command: run, validate, filters, plugins, sweep, bench.
 
 User mistakes (an :class:`EvchainError`) print one line and exit with code 2; ``--debug`` shows
 the traceback. Unexpected errors are bugs: they exit with code 1.
@@ -100,6 +100,17 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def cmd_sweep(args) -> int:
+    from evchain.sweep import load_sweep, run_sweep
+
+    sweep = load_sweep(args.sweep)
+    out = Path(args.out) if args.out else Path("out") / "sweeps" / sweep.name
+    print(f"sweep {sweep.name}: {len(sweep.variations)} runs of {sweep.base} -> {out}/")
+    run_sweep(sweep, out, workers=args.workers, scheduler=args.scheduler)
+    print(f"table: {out}/sweep.md")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="evchain", description=__doc__.splitlines()[0])
     p.add_argument("--debug", action="store_true", help="show tracebacks; check every packet")
@@ -124,6 +135,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     pl = sub.add_parser("plugins", help="list plugin distributions and versions")
     pl.set_defaults(fn=cmd_plugins)
+
+    sw = sub.add_parser("sweep", help="run variations of a pipeline, cached, as one table")
+    sw.add_argument("sweep")
+    sw.add_argument("--out", help="output folder (default out/sweeps/NAME)")
+    sw.add_argument("--workers", type=int, default=2, help="local processes (1: in-process)")
+    sw.add_argument("--scheduler", help="Dask scheduler address (needs evchain[dask])")
+    sw.set_defaults(fn=cmd_sweep)
 
     b = sub.add_parser("bench", help="benchmarks: throughput next to error")
     b.add_argument("prefix", nargs="*", help="workload name prefixes (default: all)")
