@@ -1,0 +1,182 @@
+"""Events in HDF5 (``pip install 'evchain[hdf5]'``): source ``hdf5`` and sink ``hdf5_writer``.
+
+Layout (the one of DSEC and most event datasets, so their files read as they are)::
+
+    /events/x  uint16     /events/y  uint16     /events/t  int64 (µs)     /events/p  int8 or uint8
+    attributes of /events: width, height (and f, cx, cy when known)
+
+Polarity is written as +1/-1; on reading, 0/1 (the DSEC convention) is mapped to -1/+1.
+Datasets are chunked and gzip-compressed; the writer appends packet by packet and renames the
+finished file from ``NAME.partial`` only on success.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+from pydantic import Field
+
+from evchain.core.filter import Filter, FilterParams
+from evchain.core.packets import EventPacket, Geometry
+from evchain.errors import ConfigError, DataError
+from evchain.io.atomic import partial_path
+
+COLUMNS = ("x", "y", "t", "p")
+
+
+def _h5py():
+    try:
+        import h5py
+    except ImportError:
+        raise ConfigError("HDF5 needs h5py: pip install 'evchain[hdf5]'") from None
+    return h5py
+
+
+class Hdf5Source(Filter):
+    """Read events from an HDF5 file with datasets events/x, y, t, p (DSEC layout)."""
+
+    name = "hdf5"
+    produces = EventPacket
+
+    class Params(FilterParams):
+        path: str = Field(description="HDF5 file")
+        group: str = Field("events", description="group holding x, y, t, p")
+        packet_us: int = Field(10_000, ge=1, description="slice duration of each packet")
+        width: int | None = Field(None, ge=1, description="sensor width if the file lacks it")
+        height: int | None = Field(None, ge=1, description="sensor height if the file lacks it")
+
+    def setup(self, params, context):
+        h5py = _h5py()
+        self.path = Path(params.path)
+        if not self.path.is_file():
+            raise DataError(f"{self.path}: file not found")
+        try:
+            self.file = h5py.File(self.path, "r")
+        except OSError as exc:
+            raise DataError(f"{self.path}: not an HDF5 file ({exc})") from None
+        if params.group not in self.file:
+            raise DataError(f"{self.path}: no group {params.group!r}; expected datasets "
+                            f"{params.group}/x, y, t, p")
+        self.group = self.file[params.group]
+        missing = [c for c in COLUMNS if c not in self.group]
+        if missing:
+            raise DataError(f"{self.path}: group {params.group!r} lacks datasets {missing}")
+        lengths = {c: len(self.group[c]) for c in COLUMNS}
+        if len(set(lengths.values())) != 1:
+            raise DataError(f"{self.path}: datasets differ in length: {lengths}")
+        attrs = dict(self.group.attrs)
+        width = params.width or attrs.get("width")
+        height = params.height or attrs.get("height")
+        if width is None or height is None:
+            raise DataError(f"{self.path}: no width/height attributes on {params.group!r}; "
+                            "give the parameters width and height")
+        context.geometry = Geometry(int(width), int(height), *(
+            float(attrs[k]) if k in attrs else None for k in ("f", "cx", "cy")))
+        super().setup(params, context)
+
+    def time_span_us(self):
+        t = self.group["t"]
+        return (int(t[0]), int(t[-1]) + 1) if len(t) else None
+
+    def packets(self) -> Iterator[EventPacket]:
+        g, step, chunk = self.context.geometry, self.params.packet_us, 1 << 20
+        n = len(self.group["t"])
+        if n == 0:
+            return
+        buf = {c: np.zeros(0, d) for c, d in EventPacket.columns.items()}
+        t0 = int(self.group["t"][0])
+        for start in range(0, n, chunk):
+            cols = self._read(start, min(start + chunk, n), buf["t"])
+            buf = {c: np.concatenate([buf[c], cols[c]]) for c in buf}
+            final = start + chunk >= n
+            limit = int(buf["t"][-1]) + (1 if final else 0)  # events before limit are complete
+            while t0 + step <= limit or (final and t0 < limit):
+                t1 = min(t0 + step, limit)
+                k = int(np.searchsorted(buf["t"], t1, "left"))
+                yield EventPacket(geometry=g, t_start=t0, t_end=t1,
+                                  **{c: v[:k] for c, v in buf.items()})
+                buf = {c: v[k:] for c, v in buf.items()}
+                t0 = t1
+
+    def _read(self, start: int, stop: int, before: np.ndarray) -> dict[str, np.ndarray]:
+        g = self.context.geometry
+        x = self.group["x"][start:stop].astype(np.uint16)
+        y = self.group["y"][start:stop].astype(np.uint16)
+        t = self.group["t"][start:stop].astype(np.int64)
+        p = np.where(self.group["p"][start:stop] > 0, 1, -1).astype(np.int8)
+        back = np.diff(np.concatenate([before[-1:], t])) < 0
+        if back.any():
+            i = start + int(np.argmax(back)) - (0 if len(before) else -1)
+            raise DataError(f"{self.path}: event {i}: timestamp goes backwards")
+        bad = (x >= g.width) | (y >= g.height)
+        if bad.any():
+            i = int(np.argmax(bad))
+            raise DataError(f"{self.path}: event {start + i} at ({x[i]}, {y[i]}) outside the "
+                            f"{g.width}x{g.height} sensor")
+        return {"x": x, "y": y, "t": t, "p": p}
+
+    def close(self):
+        f = getattr(self, "file", None)
+        if f is not None:
+            f.close()
+            self.file = None
+
+
+class Hdf5Writer(Filter):
+    """Write events to HDF5 (events/x, y, t, p with width/height attributes); pass them on."""
+
+    name = "hdf5_writer"
+    consumes = EventPacket
+
+    class Params(FilterParams):
+        path: str = Field("events.h5", description="output file, relative to the run folder")
+        compression: bool = Field(True, description="gzip-compress the datasets")
+
+    def setup(self, params, context):
+        self.h5py = _h5py()
+        super().setup(params, context)
+
+    def reset(self):
+        self.close()
+        self.path = self.context.output_path(self.params.path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.tmp = partial_path(self.path)
+        self.file = self.h5py.File(self.tmp, "w")
+        g = self.file.create_group("events")
+        geo = self.context.geometry
+        if geo is not None:
+            g.attrs.update({"width": geo.width, "height": geo.height, "cx": geo.cx,
+                            "cy": geo.cy, **({"f": geo.f} if geo.f else {})})
+        kw = {"compression": "gzip", "compression_opts": 1} if self.params.compression else {}
+        for c, dtype in EventPacket.columns.items():
+            g.create_dataset(c, shape=(0,), maxshape=(None,), dtype=dtype, chunks=(1 << 16,),
+                             **kw)
+        self.events = g
+        self.committed = False
+
+    def process(self, packet: EventPacket) -> EventPacket:
+        n = len(packet)
+        if n:
+            for c in COLUMNS:
+                d = self.events[c]
+                d.resize((len(d) + n,))
+                d[-n:] = getattr(packet, c)
+        return packet
+
+    def flush(self):
+        self.file.close()
+        self.file = None
+        os.replace(self.tmp, self.path)
+        self.committed = True
+        return None
+
+    def close(self):
+        f = getattr(self, "file", None)
+        if f is not None:
+            f.close()
+            self.file = None
+            if self.path.exists():
+                self.path.unlink()
