@@ -72,4 +72,5 @@ def test_contract(name, tmp_path):
 SOURCE_SKIP = {
     "aedat": "needs a file; covered in tests/io",
     "frames": "needs a file; covered in tests/io",
+    "hdf5": "needs a file; covered in tests/io/test_hdf5.py",
 }
