@@ -1,4 +1,4 @@
-"""The ``evchain`` command: run, validate, filters, plugins, sweep, bench.
+"""The ``evchain`` command: run, validate, filters, plugins, sweep, bench, docs.
 
 User mistakes (an :class:`EvchainError`) print one line and exit with code 2; ``--debug`` shows
 the traceback. Unexpected errors are bugs: they exit with code 1.
@@ -111,6 +111,17 @@ def cmd_sweep(args) -> int:
     return 0
 
 
+def cmd_docs(args) -> int:
+    from evchain.core.schema import filters_markdown, hooks_markdown
+    from evchain.io.atomic import atomic_write_text
+
+    out = Path(args.out)
+    atomic_write_text(out / "filters.md", filters_markdown(_registry()))
+    atomic_write_text(out / "hooks.md", hooks_markdown())
+    print(f"wrote {out}/filters.md and {out}/hooks.md")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="evchain", description=__doc__.splitlines()[0])
     p.add_argument("--debug", action="store_true", help="show tracebacks; check every packet")
@@ -142,6 +153,10 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--workers", type=int, default=2, help="local processes (1: in-process)")
     sw.add_argument("--scheduler", help="Dask scheduler address (needs evchain[dask])")
     sw.set_defaults(fn=cmd_sweep)
+
+    d = sub.add_parser("docs", help="generate the reference docs (filters, hooks)")
+    d.add_argument("--out", default="docs/reference")
+    d.set_defaults(fn=cmd_docs)
 
     b = sub.add_parser("bench", help="benchmarks: throughput next to error")
     b.add_argument("prefix", nargs="*", help="workload name prefixes (default: all)")

@@ -38,3 +38,18 @@ def test_console_script_entry():
     out = subprocess.run([sys.executable, "-m", "evchain.cli", "plugins"], capture_output=True,
                          text=True, check=True).stdout
     assert out.startswith("evchain")
+
+
+def test_docs_generated(tmp_path, capsys):
+    assert cli.main(["docs", "--out", str(tmp_path)]) == 0
+    filters = (tmp_path / "filters.md").read_text()
+    assert "## `hdf5_writer`" in filters and "| `compression` | bool | `True` |" in filters
+    assert "## `evchain_filters()" in (tmp_path / "hooks.md").read_text()
+
+
+def test_filters_lists_and_describes(capsys):
+    assert cli.main(["filters"]) == 0
+    assert "hdf5_writer" in capsys.readouterr().out
+    assert cli.main(["filters", "hdf5"]) == 0
+    out = capsys.readouterr().out
+    assert "packet_us: int = 10000  [>= 1]" in out and "slice duration" in out
