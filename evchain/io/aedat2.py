@@ -1,0 +1,615 @@
+"""AEDAT 2.0 (jAER) files: streaming reader and writer, and the ``aedat`` / ``aedat_writer`` stages.
+
+Format (see ``docs/explanation/aedat.md``): ASCII header lines that start with ``#`` and end in
+CRLF, the first one ``#!AER-DAT2.0``; then 8-byte big-endian records ``(int32 address, int32
+timestamp in µs)``. The address layout depends on the chip:
+
+* DAVIS240 / DAVIS346 (jAER ``DavisChip``): bit 31 = 0 and bit 10 = 0 for DVS events (bit 31 =
+  1 is APS/IMU, bit 10 = 1 an external-input "special" event), y in bits 22-30, x in bits 12-21,
+  polarity bit 11 (1 = ON). jAER flips x (``x = W-1-raw``) and its y origin is bottom-left, so in
+  evchain's top-left coordinates ``x = W-1-raw_x`` and ``y = H-1-raw_y``.
+* DVS128: y in bits 8-14, x in bits 1-7, polarity bit 0, bit 15 a special (sync) event. x flipped
+  and bottom-left y as above. Polarity as jAER's code reads it: raw bit 0 == 0 is ON (iniVation's
+  written format description says the opposite; jAER is what wrote the files).
+
+Timestamps are unsigned 32-bit µs on disk and unwrapped into int64: a backward step of more than
+2**31 µs is a wrap (+2**32), a backward step to a raw time below :data:`RESET_WINDOW_US` is a
+timestamp reset (time continues from the last event), backward steps up to
+``backstep_tolerance_us`` are clamped; anything else is a :class:`DataError`.
+
+Everything is vectorised numpy over chunks of records; nothing runs per event in Python.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import BinaryIO, Literal
+
+import numpy as np
+from pydantic import Field
+
+from evchain.core.filter import Filter, FilterParams
+from evchain.core.packets import EventPacket, Geometry
+from evchain.errors import DataError
+from evchain.io.atomic import AtomicFile
+
+MAGIC = b"#!AER-DAT"
+VERSION_LINE = b"#!AER-DAT2.0"
+RECORD_BYTES = 8
+WRAP = 1 << 32
+HALF = 1 << 31
+#: a backward timestamp step landing below this raw time (µs) is read as a timestamp reset
+RESET_WINDOW_US = 1_000_000
+#: DAVIS external-input ("special") event address, written before a first record that would
+#: start with the byte ``#`` (see :func:`encode_records`)
+DAVIS_SPECIAL_ADDRESS = 1 << 10
+
+ChipName = Literal["davis240", "davis346", "dvs128"]
+
+
+@dataclass(frozen=True)
+class Chip:
+    """One sensor's address layout and size."""
+
+    name: str
+    width: int
+    height: int
+    layout: Literal["davis", "dvs128"]
+    jaer_class: str | None = None
+
+    @property
+    def geometry(self) -> Geometry:
+        return Geometry(self.width, self.height)
+
+
+CHIPS: dict[str, Chip] = {
+    "davis240": Chip("davis240", 240, 180, "davis", "eu.seebetter.ini.chips.davis.DAVIS240C"),
+    "davis346": Chip("davis346", 346, 260, "davis", "eu.seebetter.ini.chips.davis.Davis346B"),
+    "dvs128": Chip("dvs128", 128, 128, "dvs128", "ch.unizh.ini.jaer.chip.retina.DVS128"),
+}
+
+DAVIS_MAX_WIDTH, DAVIS_MAX_HEIGHT = 1 << 10, 1 << 9
+
+
+def chip_from_class(jaer_class: str) -> Chip | None:
+    """The chip a jAER ``AEChip`` class name stands for (case-insensitive), or None."""
+    simple = jaer_class.strip().rsplit(".", 1)[-1].lower()
+    for key, chip in CHIPS.items():
+        if simple.startswith(key):  # DAVIS240C, DAVIS240B, Davis346B, Davis346red, DVS128 ...
+            return chip
+    return None
+
+
+def generic_davis(width: int, height: int) -> Chip:
+    """The DAVIS bit layout for another sensor size (evchain files of simulated sensors)."""
+    if not (0 < width <= DAVIS_MAX_WIDTH and 0 < height <= DAVIS_MAX_HEIGHT):
+        raise DataError(f"a {width}x{height} sensor does not fit the DAVIS address layout "
+                        f"(at most {DAVIS_MAX_WIDTH}x{DAVIS_MAX_HEIGHT})")
+    return Chip(f"davis-{width}x{height}", width, height, "davis")
+
+
+# ---------------------------------------------------------------------------------------------
+# header
+
+
+@dataclass
+class Header:
+    """What the header says: its lines (without ``#`` and line ends) and where data starts."""
+
+    path: Path
+    lines: list[str]
+    data_offset: int
+    file_size: int
+    chip: Chip | None = None
+
+    @property
+    def n_records(self) -> int:
+        return (self.file_size - self.data_offset) // RECORD_BYTES
+
+
+def read_header(path: str | Path) -> Header:
+    """Parse the header: every line starting with ``#``; stops at the first byte that is not ``#``.
+
+    Raises :class:`DataError` for a missing, empty or non-AEDAT-2.0 file and for a truncated
+    last record.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: no such file (expected an AEDAT 2.0 file)")
+    size = path.stat().st_size
+    if size == 0:
+        raise DataError(f"{path}: empty file; expected an AEDAT 2.0 header starting with "
+                        f"{VERSION_LINE.decode()!r}")
+    lines: list[str] = []
+    with open(path, "rb") as fh:
+        first = fh.readline()
+        if not first.startswith(MAGIC):
+            raise DataError(f"{path}: not an AEDAT file: byte 0 starts {first[:16]!r}, expected "
+                            f"the first line {VERSION_LINE.decode()!r}")
+        if not first.startswith(VERSION_LINE):
+            version = first.rstrip(b"\r\n")[len(MAGIC):].decode("ascii", "replace")
+            raise DataError(f"{path}: AEDAT version {version!r} is not supported; expected "
+                            f"{VERSION_LINE.decode()!r} (AEDAT 2.0, jAER)")
+        lines.append(first.rstrip(b"\r\n").decode("ascii", "replace")[1:])
+        while fh.peek(1)[:1] == b"#":
+            lines.append(fh.readline().rstrip(b"\r\n").decode("latin-1")[1:])
+        offset = fh.tell()
+    header = Header(path, lines, offset, size)
+    header.chip = _chip_from_lines(lines)
+    rest = (size - offset) % RECORD_BYTES
+    if rest:
+        bad = size - rest
+        raise DataError(f"{path}: truncated last record at byte offset {bad} (record "
+                        f"{(bad - offset) // RECORD_BYTES}): {rest} bytes, expected "
+                        f"{RECORD_BYTES}-byte records (int32 address, int32 timestamp)")
+    return header
+
+
+def _chip_from_lines(lines: list[str]) -> Chip | None:
+    for line in lines:
+        text = line.strip()
+        if text.lower().startswith("aechip:"):
+            chip = chip_from_class(text.split(":", 1)[1])
+            if chip is not None:
+                return chip
+        m = re.match(r"evchain-sensor:\s*(\d+)x(\d+)", text)
+        if m:
+            return generic_davis(int(m.group(1)), int(m.group(2)))
+    return None
+
+
+def header_bytes(chip: Chip, extra: list[str] = ()) -> bytes:
+    """The header jAER writes (CRLF line ends), naming the chip's jAER class."""
+    from evchain import __version__
+
+    lines = [VERSION_LINE.decode(),
+             "# This is a raw AE data file - do not edit",
+             "# Data format is int32 address, int32 timestamp (8 bytes total), repeated for each "
+             "event",
+             "# Timestamps tick is 1 us",
+             f"# created by evchain {__version__}"]
+    if chip.jaer_class:
+        lines.append(f"# AEChip: {chip.jaer_class}")
+    else:
+        lines.append(f"# evchain-sensor: {chip.width}x{chip.height} (jAER DAVIS address layout)")
+    lines += [f"# {line}" for line in extra]
+    return "".join(line + "\r\n" for line in lines).encode("ascii")
+
+
+def resolve_chip(header: Header, chip: str | None) -> Chip:
+    """The chip named by parameter, else by the header; DataError if neither names one."""
+    if chip is not None:
+        return CHIPS[chip]
+    if header.chip is None:
+        raise DataError(f"{header.path}: the header names no chip (no '# AEChip:' line); set the "
+                        f"parameter chip to one of {', '.join(CHIPS)}")
+    return header.chip
+
+
+# ---------------------------------------------------------------------------------------------
+# decoding
+
+
+@dataclass
+class DecodeStats:
+    events: int = 0
+    skipped_non_dvs: int = 0
+    wraps: int = 0
+    resets: int = 0
+    clamped: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return dict(self.__dict__)
+
+
+@dataclass
+class Decoder:
+    """Streaming decoder: feed record chunks in file order, get events with unwrapped times."""
+
+    header: Header
+    chip: Chip
+    non_dvs: Literal["skip", "error"] = "skip"
+    backstep_tolerance_us: int = 0
+    stats: DecodeStats = field(default_factory=DecodeStats)
+    _last_raw: int | None = None
+    _last_t: int = 0
+    _offset: int = 0
+
+    def _where(self, record: int) -> str:
+        off = self.header.data_offset + RECORD_BYTES * record
+        return f"{self.header.path}: record {record} (byte offset {off})"
+
+    def decode(self, raw: np.ndarray, first_record: int):
+        """``raw``: big-endian uint32 ``[n, 2]`` (address, timestamp). Returns x, y, t, p."""
+        addr = raw[:, 0].astype(np.uint32)
+        ts = raw[:, 1].astype(np.uint32)
+        chip = self.chip
+        if chip.layout == "davis":
+            special = addr & np.uint32(0x80000400)
+            keep = None
+            if special.any():
+                keep = special == 0
+        else:
+            high = addr >> np.uint32(15)
+            keep = None
+            if high.any():
+                if (high > 1).any():
+                    i = int(np.argmax(high > 1))
+                    raise DataError(f"{self._where(first_record + i)}: address 0x{addr[i]:08x} "
+                                    "does not fit the DVS128 layout (16-bit addresses); is this a "
+                                    "DAVIS file? set chip")
+                keep = high == 0
+        if keep is not None:
+            n_skip = len(keep) - int(np.count_nonzero(keep))
+            if n_skip and self.non_dvs == "error":
+                i = int(np.argmin(keep))
+                raise DataError(f"{self._where(first_record + i)}: non-DVS record (address "
+                                f"0x{addr[i]:08x}, APS/IMU/special) and non_dvs='error'")
+            self.stats.skipped_non_dvs += n_skip
+            index = np.flatnonzero(keep)
+            addr = addr[index]
+            ts = ts[index]
+        else:
+            index = None
+        if chip.layout == "davis":
+            xr = (addr >> np.uint32(12)) & np.uint32(0x3FF)
+            yr = addr >> np.uint32(22)
+            pr = (addr >> np.uint32(11)) & np.uint32(1)
+        else:
+            xr = (addr >> np.uint32(1)) & np.uint32(0x7F)
+            yr = (addr >> np.uint32(8)) & np.uint32(0x7F)
+            pr = (addr & np.uint32(1)) ^ np.uint32(1)  # jAER: raw 0 is ON
+        if len(addr) and (xr.max() >= chip.width or yr.max() >= chip.height):
+            i = int(np.argmax((xr >= chip.width) | (yr >= chip.height)))
+            rec = first_record + (i if index is None else int(index[i]))
+            raise DataError(f"{self._where(rec)}: address 0x{addr[i]:08x} decodes to raw "
+                            f"(x={xr[i]}, y={yr[i]}), outside the {chip.width}x{chip.height} "
+                            f"sensor of chip {chip.name}; expected x < {chip.width}, "
+                            f"y < {chip.height} (wrong chip?)")
+        x = (np.uint32(chip.width - 1) - xr).astype(np.uint16)
+        y = (np.uint32(chip.height - 1) - yr).astype(np.uint16)
+        p = (pr.astype(np.int8) << np.int8(1)) - np.int8(1)
+        t = self._unwrap(ts, first_record, index)
+        self.stats.events += len(t)
+        return x, y, t, p
+
+    def _unwrap(self, ts: np.ndarray, first_record: int, index) -> np.ndarray:
+        t = ts.astype(np.int64)
+        if len(t) == 0:
+            return t
+        prev = int(t[0]) if self._last_raw is None else self._last_raw
+        self._last_raw = int(t[-1])
+        d0 = int(t[0]) - prev
+        if d0 >= 0 and (len(t) == 1 or bool(np.all(t[1:] >= t[:-1]))):
+            t += self._offset  # the common case: no backward step in this chunk
+        else:
+            d = np.empty_like(t)
+            d[0] = d0
+            np.subtract(t[1:], t[:-1], out=d[1:])
+            wrap = d < -HALF
+            reset = (d < -self.backstep_tolerance_us) & ~wrap & (t < RESET_WINDOW_US)
+            inc = np.where(wrap, WRAP, 0) + np.where(reset, -d, 0)
+            self.stats.wraps += int(np.count_nonzero(wrap))
+            self.stats.resets += int(np.count_nonzero(reset))
+            offsets = np.cumsum(inc) + self._offset
+            t += offsets
+            self._offset = int(offsets[-1])
+            step = np.empty_like(t)
+            step[0] = t[0] - self._last_t
+            np.subtract(t[1:], t[:-1], out=step[1:])
+            if self.stats.events == 0:
+                step[0] = 0
+            if step.min() < 0:
+                if step.min() < -self.backstep_tolerance_us:
+                    i = int(np.argmax(step < -self.backstep_tolerance_us))
+                    rec = first_record + (i if index is None else int(index[i]))
+                    before = int(ts[i - 1]) if i else "the previous record's"
+                    raise DataError(
+                        f"{self._where(rec)}: timestamp goes back from {before} to {int(ts[i])} "
+                        f"us (raw), by {-int(step[i])} us: not a 32-bit wrap (a backward step "
+                        f"of more than 2^31 us), not a timestamp reset (a restart below "
+                        f"{RESET_WINDOW_US} us); raise backstep_tolerance_us to clamp such steps")
+                self.stats.clamped += int(np.count_nonzero(step < 0))
+                t[0] = max(int(t[0]), self._last_t)
+                np.maximum.accumulate(t, out=t)
+        self._last_t = int(t[-1])
+        return t
+
+
+def iter_raw(header: Header, chunk_records: int, fh: BinaryIO | None = None
+             ) -> Iterator[tuple[np.ndarray, int]]:
+    """Yield ``(records [n, 2] big-endian uint32, index of the first record)`` chunk by chunk."""
+    own = fh is None
+    if own:
+        fh = open(header.path, "rb")
+    try:
+        fh.seek(header.data_offset)
+        first = 0
+        while True:
+            buf = fh.read(chunk_records * RECORD_BYTES)
+            if not buf:
+                break
+            if len(buf) % RECORD_BYTES:
+                off = header.data_offset + (first + len(buf) // RECORD_BYTES) * RECORD_BYTES
+                raise DataError(f"{header.path}: truncated last record at byte offset {off}; "
+                                f"expected {RECORD_BYTES}-byte records")
+            raw = np.frombuffer(buf, dtype=">u4").reshape(-1, 2)
+            yield raw, first
+            first += len(raw)
+    finally:
+        if own:
+            fh.close()
+
+
+def iter_events(path: str | Path, chip: ChipName | None = None, chunk_records: int = 1 << 20,
+                non_dvs: Literal["skip", "error"] = "skip", backstep_tolerance_us: int = 0,
+                stats: DecodeStats | None = None, header: Header | None = None):
+    """Yield ``(x, y, t, p)`` chunks of a file's DVS events in evchain coordinates."""
+    header = header or read_header(path)
+    dec = Decoder(header, resolve_chip(header, chip), non_dvs, backstep_tolerance_us)
+    if stats is not None:
+        dec.stats = stats
+    for raw, first in iter_raw(header, chunk_records):
+        yield dec.decode(raw, first)
+
+
+def read_aedat2(path: str | Path, chip: ChipName | None = None, chunk_records: int = 1 << 20,
+                non_dvs: Literal["skip", "error"] = "skip", backstep_tolerance_us: int = 0,
+                stats: DecodeStats | None = None) -> EventPacket:
+    """Read a whole file into one :class:`EventPacket` (slice ``[t0, t_last + 1)``)."""
+    header = read_header(path)
+    geometry = resolve_chip(header, chip).geometry
+    parts = list(iter_events(path, chip, chunk_records, non_dvs, backstep_tolerance_us, stats,
+                             header))
+    if not parts:
+        return EventPacket.empty(geometry, 0, 0)
+    x, y, t, p = (np.concatenate(cols) for cols in zip(*parts, strict=True))
+    t0 = int(t[0]) if len(t) else 0
+    t1 = int(t[-1]) + 1 if len(t) else 0
+    return EventPacket(geometry=geometry, t_start=t0, t_end=t1, x=x, y=y, t=t, p=p)
+
+
+# ---------------------------------------------------------------------------------------------
+# encoding
+
+
+def encode_records(chip: Chip, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray,
+                   first: bool = False) -> np.ndarray:
+    """Records ``[n, 2]`` as big-endian uint32 for events in evchain coordinates.
+
+    Timestamps are written modulo 2**32 (the reader unwraps them). With ``first`` (the file's
+    first records) and a DAVIS layout whose first address byte would be ``#`` (0x23, raw y in
+    140..143), a DAVIS external-input special event (address 0x400, same timestamp) is written
+    first: readers take a leading ``#`` byte for another header line. jAER marks such events
+    special; evchain's reader skips them (counted as non-DVS).
+    """
+    n = len(x)
+    if n and (int(x.max()) >= chip.width or int(y.max()) >= chip.height):
+        raise DataError(f"event outside the {chip.width}x{chip.height} sensor of chip "
+                        f"{chip.name}: cannot write it")
+    xr = np.uint32(chip.width - 1) - x.astype(np.uint32)
+    yr = np.uint32(chip.height - 1) - y.astype(np.uint32)
+    on = (p > 0).astype(np.uint32)
+    if chip.layout == "davis":
+        addr = (yr << np.uint32(22)) | (xr << np.uint32(12)) | (on << np.uint32(11))
+    else:
+        addr = (yr << np.uint32(8)) | (xr << np.uint32(1)) | (on ^ np.uint32(1))
+    out = np.empty((n, 2), dtype=">u4")
+    out[:, 0] = addr
+    out[:, 1] = t.astype(np.uint64) & np.uint64(0xFFFFFFFF) if n else 0
+    if first and n and chip.layout == "davis" and (int(addr[0]) >> 24) == 0x23:
+        lead = np.array([[DAVIS_SPECIAL_ADDRESS, out[0, 1]]], dtype=">u4")
+        out = np.concatenate([lead, out]).astype(">u4", copy=False)
+    return out
+
+
+class Writer:
+    """Streaming AEDAT 2.0 writer onto a binary file object (header written on creation)."""
+
+    def __init__(self, fh, chip: Chip, extra_header: list[str] = ()):
+        self.fh, self.chip = fh, chip
+        fh.write(header_bytes(chip, list(extra_header)))
+        self.events = 0
+        self.specials = 0
+        self._last_t: int | None = None
+
+    def write(self, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray) -> None:
+        if len(t) == 0:
+            return
+        t = np.asarray(t, np.int64)
+        prev = t[0] if self._last_t is None else self._last_t
+        if int(t[0]) - int(prev) >= HALF or (len(t) > 1 and int(np.diff(t).max()) >= HALF):
+            raise DataError(f"a gap of 2^31 us or more between events cannot be written to "
+                            f"AEDAT 2.0 (32-bit timestamps); event times {int(prev)}..{t[-1]} us")
+        rec = encode_records(self.chip, x, y, t, p, first=self.events == 0)
+        self.specials += len(rec) - len(t)
+        self.fh.write(rec.tobytes())
+        self.events += len(t)
+        self._last_t = int(t[-1])
+
+
+def write_aedat2(path: str | Path, events: EventPacket, chip: ChipName | None = None) -> Path:
+    """Write ``events`` to ``path`` atomically (``path.partial`` until complete)."""
+    c = chip_for(events.geometry, chip)
+    out = AtomicFile(path)
+    try:
+        Writer(out, c).write(events.x, events.y, events.t, events.p)
+        out.commit()
+    finally:
+        out.abort()
+    return Path(path)
+
+
+def chip_for(geometry: Geometry | None, chip: str | None) -> Chip:
+    """The chip to write: by name, else the known chip of this size, else generic DAVIS."""
+    if chip is not None:
+        c = CHIPS[chip]
+        if geometry is not None and (geometry.width > c.width or geometry.height > c.height):
+            raise DataError(f"a {geometry.width}x{geometry.height} sensor does not fit chip "
+                            f"{chip} ({c.width}x{c.height})")
+        return c
+    if geometry is None:
+        raise DataError("no sensor geometry known: set the parameter chip")
+    for c in CHIPS.values():
+        if (c.width, c.height) == (geometry.width, geometry.height):
+            return c
+    return generic_davis(geometry.width, geometry.height)
+
+
+# ---------------------------------------------------------------------------------------------
+# filters
+
+
+class AedatSource(Filter):
+    """Read DVS events from an AEDAT 2.0 (jAER) file in consecutive time slices.
+
+    The chip (address layout and size) comes from the parameter ``chip`` or from the header's
+    ``# AEChip:`` line. Non-DVS records (APS, IMU, special events) are skipped and counted in
+    ``metrics[<id>]``; 32-bit timestamp wraps and resets are unwrapped into int64 µs.
+    """
+
+    name = "aedat"
+    consumes = None
+    produces = EventPacket
+
+    class Params(FilterParams):
+        path: str = Field(description="AEDAT 2.0 file to read")
+        chip: ChipName | None = Field(None, description="address layout; default: the header's "
+                                                        "'# AEChip:' line")
+        packet_us: int = Field(10_000, ge=1, description="duration of one output slice in µs")
+        chunk_records: int = Field(1 << 20, ge=1, le=1 << 26,
+                                   description="records read from disk at a time")
+        non_dvs: Literal["skip", "error"] = Field(
+            "skip", description="what to do with APS/IMU/special records")
+        backstep_tolerance_us: int = Field(
+            0, ge=0, description="backward timestamp steps up to this are clamped, not errors")
+
+    def setup(self, params, context) -> None:
+        super().setup(params, context)
+        self.header = read_header(params.path)
+        self.chip = resolve_chip(self.header, params.chip)
+        context.geometry = self.chip.geometry
+
+    def reset(self) -> None:
+        self.stats = DecodeStats()
+
+    def time_span_us(self) -> tuple[int, int] | None:
+        h = self.header
+        if h.n_records == 0:
+            return None
+        with open(h.path, "rb") as fh:
+            fh.seek(h.data_offset)
+            first = np.frombuffer(fh.read(8), ">u4")
+            fh.seek(h.data_offset + (h.n_records - 1) * RECORD_BYTES)
+            last = np.frombuffer(fh.read(8), ">u4")
+        t0, t1 = int(first[1]), int(last[1])
+        if t1 < t0:
+            t1 += WRAP
+        return t0, t1 + 1
+
+    def packets(self) -> Iterator[EventPacket]:
+        self.stats = DecodeStats()
+        prm = self.params
+        dec = Decoder(self.header, self.chip, prm.non_dvs, prm.backstep_tolerance_us, self.stats)
+        geom = self.chip.geometry
+        P = prm.packet_us
+        pending: list[tuple[np.ndarray, ...]] = []
+        start = None  # start of the next slice to emit
+        t0 = None
+        for raw, first in iter_raw(self.header, prm.chunk_records):
+            x, y, t, p = dec.decode(raw, first)
+            if len(t) == 0:
+                continue
+            if t0 is None:
+                t0 = start = int(t[0])
+            pending.append((x, y, t, p))
+            last_t = int(t[-1])
+            cut = t0 + (last_t - t0) // P * P  # start of the slice holding the last event
+            if cut <= start:
+                continue
+            x, y, t, p = (np.concatenate(c) for c in zip(*pending, strict=True))
+            done = int(np.searchsorted(t, cut, side="left"))
+            yield from self._slices(geom, x[:done], y[:done], t[:done], p[:done], start, cut, t0)
+            pending = [(x[done:], y[done:], t[done:], p[done:])]
+            start = cut
+        if t0 is not None:
+            x, y, t, p = (np.concatenate(c) for c in zip(*pending, strict=True))
+            end = int(t[-1]) + 1 if len(t) else start + 1
+            yield EventPacket(geometry=geom, t_start=start, t_end=end, x=x, y=y, t=t, p=p)
+        self.context.metrics[self.id] = {"file": str(self.header.path), "chip": self.chip.name,
+                                         **self.stats.as_dict()}
+
+    def _slices(self, geom, x, y, t, p, start: int, stop: int, t0: int):
+        """Packets for ``[start, stop)`` cut every ``packet_us`` from ``t0``; runs of empty
+        slices are merged into one empty packet."""
+        P = self.params.packet_us
+        k0 = (start - t0) // P
+        k1 = (stop - t0) // P
+        edges = t0 + P * np.arange(k0, k1 + 1, dtype=np.int64)
+        idx = np.searchsorted(t, edges, side="left")
+        a = 0
+        while a < len(edges) - 1:
+            i0, i1 = int(idx[a]), int(idx[a + 1])
+            b = a + 1
+            if i0 == i1:  # merge a run of empty slices
+                while b < len(edges) - 1 and int(idx[b + 1]) == i0:
+                    b += 1
+            yield EventPacket(geometry=geom, t_start=int(edges[a]), t_end=int(edges[b]),
+                              x=x[i0:i1], y=y[i0:i1], t=t[i0:i1], p=p[i0:i1])
+            a = b
+
+
+class AedatWriter(Filter):
+    """Write the events passing through to an AEDAT 2.0 (jAER) file; passes packets on.
+
+    The file is written as ``PATH.partial`` and renamed to ``PATH`` only at the end of a
+    successful run. ``chip`` defaults to the chip of the sensor's size; other sizes use the DAVIS
+    address layout with an ``# evchain-sensor: WxH`` header line (evchain reads it back; jAER
+    would need a matching chip class).
+    """
+
+    name = "aedat_writer"
+    consumes = EventPacket
+    produces = None
+
+    class Params(FilterParams):
+        path: str = Field("events.aedat", description="output file, relative to the run's "
+                                                      "output folder")
+        chip: ChipName | None = Field(None, description="address layout; default: from the "
+                                                        "sensor size")
+
+    _out: AtomicFile | None = None
+    _writer: Writer | None = None
+
+    def reset(self) -> None:
+        if self._out is not None:
+            self._out.abort()
+        self._out = None
+        self._writer = None
+        self._committed = False
+
+    def _open(self, geometry: Geometry | None) -> Writer:
+        if self._writer is None:
+            chip = chip_for(geometry, self.params.chip)
+            self._out = AtomicFile(self.context.output_path(self.params.path))
+            self._writer = Writer(self._out, chip)
+        return self._writer
+
+    def process(self, packet: EventPacket) -> EventPacket:
+        self._open(packet.geometry).write(packet.x, packet.y, packet.t, packet.p)
+        return packet
+
+    def flush(self) -> None:
+        w = self._open(self.context.geometry)
+        self._out.commit()
+        self._committed = True
+        self.context.metrics[self.id] = {"path": str(self._out.path), "chip": w.chip.name,
+                                         "events": w.events, "special_records": w.specials}
+        return None
+
+    def close(self) -> None:
+        if self._out is not None and not self._committed:
+            self._out.abort()

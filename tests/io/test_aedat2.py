@@ -1,0 +1,347 @@
+"""AEDAT 2.0 reader, writer and their stages: round trips, jAER conventions, bad input."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from evchain.core.filter import Context
+from evchain.core.packets import EventPacket, Geometry
+from evchain.errors import DataError
+from evchain.io.aedat2 import (
+    CHIPS,
+    AedatSource,
+    AedatWriter,
+    DecodeStats,
+    header_bytes,
+    read_aedat2,
+    read_header,
+    write_aedat2,
+)
+from evchain.testing.contract import check_filter, check_source, recut
+from evchain.testing.synthetic import random_events
+
+REPO = Path(__file__).resolve().parents[2]
+DVSFLOW = REPO / ".." / "shared" / "data" / "dvsflow16"
+SQUARE = DVSFLOW / "TranslatingSquare.aedat"
+SHIPPED = REPO / "tests" / "data" / "moving_edge_davis240.aedat"
+
+
+def raw_file(path: Path, addr, ts, chip: str | None = "davis240", header: bytes | None = None):
+    """A file with hand-built records (address, timestamp as unsigned 32-bit)."""
+    rec = np.empty((len(addr), 2), ">u4")
+    rec[:, 0] = np.asarray(addr, np.uint64).astype(np.uint32)
+    rec[:, 1] = np.asarray(ts, np.uint64).astype(np.uint32)
+    if header is None:
+        header = header_bytes(CHIPS[chip]) if chip else b"#!AER-DAT2.0\r\n# no chip here\r\n"
+    path.write_bytes(header + rec.tobytes())
+    return path
+
+
+def davis(x_raw, y_raw, on):
+    return (np.asarray(y_raw, np.uint32) << 22) | (np.asarray(x_raw, np.uint32) << 12) | (
+        np.asarray(on, np.uint32) << 11)
+
+
+def same(a: EventPacket, b: EventPacket) -> bool:
+    return all(np.array_equal(getattr(a, c), getattr(b, c)) for c in EventPacket.columns)
+
+
+# --- round trips and conventions -------------------------------------------------------------
+
+@pytest.mark.parametrize("chip", sorted(CHIPS))
+def test_round_trip_every_chip(tmp_path, chip):
+    g = CHIPS[chip].geometry
+    ev = random_events(5000, g, 0, 3_000_000, seed=1)
+    ev = ev.replace(x=np.concatenate([[0, g.width - 1], ev.x[2:]]).astype(np.uint16),
+                    y=np.concatenate([[0, g.height - 1], ev.y[2:]]).astype(np.uint16))
+    path = write_aedat2(tmp_path / "a.aedat", ev, chip=chip)
+    header = read_header(path)
+    assert header.chip.name == chip  # the chip is named in the header and found again
+    back = read_aedat2(path)
+    assert back.geometry == g
+    assert same(ev, back)
+    back.validate()
+
+
+def test_davis_coordinates_follow_jaer(tmp_path):
+    # jAER: x = W-1-raw_x, y origin bottom-left, bit 11 = ON. evchain is top-left.
+    path = raw_file(tmp_path / "d.aedat", davis([0, 239, 5], [0, 179, 7], [1, 0, 1]), [1, 2, 3])
+    ev = read_aedat2(path)
+    assert ev.x.tolist() == [239, 0, 234]
+    assert ev.y.tolist() == [179, 0, 172]
+    assert ev.p.tolist() == [1, -1, 1]
+
+
+def test_dvs128_polarity_as_jaer_code_reads_it(tmp_path):
+    # y bits 8-14, x bits 1-7, raw polarity bit 0 == 0 is ON (jAER code; iniVation's spec differs)
+    addr = [(3 << 8) | (5 << 1) | 0, (3 << 8) | (5 << 1) | 1]
+    ev = read_aedat2(raw_file(tmp_path / "d.aedat", addr, [10, 11], chip="dvs128"))
+    assert ev.p.tolist() == [1, -1]
+    assert ev.x.tolist() == [127 - 5] * 2 and ev.y.tolist() == [127 - 3] * 2
+
+
+def test_non_dvs_records_are_skipped_and_counted(tmp_path):
+    addr = [davis(1, 1, 1), 0x80000000 | 5, davis(2, 2, 0), 0x80000C00, 1 << 10, davis(3, 3, 1)]
+    stats = DecodeStats()
+    ev = read_aedat2(raw_file(tmp_path / "d.aedat", np.array(addr), [1, 2, 3, 4, 5, 6]),
+                     stats=stats)
+    assert ev.t.tolist() == [1, 3, 6]
+    assert stats.skipped_non_dvs == 3
+    with pytest.raises(DataError, match=r"d\.aedat: record 1 .*non-DVS"):
+        read_aedat2(tmp_path / "d.aedat", non_dvs="error")
+
+
+@pytest.mark.skipif(not SQUARE.exists(), reason="shared dvsflow16 data not present")
+def test_translating_square_reads_and_round_trips(tmp_path):
+    ev = read_aedat2(SQUARE, chip="davis240")
+    assert len(ev) == 16_000
+    assert ev.geometry == Geometry(240, 180)
+    assert ev.x.max() < 240 and ev.y.max() < 180
+    assert np.count_nonzero(ev.p > 0) == 8000  # leading and trailing edges, opposite polarity
+    ev.validate()
+    out = write_aedat2(tmp_path / "sq.aedat", ev, chip="davis240")
+    again = read_aedat2(out)
+    assert same(ev, again)
+    # the records themselves are byte-identical to jAER's
+    src, dst = read_header(SQUARE), read_header(out)
+    assert SQUARE.read_bytes()[src.data_offset:] == out.read_bytes()[dst.data_offset:]
+
+
+def test_header_lines_crlf_and_stop_at_first_non_hash_byte(tmp_path):
+    path = raw_file(tmp_path / "h.aedat", davis([1], [1], [1]), [5])
+    data = path.read_bytes()
+    header = read_header(path)
+    head = data[:header.data_offset]
+    assert head.startswith(b"#!AER-DAT2.0\r\n")
+    assert all(line.startswith(b"#") for line in head.split(b"\r\n")[:-1])
+    assert b"# AEChip: eu.seebetter.ini.chips.davis.DAVIS240C\r\n" in head
+    assert head.count(b"\n") == head.count(b"\r\n")
+    assert header.data_offset == len(header_bytes(CHIPS["davis240"]))
+    assert header.n_records == 1
+
+
+@pytest.mark.parametrize("y_raw", [140, 141, 142, 143])
+def test_writer_never_starts_data_with_hash(tmp_path, y_raw):
+    # raw y 140..143 puts 0x23 '#' in the address' top byte on DAVIS chips
+    g = CHIPS["davis240"].geometry
+    y = 179 - y_raw
+    ev = EventPacket(geometry=g, t_start=0, t_end=100, x=np.array([4, 5], np.uint16),
+                     y=np.array([y, 3], np.uint16), t=np.array([7, 9], np.int64),
+                     p=np.array([1, -1], np.int8))
+    path = write_aedat2(tmp_path / "x.aedat", ev)
+    header = read_header(path)
+    data = path.read_bytes()
+    assert data[header.data_offset] != ord("#")
+    assert header.n_records == 3  # a leading special event (address 0x400, same timestamp)
+    stats = DecodeStats()
+    assert same(read_aedat2(path, stats=stats), ev)
+    assert stats.skipped_non_dvs == 1
+    # without the special record, a header reader would swallow the event as a header line
+    plain = raw_file(tmp_path / "bad.aedat", davis([235], [y_raw], [1]), [7])
+    assert read_header(plain).n_records == 0
+
+
+def test_generic_geometry_round_trip(tmp_path):
+    ev = random_events(2000, Geometry(64, 48), seed=4)
+    path = write_aedat2(tmp_path / "g.aedat", ev)
+    assert b"# evchain-sensor: 64x48" in path.read_bytes()[:400]
+    back = read_aedat2(path)
+    assert back.geometry == Geometry(64, 48) and same(back, ev)
+
+
+# --- timestamps ------------------------------------------------------------------------------
+
+def test_wrap_is_unwrapped(tmp_path):
+    ts = [2**32 - 10, 2**32 - 5, 3, 8, 2**31 + 1]
+    path = raw_file(tmp_path / "w.aedat", davis([1] * 5, [1] * 5, [1] * 5), ts)
+    for chunk in (1, 2, 100):
+        stats = DecodeStats()
+        ev = read_aedat2(path, chunk_records=chunk, stats=stats)
+        assert ev.t.tolist() == [2**32 - 10, 2**32 - 5, 2**32 + 3, 2**32 + 8, 2**32 + 2**31 + 1]
+        assert stats.wraps == 1
+
+
+def test_signed_overflow_is_continuous(tmp_path):
+    # jAER's int32 goes 2^31-1 -> -2^31: as unsigned that is one step forward
+    ts = [2**31 - 2, 2**31 - 1, 2**31, 2**31 + 4]
+    ev = read_aedat2(raw_file(tmp_path / "s.aedat", davis([1] * 4, [1] * 4, [0] * 4), ts))
+    assert ev.t.tolist() == ts
+
+
+def test_reset_continues_time(tmp_path):
+    ts = [4_000_000, 5_000_000, 10, 60]
+    stats = DecodeStats()
+    ev = read_aedat2(raw_file(tmp_path / "r.aedat", davis([1] * 4, [1] * 4, [0] * 4), ts),
+                     stats=stats)
+    assert ev.t.tolist() == [4_000_000, 5_000_000, 5_000_000, 5_000_050]
+    assert stats.resets == 1
+
+
+def test_backwards_beyond_a_wrap_is_an_error(tmp_path):
+    ts = [3_000_000, 5_000_000, 4_000_000, 6_000_000]
+    path = raw_file(tmp_path / "b.aedat", davis([1] * 4, [1] * 4, [0] * 4), ts)
+    with pytest.raises(DataError, match=r"b\.aedat: record 2 \(byte offset \d+\): timestamp "
+                                        r"goes back from 5000000 to 4000000"):
+        read_aedat2(path)
+    # small jitter can be clamped on request
+    ts = [100, 2_000_000, 1_999_990, 2_000_005]
+    path = raw_file(tmp_path / "j.aedat", davis([1] * 4, [1] * 4, [0] * 4), ts)
+    with pytest.raises(DataError, match="j.aedat"):
+        read_aedat2(path)
+    ev = read_aedat2(path, backstep_tolerance_us=20)
+    assert ev.t.tolist() == [100, 2_000_000, 2_000_000, 2_000_005]
+
+
+# --- bad input -------------------------------------------------------------------------------
+
+def test_missing_file(tmp_path):
+    with pytest.raises(DataError, match=r"nope\.aedat: no such file"):
+        read_aedat2(tmp_path / "nope.aedat")
+
+
+def test_empty_file(tmp_path):
+    (tmp_path / "e.aedat").write_bytes(b"")
+    with pytest.raises(DataError, match=r"e\.aedat: empty file.*#!AER-DAT2\.0"):
+        read_aedat2(tmp_path / "e.aedat")
+
+
+@pytest.mark.parametrize("content", [b"\x89PNG\r\n\x1a\n" + bytes(100), b"hello world\n",
+                                     b"# just a comment\r\n" + bytes(16)])
+def test_not_aedat(tmp_path, content):
+    (tmp_path / "n.aedat").write_bytes(content)
+    with pytest.raises(DataError, match=r"n\.aedat: not an AEDAT file.*expected the first line"):
+        read_aedat2(tmp_path / "n.aedat")
+
+
+def test_other_aedat_version(tmp_path):
+    (tmp_path / "v3.aedat").write_bytes(b"#!AER-DAT3.1\r\n#!END-HEADER\r\n" + bytes(28))
+    with pytest.raises(DataError, match=r"v3\.aedat: AEDAT version '3\.1' is not supported"):
+        read_aedat2(tmp_path / "v3.aedat")
+
+
+def test_truncated_last_record(tmp_path):
+    path = raw_file(tmp_path / "t.aedat", davis([1, 2], [1, 2], [0, 1]), [1, 2])
+    offset = read_header(path).data_offset + 8
+    path.write_bytes(path.read_bytes()[:-3])
+    with pytest.raises(DataError, match=rf"t\.aedat: truncated last record at byte offset "
+                                        rf"{offset} \(record 1\): 5 bytes"):
+        read_aedat2(path)
+
+
+def test_address_outside_sensor(tmp_path):
+    path = raw_file(tmp_path / "o.aedat", davis([1, 300], [1, 2], [0, 1]), [1, 2])
+    with pytest.raises(DataError, match=r"o\.aedat: record 1 \(byte offset \d+\).*raw "
+                                        r"\(x=300, y=2\), outside the 240x180 sensor"):
+        read_aedat2(path)
+    path = raw_file(tmp_path / "y.aedat", davis([1], [200], [0]), [1])
+    with pytest.raises(DataError, match=r"y\.aedat: record 0 .*outside"):
+        read_aedat2(path)
+    # a DAVIS file read as DVS128
+    path = raw_file(tmp_path / "c.aedat", davis([1], [2], [0]), [1])
+    with pytest.raises(DataError, match=r"c\.aedat: record 0 .*DVS128 layout"):
+        read_aedat2(path, chip="dvs128")
+
+
+def test_header_without_chip_needs_the_parameter(tmp_path):
+    path = raw_file(tmp_path / "nc.aedat", davis([1], [2], [0]), [1], chip=None)
+    with pytest.raises(DataError, match=r"nc\.aedat: the header names no chip.*set the "
+                                        r"parameter chip"):
+        read_aedat2(path)
+    assert len(read_aedat2(path, chip="davis240")) == 1
+
+
+def test_header_only_file_has_no_events(tmp_path):
+    path = tmp_path / "h.aedat"
+    path.write_bytes(header_bytes(CHIPS["dvs128"]))
+    ev = read_aedat2(path)
+    assert len(ev) == 0 and ev.geometry == Geometry(128, 128)
+
+
+# --- the stages ------------------------------------------------------------------------------
+
+def make_file(tmp_path, n=20_000, gap=False) -> Path:
+    g = CHIPS["davis240"].geometry
+    ev = random_events(n, g, 1_000, 801_000, seed=2)
+    if gap:  # no events for 300 ms in the middle
+        ev = ev.replace(t=np.where(ev.t > 400_000, ev.t + 300_000, ev.t),
+                        t_end=ev.t_end + 300_000)
+    return write_aedat2(tmp_path / "s.aedat", ev)
+
+
+def run_source(params: dict, tmp_path) -> tuple[list[EventPacket], Context]:
+    ctx = Context(out_dir=tmp_path)
+    src = AedatSource()
+    src.id = "aedat"
+    src.setup(AedatSource.Params(**params), ctx)
+    try:
+        return list(src.packets()), ctx
+    finally:
+        src.close()
+
+
+def test_source_contract_and_slices(tmp_path):
+    path = make_file(tmp_path, gap=True)
+    check_source(AedatSource, {"path": str(path)}, out_dir=tmp_path, max_packets=1000)
+    packets, ctx = run_source({"path": str(path), "packet_us": 10_000}, tmp_path)
+    assert ctx.geometry == Geometry(240, 180)
+    whole = read_aedat2(path)
+    assert same(EventPacket.concat(packets), whole)
+    for a, b in zip(packets, packets[1:], strict=False):
+        assert a.t_end == b.t_start
+    lengths = [p.t_end - p.t_start for p in packets]
+    assert max(lengths) >= 280_000  # the empty slices of the gap became one packet
+    assert sum(len(p) == 0 for p in packets) == 1
+    assert ctx.metrics["aedat"]["events"] == len(whole)
+
+
+def test_source_output_independent_of_chunk_size(tmp_path):
+    path = make_file(tmp_path, n=3000)
+    ref, _ = run_source({"path": str(path), "packet_us": 7_000}, tmp_path)
+    got, _ = run_source({"path": str(path), "packet_us": 7_000, "chunk_records": 13}, tmp_path)
+    assert [(p.t_start, p.t_end) for p in ref] == [(p.t_start, p.t_end) for p in got]
+    assert same(EventPacket.concat(ref), EventPacket.concat(got))
+
+
+def test_source_errors_name_the_file(tmp_path):
+    with pytest.raises(DataError, match="missing.aedat"):
+        run_source({"path": str(tmp_path / "missing.aedat")}, tmp_path)
+
+
+@pytest.mark.skipif(not SHIPPED.exists(), reason="tests/data file not generated")
+def test_shipped_quickstart_file_reads():
+    ev = read_aedat2(SHIPPED)
+    assert ev.geometry == Geometry(240, 180) and len(ev) > 1000
+    assert SHIPPED.stat().st_size < 200_000
+
+
+def test_writer_contract(tmp_path):
+    g = CHIPS["davis240"].geometry
+    ev = random_events(3000, g, 0, 100_000, seed=5)
+    check_filter(AedatWriter, {"path": str(tmp_path / "w.aedat")}, recut([ev], [30_000]),
+                 out_dir=tmp_path)
+    assert same(read_aedat2(tmp_path / "w.aedat"), ev)
+
+
+def test_writer_is_atomic(tmp_path):
+    g = CHIPS["dvs128"].geometry
+    ev = random_events(1000, g, 0, 100_000, seed=6)
+    ctx = Context(out_dir=tmp_path, geometry=g)
+    w = AedatWriter()
+    w.id = "aedat_writer"
+    w.setup(AedatWriter.Params(path="sub/out.aedat"), ctx)
+    w.process(ev)
+    w.close()  # a failed run: no flush
+    assert not (tmp_path / "sub" / "out.aedat").exists()
+    assert (tmp_path / "sub" / "out.aedat.partial").exists()
+    # a successful one
+    w = AedatWriter()
+    w.id = "aedat_writer"
+    w.setup(AedatWriter.Params(path="sub/out.aedat"), ctx)
+    assert w.process(ev) is ev
+    w.flush()
+    w.close()
+    assert same(read_aedat2(tmp_path / "sub" / "out.aedat"), ev)
+    assert ctx.metrics["aedat_writer"]["events"] == len(ev)
