@@ -1,0 +1,275 @@
+"""Optical-flow scoring against ground truth: the ``flow_scorer`` stage and reusable helpers.
+
+* :func:`flow_errors` gives per-event errors of flow events against a ground-truth provider
+  (``truth.flow(x, y, t_us)``, optionally ``truth.foe(t_us)``); :func:`summarize` turns them
+  into metrics; :func:`score_flow` does both (pure numpy, for benchmarks).
+* :class:`DensityCounter` is the flow filters' side of the density convention: every flow
+  filter appends the series ``flow_density`` (``t``, ``n_in``, ``n_out``) with the number of
+  input events and of flow events per fixed time bin (see ``docs/explanation/flow_scoring.md``).
+* :class:`FlowScorer` (``flow_scorer``) passes flow packets through unchanged, appends the series
+  ``flow_error`` per time bin and writes ``context.metrics["flow"]`` at the end of the stream.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import Field
+
+from evchain.core.filter import Filter, FilterParams
+from evchain.core.packets import FlowPacket, series_array
+from evchain.errors import ConfigError
+
+#: the series every flow filter appends: events in and flow events out per time bin
+DENSITY_SERIES = "flow_density"
+DENSITY_DTYPE = [("t", "i8"), ("n_in", "i8"), ("n_out", "i8")]
+#: default bin of the density series (µs)
+DENSITY_BIN_US = 100_000
+
+ERROR_SERIES = "flow_error"
+ERROR_DTYPE = [("t", "i8"), ("n", "i8"), ("aee_pxs", "f8"), ("aee_normal_pxs", "f8"),
+               ("aae_deg", "f8"), ("invalid_rate", "f8")]
+
+#: outlier thresholds
+OUTLIER_REL = 0.5  # relative endpoint error above 50 %
+OUTLIER_DEG = 45.0  # angular error above 45 degrees
+
+
+class DensityCounter:
+    """Counts input and flow events per time bin ``[k B, (k+1) B)`` and emits series entries.
+
+    Use in a flow filter: ``entries = counter.add(events.t, events.t[index], packet.t_end)`` in
+    ``process`` and ``counter.flush()`` at the end; append both to the output packet's series
+    ``flow_density`` (always, even when empty). A bin is emitted, with ``t`` = its end, in the
+    first packet whose slice reaches past its end, so entries do not depend on how the stream was
+    cut; the last, partial bin comes from :meth:`flush`. Only bins with input events appear.
+    """
+
+    def __init__(self, bin_us: int = DENSITY_BIN_US):
+        if bin_us <= 0:
+            raise ConfigError(f"density bin must be > 0 us, got {bin_us}")
+        self.bin_us = int(bin_us)
+        self.reset()
+
+    def reset(self) -> None:
+        self.pending: dict[int, list[int]] = {}
+
+    def add(self, t_in: np.ndarray, t_out: np.ndarray, t_end: int) -> np.ndarray:
+        for times, col in ((t_in, 0), (t_out, 1)):
+            if len(times):
+                k, c = np.unique(np.asarray(times, np.int64) // self.bin_us, return_counts=True)
+                for kk, cc in zip(k.tolist(), c.tolist(), strict=True):
+                    self.pending.setdefault(kk, [0, 0])[col] += cc
+        done = sorted(k for k in self.pending if (k + 1) * self.bin_us < t_end)
+        return self._emit(done)
+
+    def flush(self) -> np.ndarray:
+        return self._emit(sorted(self.pending))
+
+    def _emit(self, keys: list[int]) -> np.ndarray:
+        rows = [(k, *self.pending.pop(k)) for k in keys]
+        rows = [r for r in rows if r[1] > 0]
+        return series_array(DENSITY_DTYPE, t=np.array([(k + 1) * self.bin_us for k, _, _ in rows],
+                                                      np.int64),
+                            n_in=np.array([r[1] for r in rows], np.int64),
+                            n_out=np.array([r[2] for r in rows], np.int64))
+
+
+def flow_errors(x, y, t, vx, vy, truth) -> dict[str, np.ndarray]:
+    """Per-event errors of flow vectors (px/s) against ``truth`` (NaN where undefined).
+
+    Keys: ``gt_ok`` (ground truth finite), ``ee`` |v - u| and ``ree`` |v - u| / |u| against the
+    full ground truth u; ``ee_normal`` and ``ree_normal`` against u projected on the estimated
+    normal v/|v|; ``ae_deg`` the 2-D angle between v and u; ``invalid`` (1.0/0.0, NaN without an
+    FOE) whether v points more than 90 degrees away from p - foe (thesis Table 4.2).
+    """
+    x = np.asarray(x, np.float64)
+    y = np.asarray(y, np.float64)
+    t = np.asarray(t, np.float64)
+    vx = np.asarray(vx, np.float64)
+    vy = np.asarray(vy, np.float64)
+    n = len(x)
+    ux, uy = truth.flow(x, y, t)
+    ux = np.broadcast_to(np.asarray(ux, np.float64), (n,))
+    uy = np.broadcast_to(np.asarray(uy, np.float64), (n,))
+    ok = np.isfinite(ux) & np.isfinite(uy)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        speed = np.hypot(vx, vy)
+        gt_speed = np.hypot(ux, uy)
+        ee = np.where(ok, np.hypot(vx - ux, vy - uy), np.nan)
+        ree = np.where(ok & (gt_speed > 0), ee / gt_speed, np.nan)
+        nx = np.where(speed > 0, vx / speed, np.nan)
+        ny = np.where(speed > 0, vy / speed, np.nan)
+        un = ux * nx + uy * ny  # ground truth along the estimated normal
+        ee_n = np.where(ok, np.hypot(vx - un * nx, vy - un * ny), np.nan)
+        ree_n = np.where(ok & (np.abs(un) > 0), ee_n / np.abs(un), np.nan)
+        ang = np.degrees(np.arctan2(np.abs(vx * uy - vy * ux), vx * ux + vy * uy))
+        ae = np.where(ok & (gt_speed > 0) & (speed > 0), ang, np.nan)
+    invalid = np.full(n, np.nan)
+    if hasattr(truth, "foe"):
+        fx, fy = truth.foe(t)
+        fx = np.broadcast_to(np.asarray(fx, np.float64), (n,))
+        fy = np.broadcast_to(np.asarray(fy, np.float64), (n,))
+        dot = (x - fx) * vx + (y - fy) * vy
+        defined = np.isfinite(dot) & ((x != fx) | (y != fy)) & (speed > 0)
+        invalid = np.where(defined, (dot < 0).astype(np.float64), np.nan)
+    return {"gt_ok": ok, "ee": ee, "ree": ree, "ee_normal": ee_n, "ree_normal": ree_n,
+            "ae_deg": ae, "invalid": invalid}
+
+
+SUM_KEYS = ("ee", "ree", "ee_normal", "ree_normal", "ae_deg", "invalid")
+
+
+def partial_sums(errs: dict[str, np.ndarray]) -> dict[str, float]:
+    """Sums and counts of the finite entries of each error (order-independent: math.fsum)."""
+    out: dict[str, float] = {"n_flow": float(len(errs["ee"])),
+                             "n_gt": float(np.count_nonzero(errs["gt_ok"]))}
+    for k in SUM_KEYS:
+        v = errs[k][np.isfinite(errs[k])]
+        out[f"sum_{k}"] = math.fsum(v.tolist())
+        out[f"n_{k}"] = float(len(v))
+    out["n_ree_out"] = float(np.count_nonzero(errs["ree"] > OUTLIER_REL))
+    out["n_ree_normal_out"] = float(np.count_nonzero(errs["ree_normal"] > OUTLIER_REL))
+    out["n_ae_out"] = float(np.count_nonzero(errs["ae_deg"] > OUTLIER_DEG))
+    return out
+
+
+def merge_sums(parts: list[dict[str, float]]) -> dict[str, float]:
+    keys = parts[0].keys() if parts else partial_sums(_empty_errs()).keys()
+    return {k: math.fsum(p[k] for p in parts) for k in keys}
+
+
+def _empty_errs() -> dict[str, np.ndarray]:
+    e = np.zeros(0)
+    return {"gt_ok": np.zeros(0, bool), **{k: e for k in SUM_KEYS}}
+
+
+def _mean(s: dict[str, float], key: str) -> float | None:
+    n = s[f"n_{key}"]
+    return s[f"sum_{key}"] / n if n else None
+
+
+def _share(count: float, n: float) -> float | None:
+    return count / n if n else None
+
+
+def metrics_from_sums(s: dict[str, float]) -> dict[str, Any]:
+    """Metrics (means and shares) from merged partial sums."""
+    ree = _mean(s, "ree")
+    ree_n = _mean(s, "ree_normal")
+    return {
+        "n_flow": int(s["n_flow"]),
+        "n_scored": int(s["n_gt"]),
+        "n_no_ground_truth": int(s["n_flow"] - s["n_gt"]),
+        "aee_pxs": _mean(s, "ee"),
+        "ree_pct": None if ree is None else 100.0 * ree,
+        "aee_normal_pxs": _mean(s, "ee_normal"),
+        "ree_normal_pct": None if ree_n is None else 100.0 * ree_n,
+        "aae_deg": _mean(s, "ae_deg"),
+        "invalid_rate": _mean(s, "invalid"),
+        "outliers_ree50": _share(s["n_ree_out"], s["n_ree"]),
+        "outliers_ree_normal50": _share(s["n_ree_normal_out"], s["n_ree_normal"]),
+        "outliers_ae45": _share(s["n_ae_out"], s["n_ae_deg"]),
+    }
+
+
+def summarize(errs: dict[str, np.ndarray]) -> dict[str, Any]:
+    """Metrics of one set of per-event errors (see :func:`flow_errors`)."""
+    return metrics_from_sums(partial_sums(errs))
+
+
+def score_flow(x, y, t, vx, vy, truth) -> dict[str, Any]:
+    """Score flow vectors against ``truth``: AEE (px/s), relative EE (%), both against the full
+    and the normal-projected ground truth, AAE (deg), invalid rate (0-1, None without an FOE),
+    outlier shares, counts. ``density`` is not known here (needs the input count)."""
+    return summarize(flow_errors(x, y, t, vx, vy, truth))
+
+
+class FlowScorer(Filter):
+    """Scores flow events against ground truth (AEE, normal AEE, AAE, invalid rate, density).
+
+    Ground truth: the source's (``context.truth``) or a DVSFLOW16 ``.mat`` file given as
+    ``ground_truth``. Packets pass through unchanged, plus the series ``flow_error`` (one entry
+    per ``bin_us`` with flow events: t = bin end, n, aee_pxs, aee_normal_pxs, aae_deg,
+    invalid_rate). At the end ``metrics.flow`` holds the run's values; ``density`` = flow events
+    / input events from the flow filter's ``flow_density`` series (None if it has none).
+    """
+
+    name = "flow_scorer"
+    consumes = FlowPacket
+    produces = None
+
+    class Params(FilterParams):
+        ground_truth: str | None = Field(
+            None, description="DVSFLOW16 ground-truth .mat file; default: the source's truth")
+        bin_us: int = Field(100_000, gt=0, description="time-series bin (us)")
+
+    def setup(self, params, context) -> None:
+        super().setup(params, context)
+        if params.ground_truth is not None:
+            from evchain.io.dvsflow16 import DVSFLOW16Truth
+
+            geom = context.geometry
+            self.truth = DVSFLOW16Truth(Path(params.ground_truth),
+                                        height=None if geom is None else geom.height,
+                                        width=None if geom is None else geom.width)
+        else:
+            self.truth = context.truth
+        if self.truth is None or not hasattr(self.truth, "flow"):
+            raise ConfigError("flow_scorer needs ground truth: a source that provides flow "
+                              "ground truth, or the parameter ground_truth: path/to/gt.mat",
+                              key="ground_truth")
+
+    def reset(self) -> None:
+        self.bins: dict[int, list[dict[str, np.ndarray]]] = {}
+        self.bin_sums: list[dict[str, float]] = []
+        self.n_in = 0
+        self.n_out_reported = 0
+        self.last = None
+
+    def _close_bins(self, keys: list[int]) -> np.ndarray:
+        rows = []
+        for k in keys:
+            parts = self.bins.pop(k)
+            errs = {name: np.concatenate([p[name] for p in parts]) for name in parts[0]}
+            s = partial_sums(errs)
+            if s["n_flow"] == 0:
+                continue
+            self.bin_sums.append(s)
+            m = metrics_from_sums(s)
+            rows.append(((k + 1) * self.params.bin_us, m["n_flow"],
+                         *(np.nan if m[key] is None else m[key]
+                           for key in ("aee_pxs", "aee_normal_pxs", "aae_deg", "invalid_rate"))))
+        cols = list(zip(*rows, strict=True)) if rows else [[]] * len(ERROR_DTYPE)
+        return series_array(ERROR_DTYPE, **{name: np.asarray(c) for (name, _), c
+                                             in zip(ERROR_DTYPE, cols, strict=True)})
+
+    def process(self, packet: FlowPacket) -> FlowPacket:
+        dens = packet.series.get(DENSITY_SERIES)
+        if dens is not None and len(dens):
+            self.n_in += int(dens["n_in"].sum())
+            self.n_out_reported += int(dens["n_out"].sum())
+        if len(packet):
+            errs = flow_errors(packet.x, packet.y, packet.t, packet.vx, packet.vy, self.truth)
+            k = packet.t // self.params.bin_us
+            for kk in np.unique(k).tolist():
+                sel = k == kk
+                self.bins.setdefault(kk, []).append({n: v[sel] for n, v in errs.items()})
+        done = sorted(kk for kk in self.bins if (kk + 1) * self.params.bin_us < packet.t_end)
+        self.last = packet
+        return packet.with_series(ERROR_SERIES, self._close_bins(done))
+
+    def flush(self) -> FlowPacket | None:
+        entries = self._close_bins(sorted(self.bins))
+        merged = merge_sums(self.bin_sums)
+        m = metrics_from_sums(merged)
+        m["density"] = (self.n_out_reported / self.n_in) if self.n_in else None
+        m["n_input_events"] = self.n_in if self.n_in else None
+        self.context.metrics["flow"] = m
+        if self.last is None:
+            return None
+        end = self.last.t_end
+        return FlowPacket.empty(self.last.geometry, end, end).with_series(ERROR_SERIES, entries)

@@ -1,0 +1,97 @@
+"""``plane_flow``: normal optical flow from local plane fits on the surface of active events."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from evchain.core.filter import Filter, FilterParams
+from evchain.core.packets import EventPacket, FlowPacket
+from evchain.filters.flow_scorer import DENSITY_BIN_US, DENSITY_SERIES, DensityCounter
+
+
+class PlaneFlow(Filter):
+    """Normal optical flow by local plane fitting (Benosman 2014, jAER's local planes).
+
+    Per event: the surface of active events (latest timestamp per pixel and polarity) in the
+    ``(2r+1)^2`` window around it, same polarity, at most ``window_us`` old, coordinates centred
+    on the event, times in seconds. Variants: ``single`` (one least-squares fit of
+    t = a x + b y + c), ``iterative`` (drop points farther than ``th2_s`` from the plane, refit
+    until the parameters change < ``th1``), ``robust`` (homogeneous eigenvector fit, iterated),
+    ``original`` (same, with the paper's biased per-component velocity -c/a, -c/b),
+    ``savitzky_golay`` (mean pairwise slopes along rows and columns). Velocity v = g / |g|^2 with
+    g = (dt/dx, dt/dy); flow faster than ``max_speed_pxs`` is dropped (jAER's th3). Every event
+    updates the surface; events within ``refractory_us`` of the previous one at their pixel and
+    polarity, and events within ``border_px`` of the border, get no flow. Degenerate fits
+    (collinear or too few points, flat surfaces) are skipped, never NaN. Appends the series
+    ``flow_density`` (t, n_in, n_out per 100 ms bin).
+    """
+
+    name = "plane_flow"
+    consumes = EventPacket
+    produces = FlowPacket
+
+    class Params(FilterParams):
+        variant: Literal["single", "iterative", "robust", "original", "savitzky_golay"] = Field(
+            "savitzky_golay", description="fit method (see the filter's description)")
+        search_distance: int = Field(2, ge=1, le=7,
+                                     description="r: neighbourhood (2r+1)^2 px [searchDistance]")
+        window_us: int = Field(80_000, gt=0, description="max age of neighbours [maxDtThreshold]")
+        refractory_us: int = Field(150_000, ge=0,
+                                   description="no flow within this of the previous event at "
+                                               "the pixel and polarity [refractoryPeriodUs]")
+        border_px: int | None = Field(None, ge=0,
+                                      description="no flow this close to the border; "
+                                                  "default search_distance")
+        min_points: int = Field(3, ge=3, description="fewest neighbours (incl. the event)")
+        th1: float = Field(1e-5, gt=0, description="iterative fits: stop when the parameters "
+                                                   "change less (s/px, or unit normal)")
+        th2_s: float = Field(0.01, gt=0, description="iterative fits: drop points farther "
+                                                     "from the plane (s)")
+        max_speed_pxs: float = Field(1000.0, gt=0,
+                                     description="th3 as a speed ceiling: drop faster flow")
+        max_iterations: int = Field(10, ge=1, description="iterative fits: refits at most")
+
+    def reset(self) -> None:
+        from evchain.kernels.plane_flow import VARIANTS, new_state
+
+        g = self.context.geometry
+        self._state = None if g is None else new_state(g.width, g.height)
+        self._variant = VARIANTS[self.params.variant]
+        self._density = DensityCounter(DENSITY_BIN_US)
+        self._end = None
+        self._geometry = g
+
+    def process(self, packet: EventPacket) -> FlowPacket:
+        from evchain.kernels.plane_flow import new_state, plane_flow_kernel
+
+        g = packet.geometry
+        if self._state is None or self._state.shape[1:] != (g.height, g.width):
+            self._state = new_state(g.width, g.height)
+        self._geometry = g
+        n = len(packet)
+        idx = np.empty(n, np.int64)
+        vx = np.empty(n, np.float64)
+        vy = np.empty(n, np.float64)
+        prm = self.params
+        r = prm.search_distance
+        margin = r if prm.border_px is None else prm.border_px
+        k = 0
+        if n:
+            k = plane_flow_kernel(packet.x, packet.y, packet.t, packet.p, self._state,
+                                  self._variant, r, prm.window_us, prm.refractory_us, margin,
+                                  prm.min_points, prm.th1, prm.th2_s, prm.max_speed_pxs,
+                                  prm.max_iterations, idx, vx, vy)
+        idx = idx[:k]
+        out = FlowPacket.from_events(packet, idx, vx[:k], vy[:k])
+        self._end = packet.t_end
+        return out.with_series(DENSITY_SERIES, self._density.add(packet.t, packet.t[idx],
+                                                                 packet.t_end))
+
+    def flush(self) -> FlowPacket | None:
+        if self._end is None:
+            return None
+        return FlowPacket.empty(self._geometry, self._end, self._end).with_series(
+            DENSITY_SERIES, self._density.flush())

@@ -1,0 +1,385 @@
+"""Numba kernels of ``plane_flow``: local plane fits on the surface of active events.
+
+State: ``ts`` int64 ``[2, H, W]``, the latest timestamp per pixel and polarity (index 0 = OFF,
+1 = ON), :data:`NO_EVENT` where a pixel has not fired yet. Every event updates its own pixel
+(jAER's semantics); flow is computed for an event only if it is not inside the border margin and
+not within ``refractory_us`` of the previous event at the same pixel and polarity.
+
+Neighbours: same-polarity pixels of the ``(2r+1)^2`` window (the current pixel included, at
+(0, 0, 0)) whose timestamp is valid and at most ``window_us`` old. Coordinates are centred on the
+current event (pixels), times in seconds relative to it (<= 0).
+
+Variants (``VARIANTS``): ``single`` (one closed-form least-squares fit of t = a x + b y + c),
+``iterative`` (same, dropping points with |residual| > th2 s and refitting until the parameters
+change < th1, giving up with <= 3 points left), ``robust`` (homogeneous plane n . (x, y, t) = d as
+the smallest eigenvector of the points' covariance, iterated likewise, v from the gradient form),
+``original`` (the same homogeneous iterative fit with jAER's per-component velocity
+vx = -n_t / n_x, vy = -n_t / n_y, skipped when a component of the normal is exactly zero) and
+``savitzky_golay`` (mean pairwise timestamp slope along rows -> dt/dx and along columns -> dt/dy).
+Velocity everywhere except ``original``: v = g / |g|^2 with g = (dt/dx, dt/dy) in s/px.
+Speed ceiling: flow with |v| > ``max_speed_pxs`` is rejected (th3 stated in px/s).
+Singular or degenerate fits (collinear points, repeated eigenvalues, flat surfaces) are skipped:
+no NaN or inf is ever written.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+NO_EVENT = np.iinfo(np.int64).min
+VARIANTS = {"single": 0, "iterative": 1, "robust": 2, "original": 3, "savitzky_golay": 4}
+# 1 - corr(x, y)^2 below this: points (numerically) collinear -> no plane. For integer pixel
+# offsets a non-collinear set has at least 1 / (n^2 r^4) (~5e-6 for r = 3): well above.
+COLLINEAR_EPS = 1e-9
+# two smallest eigenvalues closer than this (relative to the largest): normal undefined.
+EIG_EPS = 1e-12
+
+
+def new_state(width: int, height: int) -> np.ndarray:
+    """The surface of active events, all pixels empty."""
+    return np.full((2, height, width), NO_EVENT, np.int64)
+
+
+@njit(cache=True)
+def fit_explicit(X, Y, T, use, n):
+    """Least squares t = a x + b y + c over points with ``use``; (ok, a, b, c)."""
+    m = 0
+    sx = 0.0
+    sy = 0.0
+    st = 0.0
+    for i in range(n):
+        if use[i]:
+            m += 1
+            sx += X[i]
+            sy += Y[i]
+            st += T[i]
+    if m < 3:
+        return False, 0.0, 0.0, 0.0
+    mx = sx / m
+    my = sy / m
+    mt = st / m
+    cxx = 0.0
+    cyy = 0.0
+    cxy = 0.0
+    cxt = 0.0
+    cyt = 0.0
+    for i in range(n):
+        if use[i]:
+            dx = X[i] - mx
+            dy = Y[i] - my
+            dt = T[i] - mt
+            cxx += dx * dx
+            cyy += dy * dy
+            cxy += dx * dy
+            cxt += dx * dt
+            cyt += dy * dt
+    det = cxx * cyy - cxy * cxy
+    if cxx <= 0.0 or cyy <= 0.0 or det <= COLLINEAR_EPS * cxx * cyy:
+        return False, 0.0, 0.0, 0.0
+    a = (cyy * cxt - cxy * cyt) / det
+    b = (cxx * cyt - cxy * cxt) / det
+    c = mt - a * mx - b * my
+    return True, a, b, c
+
+
+@njit(cache=True)
+def smallest_eigvec3(a00, a01, a02, a11, a12, a22):
+    """Unit eigenvector of the smallest eigenvalue of a symmetric 3x3 matrix (analytic).
+
+    Returns (ok, v0, v1, v2); not ok when the smallest eigenvalue is (numerically) repeated.
+    """
+    p1 = a01 * a01 + a02 * a02 + a12 * a12
+    q = (a00 + a11 + a22) / 3.0
+    b00 = a00 - q
+    b11 = a11 - q
+    b22 = a22 - q
+    p2 = b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * p1
+    if p2 <= 0.0:
+        return False, 0.0, 0.0, 0.0
+    p = math.sqrt(p2 / 6.0)
+    c00 = b00 / p
+    c11 = b11 / p
+    c22 = b22 / p
+    c01 = a01 / p
+    c02 = a02 / p
+    c12 = a12 / p
+    detb = (c00 * (c11 * c22 - c12 * c12) - c01 * (c01 * c22 - c12 * c02)
+            + c02 * (c01 * c12 - c11 * c02))
+    r = 0.5 * detb
+    if r <= -1.0:
+        phi = math.pi / 3.0
+    elif r >= 1.0:
+        phi = 0.0
+    else:
+        phi = math.acos(r) / 3.0
+    e1 = q + 2.0 * p * math.cos(phi)
+    e3 = q + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0)
+    e2 = 3.0 * q - e1 - e3
+    if e2 - e3 <= EIG_EPS * abs(e1):
+        return False, 0.0, 0.0, 0.0
+    m00 = a00 - e3
+    m11 = a11 - e3
+    m22 = a22 - e3
+    # cross products of the rows of A - e3 I; the longest is the most accurate
+    u0 = a01 * a12 - a02 * m11
+    u1 = a02 * a01 - m00 * a12
+    u2 = m00 * m11 - a01 * a01
+    w0 = a01 * m22 - a02 * a12
+    w1 = a02 * a02 - m00 * m22
+    w2 = m00 * a12 - a01 * a02
+    z0 = m11 * m22 - a12 * a12
+    z1 = a12 * a02 - a01 * m22
+    z2 = a01 * a12 - m11 * a02
+    nu = u0 * u0 + u1 * u1 + u2 * u2
+    nw = w0 * w0 + w1 * w1 + w2 * w2
+    nz = z0 * z0 + z1 * z1 + z2 * z2
+    if nu >= nw and nu >= nz:
+        v0, v1, v2, nn = u0, u1, u2, nu
+    elif nw >= nz:
+        v0, v1, v2, nn = w0, w1, w2, nw
+    else:
+        v0, v1, v2, nn = z0, z1, z2, nz
+    if nn <= 0.0:
+        return False, 0.0, 0.0, 0.0
+    s = 1.0 / math.sqrt(nn)
+    v0 *= s
+    v1 *= s
+    v2 *= s
+    if v2 < 0.0:  # sign convention: normal with n_t >= 0
+        v0, v1, v2 = -v0, -v1, -v2
+    return True, v0, v1, v2
+
+
+@njit(cache=True)
+def fit_homogeneous(X, Y, T, use, n):
+    """Total least squares plane nx x + ny y + nt t = d; (ok, nx, ny, nt, d), |n| = 1."""
+    m = 0
+    sx = 0.0
+    sy = 0.0
+    st = 0.0
+    for i in range(n):
+        if use[i]:
+            m += 1
+            sx += X[i]
+            sy += Y[i]
+            st += T[i]
+    if m < 3:
+        return False, 0.0, 0.0, 0.0, 0.0
+    mx = sx / m
+    my = sy / m
+    mt = st / m
+    cxx = 0.0
+    cyy = 0.0
+    ctt = 0.0
+    cxy = 0.0
+    cxt = 0.0
+    cyt = 0.0
+    for i in range(n):
+        if use[i]:
+            dx = X[i] - mx
+            dy = Y[i] - my
+            dt = T[i] - mt
+            cxx += dx * dx
+            cyy += dy * dy
+            ctt += dt * dt
+            cxy += dx * dy
+            cxt += dx * dt
+            cyt += dy * dt
+    det = cxx * cyy - cxy * cxy
+    if cxx <= 0.0 or cyy <= 0.0 or det <= COLLINEAR_EPS * cxx * cyy:
+        return False, 0.0, 0.0, 0.0, 0.0  # collinear in x-y: the plane may contain the t axis
+    ok, nx, ny, nt = smallest_eigvec3(cxx, cxy, cxt, cyy, cyt, ctt)
+    if not ok:
+        return False, 0.0, 0.0, 0.0, 0.0
+    return True, nx, ny, nt, nx * mx + ny * my + nt * mt
+
+
+@njit(cache=True)
+def iterate_explicit(X, Y, T, use, n, th1, th2, max_iter):
+    """Iterative explicit fit; (ok, a, b)."""
+    ok, a, b, c = fit_explicit(X, Y, T, use, n)
+    if not ok:
+        return False, 0.0, 0.0
+    for _ in range(max_iter):
+        removed = 0
+        left = 0
+        for i in range(n):
+            if use[i]:
+                if abs(T[i] - (a * X[i] + b * Y[i] + c)) > th2:
+                    use[i] = False
+                    removed += 1
+                else:
+                    left += 1
+        if removed == 0:
+            break
+        if left <= 3:
+            return False, 0.0, 0.0
+        ok, a2, b2, c2 = fit_explicit(X, Y, T, use, n)
+        if not ok:
+            return False, 0.0, 0.0
+        change = max(abs(a2 - a), abs(b2 - b), abs(c2 - c))
+        a, b, c = a2, b2, c2
+        if change < th1:
+            break
+    return True, a, b
+
+
+@njit(cache=True)
+def iterate_homogeneous(X, Y, T, use, n, th1, th2, max_iter):
+    """Iterative homogeneous fit; (ok, nx, ny, nt)."""
+    ok, nx, ny, nt, d = fit_homogeneous(X, Y, T, use, n)
+    if not ok:
+        return False, 0.0, 0.0, 0.0
+    for _ in range(max_iter):
+        removed = 0
+        left = 0
+        for i in range(n):
+            if use[i]:
+                if abs(nx * X[i] + ny * Y[i] + nt * T[i] - d) > th2:
+                    use[i] = False
+                    removed += 1
+                else:
+                    left += 1
+        if removed == 0:
+            break
+        if left <= 3:
+            return False, 0.0, 0.0, 0.0
+        ok, nx2, ny2, nt2, d2 = fit_homogeneous(X, Y, T, use, n)
+        if not ok:
+            return False, 0.0, 0.0, 0.0
+        change = max(abs(nx2 - nx), abs(ny2 - ny), abs(nt2 - nt))
+        nx, ny, nt, d = nx2, ny2, nt2, d2
+        if change < th1:
+            break
+    return True, nx, ny, nt
+
+
+@njit(cache=True)
+def sg_gradient(win, r, t_now, window_us):
+    """Mean pairwise timestamp slopes along rows and columns of the window (s/px).
+
+    ``win`` is the (2r+1)^2 patch of the surface; (ok, gx, gy); ok needs at least one pair in
+    each direction.
+    """
+    size = 2 * r + 1
+    gx = 0.0
+    gy = 0.0
+    nx = 0
+    ny = 0
+    for i in range(size):
+        for j in range(size):
+            tij = win[i, j]
+            if tij == NO_EVENT or t_now - tij > window_us:
+                continue
+            for k in range(j + 1, size):  # same row, to the right
+                tik = win[i, k]
+                if tik == NO_EVENT or t_now - tik > window_us:
+                    continue
+                gx += (tik - tij) * 1e-6 / (k - j)
+                nx += 1
+            for k in range(i + 1, size):  # same column, below
+                tkj = win[k, j]
+                if tkj == NO_EVENT or t_now - tkj > window_us:
+                    continue
+                gy += (tkj - tij) * 1e-6 / (k - i)
+                ny += 1
+    if nx == 0 or ny == 0:
+        return False, 0.0, 0.0
+    return True, gx / nx, gy / ny
+
+
+@njit(cache=True)
+def plane_flow_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, margin,
+                      min_points, th1, th2, max_speed, max_iter, out_idx, out_vx, out_vy):
+    """Process events in order, updating ``ts`` in place; returns the number of flow events.
+
+    ``out_idx`` (int64), ``out_vx``, ``out_vy`` (float64) need room for ``len(x)`` entries.
+    """
+    height = ts.shape[1]
+    width = ts.shape[2]
+    size = 2 * r + 1
+    cap = size * size
+    X = np.empty(cap, np.float64)
+    Y = np.empty(cap, np.float64)
+    T = np.empty(cap, np.float64)
+    use = np.empty(cap, np.bool_)
+    g_min = 1.0 / max_speed
+    n_out = 0
+    for i in range(len(x)):
+        xi = np.int64(x[i])
+        yi = np.int64(y[i])
+        ti = t[i]
+        pi = 1 if p[i] > 0 else 0
+        prev = ts[pi, yi, xi]
+        ts[pi, yi, xi] = ti
+        if prev != NO_EVENT and ti - prev < refractory_us:
+            continue
+        if xi < margin or yi < margin or xi >= width - margin or yi >= height - margin:
+            continue
+        y0 = max(yi - r, 0)
+        y1 = min(yi + r, height - 1)
+        x0 = max(xi - r, 0)
+        x1 = min(xi + r, width - 1)
+        if variant == 4:
+            if x0 != xi - r or y0 != yi - r or x1 != xi + r or y1 != yi + r:
+                continue  # SG needs the full stencil (margin < r)
+            ok, gx, gy = sg_gradient(ts[pi, y0:y1 + 1, x0:x1 + 1], r, ti, window_us)
+            if not ok:
+                continue
+            n = 0
+            for yy in range(y0, y1 + 1):
+                for xx in range(x0, x1 + 1):
+                    tt = ts[pi, yy, xx]
+                    if tt != NO_EVENT and ti - tt <= window_us:
+                        n += 1
+            if n < min_points:
+                continue
+        else:
+            n = 0
+            for yy in range(y0, y1 + 1):
+                for xx in range(x0, x1 + 1):
+                    tt = ts[pi, yy, xx]
+                    if tt != NO_EVENT and ti - tt <= window_us:
+                        X[n] = xx - xi
+                        Y[n] = yy - yi
+                        T[n] = (tt - ti) * 1e-6
+                        use[n] = True
+                        n += 1
+            if n < min_points or n < 3:
+                continue
+            if variant == 0 or variant == 1:
+                if variant == 0:
+                    ok, gx, gy, c = fit_explicit(X, Y, T, use, n)
+                else:
+                    ok, gx, gy = iterate_explicit(X, Y, T, use, n, th1, th2, max_iter)
+                if not ok:
+                    continue
+            else:
+                ok, nx, ny, nt = iterate_homogeneous(X, Y, T, use, n, th1, th2, max_iter)
+                if not ok or nt <= 0.0:
+                    continue
+                if variant == 3:
+                    if nx == 0.0 or ny == 0.0:
+                        continue
+                    vx = -nt / nx
+                    vy = -nt / ny
+                    if vx * vx + vy * vy > max_speed * max_speed:
+                        continue
+                    out_idx[n_out] = i
+                    out_vx[n_out] = vx
+                    out_vy[n_out] = vy
+                    n_out += 1
+                    continue
+                gx = -nx / nt
+                gy = -ny / nt
+        g2 = gx * gx + gy * gy
+        if g2 < g_min * g_min or g2 == 0.0:
+            continue
+        out_idx[n_out] = i
+        out_vx[n_out] = gx / g2
+        out_vy[n_out] = gy / g2
+        n_out += 1
+    return n_out

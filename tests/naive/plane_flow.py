@@ -1,0 +1,155 @@
+"""Slow obvious reference of evchain.kernels.plane_flow (plain python + numpy.linalg)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+VARIANTS = ("single", "iterative", "robust", "original", "savitzky_golay")
+
+
+def _explicit(pts):
+    """Least squares t = a x + b y + c via numpy; None when the x-y points are collinear."""
+    P = np.asarray(pts, float)
+    if len(P) < 3:
+        return None
+    xy = P[:, :2] - P[:, :2].mean(0)
+    cov = xy.T @ xy
+    if cov[0, 0] <= 0 or cov[1, 1] <= 0:
+        return None
+    if np.linalg.det(cov) <= 1e-9 * cov[0, 0] * cov[1, 1]:
+        return None
+    A = np.column_stack([P[:, 0], P[:, 1], np.ones(len(P))])
+    sol = np.linalg.lstsq(A, P[:, 2], rcond=None)[0]
+    return sol  # a, b, c
+
+
+def _homogeneous(pts):
+    """Smallest-eigenvector plane through the centroid; (n, d) with n_t >= 0, or None."""
+    P = np.asarray(pts, float)
+    if len(P) < 3:
+        return None
+    c = P.mean(0)
+    Q = P - c
+    cov = Q[:, :2].T @ Q[:, :2]
+    if cov[0, 0] <= 0 or cov[1, 1] <= 0 or np.linalg.det(cov) <= 1e-9 * cov[0, 0] * cov[1, 1]:
+        return None
+    w, V = np.linalg.eigh(Q.T @ Q)
+    if w[1] - w[0] <= 1e-12 * abs(w[2]) or np.ptp(w) == 0:
+        return None
+    n = V[:, 0]
+    if n[2] < 0:
+        n = -n
+    return n, float(n @ c)
+
+
+def _iterate(pts, fit, resid, params_of, th1, th2, max_iter):
+    pts = list(pts)
+    sol = fit(pts)
+    if sol is None:
+        return None
+    for _ in range(max_iter):
+        keep = [q for q in pts if abs(resid(sol, q)) <= th2]
+        if len(keep) == len(pts):
+            break
+        if len(keep) <= 3:
+            return None
+        pts = keep
+        new = fit(pts)
+        if new is None:
+            return None
+        change = np.max(np.abs(params_of(new) - params_of(sol)))
+        sol = new
+        if change < th1:
+            break
+    return sol
+
+
+def _sg(win, valid):
+    size = win.shape[0]
+    sx, nx, sy, ny = 0.0, 0, 0.0, 0
+    for i in range(size):
+        for j in range(size):
+            for k in range(size):
+                if k > j and valid[i, j] and valid[i, k]:
+                    sx += (win[i, k] - win[i, j]) * 1e-6 / (k - j)
+                    nx += 1
+                if k > i and valid[i, j] and valid[k, j]:
+                    sy += (win[k, j] - win[i, j]) * 1e-6 / (k - i)
+                    ny += 1
+    if nx == 0 or ny == 0:
+        return None
+    return sx / nx, sy / ny
+
+
+def plane_flow_naive(x, y, t, p, width, height, variant="single", r=2, window_us=80_000,
+                     refractory_us=0, margin=None, min_points=3, th1=1e-5, th2=0.01,
+                     max_speed=1000.0, max_iter=10):
+    """Returns (index, vx, vy) lists of the events that got flow."""
+    margin = r if margin is None else margin
+    ts = {}
+    idx, vxs, vys = [], [], []
+    for i in range(len(x)):
+        xi, yi, ti, pi = int(x[i]), int(y[i]), int(t[i]), 1 if p[i] > 0 else 0
+        prev = ts.get((pi, xi, yi))
+        ts[(pi, xi, yi)] = ti
+        if prev is not None and ti - prev < refractory_us:
+            continue
+        if xi < margin or yi < margin or xi >= width - margin or yi >= height - margin:
+            continue
+        pts = []
+        for yy in range(yi - r, yi + r + 1):
+            for xx in range(xi - r, xi + r + 1):
+                tt = ts.get((pi, xx, yy))
+                if tt is not None and ti - tt <= window_us:
+                    pts.append((xx - xi, yy - yi, (tt - ti) * 1e-6))
+        if len(pts) < max(min_points, 1 if variant == "savitzky_golay" else 3):
+            continue
+        if variant == "savitzky_golay":
+            inside = (xi - r >= 0 and yi - r >= 0 and xi + r < width and yi + r < height)
+            if not inside:
+                continue
+            win = np.zeros((2 * r + 1, 2 * r + 1))
+            valid = np.zeros_like(win, bool)
+            for (dx, dy, dt) in pts:
+                win[dy + r, dx + r] = ti + round(dt * 1e6)
+                valid[dy + r, dx + r] = True
+            g = _sg(win, valid)
+            if g is None:
+                continue
+            gx, gy = g
+        elif variant in ("single", "iterative"):
+            if variant == "single":
+                sol = _explicit(pts)
+            else:
+                sol = _iterate(pts, _explicit, lambda s, q: q[2] - (s[0] * q[0] + s[1] * q[1]
+                                                                    + s[2]),
+                               lambda s: np.asarray(s), th1, th2, max_iter)
+            if sol is None:
+                continue
+            gx, gy = sol[0], sol[1]
+        else:
+            sol = _iterate(pts, _homogeneous, lambda s, q: s[0] @ np.asarray(q) - s[1],
+                           lambda s: s[0], th1, th2, max_iter)
+            if sol is None:
+                continue
+            n = sol[0]
+            if n[2] <= 0:
+                continue
+            if variant == "original":
+                if n[0] == 0 or n[1] == 0:
+                    continue
+                vx, vy = -n[2] / n[0], -n[2] / n[1]
+                if vx * vx + vy * vy > max_speed ** 2:
+                    continue
+                idx.append(i)
+                vxs.append(vx)
+                vys.append(vy)
+                continue
+            gx, gy = -n[0] / n[2], -n[1] / n[2]
+        g2 = gx * gx + gy * gy
+        if g2 == 0 or g2 < (1.0 / max_speed) ** 2:
+            continue
+        idx.append(i)
+        vxs.append(gx / g2)
+        vys.append(gy / g2)
+    return np.array(idx, np.int64), np.array(vxs), np.array(vys)
