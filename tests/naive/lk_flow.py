@@ -1,0 +1,183 @@
+"""Slow, obvious reference of the ``lk_flow`` kernel: plain Python over events, deques as FIFOs.
+
+Same semantics as ``evchain.kernels.lk_flow.lk_flow_run`` (see its docstring and
+docs/explanation/lk_flow.md), written independently for comparison in tests.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import numpy as np
+
+MARGIN = {"backward": 1, "central": 1, "central2": 2, "savitzky_golay": 0}
+NORM = {"backward": 1.0, "central": 2.0, "central2": 12.0}
+
+
+def lk_flow_naive(x, y, t, p, width, height, *, search_distance=2, window_us=80_000,
+                  refractory_us=150_000, gradient="savitzky_golay", mode="calibrated",
+                  eig_threshold=1.0, eig_ratio=0.1, speed_control=True, speed_control_mix=1e-3,
+                  max_speed_factor=2.0, max_speed_pxs=1e5, fifo_depth=8):
+    """Return (index, vx, vy) lists of the emitted events."""
+    r = search_distance
+    d = MARGIN[gradient]
+    margin = r + d
+    faithful = mode == "faithful"
+    fifo: dict[tuple[int, int, int], deque] = {}
+    avg = 0.0
+    avg_init = False
+    out_i, out_vx, out_vy = [], [], []
+
+    def in_window(age):
+        return age <= window_us if faithful else age < window_us
+
+    def count(xx, yy, k, now):
+        q = fifo.get((xx, yy, k), ())
+        ages = [now - ts for ts in q if in_window(now - ts)]
+        return len(ages), sum(1.0 - a / window_us for a in ages)
+
+    for e in range(len(t)):
+        xe, ye, te = int(x[e]), int(y[e]), int(t[e])
+        k = 1 if p[e] > 0 else 0
+        inside = margin <= xe < width - margin and margin <= ye < height - margin
+        if faithful and not inside:
+            continue
+        q = fifo.setdefault((xe, ye, k), deque(maxlen=fifo_depth))
+        prev = q[-1] if q else None
+        q.append(te)
+        if not inside:
+            continue
+        if prev is not None and te - prev < refractory_us:
+            continue
+        N, F = {}, {}
+        for dy in range(-margin, margin + 1):
+            for dx in range(-margin, margin + 1):
+                N[dx, dy], F[dx, dy] = count(xe + dx, ye + dy, k, te)
+        hood = [(dx, dy) for dy in range(-r, r + 1) for dx in range(-r, r + 1)]
+        if faithful:
+            vx, vy = _faithful(N, hood, r, gradient, eig_threshold)
+            v = math.hypot(vx, vy)
+            if speed_control:
+                avg = (1 - speed_control_mix) * avg + speed_control_mix * v
+                if v > avg * max_speed_factor:
+                    continue
+            if v == 0:
+                continue
+        else:
+            res = _calibrated(N, F, hood, gradient, window_us, eig_ratio)
+            if res is None:
+                continue
+            vx, vy = res
+            v = math.hypot(vx, vy)
+            if not math.isfinite(v) or v == 0 or v > max_speed_pxs:
+                continue
+            if speed_control:
+                if not avg_init:
+                    avg, avg_init = v, True
+                else:
+                    avg = (1 - speed_control_mix) * avg + speed_control_mix * v
+                if v > avg * max_speed_factor:
+                    continue
+        out_i.append(e)
+        out_vx.append(vx)
+        out_vy.append(vy)
+    return out_i, out_vx, out_vy
+
+
+def _faithful(N, hood, r, gradient, thr):
+    if gradient == "savitzky_golay":
+        sg = sum(i * i for (i, _) in hood)
+        gx_all = sum(i * N[i, j] for (i, j) in hood) / sg
+        gy_all = sum(j * N[i, j] for (i, j) in hood) / sg
+    rows = []
+    for (i, j) in hood:
+        if gradient == "backward":
+            g = (N[i, j] - N[i - 1, j], N[i, j] - N[i, j - 1])
+        elif gradient == "central":
+            g = (N[i + 1, j] - N[i - 1, j], N[i, j + 1] - N[i, j - 1])
+        elif gradient == "central2":
+            g = (N[i - 2, j] - 8 * N[i - 1, j] + 8 * N[i + 1, j] - N[i + 2, j],
+                 N[i, j - 2] - 8 * N[i, j - 1] + 8 * N[i, j + 1] - N[i, j + 2])
+        else:
+            g = (gx_all, gy_all)
+        norm = 1.0 / r if gradient == "savitzky_golay" else NORM[gradient]
+        rows.append((float(g[0]), float(g[1]), N[i, j] * norm * 20.0, (i, j) == (0, 0)))
+    A = np.array([[a, b] for a, b, _, _ in rows])
+    nt = np.array([c for _, _, c, _ in rows])
+    M = A.T @ A
+    lam2, lam1 = np.linalg.eigvalsh(M)
+    if lam1 < thr:
+        return 0.0, 0.0
+    if lam2 < thr:
+        gx, gy, ntc, _ = next(row for row in rows if row[3])
+        g2 = gx * gx + gy * gy
+        return (0.0, 0.0) if g2 == 0 else (-gx * ntc / g2, -gy * ntc / g2)
+    v = -np.linalg.solve(M, A.T @ nt)
+    return float(v[0]), float(v[1])
+
+
+def _one_deriv(F, N, i, j, di, dj, gradient):
+    def ok(a, b):
+        return N.get((a, b), 0) > 0
+
+    if not ok(i, j):
+        return None
+    back, fwd = ok(i - di, j - dj), ok(i + di, j + dj)
+    if gradient == "central2" and back and fwd and ok(i - 2 * di, j - 2 * dj) \
+            and ok(i + 2 * di, j + 2 * dj):
+        return (F[i - 2 * di, j - 2 * dj] - 8 * F[i - di, j - dj] + 8 * F[i + di, j + dj]
+                - F[i + 2 * di, j + 2 * dj]) / 12.0
+    if gradient != "backward" and back and fwd:
+        return 0.5 * (F[i + di, j + dj] - F[i - di, j - dj])
+    if back:
+        return F[i, j] - F[i - di, j - dj]
+    if fwd:
+        return F[i + di, j + dj] - F[i, j]
+    return None
+
+
+def _calibrated(N, F, hood, gradient, window_us, eig_ratio):
+    rate = {key: N[key] / (window_us * 1e-6) for key in N}
+    if gradient == "savitzky_golay":
+        pts = [(i, j) for (i, j) in hood if N[i, j] > 0]
+        if len(pts) < 3:
+            return None
+        X = np.array([[1.0, i, j] for (i, j) in pts])
+        Xc = X[:, 1:] - X[:, 1:].mean(axis=0)
+        C = Xc.T @ Xc
+        det = np.linalg.det(C)
+        if det <= 1e-9 * (C[0, 0] * C[1, 1] + 1e-300):
+            return None
+        f = np.array([F[q] for q in pts])
+        g = np.linalg.solve(C, Xc.T @ (f - f.mean()))
+        g2 = g @ g
+        if g2 <= 0:
+            return None
+        bt = np.mean([rate[q] for q in pts])
+        return float(g[0] * bt / g2), float(g[1] * bt / g2)
+    rows, b = [], []
+    for (i, j) in hood:
+        if N[i, j] == 0:
+            continue
+        gx = _one_deriv(F, N, i, j, 1, 0, gradient)
+        gy = _one_deriv(F, N, i, j, 0, 1, gradient)
+        if gx is None or gy is None:
+            continue
+        rows.append((gx, gy))
+        b.append(rate[i, j])
+    if len(rows) < 2:
+        return None
+    A = np.array(rows)
+    M = A.T @ A
+    lam2, lam1 = np.linalg.eigvalsh(M)
+    if not lam1 > 0:
+        return None
+    Atb = A.T @ np.array(b)
+    if lam2 > 0 and lam2 >= eig_ratio * lam1:
+        v = np.linalg.solve(M, Atb)
+        return float(v[0]), float(v[1])
+    w, vecs = np.linalg.eigh(M)
+    e1 = vecs[:, 1]
+    v = e1 * (e1 @ Atb) / lam1
+    return float(v[0]), float(v[1])
