@@ -122,9 +122,11 @@ class ExpansionTruth:
 def expansion_stream(n_packets: int = 4, events_per_packet: int = 400,
                      geometry: Geometry = Geometry(128, 96, f=100.0), packet_us: int = 25_000,
                      foe: tuple[float, float] = (70.0, 40.0), t_collision_s: float = 2.0,
-                     seed: int = 0) -> tuple[list[FlowPacket], ExpansionTruth]:
-    """Flow packets of a pure expansion (normal flow on random edge normals) with a ``foe``
-    series (t, x, y, support) at each packet start, and the matching ground truth."""
+                     seed: int = 0, foe_series: bool = False
+                     ) -> tuple[list[FlowPacket], ExpansionTruth]:
+    """Flow packets of a pure expansion (normal flow on random edge normals) and the matching
+    ground truth; with ``foe_series``, each packet carries the true FOE as a ``foe`` series entry
+    (t, x, y, support) at its start, as ``foe_map`` would provide."""
     from evchain.core.packets import series_array
 
     truth = ExpansionTruth(foe, t_collision_s)
@@ -136,5 +138,5 @@ def expansion_stream(n_packets: int = 4, events_per_packet: int = 400,
                            seed=seed + i, normal_only=True)
         entry = series_array([("t", "i8"), ("x", "f8"), ("y", "f8"), ("support", "f8")],
                              t=[t0], x=[foe[0]], y=[foe[1]], support=[1.0])
-        packets.append(p.with_series("foe", entry))
+        packets.append(p.with_series("foe", entry) if foe_series else p)
     return packets, truth

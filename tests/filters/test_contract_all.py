@@ -60,13 +60,17 @@ def test_contract(name, tmp_path):
             pytest.skip(SOURCE_SKIP[name])
         check_source(cls, params, out_dir=tmp_path, max_packets=5)
         return
-    packets, truth = expansion_stream()  # flow input, and the truth every scorer needs
+    # flow input, and the truth every scorer needs; FOE-consuming stages get a foe series
+    packets, truth = expansion_stream(foe_series=name in NEEDS_FOE_SERIES)
     if cls.consumes is FramePacket:
         packets = frame_stream()
     elif cls.consumes is not FlowPacket and cls.consumes is not Packet:
         packets = event_stream()
     check_filter(cls, params, packets, truth=truth, out_dir=tmp_path)
 
+
+# Stages that read the FOE estimate of an upstream foe_map from the packet's series.
+NEEDS_FOE_SERIES = {"ttc"}
 
 # Sources that cannot run without a file are covered by their own tests.
 SOURCE_SKIP = {
