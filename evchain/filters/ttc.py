@@ -1,0 +1,116 @@
+"""``ttc``: time to contact from normal flow and the FOE, clustered per obstacle (thesis 3.3.2)."""
+
+from __future__ import annotations
+
+import numpy as np
+from pydantic import Field
+
+from evchain.core.filter import Filter, FilterParams
+from evchain.core.packets import FlowPacket
+from evchain.errors import DataError
+
+TTC_DTYPE = [("t", "i8"), ("tau_s", "f8"), ("cluster", "i8"), ("x", "f8"), ("y", "f8"),
+             ("support", "f8")]
+CLUSTER_DTYPE = [("t", "i8"), ("cluster", "i8"), ("x", "f8"), ("y", "f8"), ("size_px", "f8"),
+                 ("tau_s", "f8"), ("support", "f8")]
+
+
+class Ttc(Filter):
+    """Time to contact: tau = (p - foe).v / |v|^2 in region B, clustered, fused per cluster.
+
+    Uses the latest estimate of the ``foe`` series (from ``foe_map`` upstream; nothing before
+    the first one). Flow events below the FOE, within ``region_b_half_width_px`` of it
+    horizontally, at least ``min_distance_px`` from it, diverging and of plausible speed give
+    one tau each. They are assigned to square clusters (centre of mass, activity-weighted
+    updates, growth, decay, removal below ``min_activity``). At every multiple of
+    ``estimate_every_us`` each cluster's tau is the median of its recent samples, each moved
+    forward at -1 s/s, fused with its prediction by a gated 1-D Kalman filter. Series ``ttc``
+    (t, tau_s, cluster, x, y, support) holds the most supported cluster per tick, series
+    ``ttc_clusters`` (t, cluster, x, y, size_px, tau_s, support) every live cluster.
+    """
+
+    name = "ttc"
+    consumes = FlowPacket
+    produces = FlowPacket
+
+    class Params(FilterParams):
+        estimate_every_us: int = Field(10_000, ge=1, description="period of the TTC output")
+        region_b_half_width_px: float = Field(
+            60.0, gt=0, description="region B: largest horizontal offset from the FOE")
+        region_b_min_below_px: float = Field(
+            0.0, description="region B: events at least this far below the FOE (y down)")
+        min_distance_px: float = Field(8.0, ge=0, description="ignore events this close to "
+                                       "the FOE (tau is ill-conditioned there)")
+        min_speed_pxs: float = Field(2.0, ge=0, description="ignore slower flow")
+        max_speed_pxs: float = Field(20_000.0, gt=0, description="ignore faster flow")
+        min_tau_s: float = Field(0.02, ge=0, description="ignore per-event tau below this")
+        max_tau_s: float = Field(60.0, gt=0, description="ignore per-event tau above this")
+        cluster_size_px: float = Field(6.0, gt=0, description="half-size of a new cluster")
+        max_cluster_size_px: float = Field(60.0, gt=0, description="largest half-size")
+        join_margin_px: float = Field(4.0, ge=0, description="events this far outside a "
+                                      "cluster's square still join it (and grow it)")
+        activity_tau_ms: float = Field(100.0, gt=0, description="decay of cluster activity")
+        min_activity: float = Field(2.0, gt=0, description="clusters whose decayed activity "
+                                    "(events) falls below this are removed")
+        max_clusters: int = Field(32, ge=1, le=1024, description="cluster slots")
+        samples_per_cluster: int = Field(256, ge=4, description="ring of recent samples")
+        sample_max_age_ms: float = Field(200.0, gt=0, description="samples older than this "
+                                         "are not used")
+        min_samples: int = Field(8, ge=1, description="samples needed for a cluster estimate")
+        rel_noise_floor: float = Field(0.01, ge=0, description="measurement noise floor "
+                                       "(fraction of tau)")
+        process_noise_s2_per_s: float = Field(0.05, ge=0, description="Kalman process noise "
+                                              "of tau (s^2 per s)")
+        gate_sigma: float = Field(3.0, gt=0, description="reject medians farther than this "
+                                  "many sigma from the prediction (3 in a row restart)")
+
+    def reset(self) -> None:
+        p = self.params
+        k, b = p.max_clusters, p.samples_per_cluster
+        from evchain.kernels.ttc import NCOL
+
+        self._C = np.zeros((k, NCOL), np.float64)
+        self._I = np.zeros((k, 4), np.int64)
+        self._ST = np.zeros((k, b), np.float64)
+        self._SV = np.zeros((k, b), np.float64)
+        self._G = np.zeros(5, np.float64)
+        self._started = False
+
+    def process(self, packet: FlowPacket) -> FlowPacket:
+        if not isinstance(packet, FlowPacket):
+            raise DataError(f"ttc needs a FlowPacket, got {type(packet).__name__}")
+        from evchain.kernels import ttc as kern
+
+        p = self.params
+        period = int(p.estimate_every_us)
+        if not self._started:
+            self._G[3] = float(-(-packet.t_start // period) * period)
+            self._started = True
+        foe = packet.series.get("foe")
+        if foe is None:
+            ft, fx, fy = np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
+        else:
+            ft = np.ascontiguousarray(foe["t"], np.int64)
+            fx = np.ascontiguousarray(foe["x"], np.float64)
+            fy = np.ascontiguousarray(foe["y"], np.float64)
+        n_ticks = max(0, -(-(packet.t_end - int(self._G[3])) // period))
+        o = [np.empty(n_ticks, np.int64), np.empty(n_ticks), np.empty(n_ticks, np.int64),
+             np.empty(n_ticks), np.empty(n_ticks), np.empty(n_ticks)]
+        m = n_ticks * p.max_clusters
+        c = [np.empty(m, np.int64), np.empty(m, np.int64)] + [np.empty(m) for _ in range(5)]
+        no, nc = kern.process(
+            packet.x, packet.y, packet.t, packet.vx, packet.vy, ft, fx, fy, self._C, self._I,
+            self._ST, self._SV, self._G, int(packet.t_end), period,
+            p.region_b_half_width_px, p.region_b_min_below_px, p.min_distance_px,
+            p.min_speed_pxs, p.max_speed_pxs, p.min_tau_s, p.max_tau_s, p.cluster_size_px,
+            p.max_cluster_size_px, p.join_margin_px, p.activity_tau_ms * 1000.0,
+            p.min_activity, p.sample_max_age_ms * 1000.0, p.min_samples, p.rel_noise_floor,
+            p.process_noise_s2_per_s, p.gate_sigma, *o, *c)
+        ttc = np.zeros(no, TTC_DTYPE)
+        for name, col in zip(("t", "tau_s", "cluster", "x", "y", "support"), o, strict=True):
+            ttc[name] = col[:no]
+        cl = np.zeros(nc, CLUSTER_DTYPE)
+        for name, col in zip(("t", "cluster", "x", "y", "size_px", "tau_s", "support"), c,
+                             strict=True):
+            cl[name] = col[:nc]
+        return packet.with_series("ttc", ttc).with_series("ttc_clusters", cl)
