@@ -50,7 +50,7 @@ class PlaneFlow(Filter):
                                                    "change less (s/px, or unit normal)")
         th2_s: float = Field(0.01, gt=0, description="iterative fits: drop points farther "
                                                      "from the plane (s)")
-        max_speed_pxs: float = Field(1000.0, gt=0,
+        max_speed_pxs: float = Field(1000.0, gt=0, le=1e12,
                                      description="th3 as a speed ceiling: drop faster flow")
         max_iterations: int = Field(10, ge=1, description="iterative fits: refits at most")
 

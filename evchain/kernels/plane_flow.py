@@ -87,67 +87,81 @@ def fit_explicit(X, Y, T, use, n):
 
 @njit(cache=True)
 def smallest_eigvec3(a00, a01, a02, a11, a12, a22):
-    """Unit eigenvector of the smallest eigenvalue of a symmetric 3x3 matrix (analytic).
+    """Unit eigenvector of the smallest eigenvalue of a symmetric 3x3 matrix (cyclic Jacobi).
 
-    Returns (ok, v0, v1, v2); not ok when the smallest eigenvalue is (numerically) repeated.
+    Jacobi rotations give eigenvalues to about eps * |A| absolutely, so a small eigenvalue stays
+    separable from its neighbour even when one eigenvalue dominates (a closed-form cubic solver
+    loses ~sqrt(eps) there). Returns (ok, v0, v1, v2) with v2 >= 0; not ok when the smallest
+    eigenvalue is (numerically) repeated.
     """
-    p1 = a01 * a01 + a02 * a02 + a12 * a12
-    q = (a00 + a11 + a22) / 3.0
-    b00 = a00 - q
-    b11 = a11 - q
-    b22 = a22 - q
-    p2 = b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * p1
-    if p2 <= 0.0:
+    A = np.empty((3, 3))
+    A[0, 0] = a00
+    A[0, 1] = a01
+    A[0, 2] = a02
+    A[1, 0] = a01
+    A[1, 1] = a11
+    A[1, 2] = a12
+    A[2, 0] = a02
+    A[2, 1] = a12
+    A[2, 2] = a22
+    V = np.eye(3)
+    scale = a00 * a00 + a11 * a11 + a22 * a22 + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)
+    if scale <= 0.0:
         return False, 0.0, 0.0, 0.0
-    p = math.sqrt(p2 / 6.0)
-    c00 = b00 / p
-    c11 = b11 / p
-    c22 = b22 / p
-    c01 = a01 / p
-    c02 = a02 / p
-    c12 = a12 / p
-    detb = (c00 * (c11 * c22 - c12 * c12) - c01 * (c01 * c22 - c12 * c02)
-            + c02 * (c01 * c12 - c11 * c02))
-    r = 0.5 * detb
-    if r <= -1.0:
-        phi = math.pi / 3.0
-    elif r >= 1.0:
-        phi = 0.0
-    else:
-        phi = math.acos(r) / 3.0
-    e1 = q + 2.0 * p * math.cos(phi)
-    e3 = q + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0)
-    e2 = 3.0 * q - e1 - e3
-    if e2 - e3 <= EIG_EPS * abs(e1):
+    for _ in range(30):
+        off = A[0, 1] * A[0, 1] + A[0, 2] * A[0, 2] + A[1, 2] * A[1, 2]
+        if off <= 1e-34 * scale:
+            break
+        for p in range(2):
+            for q in range(p + 1, 3):
+                apq = A[p, q]
+                if apq == 0.0:
+                    continue
+                theta = (A[q, q] - A[p, p]) / (2.0 * apq)
+                tt = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
+                if theta < 0.0:
+                    tt = -tt
+                c = 1.0 / math.sqrt(tt * tt + 1.0)
+                s = tt * c
+                for k in range(3):  # A <- A J (columns p, q)
+                    akp = A[k, p]
+                    akq = A[k, q]
+                    A[k, p] = c * akp - s * akq
+                    A[k, q] = s * akp + c * akq
+                for k in range(3):  # A <- J^T A (rows p, q)
+                    apk = A[p, k]
+                    aqk = A[q, k]
+                    A[p, k] = c * apk - s * aqk
+                    A[q, k] = s * apk + c * aqk
+                for k in range(3):
+                    vkp = V[k, p]
+                    vkq = V[k, q]
+                    V[k, p] = c * vkp - s * vkq
+                    V[k, q] = s * vkp + c * vkq
+    e0 = A[0, 0]
+    e1 = A[1, 1]
+    e2 = A[2, 2]
+    j = 0
+    if e1 < e0 and e1 <= e2:
+        j = 1
+    elif e2 < e0 and e2 < e1:
+        j = 2
+    lo = A[j, j]
+    nxt = np.inf
+    big = -np.inf
+    for k in range(3):
+        if k != j:
+            nxt = min(nxt, A[k, k])
+        big = max(big, abs(A[k, k]))
+    if nxt - lo <= EIG_EPS * big:
         return False, 0.0, 0.0, 0.0
-    m00 = a00 - e3
-    m11 = a11 - e3
-    m22 = a22 - e3
-    # cross products of the rows of A - e3 I; the longest is the most accurate
-    u0 = a01 * a12 - a02 * m11
-    u1 = a02 * a01 - m00 * a12
-    u2 = m00 * m11 - a01 * a01
-    w0 = a01 * m22 - a02 * a12
-    w1 = a02 * a02 - m00 * m22
-    w2 = m00 * a12 - a01 * a02
-    z0 = m11 * m22 - a12 * a12
-    z1 = a12 * a02 - a01 * m22
-    z2 = a01 * a12 - m11 * a02
-    nu = u0 * u0 + u1 * u1 + u2 * u2
-    nw = w0 * w0 + w1 * w1 + w2 * w2
-    nz = z0 * z0 + z1 * z1 + z2 * z2
-    if nu >= nw and nu >= nz:
-        v0, v1, v2, nn = u0, u1, u2, nu
-    elif nw >= nz:
-        v0, v1, v2, nn = w0, w1, w2, nw
-    else:
-        v0, v1, v2, nn = z0, z1, z2, nz
-    if nn <= 0.0:
-        return False, 0.0, 0.0, 0.0
-    s = 1.0 / math.sqrt(nn)
-    v0 *= s
-    v1 *= s
-    v2 *= s
+    v0 = V[0, j]
+    v1 = V[1, j]
+    v2 = V[2, j]
+    nn = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
+    v0 /= nn
+    v1 /= nn
+    v2 /= nn
     if v2 < 0.0:  # sign convention: normal with n_t >= 0
         v0, v1, v2 = -v0, -v1, -v2
     return True, v0, v1, v2
