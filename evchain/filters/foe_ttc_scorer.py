@@ -1,0 +1,236 @@
+"""``foe_ttc_scorer``: FOE and TTC errors against the ground truth, metrics and pictures."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from pydantic import Field
+
+from evchain.core.filter import Filter, FilterParams
+from evchain.core.packets import FlowPacket, series_array
+
+FOE_ERR_DTYPE = [("t", "i8"), ("x", "f8"), ("y", "f8"), ("x_true", "f8"), ("y_true", "f8"),
+                 ("dx", "f8"), ("dy", "f8"), ("angle_deg", "f8")]
+TTC_ERR_DTYPE = [("t", "i8"), ("tau_s", "f8"), ("tau_true_s", "f8"), ("rel_error", "f8"),
+                 ("cluster", "i8")]
+
+
+def _truth_foe(truth, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    if truth is None or not hasattr(truth, "foe") or len(t) == 0:
+        return np.full(len(t), np.nan), np.full(len(t), np.nan)
+    x, y = truth.foe(t.astype(np.float64))
+    return (np.broadcast_to(np.asarray(x, np.float64), t.shape).copy(),
+            np.broadcast_to(np.asarray(y, np.float64), t.shape).copy())
+
+
+def _truth_ttc(truth, t: np.ndarray) -> np.ndarray:
+    if truth is None or not hasattr(truth, "ttc") or len(t) == 0:
+        return np.full(len(t), np.nan)
+    tau = truth.ttc(t.astype(np.float64))
+    return np.broadcast_to(np.asarray(tau, np.float64), t.shape).copy()
+
+
+def foe_angle_deg(x, y, xt, yt, f: float | None, cx: float, cy: float) -> np.ndarray:
+    """Angle between the viewing rays through the estimated and the true FOE, in degrees."""
+    if f is None:
+        return np.full(np.shape(x), np.nan)
+    a = np.stack([np.asarray(x) - cx, np.asarray(y) - cy, np.full(np.shape(x), f)], -1)
+    b = np.stack([np.asarray(xt) - cx, np.asarray(yt) - cy, np.full(np.shape(x), f)], -1)
+    cross = np.linalg.norm(np.cross(a, b), axis=-1)
+    dot = np.sum(a * b, axis=-1)
+    return np.degrees(np.arctan2(cross, dot))
+
+
+class FoeTtcScorer(Filter):
+    """Scores FOE (|dx|, |dy|, ray angle) and TTC (relative error) against the ground truth.
+
+    Pass-through. Appends series ``foe_error`` (per ``foe`` entry) and ``ttc_error`` (per ``ttc``
+    entry). At the end writes ``metrics.foe`` (``dx_mean_px``, ``dx_std_px``, ``dy_mean_px``,
+    ``dy_std_px``, ``angle_mean_deg`` after ``warmup_s``; thesis eq. 4.1) and ``metrics.ttc``
+    (``median_rel_error_last3s``, ``share_within_10pct``, ``share_within_20pct`` over the last
+    ``last_window_s`` before collision, sampled every ``sample_every_us``; a time without an
+    estimate counts as a miss) and, with ``plots``, PNGs: FOE error over time, TTC against
+    truth, and frame snapshots with flow, FOE and clusters.
+    """
+
+    name = "foe_ttc_scorer"
+    consumes = FlowPacket
+    produces = None
+
+    class Params(FilterParams):
+        warmup_s: float = Field(1.0, ge=0, description="FOE errors before this (from the "
+                                "stream start) are not scored")
+        last_window_s: float = Field(3.0, gt=0, description="TTC window before collision")
+        sample_every_us: int = Field(10_000, ge=1, description="TTC scoring grid")
+        max_age_us: int = Field(50_000, ge=0, description="an estimate older than this at a "
+                                "grid time counts as missing")
+        plots: bool = Field(True, description="write the PNGs (needs ground truth)")
+        plot_dir: str = Field("plots", description="folder for the PNGs, in the output folder")
+        snapshot_ttc_s: list[float] = Field(
+            default_factory=lambda: [1.0, 0.3],
+            description="frame snapshots when the true TTC falls below these (and at the end)")
+        snapshot_window_us: int = Field(20_000, ge=1, description="flow events of this last "
+                                        "stretch of time go into a snapshot")
+
+    def reset(self) -> None:
+        self._t0: int | None = None
+        self._t_end: int | None = None
+        self._geometry = None
+        self._foe: list[np.ndarray] = []
+        self._ttc: list[np.ndarray] = []
+        self._recent: list[tuple] = []
+        self._last_foe = (math.nan, math.nan)
+        self._last_clusters: np.ndarray | None = None
+        self._snapshots: list[dict] = []
+        self._taken: set[float] = set()
+
+    def process(self, packet: FlowPacket) -> FlowPacket:
+        truth = self.context.truth
+        if self._t0 is None:
+            self._t0 = packet.t_start
+            self._geometry = packet.geometry
+        self._t_end = packet.t_end
+        g = packet.geometry
+        out = packet
+        foe = packet.series.get("foe")
+        if foe is not None and len(foe):
+            t = np.asarray(foe["t"], np.int64)
+            xt, yt = _truth_foe(truth, t)
+            x, y = np.asarray(foe["x"], np.float64), np.asarray(foe["y"], np.float64)
+            err = series_array(FOE_ERR_DTYPE, t=t, x=x, y=y, x_true=xt, y_true=yt, dx=x - xt,
+                               dy=y - yt, angle_deg=foe_angle_deg(x, y, xt, yt, g.f, g.cx, g.cy))
+            self._foe.append(err)
+            self._last_foe = (float(x[-1]), float(y[-1]))
+            out = out.with_series("foe_error", err)
+        ttc = packet.series.get("ttc")
+        if ttc is not None and len(ttc):
+            t = np.asarray(ttc["t"], np.int64)
+            tt = _truth_ttc(truth, t)
+            tau = np.asarray(ttc["tau_s"], np.float64)
+            with np.errstate(invalid="ignore", divide="ignore"):
+                rel = np.where(tt > 0, np.abs(tau - tt) / tt, np.nan)
+            err = series_array(TTC_ERR_DTYPE, t=t, tau_s=tau, tau_true_s=tt, rel_error=rel,
+                               cluster=ttc["cluster"])
+            self._ttc.append(err)
+            out = out.with_series("ttc_error", err)
+        cl = packet.series.get("ttc_clusters")
+        if cl is not None and len(cl):
+            self._last_clusters = cl[cl["t"] == cl["t"][-1]].copy()
+        if self.params.plots and truth is not None:
+            self._keep_recent(packet)
+            self._maybe_snapshot(packet)
+        return out
+
+    # -- snapshots -------------------------------------------------------------------------
+    def _keep_recent(self, packet: FlowPacket) -> None:
+        if len(packet):
+            self._recent.append((packet.x.copy(), packet.y.copy(), packet.t.copy(),
+                                 packet.vx.copy(), packet.vy.copy()))
+        cut = packet.t_end - self.params.snapshot_window_us
+        while self._recent and self._recent[0][2][-1] < cut:
+            self._recent.pop(0)
+
+    def _snapshot(self, t_us: int, label: str) -> dict:
+        cut = t_us - self.params.snapshot_window_us
+        if self._recent:
+            x, y, t, vx, vy = (np.concatenate(c) for c in zip(*self._recent, strict=True))
+            k = t >= cut
+            x, y, vx, vy = x[k], y[k], vx[k], vy[k]
+        else:
+            x = y = vx = vy = np.zeros(0)
+        xt, yt = _truth_foe(self.context.truth, np.array([t_us], np.int64))
+        return {"t_us": t_us, "label": label, "x": x, "y": y, "vx": vx, "vy": vy,
+                "foe_est": self._last_foe, "foe_true": (float(xt[0]), float(yt[0])),
+                "clusters": self._last_clusters,
+                "tau_true": float(_truth_ttc(self.context.truth, np.array([t_us]))[0])}
+
+    def _maybe_snapshot(self, packet: FlowPacket) -> None:
+        tau = float(_truth_ttc(self.context.truth, np.array([packet.t_end], np.int64))[0])
+        if not np.isfinite(tau):
+            return
+        for level in self.params.snapshot_ttc_s:
+            if level not in self._taken and tau <= level:
+                self._taken.add(level)
+                self._snapshots.append(self._snapshot(packet.t_end, f"ttc{level:g}s"))
+
+    # -- metrics ---------------------------------------------------------------------------
+    def _foe_metrics(self, foe: np.ndarray) -> dict:
+        start = self._t0 + int(round(self.params.warmup_s * 1e6))
+        k = (foe["t"] >= start) & np.isfinite(foe["dx"]) & np.isfinite(foe["dy"])
+        if not k.any():
+            return {"n": 0}
+        adx, ady = np.abs(foe["dx"][k]), np.abs(foe["dy"][k])
+        ang = foe["angle_deg"][k]
+        return {"dx_mean_px": float(adx.mean()), "dx_std_px": float(adx.std()),
+                "dy_mean_px": float(ady.mean()), "dy_std_px": float(ady.std()),
+                "angle_mean_deg": float(np.nanmean(ang)) if np.isfinite(ang).any() else None,
+                "angle_std_deg": float(np.nanstd(ang)) if np.isfinite(ang).any() else None,
+                "n": int(k.sum()), "warmup_s": self.params.warmup_s}
+
+    def _ttc_metrics(self, ttc: np.ndarray) -> tuple[dict, dict]:
+        p = self.params
+        grid = np.arange(self._t0, self._t_end, p.sample_every_us, dtype=np.int64)
+        truth = _truth_ttc(self.context.truth, grid)
+        ok = np.isfinite(truth) & (truth > 0)
+        if not ok.any():
+            return {"n": 0}, {}
+        idx = np.searchsorted(ttc["t"], grid, side="right") - 1
+        have = (idx >= 0)
+        idx = np.maximum(idx, 0)
+        if len(ttc):
+            have &= (grid - ttc["t"][idx]) <= p.max_age_us
+            est = np.where(have, ttc["tau_s"][idx], np.nan)
+        else:
+            have[:] = False
+            est = np.full(len(grid), np.nan)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rel = np.where(have & ok, np.abs(est - truth) / truth, np.inf)
+        t_last = grid[ok][-1]
+        win = ok & (grid >= t_last - int(p.last_window_s * 1e6))
+        relw = rel[win]
+        m = {"median_rel_error_last3s": float(np.median(relw)),
+             "share_within_10pct": float(np.mean(relw <= 0.10)),
+             "share_within_20pct": float(np.mean(relw <= 0.20)),
+             "coverage_last3s": float(np.mean(np.isfinite(relw))),
+             "median_rel_error_all": float(np.median(rel[ok])),
+             "share_within_20pct_all": float(np.mean(rel[ok] <= 0.20)),
+             "window_s": [float((t_last - p.last_window_s * 1e6) * 1e-6), float(t_last * 1e-6)],
+             "n_estimates": int(len(ttc))}
+        curves = {"grid_s": grid * 1e-6, "truth": truth}
+        return m, curves
+
+    def flush(self):
+        if self._t0 is None or self.context.truth is None:
+            return None
+        foe = np.concatenate(self._foe) if self._foe else np.zeros(0, FOE_ERR_DTYPE)
+        ttc = np.concatenate(self._ttc) if self._ttc else np.zeros(0, TTC_ERR_DTYPE)
+        fm = self._foe_metrics(foe)
+        tm, curves = self._ttc_metrics(ttc)
+        self.context.metrics["foe"] = fm
+        self.context.metrics["ttc"] = tm
+        if self.params.plots:
+            self._plots(foe, ttc, curves)
+        return None
+
+    def _plots(self, foe: np.ndarray, ttc: np.ndarray, curves: dict) -> None:
+        from evchain.report import foe_ttc_plots as plots
+
+        d = self.context.output_path(self.params.plot_dir)
+        g = self._geometry
+        if len(foe):
+            plots.plot_foe_error(foe["t"] * 1e-6, foe["dx"], foe["dy"], d / "foe_error.png",
+                                 warmup_s=(self._t0 * 1e-6 + self.params.warmup_s))
+        if curves:
+            plots.plot_ttc(ttc["t"] * 1e-6, ttc["tau_s"], curves["grid_s"], curves["truth"],
+                           d / "ttc.png")
+        snaps = list(self._snapshots)
+        if self._recent or not snaps:
+            snaps.append(self._snapshot(self._t_end, "end"))
+        for s in snaps:
+            title = f"t = {s['t_us'] * 1e-6:.3f} s"
+            if np.isfinite(s["tau_true"]):
+                title += f", true TTC {s['tau_true']:.2f} s"
+            plots.plot_snapshot(g.width, g.height, s["x"], s["y"], s["vx"], s["vy"],
+                                s["foe_est"], s["foe_true"], s["clusters"],
+                                d / f"snapshot_{s['label']}.png", title)
