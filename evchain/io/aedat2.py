@@ -223,7 +223,34 @@ class Decoder:
         return f"{self.header.path}: record {record} (byte offset {off})"
 
     def decode(self, raw: np.ndarray, first_record: int):
-        """``raw``: big-endian uint32 ``[n, 2]`` (address, timestamp). Returns x, y, t, p."""
+        """``raw``: big-endian uint32 ``[n, 2]`` (address, timestamp). Returns x, y, t, p.
+
+        One numba pass decodes the usual case; chunks with errors or backward timestamp steps
+        go through the numpy path (:meth:`decode_numpy`), which names the culprit.
+        """
+        from evchain.kernels.aedat2 import decode
+
+        chip = self.chip
+        n = len(raw)
+        x = np.empty(n, np.uint16)
+        y = np.empty(n, np.uint16)
+        t = np.empty(n, np.int64)
+        p = np.empty(n, np.int8)
+        last_t = self._last_t if self._last_raw is not None else np.iinfo(np.int64).min
+        words = raw.reshape(-1).view("<u4")
+        k, bad, back, skipped = decode(words, 0 if chip.layout == "davis" else 1, chip.width,
+                                       chip.height, self._offset, last_t, x, y, t, p)
+        if bad >= 0 or back >= 0 or (skipped and self.non_dvs == "error"):
+            return self.decode_numpy(raw, first_record)
+        self.stats.skipped_non_dvs += skipped
+        self.stats.events += k
+        if k:
+            self._last_t = int(t[k - 1])
+            self._last_raw = self._last_t - self._offset
+        return x[:k], y[:k], t[:k], p[:k]
+
+    def decode_numpy(self, raw: np.ndarray, first_record: int):
+        """The same as :meth:`decode` in numpy, with the unwrapping of backward steps."""
         addr = raw[:, 0].astype(np.uint32)
         ts = raw[:, 1].astype(np.uint32)
         chip = self.chip
@@ -417,16 +444,29 @@ class Writer:
         self._last_t: int | None = None
 
     def write(self, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray) -> None:
+        from evchain.kernels.aedat2 import encode
+
         if len(t) == 0:
             return
         t = np.asarray(t, np.int64)
-        prev = t[0] if self._last_t is None else self._last_t
-        if int(t[0]) - int(prev) >= HALF or (len(t) > 1 and int(np.diff(t).max()) >= HALF):
-            raise DataError(f"a gap of 2^31 us or more between events cannot be written to "
-                            f"AEDAT 2.0 (32-bit timestamps); event times {int(prev)}..{t[-1]} us")
-        rec = encode_records(self.chip, x, y, t, p, first=self.events == 0)
-        self.specials += len(rec) - len(t)
-        self.fh.write(rec.tobytes())
+        prev = int(t[0]) if self._last_t is None else self._last_t
+        chip = self.chip
+        words = np.empty(2 * len(t), "<u4")
+        bad, gap = encode(x, y, t, p, 0 if chip.layout == "davis" else 1, chip.width,
+                          chip.height, prev, words)
+        if bad >= 0:
+            raise DataError(f"event {bad} at ({x[bad]}, {y[bad]}) is outside the "
+                            f"{chip.width}x{chip.height} sensor of chip {chip.name}: cannot "
+                            "write it")
+        if gap >= 0:
+            before = int(t[gap - 1]) if gap else prev
+            raise DataError(f"event {gap} at {int(t[gap])} us follows {before} us: a gap of 2^31 "
+                            "us or more cannot be written to AEDAT 2.0 (32-bit timestamps)")
+        if self.events == 0 and chip.layout == "davis" and (int(words[0]) & 0xFF) == 0x23:
+            lead = encode_records(chip, x[:1], y[:1], t[:1], p[:1], first=True)[:1]
+            self.fh.write(lead.tobytes())  # the special record, see encode_records
+            self.specials += 1
+        self.fh.write(words)
         self.events += len(t)
         self._last_t = int(t[-1])
 
@@ -525,12 +565,19 @@ class AedatSource(Filter):
                 continue
             if t0 is None:
                 t0 = start = int(t[0])
-            pending.append((x, y, t, p))
             last_t = int(t[-1])
             cut = t0 + (last_t - t0) // P * P  # start of the slice holding the last event
             if cut <= start:
+                pending.append((x, y, t, p))
                 continue
-            x, y, t, p = (np.concatenate(c) for c in zip(*pending, strict=True))
+            if sum(len(c[2]) for c in pending):  # close the pending slice without copying all
+                i = int(np.searchsorted(t, start + P, side="left"))
+                px, py, pt, pp = (np.concatenate(c) for c in zip(*pending, (x[:i], y[:i], t[:i],
+                                                                          p[:i]), strict=True))
+                yield EventPacket(geometry=geom, t_start=start, t_end=start + P, x=px, y=py,
+                                  t=pt, p=pp)
+                start += P
+                x, y, t, p = x[i:], y[i:], t[i:], p[i:]
             done = int(np.searchsorted(t, cut, side="left"))
             yield from self._slices(geom, x[:done], y[:done], t[:done], p[:done], start, cut, t0)
             pending = [(x[done:], y[done:], t[done:], p[done:])]

@@ -345,3 +345,60 @@ def test_writer_is_atomic(tmp_path):
     w.close()
     assert same(read_aedat2(tmp_path / "sub" / "out.aedat"), ev)
     assert ctx.metrics["aedat_writer"]["events"] == len(ev)
+
+
+# --- kernels against the naive reference -----------------------------------------------------
+
+@pytest.mark.parametrize("layout,w,h", [("davis", 240, 180), ("davis", 346, 260),
+                                        ("dvs128", 128, 128)])
+def test_kernels_match_naive(layout, w, h):
+    from evchain.kernels.aedat2 import decode, encode
+    from tests.naive import aedat2 as naive
+
+    rng = np.random.default_rng(11)
+    n = 3000
+    if layout == "davis":
+        addr = davis(rng.integers(0, w, n), rng.integers(0, h, n), rng.integers(0, 2, n))
+        odd = rng.random(n) < 0.1  # APS/IMU and special records mixed in
+        addr[odd] |= rng.choice(np.array([0x80000000, 0x400, 0x80000C00], np.uint32),
+                                int(odd.sum()))
+    else:
+        addr = ((rng.integers(0, h, n) << 8) | (rng.integers(0, w, n) << 1)
+                | rng.integers(0, 2, n)).astype(np.uint32)
+        addr[rng.random(n) < 0.1] |= np.uint32(1 << 15)
+    ts = np.sort(rng.integers(0, 2**32, n)).astype(np.uint32)
+    rec = np.empty((n, 2), ">u4")
+    rec[:, 0], rec[:, 1] = addr, ts
+    events, skipped, bad = naive.decode(rec.tobytes(), layout, w, h)
+    assert bad is None
+    x, y = np.empty(n, np.uint16), np.empty(n, np.uint16)
+    t, p = np.empty(n, np.int64), np.empty(n, np.int8)
+    words = rec.reshape(-1).view("<u4")
+    code = 0 if layout == "davis" else 1
+    k, kbad, back, kskip = decode(words, code, w, h, 0, np.iinfo(np.int64).min, x, y, t, p)
+    assert (kbad, back, kskip) == (-1, -1, skipped)
+    assert list(zip(x[:k].tolist(), y[:k].tolist(), t[:k].tolist(), p[:k].tolist(),
+                    strict=True)) == events
+    out = np.empty(2 * k, "<u4")
+    assert encode(x[:k], y[:k], t[:k], p[:k], code, w, h, 0, out) == (-1, -1)
+    assert out.tobytes() == naive.encode(events, layout, w, h)
+    # hard inputs: an address outside the sensor, a backward step, a big gap
+    rec[5, 0] = davis(w, 0, 0) if layout == "davis" else np.uint32(1 << 20)
+    assert naive.decode(rec.tobytes(), layout, w, h)[2] == 5
+    assert decode(words, code, w, h, 0, np.iinfo(np.int64).min, x, y, t, p)[1] == 5
+    rec[5, 0] = rec[4, 0]
+    rec[7, 1] = 0
+    kk, kbad, back, _ = decode(words, code, w, h, 0, np.iinfo(np.int64).min, x, y, t, p)
+    assert kbad == -1 and t[back] == 0 and back <= 7
+    tt = np.array([0, 10, 2**31 + 10], np.int64)
+    assert encode(x[:3], y[:3], tt, p[:3], code, w, h, 0, np.empty(6, "<u4"))[1] == 2
+
+
+def test_writer_refuses_gaps_over_2_31_us(tmp_path):
+    g = CHIPS["davis240"].geometry
+    ev = EventPacket(geometry=g, t_start=0, t_end=2**31 + 10, x=np.array([1, 2], np.uint16),
+                     y=np.array([1, 2], np.uint16), t=np.array([0, 2**31 + 5], np.int64),
+                     p=np.array([1, 1], np.int8))
+    with pytest.raises(DataError, match="gap of 2\\^31 us"):
+        write_aedat2(tmp_path / "gap.aedat", ev)
+    assert not (tmp_path / "gap.aedat").exists()
