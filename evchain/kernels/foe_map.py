@@ -184,8 +184,8 @@ def process(x, y, t, vx, vy, diff, lo, hi, x0, y0, fst, ist, tau_us, min_speed_p
             ist[1] = T + period_us
         if i >= n:
             break
-        fvx = float(vx[i])
-        fvy = float(vy[i])
+        fvx = np.float64(vx[i])
+        fvy = np.float64(vy[i])
         s2 = fvx * fvx + fvy * fvy
         if s2 > 0.0 and s2 >= min_speed2:
             px = float(x[i])

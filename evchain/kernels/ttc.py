@@ -165,7 +165,7 @@ def process(x, y, t, vx, vy, ft, fx, fy, C, I, ST, SV, G, t_end, period_us,
         if G[0] > 0.0:
             px = float(x[i])
             py = float(y[i])
-            tau = event_tau(px, py, float(vx[i]), float(vy[i]), G[1], G[2], half_width,
+            tau = event_tau(px, py, np.float64(vx[i]), np.float64(vy[i]), G[1], G[2], half_width,
                             min_below, min_dist, min_speed, max_speed, min_tau, max_tau)
             if tau > 0.0:
                 # nearest cluster (inf-norm) whose square, widened by the margin, holds p

@@ -1,0 +1,84 @@
+"""The O(rows) foe_map kernel against the brute-force O(pixels) reference."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from evchain.core.filter import Context
+from evchain.core.packets import FlowPacket, Geometry
+from evchain.filters.foe_map import FoeMap
+from tests.naive.foe_map import brute_map, foe_naive, region_mask
+
+
+def random_flow(n, g, seed, hard=False, duration_us=40_000):
+    rng = np.random.default_rng(seed)
+    t = np.sort(rng.integers(0, duration_us, n)).astype(np.int64)
+    x = rng.integers(0, g.width, n)
+    y = rng.integers(0, g.height, n)
+    vx = rng.normal(0, 100, n)
+    vy = rng.normal(0, 100, n)
+    if hard:  # flow along the axes, zero flow, tiny flow, integer-valued directions
+        k = rng.integers(0, 5, n)
+        vx[k == 0] = 0.0
+        vy[k == 1] = 0.0
+        vx[k == 2] = vy[k == 2] = 0.0
+        vx[k == 3] = np.round(vx[k == 3] / 50) * 50
+        vy[k == 3] = np.round(vy[k == 3] / 50) * 50
+        vx[k == 4] *= 1e-30
+    return FlowPacket(geometry=g, t_start=0, t_end=duration_us, x=x.astype(np.uint16),
+                      y=y.astype(np.uint16), t=t, p=np.ones(n, np.int8),
+                      vx=vx.astype(np.float32), vy=vy.astype(np.float32))
+
+
+CASES = [
+    (Geometry(40, 30), None, 0.0, None),
+    (Geometry(40, 30), 11.0, 0.05, None),
+    (Geometry(33, 21, cx=5.0, cy=18.0), 9.5, 0.0, None),   # disc clipped by the border
+    (Geometry(40, 30), 14.0, 0.02, 70.0),                   # angular gating on
+]
+
+
+@pytest.mark.parametrize("case", range(len(CASES)))
+@pytest.mark.parametrize("hard", [False, True])
+def test_kernel_equals_brute_force(case, hard):
+    g, radius, refine, gate = CASES[case]
+    packet = random_flow(500, g, seed=case + 10 * hard, hard=hard)
+    params = FoeMap.Params(tau_ms=15.0, region_radius_px=radius, estimate_every_us=4000,
+                           refine_fraction=refine, max_angle_deg=gate)
+    f = FoeMap()
+    f.setup(params, Context())
+    got = f.process(packet).series["foe"]
+    ref = foe_naive(packet, 15.0, radius, 4000, refine, max_angle_deg=gate)
+    assert len(got) == len(ref) > 0
+    assert np.array_equal(got["t"], ref[:, 0].astype(np.int64))
+    np.testing.assert_allclose(got["x"], ref[:, 1], atol=1e-6)
+    np.testing.assert_allclose(got["y"], ref[:, 2], atol=1e-6)
+    np.testing.assert_allclose(got["support"], ref[:, 3], rtol=1e-9)
+    if gate is None:  # the whole map at the end of the packet, cell by cell
+        vx, vy = packet.vx.astype(np.float64), packet.vy.astype(np.float64)
+        accepted = vx * vx + vy * vy > 0
+        want = brute_map(packet.x, packet.y, packet.t, vx, vy, accepted, packet.t_end,
+                         15000.0, region_mask(g, radius))
+        m = f.map_now(packet.t_end)
+        x0, y0 = f.origin
+        sub = want[y0:y0 + m.shape[0], x0:x0 + m.shape[1]]
+        assert np.array_equal(np.isnan(m), np.isnan(sub))
+        assert np.all(np.isnan(want[region_mask(g, radius) == 0]))
+        np.testing.assert_allclose(m[~np.isnan(m)], sub[~np.isnan(sub)], rtol=1e-9,
+                                   atol=1e-9 * np.nanmax(sub))
+
+
+def test_renormalisation_keeps_map_exact():
+    """Long gaps force many renormalisations (t - t_ref > 40 tau): still equal to brute force."""
+    g = Geometry(24, 18)
+    packet = random_flow(300, g, seed=5, duration_us=40_000)
+    packet = packet.replace(t=packet.t * 50, t_end=2_000_000)  # 1 ms tau, ~2 s span
+    f = FoeMap()
+    f.setup(FoeMap.Params(tau_ms=1.0, region_radius_px=None, estimate_every_us=100_000,
+                          refine_fraction=0.0), Context())
+    got = f.process(packet).series["foe"]
+    ref = foe_naive(packet, 1.0, None, 100_000, 0.0)
+    assert len(got) == len(ref) > 0
+    np.testing.assert_allclose(got["x"], ref[:, 1], atol=1e-6)
+    np.testing.assert_allclose(got["support"], ref[:, 3], rtol=1e-6)
