@@ -1,0 +1,282 @@
+"""AEDAT 4.0 (iniVation DV) event files through ``dv-processing``: ``aedat4`` and ``aedat4_writer``.
+
+The file format itself (flatbuffers packets, LZ4/ZSTD compression, the trailing file data
+table) is left entirely to ``dv_processing.io.MonoCameraRecording`` / ``MonoCameraWriter``;
+this module only converts between their event stores and evchain packets:
+
+* timestamps are int64 µs as in the file (DV writes absolute Unix time; kept as is);
+* polarity ``True``/``False`` becomes ``+1``/``-1`` and back;
+* the sensor size is the event stream's resolution (or the ``width``/``height`` parameters).
+
+Two quirks of dv-processing 2.0 shape the code: its writer aborts the whole process (a C++
+``std::terminate``, not a Python exception) unless the output name ends in ``.aedat4``, and its
+reader reports problems as ``RuntimeError`` with a C++ stack trace. So the sink checks the name
+itself, writes ``NAME.partial`` through a ``.aedat4``-named symbolic link in a private temporary
+folder, and both stages turn library errors into one-line :class:`DataError` messages that name
+the file.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+from evchain.core.filter import Filter, FilterParams
+from evchain.core.packets import EventPacket, Geometry
+from evchain.errors import ConfigError, DataError
+from evchain.io.atomic import partial_path
+from pydantic import Field
+
+MAGIC = b"#!AER-DAT4.0"
+COMPRESSIONS = {"none": "NONE", "lz4": "LZ4", "lz4_high": "LZ4_HIGH", "zstd": "ZSTD",
+                "zstd_high": "ZSTD_HIGH"}
+
+
+def _dv():
+    try:
+        import dv_processing
+    except ImportError:
+        raise ConfigError("AEDAT 4.0 needs dv-processing: pip install dv-processing") from None
+    return dv_processing
+
+
+def dv_message(exc: BaseException) -> str:
+    """The useful part of a dv-processing error: no C++ source location, no stack trace."""
+    lines = []
+    for line in str(exc).splitlines():
+        if line.startswith("Stacktrace"):
+            break
+        if re.match(r"^\S*\.(hpp|cpp|h)\(\d+\):", line.strip()):
+            continue
+        if line.strip():
+            lines.append(line.strip())
+    return " ".join(lines) or type(exc).__name__
+
+
+def slice_stream(chunks: Iterator[dict[str, np.ndarray]], geometry: Geometry,
+                 packet_us: int) -> Iterator[EventPacket]:
+    """Cut a stream of time-ordered column chunks into packets of consecutive ``packet_us``
+    slices, from the first event's time to one past the last event's time."""
+    buf: dict[str, np.ndarray] | None = None
+    t0 = None
+    for cols in chunks:
+        if not len(cols["t"]):
+            continue
+        buf = cols if buf is None else {c: np.concatenate([buf[c], cols[c]]) for c in buf}
+        if t0 is None:
+            t0 = int(buf["t"][0])
+        limit = int(buf["t"][-1])  # later chunks may still hold events at this very time
+        while t0 + packet_us <= limit:
+            t1 = t0 + packet_us
+            k = int(np.searchsorted(buf["t"], t1, "left"))
+            yield EventPacket(geometry=geometry, t_start=t0, t_end=t1,
+                              **{c: v[:k] for c, v in buf.items()})
+            buf = {c: v[k:] for c, v in buf.items()}
+            t0 = t1
+    if buf is None:
+        return
+    limit = int(buf["t"][-1]) + 1 if len(buf["t"]) else t0
+    while t0 < limit:
+        t1 = min(t0 + packet_us, limit)
+        k = int(np.searchsorted(buf["t"], t1, "left"))
+        yield EventPacket(geometry=geometry, t_start=t0, t_end=t1,
+                          **{c: v[:k] for c, v in buf.items()})
+        buf = {c: v[k:] for c, v in buf.items()}
+        t0 = t1
+
+
+class Aedat4Source(Filter):
+    """Read events from an AEDAT 4.0 file (iniVation DV) with dv-processing."""
+
+    name = "aedat4"
+    produces = EventPacket
+
+    class Params(FilterParams):
+        path: str = Field(description="AEDAT 4.0 file (.aedat4)")
+        stream: str = Field("events", description="name of the event stream in the file")
+        camera: str | None = Field(None, description="camera name/serial, if the file holds "
+                                   "several cameras")
+        packet_us: int = Field(10_000, ge=1, description="slice duration of each packet")
+        width: int | None = Field(None, ge=1, description="sensor width if the file lacks it")
+        height: int | None = Field(None, ge=1, description="sensor height if the file lacks it")
+
+    def setup(self, params, context):
+        dv = _dv()
+        self.path = Path(params.path)
+        if not self.path.is_file():
+            raise DataError(f"{self.path}: file not found" if not self.path.exists()
+                            else f"{self.path}: not a file; expected an AEDAT 4.0 file")
+        with open(self.path, "rb") as fh:
+            head = fh.read(len(MAGIC))
+        if head != MAGIC:
+            hint = ("; this is an older AEDAT file: use the 'aedat' source"
+                    if head.startswith(b"#!AER-DAT") else "")
+            raise DataError(f"{self.path}: not an AEDAT 4.0 file: expected it to start with "
+                            f"{MAGIC.decode()!r}, found {head[:12]!r}{hint}")
+        try:
+            if params.camera is None:
+                self.recording = dv.io.MonoCameraRecording(str(self.path))
+            else:
+                self.recording = dv.io.MonoCameraRecording(str(self.path), params.camera)
+        except RuntimeError as exc:
+            raise DataError(f"{self.path}: cannot read the AEDAT 4.0 file: "
+                            f"{dv_message(exc)}") from None
+        names = list(self.recording.getStreamNames())
+        if params.stream not in names or not self.recording.isStreamOfEventType(params.stream):
+            events = [n for n in names if self.recording.isStreamOfEventType(n)]
+            raise DataError(f"{self.path}: no event stream {params.stream!r}; event streams: "
+                            f"{events or 'none'}, all streams: {names}")
+        res = self.recording.getEventResolution(params.stream)
+        width = params.width or (res[0] if res else None)
+        height = params.height or (res[1] if res else None)
+        if width is None or height is None:
+            raise DataError(f"{self.path}: stream {params.stream!r} has no resolution; give the "
+                            "parameters width and height")
+        context.geometry = Geometry(int(width), int(height))
+        super().setup(params, context)
+
+    def time_span_us(self):
+        try:
+            t0, t1 = self.recording.getTimeRange()
+        except RuntimeError:
+            return None
+        return int(t0), int(t1) + 1
+
+    def packets(self) -> Iterator[EventPacket]:
+        self.recording.resetSequentialRead()
+        yield from slice_stream(self._chunks(), self.context.geometry, self.params.packet_us)
+
+    def _chunks(self) -> Iterator[dict[str, np.ndarray]]:
+        g, stream = self.context.geometry, self.params.stream
+        done, last = 0, None
+        while True:
+            try:
+                batch = self.recording.getNextEventBatch(stream)
+            except RuntimeError as exc:
+                raise DataError(f"{self.path}: after event {done}: cannot decode the next "
+                                f"packet of stream {stream!r}: {dv_message(exc)}") from None
+            if batch is None:
+                return
+            a = batch.numpy()
+            if not len(a):
+                continue
+            t = a["timestamp"].astype(np.int64)
+            back = np.diff(t if last is None else np.concatenate([[last], t])) < 0
+            if back.any():
+                i = done + int(np.argmax(back)) + (1 if last is None else 0)
+                raise DataError(f"{self.path}: event {i}: timestamp goes backwards")
+            x, y = a["x"], a["y"]
+            bad = (x < 0) | (y < 0) | (x >= g.width) | (y >= g.height)
+            if bad.any():
+                i = int(np.argmax(bad))
+                raise DataError(f"{self.path}: event {done + i} at ({x[i]}, {y[i]}) outside "
+                                f"the {g.width}x{g.height} sensor")
+            yield {"x": x.astype(np.uint16), "y": y.astype(np.uint16), "t": t,
+                   "p": np.where(a["polarity"] > 0, 1, -1).astype(np.int8)}
+            done += len(t)
+            last = int(t[-1])
+
+    def close(self):
+        self.recording = None
+
+
+class Aedat4Writer(Filter):
+    """Write events to an AEDAT 4.0 file (iniVation DV) with dv-processing; pass them on."""
+
+    name = "aedat4_writer"
+    consumes = EventPacket
+
+    class Params(FilterParams):
+        path: str = Field("events.aedat4", description="output file (must end in .aedat4), "
+                          "relative to the run folder")
+        camera: str = Field("evchain", description="camera name recorded in the file")
+        compression: str = Field("lz4", description="none, lz4, lz4_high, zstd or zstd_high")
+
+    def setup(self, params, context):
+        self.dv = _dv()
+        if not params.path.endswith(".aedat4"):
+            raise ConfigError(f"aedat4_writer: path {params.path!r} must end in '.aedat4' "
+                              "(dv-processing refers to the extension)", key="path")
+        if params.compression not in COMPRESSIONS:
+            raise ConfigError(f"aedat4_writer: unknown compression {params.compression!r}; "
+                              f"expected one of {', '.join(COMPRESSIONS)}", key="compression")
+        self.writer = None
+        super().setup(params, context)
+
+    def reset(self):
+        self._abort()
+        self.path = self.context.output_path(self.params.path)
+        self.tmp = partial_path(self.path)
+        self.geometry = None
+
+    def _open(self, geometry: Geometry) -> None:
+        dv = self.dv
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if self.tmp.exists():
+            self.tmp.unlink()
+        self.linkdir = Path(tempfile.mkdtemp(prefix="evchain-aedat4-"))
+        target = self.linkdir / self.path.name  # ends in .aedat4, points at NAME.partial
+        try:
+            os.symlink(self.tmp.resolve(), target)
+        except OSError:  # no symbolic links here: write the partial file under a .aedat4 name
+            shutil.rmtree(self.linkdir, ignore_errors=True)
+            self.linkdir = None
+            self.tmp = self.path.with_name(self.path.stem + ".partial.aedat4")
+            target = self.tmp
+        compression = getattr(dv.CompressionType, COMPRESSIONS[self.params.compression])
+        config = dv.io.MonoCameraWriter.EventOnlyConfig(
+            self.params.camera, (geometry.width, geometry.height), compression)
+        try:
+            self.writer = dv.io.MonoCameraWriter(str(target), config)
+        except RuntimeError as exc:
+            raise DataError(f"{self.path}: cannot create the AEDAT 4.0 file: "
+                            f"{dv_message(exc)}") from None
+        self.geometry = geometry
+
+    def process(self, packet: EventPacket) -> EventPacket:
+        if self.writer is None:
+            self._open(packet.geometry)
+        elif packet.geometry.shape != self.geometry.shape:
+            raise DataError(f"{self.path}: packet at {packet.t_start} us is "
+                            f"{packet.geometry.width}x{packet.geometry.height}, the file was "
+                            f"opened for {self.geometry.width}x{self.geometry.height}")
+        if len(packet):
+            store = self.dv.EventStore()
+            push = store.push_back
+            for t, x, y, p in zip(packet.t.tolist(), packet.x.tolist(), packet.y.tolist(),
+                                  (packet.p > 0).tolist(), strict=True):
+                push(t, x, y, p)
+            self.writer.writeEvents(store)
+        return packet
+
+    def flush(self):
+        if self.writer is None:
+            geometry = self.context.geometry
+            if geometry is None:
+                raise DataError(f"{self.path}: no packets and no sensor geometry; cannot write "
+                                "an AEDAT 4.0 file")
+            self._open(geometry)
+        self.writer = None  # the destructor finishes the file (file data table) and closes it
+        os.replace(self.tmp, self.path)
+        self._remove_link()
+        return None
+
+    def _abort(self) -> None:
+        if getattr(self, "writer", None) is not None:
+            self.writer = None
+            if self.path.exists():
+                self.path.unlink()
+        self._remove_link()
+
+    def _remove_link(self) -> None:
+        if getattr(self, "linkdir", None) is not None:
+            shutil.rmtree(self.linkdir, ignore_errors=True)
+            self.linkdir = None
+
+    def close(self):
+        self._abort()

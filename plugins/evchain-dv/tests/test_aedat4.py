@@ -1,0 +1,180 @@
+"""evchain-dv: AEDAT 4.0 round trips through dv-processing, the contract, and bad input."""
+
+from __future__ import annotations
+
+import textwrap
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("dv_processing")
+
+from evchain.core.filter import Context  # noqa: E402
+from evchain.core.packets import EventPacket, Geometry  # noqa: E402
+from evchain.errors import ConfigError, DataError  # noqa: E402
+from evchain.testing.synthetic import random_events  # noqa: E402
+
+from evchain_dv.aedat4 import Aedat4Source, Aedat4Writer  # noqa: E402
+from evchain_dv.bench import split, write_file  # noqa: E402
+
+GEOMETRY = Geometry(346, 260)
+
+
+def stream(n=3000, seed=1, t_start=1_700_000_000_000_000, span=300_000) -> list[EventPacket]:
+    ev = random_events(n, GEOMETRY, t_start=t_start, t_end=t_start + span, seed=seed)
+    return split(ev, 7_000)
+
+
+def read_all(path: Path, **params) -> tuple[EventPacket, Context]:
+    src = Aedat4Source()
+    src.id = "aedat4"
+    ctx = Context(out_dir=path.parent)
+    src.setup(Aedat4Source.Params(path=str(path), **params), ctx)
+    try:
+        packets = list(src.packets())
+    finally:
+        src.close()
+    return EventPacket.concat(packets) if packets else None, ctx
+
+
+def assert_same_events(got: EventPacket, packets: list[EventPacket]) -> None:
+    want = EventPacket.concat(packets)
+    assert len(got) == len(want)
+    for c in ("x", "y", "t", "p"):
+        np.testing.assert_array_equal(getattr(got, c), getattr(want, c), err_msg=c)
+        assert getattr(got, c).dtype == getattr(want, c).dtype
+
+
+def test_round_trip_identical_events(tmp_path, filter_contract):
+    packets = stream()
+    path = write_file(tmp_path / "rt.aedat4", packets)
+    got, ctx = read_all(path)
+    assert ctx.geometry == GEOMETRY  # from the event stream's resolution
+    assert_same_events(got, packets)
+    assert got.t_start == packets[0].t[0] and got.t_end == packets[-1].t[-1] + 1
+    # the source contract: valid, consecutive slices; reset() and replay give the same
+    first = filter_contract.check_source(Aedat4Source, {"path": str(path), "packet_us": 10_000})
+    assert all(p.t_end - p.t_start <= 10_000 for p in first)
+    assert_same_events(EventPacket.concat(first), packets)
+
+
+def test_every_compression_round_trips(tmp_path):
+    packets = stream(n=500, seed=2)
+    for compression in ("none", "lz4_high", "zstd"):
+        path = write_file(tmp_path / f"{compression}.aedat4", packets, compression=compression)
+        assert_same_events(read_all(path)[0], packets)
+
+
+def test_writer_contract_and_output(tmp_path, filter_contract):
+    packets = stream(n=1200, seed=3)
+    out = filter_contract.check_filter(Aedat4Writer, {"path": "w.aedat4"}, packets)
+    np.testing.assert_array_equal(out["t"], EventPacket.concat(packets).t)  # passed through
+    files = sorted(p.name for p in tmp_path.iterdir())
+    assert files == ["w.aedat4"], files  # no .partial left, no stray files
+    assert_same_events(read_all(tmp_path / "w.aedat4")[0], packets)
+
+
+def test_same_timestamp_across_packets_and_time_gaps(tmp_path):
+    g = GEOMETRY
+    t = np.array([5, 5, 5, 5, 90_000, 90_000, 400_000], np.int64)
+    ev = EventPacket(geometry=g, t_start=0, t_end=400_001, x=np.arange(7, dtype=np.uint16),
+                     y=np.arange(7, dtype=np.uint16), t=t,
+                     p=np.array([1, -1, 1, -1, 1, 1, -1], np.int8))
+    path = write_file(tmp_path / "gap.aedat4", [ev.select(slice(0, 2)), ev.select(slice(2, 7))])
+    src = Aedat4Source()
+    src.setup(Aedat4Source.Params(path=str(path), packet_us=1000), Context(out_dir=tmp_path))
+    packets = list(src.packets())
+    src.close()
+    assert packets[0].t_start == 5 and packets[-1].t_end == 400_001
+    assert all(a.t_end == b.t_start for a, b in zip(packets, packets[1:], strict=False))
+    assert_same_events(EventPacket.concat(packets), [ev])
+
+
+def test_no_events_gives_a_readable_file(tmp_path):
+    w = Aedat4Writer()
+    w.setup(Aedat4Writer.Params(path="empty.aedat4"),
+            Context(out_dir=tmp_path, geometry=Geometry(64, 48)))
+    w.process(EventPacket.empty(Geometry(64, 48), 0, 1000))
+    w.flush()
+    w.close()
+    got, ctx = read_all(tmp_path / "empty.aedat4")
+    assert got is None and ctx.geometry == Geometry(64, 48)
+
+
+def test_failed_run_leaves_only_partial(tmp_path):
+    (tmp_path / "run.aedat4").write_bytes(b"stale output of an earlier run")
+    w = Aedat4Writer()
+    w.setup(Aedat4Writer.Params(path="run.aedat4"), Context(out_dir=tmp_path))
+    for p in stream(n=300)[:3]:
+        w.process(p)
+    w.close()  # no flush: the run failed
+    assert not (tmp_path / "run.aedat4").exists()
+    assert (tmp_path / "run.aedat4.partial").exists()
+
+
+def test_writer_needs_aedat4_name():
+    w = Aedat4Writer()
+    with pytest.raises(ConfigError, match="must end in '.aedat4'"):
+        w.setup(Aedat4Writer.Params(path="out.bin"), Context())
+    with pytest.raises(ConfigError, match="unknown compression"):
+        w.setup(Aedat4Writer.Params(compression="gzip"), Context())
+
+
+def _open(path, **params):
+    src = Aedat4Source()
+    src.setup(Aedat4Source.Params(path=str(path), **params), Context(out_dir=Path(path).parent))
+    try:
+        return list(src.packets())
+    finally:
+        src.close()
+
+
+def test_bad_input_names_the_file(tmp_path):
+    with pytest.raises(DataError, match=r"missing\.aedat4: file not found"):
+        _open(tmp_path / "missing.aedat4")
+    with pytest.raises(DataError, match="not a file"):
+        _open(tmp_path)
+    text = tmp_path / "notes.aedat4"
+    text.write_text("hello\n")
+    with pytest.raises(DataError, match=r"notes\.aedat4: not an AEDAT 4.0 file"):
+        _open(text)
+    old = tmp_path / "old.aedat4"
+    old.write_bytes(b"#!AER-DAT2.0\r\n# This is a raw AE data file\r\n")
+    with pytest.raises(DataError, match="use the 'aedat' source"):
+        _open(old)
+    good = write_file(tmp_path / "good.aedat4", stream(n=2000))
+    data = good.read_bytes()
+    for name, cut in (("head.aedat4", 20), ("cut.aedat4", len(data) * 6 // 10)):
+        (tmp_path / name).write_bytes(data[:cut])
+        with pytest.raises(DataError) as info:
+            _open(tmp_path / name)
+        msg = str(info.value)
+        assert msg.startswith(str(tmp_path / name)) and "Stacktrace" not in msg, msg
+    with pytest.raises(DataError, match=r"good\.aedat4: no event stream 'frames'.*'events'"):
+        _open(good, stream="frames")
+
+
+def test_pipeline_through_the_registry(tmp_path):
+    """The plugin is found through its entry point and runs from YAML."""
+    import evchain
+    from evchain.core.registry import make_registry
+
+    info = make_registry().filters
+    assert info["aedat4"].distribution == "evchain-dv"
+    assert info["aedat4_writer"].distribution == "evchain-dv"
+    packets = stream(n=800, seed=5)
+    src = write_file(tmp_path / "in.aedat4", packets)
+    yaml = tmp_path / "copy.yaml"
+    yaml.write_text(textwrap.dedent(f"""\
+        name: aedat4-copy
+        seed: 0
+        chain:
+          - use: aedat4
+            path: {src}
+            packet_us: 5000
+          - use: aedat4_writer
+            path: copy.aedat4
+        """))
+    evchain.run(yaml, out_dir=tmp_path / "out")
+    assert_same_events(read_all(tmp_path / "out" / "copy.aedat4")[0], packets)
