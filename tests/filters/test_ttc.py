@@ -1,0 +1,131 @@
+"""ttc recovers a known time to contact; region B and hard inputs; kernel vs reference."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from evchain.core.filter import Context
+from evchain.core.packets import FlowPacket, Geometry
+from evchain.filters.foe_map import FoeMap, foe_series
+from evchain.filters.ttc import Ttc
+from evchain.testing.contract import check_filter
+from evchain.testing.synthetic import expansion_stream
+from tests.naive.foe_map import expansion_packets
+from tests.naive.ttc import event_tau_naive
+
+G = Geometry(128, 96, f=100.0)
+FOE = (60.0, 40.0)
+
+
+def with_true_foe(packets, foe=FOE):
+    return [p.with_series("foe", foe_series([foe[0]], [foe[1]], [p.t_start], [1.0]))
+            for p in packets]
+
+
+def run_ttc(packets, **params):
+    f = Ttc()
+    f.setup(Ttc.Params(**params), Context())
+    return FlowPacket.concat([f.process(p) for p in packets])
+
+
+def approach(tau0=3.0, duration_us=2_000_000, n=150_000, **opts):
+    return expansion_packets(foe=FOE, tau_s=tau0, n=n, geometry=G, duration_us=duration_us,
+                             n_packets=10, tau_shrinks=True, **opts)
+
+
+def rel_errors(out, tau0=3.0):
+    s = out.series["ttc"]
+    assert len(s) > 0 and np.isfinite(s["tau_s"]).all()
+    truth = tau0 - s["t"] * 1e-6
+    return np.abs(s["tau_s"] - truth) / truth
+
+
+# (generator options, with foe_map instead of the true FOE, median tolerance, share < 10 %)
+RECOVERY = {
+    "full flow, true FOE": (dict(), False, 0.02, 0.95),
+    "normal flow, true FOE": (dict(normal_only=True), False, 0.02, 0.95),
+    "normal flow + noise + outliers, foe_map": (
+        dict(normal_only=True, noise_frac=0.2, outlier_frac=0.1), True, 0.06, 0.85),
+}
+
+
+@pytest.mark.parametrize("name", list(RECOVERY))
+def test_recovers_ttc(name):
+    opts, use_map, med_tol, share = RECOVERY[name]
+    packets = approach(**opts)
+    if use_map:
+        fm = FoeMap()
+        fm.setup(FoeMap.Params(), Context())
+        packets = [fm.process(p) for p in packets]
+    else:
+        packets = with_true_foe(packets)
+    rel = rel_errors(run_ttc(packets))
+    assert np.median(rel) <= med_tol, np.median(rel)
+    assert np.mean(rel <= 0.10) >= share
+
+
+def test_tau_falls_one_second_per_second_without_updates():
+    packets = with_true_foe(approach(duration_us=1_000_000, n=80_000))
+    quiet = FlowPacket.empty(G, 1_000_000, 1_100_000)
+    out = run_ttc(packets + [quiet], activity_tau_ms=400.0, min_activity=1.0)
+    s = out.series["ttc"]
+    late = s[s["t"] >= 1_000_000]
+    assert len(late) >= 3
+    # prediction: -1 s/s exactly between ticks
+    np.testing.assert_allclose(np.diff(late["tau_s"]), -np.diff(late["t"]) * 1e-6, atol=1e-9)
+
+
+def test_nothing_before_a_foe():
+    out = run_ttc(approach(duration_us=200_000, n=10_000))
+    assert len(out.series["ttc"]) == 0
+
+
+def test_empty_region_b():
+    # FOE at the bottom row: nothing is below it
+    packets = with_true_foe(approach(duration_us=300_000, n=20_000), foe=(60.0, 95.5))
+    out = run_ttc(packets)
+    assert len(out.series["ttc"]) == 0 and len(out.series["ttc_clusters"]) == 0
+
+
+def hard_flow(vx, vy, x, y, n=400):
+    rng = np.random.default_rng(0)
+    return FlowPacket(geometry=G, t_start=0, t_end=100_000, x=np.full(n, x, np.uint16),
+                      y=np.full(n, y, np.uint16), t=np.sort(rng.integers(0, 100_000, n)),
+                      p=np.ones(n, np.int8), vx=np.full(n, vx, np.float32),
+                      vy=np.full(n, vy, np.float32))
+
+
+@pytest.mark.parametrize("case", [(0.0, 0.0, 70, 60), (0.0, 30.0, 60, 70), (25.0, 0.0, 80, 60),
+                                  (10.0, 10.0, 60, 40), (1e-30, 0.0, 70, 60)])
+def test_hard_inputs_are_finite(case):
+    vx, vy, x, y = case
+    out = run_ttc(with_true_foe([hard_flow(vx, vy, x, y)]), min_speed_pxs=0.0)
+    s = out.series["ttc"]
+    assert np.isfinite(s["tau_s"]).all()
+    if (x, y) == FOE or (vx, vy) == (0.0, 0.0):
+        assert len(s) == 0       # zero flow or an event at the FOE: no tau at all
+    if (vx, vy, x, y) == (0.0, 30.0, 60, 70):  # flow along y, straight below the FOE
+        np.testing.assert_allclose(s["tau_s"][0], 1.0, rtol=0.05)
+
+
+def test_event_tau_matches_reference():
+    from evchain.kernels.ttc import event_tau
+
+    rng = np.random.default_rng(1)
+    n = 3000
+    px, py = rng.integers(0, 128, n).astype(float), rng.integers(0, 96, n).astype(float)
+    vx, vy = rng.normal(0, 50, n), rng.normal(0, 50, n)
+    vx[::7] = 0.0
+    vy[::5] = 0.0
+    args = (60.0, 40.0, 30.0, 2.0, 8.0, 1.0, 500.0, 0.05, 20.0)
+    want = event_tau_naive(px, py, vx, vy, *args)
+    got = np.array([event_tau(px[i], py[i], vx[i], vy[i], *args) for i in range(n)])
+    np.testing.assert_allclose(got, want, rtol=1e-12)
+    assert (want > 0).sum() > 50
+
+
+def test_contract():
+    packets, truth = expansion_stream(foe_series=True)
+    ref = check_filter(Ttc, {"estimate_every_us": 5000, "min_samples": 3}, packets, truth=truth)
+    assert len(ref["series:ttc"]) > 5
