@@ -402,3 +402,54 @@ def test_writer_refuses_gaps_over_2_31_us(tmp_path):
     with pytest.raises(DataError, match="gap of 2\\^31 us"):
         write_aedat2(tmp_path / "gap.aedat", ev)
     assert not (tmp_path / "gap.aedat").exists()
+
+
+# --- shipped data, quick start, failed runs --------------------------------------------------
+
+def test_make_data_reproduces_the_shipped_file(tmp_path):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("make_data", REPO / "tests/data/make_data.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    out = module.make(tmp_path / "again.aedat")
+    assert out.read_bytes() == SHIPPED.read_bytes()
+
+
+def test_quickstart_aedat_pipeline(tmp_path, monkeypatch):
+    from evchain.core.chain import run_pipeline
+    from evchain.core.config import load_pipeline
+    from evchain.core.registry import make_registry
+    from tests.naive.refractory import refractory as naive_refractory
+
+    monkeypatch.chdir(REPO)
+    registry = make_registry(discover=False)
+    result = run_pipeline(load_pipeline("pipelines/quickstart-aedat.yaml", registry), registry,
+                          tmp_path)
+    assert result.report["status"] == "ok"
+    out = read_aedat2(tmp_path / "on_events.aedat")
+    ev = read_aedat2(SHIPPED)
+    keep = np.array(naive_refractory(list(zip(ev.x.tolist(), ev.y.tolist(), ev.t.tolist(),
+                                              ev.p.tolist(), strict=True)), 1000, False))
+    expect = ev.select(keep & (ev.p > 0))
+    assert len(expect) < np.count_nonzero(ev.p > 0)  # the hot pixel was thinned out
+    assert same(out, expect)
+
+
+def test_failed_run_leaves_no_complete_looking_output(tmp_path):
+    from evchain.core.chain import run_pipeline
+    from evchain.core.config import pipeline_from_text
+    from evchain.core.registry import make_registry
+    from evchain.errors import EvchainError
+
+    n = 5000
+    addr = davis(np.arange(n) % 200, np.arange(n) % 150, np.arange(n) % 2)
+    addr[-1] = davis(239, 200, 1)  # the last record is outside the sensor: fails late
+    bad = raw_file(tmp_path / "late_error.aedat", addr, np.arange(n) * 10)
+    text = (f"name: t\nseed: 0\nchain:\n  - use: aedat\n    path: {bad}\n    packet_us: 1000\n"
+            f"    chunk_records: 1000\n  - use: aedat_writer\n    path: out.aedat\n")
+    registry = make_registry(discover=False)
+    with pytest.raises(EvchainError, match=r"late_error\.aedat: record 4999"):
+        run_pipeline(pipeline_from_text(text, "t.yaml", registry), registry, tmp_path / "run")
+    assert not (tmp_path / "run" / "out.aedat").exists()
+    assert (tmp_path / "run" / "out.aedat.partial").exists()
