@@ -1,0 +1,134 @@
+"""Parameters of the driving-scene simulator (scenario, ego motion, camera, lighting).
+
+:class:`SceneConfig` is the base of the ``scene`` source's ``Params``, so a pipeline YAML can vary
+every field. Cross-field rules (a route shorter than the drive, dynamics that do not fit the
+scenario) raise clear errors; :func:`make_config` turns pydantic's errors into
+:class:`~evchain.errors.ConfigError` for Python callers.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+from pydantic import Field, ValidationError, model_validator
+
+from evchain.core.filter import FilterParams
+from evchain.errors import ConfigError
+
+Scenario = Literal["high-rise", "high-rise-orange", "open-field", "curves"]
+SCENARIOS: tuple[str, ...] = ("high-rise", "high-rise-orange", "open-field", "curves")
+
+#: Straight-route length in metres of each straight scenario (thesis 4.2).
+STRAIGHT_ROUTE_M = {"high-rise": 280.0, "high-rise-orange": 280.0, "open-field": 70.0}
+
+#: The curves route (driving line): (length m, signed curvature 1/m; left > 0).
+CURVES_ROUTE = (
+    (60.0, 0.0),
+    (40.0 * math.pi / 2, 1.0 / 40.0),
+    (50.0, 0.0),
+    (60.0 * math.radians(75.0), -1.0 / 60.0),
+    (60.0, 0.0),
+    (80.0 * math.radians(45.0), 1.0 / 80.0),
+    (80.0, 0.0),
+)
+
+
+class SceneConfig(FilterParams):
+    """Scenario, ego motion and camera of the simulated drive."""
+
+    scenario: Scenario = Field("high-rise", description="scene layout (thesis 4.2, Fig. 4.5)")
+    facade: Literal["auto", "grey", "orange"] = Field(
+        "auto", description="building texture; auto: orange for high-rise-orange, else grey")
+    extra_vertical_lines: bool = Field(
+        False, description="vertical lines on the building straight ahead (thesis Fig. 5.1)")
+    lanterns: bool = Field(True, description="lantern posts along the road")
+    obstacle: bool | None = Field(
+        None, description="car across the ego lane at the route end; None: all but curves")
+    route_m: float | None = Field(
+        None, gt=0, le=5000,
+        description="length of the straight route in m (None: 280 high-rise, 70 open field); "
+                    "the curves route is fixed (about 452 m)")
+    obstacle_gap_m: float = Field(1.0, gt=0, le=100,
+                                  description="obstacle rear face beyond the route end, m")
+    start_m: float = Field(0.0, ge=0, description="arc length where the drive starts, m")
+    duration_s: float | None = Field(
+        None, gt=0, description="drive duration in s (None: to the end of the route)")
+    speed_mps: float = Field(20.0, ge=0, le=100, description="ego speed in m/s (reference 20)")
+    camera_height_m: float = Field(1.2, gt=0, le=50, description="camera height above ground")
+    lane_offset_m: float = Field(
+        -1.75, ge=-20, le=20, description="driving line relative to the road centre (left > 0)")
+    dynamics: Literal["constant", "pitch", "curves"] = Field(
+        "constant", description="constant: pure translation; pitch: gear-shift pitch "
+                                "oscillation (thesis Fig. 4.10); curves: yaw following the road")
+    pitch_amplitude_deg: float = Field(1.0, ge=0, le=20, description="pitch oscillation amplitude")
+    pitch_frequency_hz: float = Field(2.0, gt=0, le=50, description="pitch oscillation frequency")
+    pitch_shift_interval_s: float = Field(3.0, gt=0, description="time between gear shifts")
+    pitch_decay_s: float = Field(0.5, gt=0, le=100, description="decay time of each oscillation")
+    pitch_first_shift_s: float = Field(0.5, ge=0, description="time of the first gear shift")
+    width: int = Field(320, ge=1, le=8192, description="image width in pixels")
+    height: int = Field(240, ge=1, le=8192, description="image height in pixels")
+    fov_deg: float = Field(35.0, gt=0, lt=180, description="vertical field of view in degrees")
+    supersample: int = Field(2, ge=1, le=8, description="k: k x k samples per pixel")
+    sun_azimuth_deg: float = Field(40.0, description="sun azimuth from world x towards y")
+    sun_elevation_deg: float = Field(35.0, ge=0, le=90, description="sun elevation")
+    layout_seed: int = Field(0, ge=0, description="seed of the procedural layout and textures")
+
+    @model_validator(mode="after")
+    def _check_drive(self):
+        if self.scenario == "curves" and self.dynamics != "curves":
+            raise ValueError("scenario 'curves' turns: set dynamics: curves (the camera yaws "
+                             "with the road)")
+        if self.dynamics == "curves" and self.scenario != "curves":
+            raise ValueError(f"dynamics 'curves' needs scenario 'curves', got {self.scenario!r}")
+        if self.scenario == "curves" and self.route_m is not None:
+            raise ValueError("route_m applies to straight scenarios; the curves route is fixed")
+        route = route_length_m(self)
+        if self.start_m > route:
+            raise ValueError(f"start_m {self.start_m} m lies beyond the {route:g} m route")
+        if self.duration_s is None:
+            if self.speed_mps == 0:
+                raise ValueError("speed_mps 0 needs an explicit duration_s")
+        else:
+            end = self.start_m + self.speed_mps * self.duration_s
+            if end > route * (1 + 1e-12):
+                raise ValueError(
+                    f"the route of {route:g} m is shorter than the drive: start_m "
+                    f"{self.start_m:g} + speed_mps {self.speed_mps:g} x duration_s "
+                    f"{self.duration_s:g} = {end:g} m; shorten the drive or lengthen route_m")
+        return self
+
+    @property
+    def drive_s(self) -> float:
+        """Duration of the drive in seconds."""
+        if self.duration_s is not None:
+            return float(self.duration_s)
+        return (route_length_m(self) - self.start_m) / self.speed_mps
+
+    @property
+    def has_obstacle(self) -> bool:
+        return self.scenario != "curves" if self.obstacle is None else bool(self.obstacle)
+
+    @property
+    def facade_kind(self) -> str:
+        if self.facade != "auto":
+            return self.facade
+        return "orange" if self.scenario == "high-rise-orange" else "grey"
+
+
+def route_length_m(cfg: SceneConfig) -> float:
+    if cfg.scenario == "curves":
+        return float(sum(length for length, _ in CURVES_ROUTE))
+    return float(cfg.route_m if cfg.route_m is not None else STRAIGHT_ROUTE_M[cfg.scenario])
+
+
+def make_config(cls: type[SceneConfig] = SceneConfig, **values) -> SceneConfig:
+    """Build a config; bad values raise :class:`ConfigError` naming the field and the rule."""
+    try:
+        return cls(**values)
+    except ValidationError as exc:
+        msgs = []
+        for err in exc.errors():
+            key = ".".join(str(p) for p in err["loc"]) or "scene"
+            msgs.append(f"{key}: {err['msg']}")
+        raise ConfigError("bad scene parameters: " + "; ".join(msgs)) from None

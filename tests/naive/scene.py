@@ -1,0 +1,231 @@
+"""Slow, obvious numpy references for evchain.kernels.scene (vectorised over rays, no culling).
+
+Camera pose from explicit rotation matrices, tracing by testing every box for every ray,
+textures written as numpy ``where`` chains, flow by finite differences of the projection.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+M32 = 0xFFFFFFFF
+
+
+def hash3(i, j, s):
+    i, j, s = (np.asarray(v, np.int64) for v in (i, j, s))
+    h = ((i * 374761393) ^ (j * 668265263) ^ (s * 1442695041)) & M32
+    h = ((h ^ (h >> 13)) * 1274126177) & M32
+    h = h ^ (h >> 16)
+    return (h & 0xFFFFFF) / 16777216.0
+
+
+def cellnoise(x, y, cell, seed, fp):
+    a = np.maximum(1.0 - fp / cell, 0.0)
+    i = np.floor(x / cell).astype(np.int64)
+    j = np.floor(y / cell).astype(np.int64)
+    return np.where(a > 0, (hash3(i, j, seed) - 0.5) * a, 0.0)
+
+
+def road_coords(x, y, segs):
+    x, y = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
+    best_s = np.zeros(x.shape)
+    best_d = np.full(x.shape, np.inf)
+    m = len(segs)
+    for k, (x0, y0, h0, ln, kap, s0, xc, yc, *_rest) in enumerate(segs):
+        if kap == 0:
+            sl = (x - x0) * np.cos(h0) + (y - y0) * np.sin(h0)
+            dl = -(x - x0) * np.sin(h0) + (y - y0) * np.cos(h0)
+        else:
+            rho = np.hypot(x - xc, y - yc)
+            phi0 = np.arctan2(y0 - yc, x0 - xc)
+            dphi = np.arctan2(y - yc, x - xc) - phi0 - kap * ln / 2
+            dphi = (dphi + np.pi) % (2 * np.pi) - np.pi
+            sl = dphi / kap + ln / 2
+            dl = 1 / kap - np.sign(kap) * rho
+        lo = -np.inf if (k == 0 and kap == 0) else 0.0
+        hi = np.inf if (k == m - 1 and kap == 0) else ln
+        better = (sl >= lo) & (sl <= hi) & (np.abs(dl) < np.abs(best_d))
+        best_s = np.where(better, s0 + sl, best_s)
+        best_d = np.where(better, dl, best_d)
+    return best_s, best_d
+
+
+def ground_albedo(x, y, fp, segs, g):
+    s, d = road_coords(x, y, segs)
+    w = np.abs(d - g[0])
+    seed = int(g[8])
+    hw, lw, sw = g[1], g[2] / 2, g[4]
+    asphalt = (0.16 + 0.08 * cellnoise(x, y, 2.0, seed, fp)
+               + 0.06 * cellnoise(x, y, 0.5, seed + 1, fp)
+               + 0.05 * cellnoise(x, y, 0.13, seed + 2, fp))
+    dashed = (w < lw) & ((s % g[6]) < g[5])
+    asphalt = np.where(dashed | (np.abs(w - g[3]) < lw), 0.75, asphalt)
+    sl = 1.2
+    u = s % sl
+    v = (w - hw) % sl
+    slab = 0.36 + 0.1 * (hash3(np.floor(s / sl).astype(np.int64),
+                               np.floor((w - hw) / sl).astype(np.int64), seed + 3) - 0.5)
+    side = np.where(w < hw + 0.3, 0.45, np.where((u < 0.05) | (v < 0.05), 0.2, slab))
+    if g[7] == 0:
+        beyond = (0.1 + 0.05 * cellnoise(x, y, 4.0, seed + 4, fp)
+                  + 0.04 * cellnoise(x, y, 1.0, seed + 5, fp)
+                  + 0.03 * cellnoise(x, y, 0.25, seed + 6, fp))
+    else:
+        beyond = (0.3 + 0.06 * cellnoise(x, y, 3.0, seed + 7, fp)
+                  + 0.04 * cellnoise(x, y, 0.5, seed + 8, fp))
+    return np.where(w < hw, asphalt, np.where(w < hw + sw, side, beyond))
+
+
+def box_albedo(mat, par, bid, u, z):
+    mat = np.asarray(mat)
+    p0, p1, p2, p3 = (par[..., i] for i in range(4))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        fi = np.floor(z / p1)
+        ci = np.floor(u / p2)
+        fz = z / p1 - fi
+        fu = u / p2 - ci
+        fi_i = np.nan_to_num(fi).astype(np.int64)
+        ci_i = np.nan_to_num(ci).astype(np.int64)
+    grey = np.where((fz > 0.3) & (fz < 0.85) & (fu > 0.2) & (fu < 0.8),
+                    0.06 + 0.2 * hash3(ci_i, fi_i, bid), p0 + 0.06 * (hash3(fi_i, bid, 77) - 0.5))
+    orange = np.where((fz > 0.15) & (fz < 0.9) & (fu > 0.3) & (fu < 0.7),
+                      0.1 + 0.15 * hash3(ci_i, fi_i, bid),
+                      np.where((z % 0.6) < 0.06, p0 * 0.75, p0))
+    lines = np.where((u % 1.0) < 0.12, 0.15, orange)
+    car = np.where((z > p1) & (z < p2), 0.05, np.where(z < p3, 0.08, p0))
+    return np.select([mat == 0, mat == 1, mat == 2, mat == 3], [p0, grey, orange, lines], car)
+
+
+def rotation(psi, theta):
+    """Camera-to-world rotation: yaw psi about world z, pitch theta (nose up), then eq. 3.4."""
+    rz = np.array([[np.cos(psi), -np.sin(psi), 0], [np.sin(psi), np.cos(psi), 0], [0, 0, 1]])
+    # nose up by theta: rotation about the vehicle's y (left) axis by -theta
+    a = -theta
+    ry = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    # columns: camera X, Y, Z in vehicle coordinates (thesis eq. 3.4)
+    r_vc = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]], float)
+    return rz @ ry @ r_vc
+
+
+def pitch(t, traj):
+    if traj[8] == 0 or t < traj[7]:
+        return 0.0
+    amp, om, interval, decay, first = traj[3], 2 * np.pi * traj[4], traj[5], traj[6], traj[7]
+    total = 0.0
+    k = 0
+    while first + k * interval <= t:
+        u = t - (first + k * interval)
+        total += amp * np.exp(-u / decay) * np.sin(om * u)
+        k += 1
+    return total
+
+
+def pose(t, segs, traj):
+    """(position, rotation) of the camera at time t (s), by walking the segments."""
+    s = traj[0] + traj[1] * t
+    k = 0
+    while k < len(segs) - 1 and s >= segs[k + 1, 5]:
+        k += 1
+    x0, y0, h0, _, kap, s0 = segs[k, :6]
+    u = s - s0
+    if kap == 0:
+        p, h = (x0 + u * np.cos(h0), y0 + u * np.sin(h0)), h0
+    else:
+        h = h0 + kap * u
+        p = (x0 + (np.sin(h) - np.sin(h0)) / kap, y0 - (np.cos(h) - np.cos(h0)) / kap)
+    return np.array([p[0], p[1], traj[2]]), rotation(h, pitch(t, traj))
+
+
+def rays(xs, ys, f, cx, cy, rot):
+    """World directions (camera Z component 1) through pixel positions."""
+    cam = np.stack([(xs - cx) / f, (ys - cy) / f, np.ones_like(xs)], axis=-1)
+    return cam @ rot.T
+
+
+def trace(o, d, boxes):
+    """(t, kind, index, face) for every ray d [n, 3] from o, testing every box."""
+    n = len(d)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tg = np.where((d[:, 2] < 0) & (o[2] > 0), -o[2] / d[:, 2], np.inf)
+        best = tg.copy()
+        kind = np.where(np.isfinite(tg), 1, 0)
+        idx = np.full(n, -1)
+        face = np.full(n, -1)
+        for b, box in enumerate(boxes):
+            t1 = (box[:3] - o) / d
+            t2 = (box[3:] - o) / d
+            tn_ax = np.minimum(t1, t2)
+            tf = np.minimum.reduce(np.maximum(t1, t2), axis=1)
+            tn = tn_ax.max(axis=1)
+            hit = (tn <= tf) & (tn > 0) & (tn < best)
+            ax = np.argmax(tn_ax, axis=1)   # ties: first axis, as the kernel
+            fc = 2 * ax + (d[np.arange(n), ax] <= 0)
+            best = np.where(hit, tn, best)
+            kind = np.where(hit, 2, kind)
+            idx = np.where(hit, b, idx)
+            face = np.where(hit, fc, face)
+    return best, kind, idx, face
+
+
+def shade(t, kind, idx, face, o, d, f_k, boxes, mats, pars, segs, ground, light):
+    n = np.linalg.norm(d, axis=1)
+    sky = light[5] + (light[6] - light[5]) * np.maximum(d[:, 2] / n, 0)
+    tt = np.where(np.isfinite(t), t, 0.0)
+    p = o + tt[:, None] * d
+    cosi = -d[:, 2] / n
+    fp = tt / f_k * n / np.maximum(cosi, 0.02)
+    g = ground_albedo(p[:, 0], p[:, 1], fp, segs, ground) * (light[4] + light[3] * max(light[2], 0))
+    bi = np.maximum(idx, 0)
+    axis = np.maximum(face, 0) // 2
+    sgn = np.where(face % 2 == 1, 1.0, -1.0)
+    lam = np.maximum(sgn * light[np.minimum(axis, 2)], 0)
+    u = np.where(axis == 0, p[:, 1], p[:, 0])
+    alb = box_albedo(mats[bi], pars[bi], bi, u, p[:, 2]) if len(boxes) else np.zeros(len(t))
+    alb = np.where(axis == 2, 0.8 * pars[bi, 0] if len(boxes) else 0.0, alb)
+    bx = alb * (light[4] + light[3] * lam)
+    return np.select([kind == 0, kind == 1], [sky, g], bx)
+
+
+def render(scene, t_s):
+    """Frame [H, W] with k x k supersampling, every ray against every box."""
+    cam = scene.camera
+    k = cam.supersample
+    o, rot = pose(t_s, scene.segs, scene.traj)
+    sub = (np.arange(k) + 0.5) / k - 0.5
+    ys, xs = np.mgrid[0:cam.height, 0:cam.width].astype(float)
+    acc = np.zeros(xs.shape)
+    for b in sub:
+        for a in sub:
+            d = rays((xs + a).ravel(), (ys + b).ravel(), cam.f, cam.cx, cam.cy, rot)
+            t, kind, idx, face = trace(o, d, scene.boxes)
+            acc += shade(t, kind, idx, face, o, d, cam.f * k, scene.boxes, scene.box_mat,
+                         scene.box_par, scene.segs, scene.ground, scene.light).reshape(xs.shape)
+    return acc / (k * k)
+
+
+def project(points, t_s, scene):
+    o, rot = pose(t_s, scene.segs, scene.traj)
+    pc = (points - o) @ rot
+    cam = scene.camera
+    uv = np.stack([cam.f * pc[:, 0] / pc[:, 2] + cam.cx, cam.f * pc[:, 1] / pc[:, 2] + cam.cy], 1)
+    return uv, pc
+
+
+def depth(xs, ys, t_s, scene):
+    cam = scene.camera
+    o, rot = pose(t_s, scene.segs, scene.traj)
+    d = rays(np.asarray(xs, float), np.asarray(ys, float), cam.f, cam.cx, cam.cy, rot)
+    return trace(o, d, scene.boxes)[0]
+
+
+def flow_fd(xs, ys, t_s, scene, h=1e-6):
+    """Motion field by central differences: re-project the 3-D point seen at (x, y, t)."""
+    cam = scene.camera
+    o, rot = pose(t_s, scene.segs, scene.traj)
+    d = rays(np.asarray(xs, float), np.asarray(ys, float), cam.f, cam.cx, cam.cy, rot)
+    t = trace(o, d, scene.boxes)[0]
+    pts = o + t[:, None] * d
+    a, _ = project(pts, t_s + h, scene)
+    b, _ = project(pts, t_s - h, scene)
+    v = (a - b) / (2 * h)
+    return v[:, 0], v[:, 1]

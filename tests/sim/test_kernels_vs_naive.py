@@ -1,0 +1,140 @@
+"""Every scene kernel against the slow numpy reference in tests/naive/scene.py."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from evchain.kernels import scene as K
+from evchain.sim.scene import Scene
+from tests.naive import scene as N
+
+SCENES = {
+    "high-rise": dict(scenario="high-rise", start_m=150.0),
+    "orange-lines": dict(scenario="high-rise-orange", extra_vertical_lines=True, start_m=200.0),
+    "open-field": dict(scenario="open-field", start_m=40.0),
+    "curves": dict(scenario="curves", dynamics="curves", start_m=80.0),
+    "pitch": dict(scenario="high-rise", dynamics="pitch", pitch_amplitude_deg=4.0),
+}
+
+
+def tiny(name, **kw):
+    return Scene.from_params(width=16, height=12, supersample=2, **{**SCENES[name], **kw})
+
+
+def test_hash_and_noise():
+    rng = np.random.default_rng(1)
+    i = rng.integers(-10**6, 10**6, 200)
+    j = rng.integers(-10**6, 10**6, 200)
+    for a, b in zip(i, j, strict=True):
+        assert K.hash3(a, b, 7) == N.hash3(a, b, 7)
+    x, y = rng.uniform(-500, 500, (2, 200))
+    for fp in (0.0, 0.3, 5.0):
+        got = [K.cellnoise(a, b, 0.5, 3, fp) for a, b in zip(x, y, strict=True)]
+        np.testing.assert_allclose(got, N.cellnoise(x, y, 0.5, 3, fp), atol=1e-15)
+
+
+@pytest.mark.parametrize("name", ["high-rise", "curves"])
+def test_road_coords_and_ground(name):
+    sc = tiny(name)
+    rng = np.random.default_rng(2)
+    x = rng.uniform(-50, 300, 400)
+    y = rng.uniform(-80, 250, 400)
+    got = np.array([K.road_coords(a, b, sc.segs) for a, b in zip(x, y, strict=True)])
+    s, d = N.road_coords(x, y, sc.segs)
+    np.testing.assert_allclose(got[:, 0], s, atol=1e-9)
+    np.testing.assert_allclose(got[:, 1], d, atol=1e-9)
+    fp = rng.uniform(0, 1, 400)
+    got = [K.ground_albedo(a, b, c, sc.segs, sc.ground) for a, b, c in zip(x, y, fp, strict=True)]
+    np.testing.assert_allclose(got, N.ground_albedo(x, y, fp, sc.segs, sc.ground), atol=1e-12)
+
+
+def test_box_albedo_all_materials():
+    rng = np.random.default_rng(3)
+    for mat in range(5):
+        par = np.array([0.5, 3.1, 2.3, 0.4])
+        u = rng.uniform(-100, 100, 300)
+        z = rng.uniform(0, 60, 300)
+        got = [K.box_albedo(mat, par, 5, a, b) for a, b in zip(u, z, strict=True)]
+        want = N.box_albedo(np.full(300, mat), np.tile(par, (300, 1)), 5, u, z)
+        np.testing.assert_allclose(got, want, atol=1e-12, err_msg=f"material {mat}")
+
+
+def _trace_all(o, d, boxes):
+    n = len(boxes)
+    cand = np.arange(n)
+    minz = np.full(n, -np.inf)
+    return np.array([K.trace(o[0], o[1], o[2], *r, boxes, cand, 0, n, minz) for r in d])
+
+
+def test_trace_random_and_axis_rays():
+    sc = tiny("high-rise")
+    rng = np.random.default_rng(4)
+    o = np.array([150.0, -1.75, 1.2])
+    d = rng.normal(size=(500, 3))
+    d[:100, 1:] = 0.0          # along x only
+    d[100:150, 0] = 0.0        # in the y-z plane
+    d[150:200, 2] = 0.0        # horizontal
+    d[200:220] = [[0.0, 0.0, -1.0]] * 20
+    got = _trace_all(o, d, sc.boxes)
+    t, kind, idx, face = N.trace(o, d, sc.boxes)
+    np.testing.assert_allclose(got[:, 0], t, rtol=1e-12)
+    np.testing.assert_array_equal(got[:, 1], kind)
+    np.testing.assert_array_equal(got[:, 2], idx)
+    np.testing.assert_array_equal(got[:, 3], face)
+
+
+def test_trace_hits_known_box_faces():
+    boxes = np.array([[10.0, -1.0, 0.0, 12.0, 1.0, 2.0]])
+    o = np.array([0.0, 0.0, 1.0])
+    got = _trace_all(o, np.array([[1.0, 0.0, 0.0], [1.0, 0.05, 0.0], [-1.0, 0.0, 0.0],
+                                  [1.0, 0.0, 0.2], [1.0, 0.0, -0.05]]), boxes)
+    assert tuple(got[0]) == (10.0, 2, 0, 0)          # near x face
+    assert got[1, 0] == pytest.approx(10.0 / 1.0) and got[1, 3] == 0
+    assert tuple(got[2, 1:]) == (0, -1, -1)          # backwards: sky
+    assert got[3, 1] == 0                            # passes over the box
+    assert got[4, 1] == 2 and got[4, 0] == pytest.approx(10.0)
+
+
+@pytest.mark.parametrize("name", sorted(SCENES))
+def test_camera_state_vs_naive_pose(name):
+    sc = tiny(name)
+    for t in (0.0, 0.37, 1.9, 3.3):
+        pos, rot, vc, wc = sc.state(t)
+        p, r = N.pose(t, sc.segs, sc.traj)
+        np.testing.assert_allclose(pos, p, atol=1e-9)
+        np.testing.assert_allclose(rot, r, atol=1e-12)
+        # velocities against central differences of the naive pose
+        h = 1e-6
+        p1, r1 = N.pose(t + h, sc.segs, sc.traj)
+        p0, r0 = N.pose(t - h, sc.segs, sc.traj)
+        np.testing.assert_allclose(vc, r.T @ (p1 - p0) / (2 * h), atol=1e-5)
+        omega = r.T @ ((r1 - r0) / (2 * h))        # skew matrix of the angular velocity
+        np.testing.assert_allclose(wc, [omega[2, 1], omega[0, 2], omega[1, 0]], atol=1e-5)
+
+
+@pytest.mark.parametrize("name", sorted(SCENES))
+def test_render_tiny_vs_naive(name):
+    sc = tiny(name)
+    for t in (0.0, 1.3):
+        frame, vmax = sc.render(t)
+        want = N.render(sc, t)
+        np.testing.assert_allclose(frame, want, rtol=2e-6, atol=2e-6)
+        assert vmax > 0
+
+
+def test_truth_depth_and_flow_vs_naive():
+    sc = tiny("pitch")
+    from evchain.sim.truth import SceneTruth
+
+    truth = SceneTruth(sc)
+    rng = np.random.default_rng(5)
+    x = rng.uniform(-0.5, 15.5, 300)
+    y = rng.uniform(-0.5, 11.5, 300)
+    for t in (0.6, 2.2):
+        depth, vx, vy = truth.depth_and_flow(x, y, t * 1e6)
+        np.testing.assert_allclose(depth, N.depth(x, y, t, sc), rtol=1e-12)
+        ok = np.isfinite(depth)
+        fx, fy = N.flow_fd(x[ok], y[ok], t, sc)
+        np.testing.assert_allclose(vx[ok], fx, atol=1e-3 * (1 + np.abs(fx).max()))
+        np.testing.assert_allclose(vy[ok], fy, atol=1e-3 * (1 + np.abs(fy).max()))
