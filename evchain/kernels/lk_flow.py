@@ -18,10 +18,11 @@ Two modes, see ``docs/explanation/lk_flow.md``:
   on N, temporal term N x stencil normalisation x 20, eigenvalue test against ``eig_threshold``,
   normal flow from the centre pixel; border events do not touch the memory; speed control with a
   mean that starts at 0 and mixes every computed speed (zeros included).
-* calibrated: image F = sum over the window of (1 - age / window) per event, whose time
-  derivative is -N / window (events per second); stencils only over pixels with events in the
-  window (falling back to lower-order or one-sided differences); scale-free eigenvalue ratio test;
-  normal flow as the least-squares solution along the dominant eigenvector; speed ceiling.
+* calibrated: image F = 1 - age / window of each pixel's oldest event within the window (the
+  onset of its current activity), whose time derivative is exactly -1 / window while the pixel
+  stays active; stencils only over pixels with events in the window (falling back to
+  lower-order or one-sided differences); scale-free eigenvalue ratio test; normal flow as the
+  least-squares solution along the dominant eigenvector; speed ceiling.
 """
 
 from __future__ import annotations
@@ -102,7 +103,7 @@ def _calibrated_fd(N, F, V, d, S, gradient, w_inv, eig_ratio):
                         and V[i, j + 2] > 0.0:
                     gy = (F[i, j - 2] - 8.0 * F[i, j - 1] + 8.0 * F[i, j + 1]
                           - F[i, j + 2]) / 12.0
-            b = N[i, j] * w_inv  # -dF/dt, events per second
+            b = w_inv  # -dF/dt in 1/s
             sx2 += gx * gx
             sy2 += gy * gy
             sxy += gx * gy
@@ -140,7 +141,7 @@ def _calibrated_fd(N, F, V, d, S, gradient, w_inv, eig_ratio):
 @njit(cache=True)
 def _calibrated_sg(N, F, S, R, w_inv):
     """Calibrated Savitzky-Golay: least-squares plane of F over the pixels with events
-    (coordinates centred on the event); normal flow mean(N / W) g / |g|^2."""
+    (coordinates centred on the event); normal flow (1 / W) g / |g|^2."""
     s1 = 0.0
     su = 0.0
     sw = 0.0
@@ -150,7 +151,6 @@ def _calibrated_sg(N, F, S, R, w_inv):
     sf = 0.0
     suf = 0.0
     swf = 0.0
-    sb = 0.0
     for j in range(S):
         w = float(j - R)
         for i in range(S):
@@ -166,7 +166,6 @@ def _calibrated_sg(N, F, S, R, w_inv):
                 sf += f
                 suf += u * f
                 swf += w * f
-                sb += N[i, j]
     if s1 < 3.0:
         return 0.0, 0.0, False
     cuu = suu - su * su / s1
@@ -182,8 +181,7 @@ def _calibrated_sg(N, F, S, R, w_inv):
     g2 = gx * gx + gy * gy
     if not g2 > 0.0:
         return 0.0, 0.0, False
-    bt = sb / s1 * w_inv
-    return gx * bt / g2, gy * bt / g2, True
+    return gx * w_inv / g2, gy * w_inv / g2, True
 
 
 @njit(cache=True)
@@ -307,13 +305,14 @@ def lk_flow_run(x, y, t, p, ring, speed_state, r, window_us, refractory_us, grad
                 ts = ring[k, 0, yy, xx]
                 if ts >= tmin:
                     n = 1
-                    f = 1.0 - (te - ts) * w_inv
+                    oldest = ts
                     for jj in range(1, depth):
                         ts = ring[k, jj, yy, xx]
                         if ts < tmin:
                             break
                         n += 1
-                        f += 1.0 - (te - ts) * w_inv
+                        oldest = ts
+                    f = 1.0 - (te - oldest) * w_inv
                 N[i, j] = n
                 F[i, j] = f
                 V[i, j] = 1.0 if n > 0 else 0.0

@@ -35,7 +35,7 @@ def lk_flow_naive(x, y, t, p, width, height, *, search_distance=2, window_us=80_
     def count(xx, yy, k, now):
         q = fifo.get((xx, yy, k), ())
         ages = [now - ts for ts in q if in_window(now - ts)]
-        return len(ages), sum(1.0 - a / window_us for a in ages)
+        return len(ages), (1.0 - max(ages) / window_us) if ages else 0.0
 
     for e in range(len(t)):
         xe, ye, te = int(x[e]), int(y[e]), int(t[e])
@@ -138,7 +138,7 @@ def _one_deriv(F, N, i, j, di, dj, gradient):
 
 
 def _calibrated(N, F, hood, gradient, window_us, eig_ratio):
-    rate = {key: N[key] / (window_us * 1e-6) for key in N}
+    rate = {key: 1.0 / (window_us * 1e-6) for key in N}
     if gradient == "savitzky_golay":
         pts = [(i, j) for (i, j) in hood if N[i, j] > 0]
         if len(pts) < 3:
