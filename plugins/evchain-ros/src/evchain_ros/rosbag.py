@@ -1,0 +1,283 @@
+"""DVS events in ROS bags through ``rosbags``: source ``rosbag`` and sink ``rosbag_writer``.
+
+Messages are ``dvs_msgs/msg/EventArray`` (``header``, ``height``, ``width``, ``events[]`` of
+``dvs_msgs/msg/Event {uint16 x, uint16 y, time ts, bool polarity}``), as published by the
+rpg_dvs_ros drivers and stored in most DVS datasets recorded with ROS.
+
+* Bags: a ROS 1 ``.bag`` file or a ROS 2 bag folder (sqlite3 or mcap) for reading, through
+  ``rosbags.highlevel.AnyReader``; ``rosbags.rosbag1`` / ``rosbag2`` writers for writing.
+* Time: event times are kept **absolute**: ``ts.sec * 1e6 + ts.nsec // 1000`` int64 µs (ROS
+  time is usually Unix time, so values are around 1.7e15). Sub-microsecond parts are
+  truncated. The first packet starts at the first event's time.
+* Polarity: ``true`` is ON (+1), ``false`` OFF (-1).
+* Geometry: the ``width``/``height`` fields of the first message on the topic, unless given.
+* Writing: one EventArray per non-empty packet (empty packets are not written), header stamp
+  and bag time = the packet's last event time, ``seq`` counting from 0 (ROS 1).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+from evchain.core.filter import Filter, FilterParams
+from evchain.core.packets import EventPacket, Geometry
+from evchain.errors import ConfigError, DataError
+from evchain.io.atomic import partial_path
+from pydantic import Field
+
+from evchain_ros.msgs import EVENT_ARRAY, LayoutError, decode, encode, typestore
+
+
+def slice_stream(chunks: Iterator[dict[str, np.ndarray]], geometry: Geometry,
+                 packet_us: int) -> Iterator[EventPacket]:
+    """Cut a stream of time-ordered column chunks into packets of consecutive ``packet_us``
+    slices, from the first event's time to one past the last event's time."""
+    buf: dict[str, np.ndarray] | None = None
+    t0 = None
+    for cols in chunks:
+        if not len(cols["t"]):
+            continue
+        buf = cols if buf is None else {c: np.concatenate([buf[c], cols[c]]) for c in buf}
+        if t0 is None:
+            t0 = int(buf["t"][0])
+        limit = int(buf["t"][-1])  # later chunks may still hold events at this very time
+        while t0 + packet_us <= limit:
+            t1 = t0 + packet_us
+            k = int(np.searchsorted(buf["t"], t1, "left"))
+            yield EventPacket(geometry=geometry, t_start=t0, t_end=t1,
+                              **{c: v[:k] for c, v in buf.items()})
+            buf = {c: v[k:] for c, v in buf.items()}
+            t0 = t1
+    if buf is None:
+        return
+    limit = int(buf["t"][-1]) + 1 if len(buf["t"]) else t0
+    while t0 < limit:
+        t1 = min(t0 + packet_us, limit)
+        k = int(np.searchsorted(buf["t"], t1, "left"))
+        yield EventPacket(geometry=geometry, t_start=t0, t_end=t1,
+                          **{c: v[:k] for c, v in buf.items()})
+        buf = {c: v[k:] for c, v in buf.items()}
+        t0 = t1
+
+
+def _rosbags():
+    try:
+        from rosbags.highlevel import AnyReader
+    except ImportError:
+        raise ConfigError("ROS bags need rosbags: pip install rosbags") from None
+    return AnyReader
+
+
+class RosbagSource(Filter):
+    """Read DVS events (dvs_msgs/EventArray) from a ROS 1 .bag file or a ROS 2 bag folder."""
+
+    name = "rosbag"
+    produces = EventPacket
+
+    class Params(FilterParams):
+        path: str = Field(description="ROS 1 .bag file or ROS 2 bag folder")
+        topic: str = Field("/dvs/events", description="topic with dvs_msgs/EventArray messages")
+        packet_us: int = Field(10_000, ge=1, description="slice duration of each packet")
+        width: int | None = Field(None, ge=1, description="sensor width (default: from the "
+                                  "first message)")
+        height: int | None = Field(None, ge=1, description="sensor height (default: from the "
+                                   "first message)")
+
+    def setup(self, params, context):
+        AnyReader = _rosbags()
+        self.path = Path(params.path)
+        if not self.path.exists():
+            raise DataError(f"{self.path}: not found; expected a ROS 1 .bag file or a ROS 2 "
+                            "bag folder")
+        self.reader = None
+        try:
+            reader = AnyReader([self.path], default_typestore=typestore(ros2=True))
+            reader.open()
+            self.reader = reader
+        except Exception as exc:  # rosbags raises several types for unreadable input
+            raise DataError(f"{self.path}: not a readable ROS bag (a ROS 1 .bag file or a "
+                            f"ROS 2 bag folder): {exc}") from None
+        self.ros2 = bool(self.reader.is2)
+        self.connections = [c for c in self.reader.connections if c.topic == params.topic]
+        if not self.connections:
+            topics = ", ".join(f"{t} ({i.msgtype})" for t, i in sorted(self.reader.topics.items()))
+            raise DataError(f"{self.path}: no topic {params.topic!r}; topics: {topics or 'none'}")
+        types = {c.msgtype for c in self.connections}
+        if types != {EVENT_ARRAY}:
+            raise DataError(f"{self.path}: topic {params.topic!r} has type "
+                            f"{', '.join(sorted(types))}; expected {EVENT_ARRAY}")
+        width, height = params.width, params.height
+        if width is None or height is None:
+            for _, h, w in self._messages(first_only=True):
+                width, height = width or w or None, height or h or None
+        if width is None or height is None:
+            raise DataError(f"{self.path}: topic {params.topic!r}: no message gives the sensor "
+                            "size (no messages or width/height 0); give the parameters width "
+                            "and height")
+        context.geometry = Geometry(int(width), int(height))
+        super().setup(params, context)
+
+    def time_span_us(self):
+        return None  # bag times are receive times, not event times
+
+    def _messages(self, first_only: bool = False):
+        """``(columns, height, width)`` per message, in bag order."""
+        for i, (conn, _, raw) in enumerate(self.reader.messages(connections=self.connections)):
+            try:
+                h, w, cols = decode(raw, self.ros2)
+            except LayoutError as exc:
+                raise DataError(f"{self.path}: topic {conn.topic!r} message {i}: not a "
+                                f"{EVENT_ARRAY} ({exc})") from None
+            yield cols, h, w
+            if first_only:
+                return
+
+    def packets(self) -> Iterator[EventPacket]:
+        yield from slice_stream(self._chunks(), self.context.geometry, self.params.packet_us)
+
+    def _chunks(self) -> Iterator[dict[str, np.ndarray]]:
+        g, topic = self.context.geometry, self.params.topic
+        done, last = 0, None
+        for i, (cols, _, _) in enumerate(self._messages()):
+            t, x, y = cols["t"], cols["x"], cols["y"]
+            if not len(t):
+                continue
+            back = np.diff(t if last is None else np.concatenate([[last], t])) < 0
+            if back.any():
+                j = int(np.argmax(back)) + (1 if last is None else 0)
+                raise DataError(f"{self.path}: topic {topic!r} message {i} event {j} (event "
+                                f"{done + j} of the topic): timestamp goes backwards")
+            bad = (x >= g.width) | (y >= g.height)
+            if bad.any():
+                j = int(np.argmax(bad))
+                raise DataError(f"{self.path}: topic {topic!r} message {i} event {j} at "
+                                f"({x[j]}, {y[j]}) outside the {g.width}x{g.height} sensor")
+            yield cols
+            done += len(t)
+            last = int(t[-1])
+
+    def close(self):
+        reader = getattr(self, "reader", None)
+        if reader is not None:
+            reader.close()
+            self.reader = None
+
+
+class RosbagWriter(Filter):
+    """Write events as dvs_msgs/EventArray messages (one per packet) to a ROS bag; pass them on."""
+
+    name = "rosbag_writer"
+    consumes = EventPacket
+
+    class Params(FilterParams):
+        path: str = Field("events.bag", description="output .bag file (ros1) or bag folder "
+                          "(ros2), relative to the run folder")
+        topic: str = Field("/dvs/events", description="topic name")
+        format: Literal["ros1", "ros2"] = Field("ros1", description="ros1: a .bag file; "
+                                                "ros2: a bag folder (sqlite3, version 9)")
+        frame_id: str = Field("dvs", description="header.frame_id of every message")
+
+    def setup(self, params, context):
+        try:
+            import rosbags.rosbag1  # noqa: F401
+        except ImportError:
+            raise ConfigError("ROS bags need rosbags: pip install rosbags") from None
+        self.writer = None
+        super().setup(params, context)
+
+    def reset(self):
+        self._abort()
+        self.path = self.context.output_path(self.params.path)
+        self.tmp = partial_path(self.path)
+        self.ros2 = self.params.format == "ros2"
+        self.seq = 0
+        self.geometry = None
+
+    def _open(self, geometry: Geometry) -> None:
+        from rosbags.rosbag1 import Writer as Writer1
+        from rosbags.rosbag2 import Writer as Writer2
+
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if self.tmp.is_dir():
+            shutil.rmtree(self.tmp)
+        elif self.tmp.exists():
+            self.tmp.unlink()
+        if self.ros2:  # NAME.partial/NAME/, so the storage file inside is NAME/NAME.db3
+            self.tmp.mkdir()
+            writer = Writer2(self.tmp / self.path.name, version=9)
+        else:
+            writer = Writer1(self.tmp)
+        try:
+            writer.open()
+            self.connection = writer.add_connection(self.params.topic, EVENT_ARRAY,
+                                                    typestore=typestore(self.ros2))
+        except Exception as exc:
+            raise DataError(f"{self.path}: cannot create the ROS bag: {exc}") from None
+        self.writer = writer
+        self.geometry = geometry
+
+    def process(self, packet: EventPacket) -> EventPacket:
+        if self.writer is None:
+            self._open(packet.geometry)
+        elif packet.geometry.shape != self.geometry.shape:
+            raise DataError(f"{self.path}: packet at {packet.t_start} us is "
+                            f"{packet.geometry.width}x{packet.geometry.height}, the bag was "
+                            f"opened for {self.geometry.width}x{self.geometry.height}")
+        if len(packet):
+            t0, t1 = int(packet.t[0]), int(packet.t[-1])
+            top = 2**31 if self.ros2 else 2**32
+            if t0 < 0 or t1 >= top * 1_000_000:
+                raise DataError(f"{self.path}: event times {t0}..{t1} us do not fit ROS time "
+                                f"(0 <= sec < 2^{31 if self.ros2 else 32})")
+            raw = encode(packet.x, packet.y, packet.t, packet.p, height=self.geometry.height,
+                         width=self.geometry.width, seq=self.seq, stamp_us=t1,
+                         frame_id=self.params.frame_id, ros2=self.ros2)
+            self.writer.write(self.connection, t1 * 1000, raw)
+            self.seq += 1
+        return packet
+
+    def flush(self):
+        if self.writer is None:
+            geometry = self.context.geometry
+            if geometry is None:
+                raise DataError(f"{self.path}: no packets and no sensor geometry; cannot write "
+                                "a ROS bag")
+            self._open(geometry)
+        self.writer.close()
+        self.writer = None
+        self._remove_old()
+        if self.ros2:
+            os.replace(self.tmp / self.path.name, self.path)
+            self.tmp.rmdir()
+        else:
+            os.replace(self.tmp, self.path)
+        return None
+
+    def _abort(self) -> None:
+        writer = getattr(self, "writer", None)
+        if writer is None:
+            return
+        self.writer = None
+        try:
+            writer.close()
+        except Exception:  # closing only tidies the partial output; the run has failed anyway
+            pass
+        self._remove_old()
+
+    def _remove_old(self) -> None:
+        """Remove the output of an earlier run: a bag file, or a folder that is a ROS 2 bag."""
+        if self.path.is_dir():
+            if not (self.path / "metadata.yaml").is_file():
+                raise DataError(f"{self.path}: exists and is a folder but not a ROS 2 bag; "
+                                "not replacing it")
+            shutil.rmtree(self.path)
+        elif self.path.exists() or self.path.is_symlink():
+            self.path.unlink()
+
+    def close(self):
+        self._abort()
