@@ -21,8 +21,10 @@ class LKFlow(Filter):
     solution of the brightness-constancy equations over its (2r+1)² neighbourhood, with the
     structure tensor's eigenvalues choosing full flow, normal flow or none. ``mode: faithful``
     reproduces jAER's LucasKanadeFlow (speeds not physically scaled: count x 20 heuristic);
-    ``mode: calibrated`` (default) uses a time-weighted count whose time derivative is the event
-    rate, which gives px/s. Emits only events with non-zero flow. See docs/explanation/lk_flow.md.
+    ``mode: calibrated`` (default) replaces the count image by each active pixel's onset time
+    scaled to the window, whose time derivative is known exactly, which gives px/s. Emits only
+    events with non-zero flow, and appends the series ``flow_density`` (t, n_in, n_out per 100 ms
+    bin) for the scorer. See docs/explanation/lk_flow.md.
     """
 
     name = "lk_flow"
@@ -64,14 +66,17 @@ class LKFlow(Filter):
             "within window_us, or counts saturate"))
 
     def reset(self) -> None:
+        from evchain.filters.flow_scorer import DENSITY_BIN_US, DensityCounter
         from evchain.kernels.lk_flow import new_state
 
+        self._density = DensityCounter(DENSITY_BIN_US)
+        self._last = None
         g = self.context.geometry
-        if g is None:
-            self._state = None
-            return
-        self._state = new_state(g.height, g.width, self.params.fifo_depth)
-        self._shape = (g.height, g.width)
+        self._state = None
+        self._shape = None
+        if g is not None:
+            self._state = new_state(g.height, g.width, self.params.fifo_depth)
+            self._shape = (g.height, g.width)
 
     def process(self, packet: EventPacket) -> FlowPacket:
         from evchain.kernels.lk_flow import lk_flow_run
@@ -98,4 +103,19 @@ class LKFlow(Filter):
                                 q.max_speed_factor, q.max_speed_pxs, idx, vx, vy)
         else:
             n_out = 0
-        return FlowPacket.from_events(packet, idx[:n_out], vx[:n_out], vy[:n_out])
+        from evchain.filters.flow_scorer import DENSITY_SERIES
+
+        idx = idx[:n_out]
+        out = FlowPacket.from_events(packet, idx, vx[:n_out], vy[:n_out])
+        self._last = packet
+        return out.with_series(DENSITY_SERIES, self._density.add(packet.t, packet.t[idx],
+                                                                 packet.t_end))
+
+    def flush(self) -> FlowPacket | None:
+        from evchain.filters.flow_scorer import DENSITY_SERIES
+
+        if self._last is None:
+            return None
+        end = self._last.t_end
+        return FlowPacket.empty(self._last.geometry, end, end).with_series(
+            DENSITY_SERIES, self._density.flush())
