@@ -94,10 +94,14 @@ def test_decode_truncates_sub_microsecond_parts(ros2):
     np.testing.assert_array_equal(cols["t"], [T0, T0 + 1, T0 + 1])
 
 
-@pytest.mark.parametrize("fmt", ["ros1", "ros2"])
-def test_round_trip_identical_events(tmp_path, filter_contract, fmt):
+@pytest.mark.parametrize("fmt,storage", [("ros1", "sqlite3"), ("ros2", "sqlite3"),
+                                         ("ros2", "mcap")])
+def test_round_trip_identical_events(tmp_path, filter_contract, fmt, storage):
     packets = stream()
-    path = write_bag(tmp_path / ("rt.bag" if fmt == "ros1" else "rt"), packets, format=fmt)
+    path = write_bag(tmp_path / ("rt.bag" if fmt == "ros1" else "rt"), packets, format=fmt,
+                     storage=storage)
+    if fmt == "ros2":
+        assert (path / f"rt.{'db3' if storage == 'sqlite3' else 'mcap'}").is_file()
     assert path.is_file() if fmt == "ros1" else (path / "metadata.yaml").is_file()
     got, ctx = read_all(path)
     assert ctx.geometry == GEOMETRY  # from the messages' width/height

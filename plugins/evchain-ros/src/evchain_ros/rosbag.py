@@ -179,7 +179,9 @@ class RosbagWriter(Filter):
                           "(ros2), relative to the run folder")
         topic: str = Field("/dvs/events", description="topic name")
         format: Literal["ros1", "ros2"] = Field("ros1", description="ros1: a .bag file; "
-                                                "ros2: a bag folder (sqlite3, version 9)")
+                                                "ros2: a bag folder (version 9)")
+        storage: Literal["sqlite3", "mcap"] = Field("sqlite3", description="ROS 2 storage "
+                                                    "format (ignored for ros1)")
         frame_id: str = Field("dvs", description="header.frame_id of every message")
 
     def setup(self, params, context):
@@ -200,6 +202,7 @@ class RosbagWriter(Filter):
 
     def _open(self, geometry: Geometry) -> None:
         from rosbags.rosbag1 import Writer as Writer1
+        from rosbags.rosbag2 import StoragePlugin
         from rosbags.rosbag2 import Writer as Writer2
 
         self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -209,7 +212,8 @@ class RosbagWriter(Filter):
             self.tmp.unlink()
         if self.ros2:  # NAME.partial/NAME/, so the storage file inside is NAME/NAME.db3
             self.tmp.mkdir()
-            writer = Writer2(self.tmp / self.path.name, version=9)
+            plugin = getattr(StoragePlugin, self.params.storage.upper())
+            writer = Writer2(self.tmp / self.path.name, version=9, storage_plugin=plugin)
         else:
             writer = Writer1(self.tmp)
         try:
