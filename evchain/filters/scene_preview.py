@@ -13,10 +13,11 @@ from evchain.errors import ConfigError
 class ScenePreview(Filter):
     """Writes PNGs of the frame, depth and ground-truth flow (hue = direction) at chosen times.
 
-    For each time in ``times_s`` that falls inside the stream it renders the frame exactly at
-    that time when the ground-truth provider can (the ``scene`` source's can), else takes the
-    nearest frame of the packet; depth and flow come from the provider when it has them.
-    ``scenarios`` additionally renders the same drive in other scenarios (``scene`` source
+    For each time in ``times_s`` it renders the frame exactly at that time when the ground-truth
+    provider can (the ``scene`` source's can; times after the streamed stretch but inside the
+    drive are pictured at the end), else takes the nearest frame of the packet; depth and flow
+    come from the provider when it has them. ``scenarios`` additionally pictures the drive of
+    other scenarios (same camera and speed, from the start of their route; ``scene`` source
     only), so one pipeline previews them all. Passes frames on unchanged.
     """
 
@@ -65,6 +66,17 @@ class ScenePreview(Filter):
         return packet
 
     def flush(self):
+        truth = self.context.truth
+        if self.pending and hasattr(truth, "render") and hasattr(truth, "scene"):
+            # times after the streamed stretch: the drive is defined there too
+            from evchain.sim.preview import write_preview
+
+            out_dir = self.context.output_path(self.params.out)
+            for t_s in self.pending:
+                if t_s <= truth.scene.max_time_s:
+                    self.written += [str(p) for p in write_preview(truth, t_s, out_dir,
+                                                                   self._prefix())]
+            self.pending = []
         if self.params.scenarios and not self.others_done:
             from evchain.sim.preview import write_preview
 

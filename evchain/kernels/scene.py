@@ -50,8 +50,9 @@ def hash3(i, j, s):
 @njit(**_J)
 def cellnoise(x, y, cell, seed, fp):
     """Zero-mean value per square cell of size ``cell``, faded out when the pixel footprint
-    ``fp`` (metres) approaches the cell size (a cheap prefilter against aliasing)."""
-    a = 1.0 - fp / cell
+    ``fp`` (metres, the sample spacing) approaches half the cell size (a cheap prefilter against
+    aliasing: cells smaller than two samples cannot be resolved)."""
+    a = 1.0 - 2.0 * fp / cell
     if a <= 0.0:
         return 0.0
     i = np.int64(math.floor(x / cell))

@@ -34,6 +34,9 @@ class Scene:
             cfg.pitch_shift_interval_s, cfg.pitch_decay_s, cfg.pitch_first_shift_s,
             1.0 if cfg.dynamics == "pitch" else 0.0, float(len(self.segs))], np.float64)
         self.duration_s = cfg.drive_s
+        #: the latest time the route supports (the drive may stop earlier)
+        self.max_time_s = ((self.world.route_m - cfg.start_m) / cfg.speed_mps
+                           if cfg.speed_mps > 0 else self.duration_s)
         w, h = cfg.width, cfg.height
         self._ntiles = ((w + TILE_PX - 1) // TILE_PX) * ((h + TILE_PX - 1) // TILE_PX)
         nb = len(self.boxes)

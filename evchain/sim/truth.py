@@ -111,7 +111,8 @@ class SceneTruth:
         return np.meshgrid(np.arange(cam.width, dtype=float), np.arange(cam.height, dtype=float))
 
     def with_scenario(self, scenario: str) -> SceneTruth:
-        """The same drive parameters in another scenario (dynamics adapted to it)."""
+        """The same camera and speed in another scenario, from the start of its route, to its
+        end (dynamics adapted: curves for the curves scenario)."""
         from evchain.sim.config import SceneConfig, make_config
 
         values = self.scene.cfg.model_dump()
@@ -123,6 +124,7 @@ class SceneTruth:
         elif values["dynamics"] == "curves":
             values["dynamics"] = "constant"
         values["duration_s"] = None
+        values["start_m"] = 0.0
         return SceneTruth(Scene(make_config(SceneConfig, **values)))
 
 

@@ -20,7 +20,7 @@ def hash3(i, j, s):
 
 
 def cellnoise(x, y, cell, seed, fp):
-    a = np.maximum(1.0 - fp / cell, 0.0)
+    a = np.maximum(1.0 - 2.0 * fp / cell, 0.0)
     i = np.floor(x / cell).astype(np.int64)
     j = np.floor(y / cell).astype(np.int64)
     return np.where(a > 0, (hash3(i, j, seed) - 0.5) * a, 0.0)

@@ -1,0 +1,125 @@
+"""Geometry, motion field, FOE and TTC ground truth of the scene simulator."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.ndimage import gaussian_filter, map_coordinates
+
+from evchain.sim.camera import focal_from_fov
+from evchain.sim.scene import Scene
+from evchain.sim.truth import SceneTruth
+from tests.naive import scene as N
+
+
+def test_focal_length_from_fov():
+    assert focal_from_fov(240, 35.0) == pytest.approx(380.59, abs=0.01)
+    assert focal_from_fov(100, 90.0) == pytest.approx(50.0)
+    sc = Scene.from_params(width=320, height=240, fov_deg=35.0)
+    g = sc.geometry
+    assert (g.f, g.cx, g.cy) == (pytest.approx(380.59, abs=0.01), 159.5, 119.5)
+
+
+def test_box_corners_project_like_a_pinhole():
+    sc = Scene.from_params(scenario="open-field", width=160, height=120, start_m=20.0)
+    truth = SceneTruth(sc)
+    car = [i for i, lab in enumerate(sc.world.labels) if lab == "car"][0]
+    x0, y0, z0, x1, y1, z1 = sc.boxes[car]
+    corners = np.array([[x0, y, z] for y in (y0, y1) for z in (z0, z1)])
+    t = 0.5
+    uv = sc.project(corners, t)
+    pos, rot, _, _ = sc.state(t)
+    pc = (corners - pos) @ rot                        # camera coordinates
+    np.testing.assert_allclose(uv[:, 0], sc.camera.f * pc[:, 0] / pc[:, 2] + sc.camera.cx)
+    np.testing.assert_allclose(uv, N.project(corners, t, sc)[0], atol=1e-9)
+    # the ray through the projected near-face centre hits that face at its depth
+    centre = np.array([[x0, (y0 + y1) / 2, (z0 + z1) / 2]])
+    c_uv = sc.project(centre, t)[0]
+    depth = truth.depth(c_uv[0], c_uv[1], t * 1e6)
+    assert depth == pytest.approx(x0 - pos[0], rel=1e-9)
+    # straight-road geometry by hand: camera 1.2 m up, level: ground at row cy + f h / Z
+    z = 10.0
+    row = sc.camera.cy + sc.camera.f * 1.2 / z
+    assert truth.depth(sc.camera.cx, row, 0.0) == pytest.approx(z, rel=1e-9)
+
+
+def test_pure_translation_flow_diverges_from_foe():
+    sc = Scene.from_params(scenario="high-rise", width=160, height=120, start_m=100.0)
+    truth = SceneTruth(sc)
+    t_us = 1.5e6
+    fx, fy = truth.foe(t_us)
+    assert (fx, fy) == (pytest.approx(sc.camera.cx), pytest.approx(sc.camera.cy))
+    vx, vy = truth.flow(fx, fy, t_us)
+    assert abs(vx) < 1e-9 and abs(vy) < 1e-9
+    ys, xs = np.mgrid[0:120:3, 0:160:3].astype(float)
+    depth, vx, vy = truth.depth_and_flow(xs, ys, t_us)
+    finite = np.isfinite(depth) & ((xs - fx) ** 2 + (ys - fy) ** 2 > 1.0)
+    radial = (xs - fx) * vx + (ys - fy) * vy
+    assert np.all(radial[finite] > 0)
+    # parallel to p - foe: the cross product vanishes
+    cross = (xs - fx) * vy - (ys - fy) * vx
+    assert np.max(np.abs(cross[finite]) / (np.hypot(vx, vy)[finite] * 1e3 + 1e-9)) < 1e-9
+    assert np.all(vx[~np.isfinite(depth)] == 0)     # sky: no rotation, no flow
+
+
+def test_ttc_falls_one_second_per_second():
+    sc = Scene.from_params(scenario="high-rise", speed_mps=20.0)
+    truth = SceneTruth(sc)
+    t = np.array([0.0, 1.0, 5.0, 13.0]) * 1e6
+    tau = truth.ttc(t)
+    np.testing.assert_allclose(np.diff(tau), -np.diff(t) * 1e-6, atol=1e-12)
+    assert tau[0] == pytest.approx((280.0 + 1.0) / 20.0)
+    assert np.isnan(SceneTruth(Scene.from_params(scenario="curves", dynamics="curves")).ttc(0.0))
+    still = Scene.from_params(speed_mps=0.0, duration_s=1.0)
+    assert np.isnan(SceneTruth(still).ttc(0.5e6))
+    assert np.isnan(SceneTruth(still).foe(0.5e6)[0])
+
+
+def _residuals(sc: Scene, t_s: float, dt_s: float, scale: float = 1.0):
+    """Mean |I1 - warp(I0)| and |I1 - I0| away from depth edges (both frames blurred by one
+    pixel first, so that the interpolation of the warp does not dominate at sharp edges)."""
+    truth = SceneTruth(sc)
+    f0 = gaussian_filter(sc.render(t_s)[0].astype(float), 1.0)
+    f1 = gaussian_filter(sc.render(t_s + dt_s)[0].astype(float), 1.0)
+    h, w = f0.shape
+    ys, xs = np.mgrid[0:h, 0:w].astype(float)
+    depth, vx, vy = truth.depth_and_flow(xs, ys, (t_s + dt_s) * 1e6)
+    warped = map_coordinates(f0, [ys - scale * vy * dt_s, xs - scale * vx * dt_s], order=3,
+                             mode="nearest")
+    inv = np.where(np.isfinite(depth), 1.0 / depth, 0.0)
+    edge = np.zeros_like(inv, bool)
+    for dy in range(-3, 4):
+        for dx in range(-3, 4):
+            sh = np.roll(np.roll(inv, dy, 0), dx, 1)
+            edge |= np.abs(sh - inv) > 0.05 * np.maximum(inv, sh) + 1e-3
+    keep = ~edge
+    keep[:6], keep[-6:], keep[:, :6], keep[:, -6:] = False, False, False, False
+    motion = np.hypot(vx, vy)[keep].max() * dt_s
+    return (np.abs(f1 - warped)[keep].mean(), np.abs(f1 - f0)[keep].mean(), motion)
+
+
+@pytest.mark.parametrize("kw,t_s", [
+    (dict(scenario="high-rise", start_m=120.0), 0.5),
+    (dict(scenario="high-rise", dynamics="pitch", pitch_amplitude_deg=3.0,
+          pitch_first_shift_s=0.2), 0.25),
+    (dict(scenario="curves", dynamics="curves", start_m=70.0), 0.5),
+])
+def test_flow_warp_predicts_next_frame(kw, t_s):
+    sc = Scene.from_params(width=160, height=120, supersample=2, **kw)
+    # 20 ms: a few pixels of motion, well above the floor set by texture aliasing
+    warp, still, motion = _residuals(sc, t_s, 2e-2)
+    assert 1.0 < motion < 6.0
+    assert warp < 0.6 * still, (warp, still)
+    # the wrong sign or a wrong scale predicts worse
+    warp_neg, _, _ = _residuals(sc, t_s, 2e-2, scale=-1.0)
+    warp_half, _, _ = _residuals(sc, t_s, 2e-2, scale=0.5)
+    assert warp < warp_half and warp < 0.6 * warp_neg
+
+
+def test_yaw_and_pitch_present():
+    pitch = Scene.from_params(dynamics="pitch", pitch_amplitude_deg=2.0, pitch_first_shift_s=0.1)
+    _, _, _, wc = pitch.state(0.2)
+    assert abs(wc[0]) > 0.01 and abs(wc[1]) < 1e-12      # pitch rate about camera X
+    curves = Scene.from_params(scenario="curves", dynamics="curves", start_m=70.0)
+    _, _, _, wc = curves.state(0.1)
+    assert wc[1] == pytest.approx(-20.0 / 40.0)          # left turn: yaw about -Y (up)
