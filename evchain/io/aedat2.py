@@ -163,14 +163,12 @@ def _chip_from_lines(lines: list[str]) -> Chip | None:
 
 def header_bytes(chip: Chip, extra: list[str] = ()) -> bytes:
     """The header jAER writes (CRLF line ends), naming the chip's jAER class."""
-    from evchain import __version__
-
     lines = [VERSION_LINE.decode(),
              "# This is a raw AE data file - do not edit",
              "# Data format is int32 address, int32 timestamp (8 bytes total), repeated for each "
              "event",
              "# Timestamps tick is 1 us",
-             f"# created by evchain {__version__}"]
+             "# created by evchain"]  # no date or version: same events, same bytes
     if chip.jaer_class:
         lines.append(f"# AEChip: {chip.jaer_class}")
     else:
