@@ -110,6 +110,26 @@ def test_translating_square_reads_and_round_trips(tmp_path):
     assert SQUARE.read_bytes()[src.data_offset:] == out.read_bytes()[dst.data_offset:]
 
 
+@pytest.mark.skipif(not SQUARE.exists(), reason="shared dvsflow16 data not present")
+@pytest.mark.parametrize("name,count", [("RotatingBar", 45_000), ("TranslatingBarX", 10_000),
+                                        ("TranslatingBarY", 10_000)])
+def test_other_dvsflow16_files(name, count):
+    stats = DecodeStats()
+    ev = read_aedat2(DVSFLOW / f"{name}.aedat", chip="davis240", stats=stats)
+    assert len(ev) == count and stats.skipped_non_dvs == 0
+    ev.validate()
+    if name == "RotatingBar":  # rotates about jAER (119, 89): evchain (119, 179 - 89)
+        assert abs((int(ev.x.min()) + int(ev.x.max())) / 2 - 119) <= 1
+        assert abs((int(ev.y.min()) + int(ev.y.max())) / 2 - 90) <= 1
+
+
+def test_lf_only_header_is_accepted(tmp_path):
+    header = b"#!AER-DAT2.0\n# AEChip: ch.unizh.ini.jaer.chip.retina.DVS128\n"
+    path = raw_file(tmp_path / "lf.aedat", [(3 << 8) | (5 << 1)], [42], header=header)
+    ev = read_aedat2(path)
+    assert ev.geometry == Geometry(128, 128) and ev.t.tolist() == [42]
+
+
 def test_header_lines_crlf_and_stop_at_first_non_hash_byte(tmp_path):
     path = raw_file(tmp_path / "h.aedat", davis([1], [1], [1]), [5])
     data = path.read_bytes()
