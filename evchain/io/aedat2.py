@@ -436,6 +436,7 @@ class Writer:
 
     def __init__(self, fh, chip: Chip, extra_header: list[str] = ()):
         self.fh, self.chip = fh, chip
+        self.name = str(getattr(fh, "path", None) or getattr(fh, "name", "AEDAT output"))
         fh.write(header_bytes(chip, list(extra_header)))
         self.events = 0
         self.specials = 0
@@ -453,13 +454,14 @@ class Writer:
         bad, gap = encode(x, y, t, p, 0 if chip.layout == "davis" else 1, chip.width,
                           chip.height, prev, words)
         if bad >= 0:
-            raise DataError(f"event {bad} at ({x[bad]}, {y[bad]}) is outside the "
+            raise DataError(f"{self.name}: event {bad} at ({x[bad]}, {y[bad]}) is outside the "
                             f"{chip.width}x{chip.height} sensor of chip {chip.name}: cannot "
                             "write it")
         if gap >= 0:
             before = int(t[gap - 1]) if gap else prev
-            raise DataError(f"event {gap} at {int(t[gap])} us follows {before} us: a gap of 2^31 "
-                            "us or more cannot be written to AEDAT 2.0 (32-bit timestamps)")
+            raise DataError(f"{self.name}: event {gap} at {int(t[gap])} us follows {before} us: a "
+                            "gap of 2^31 us or more cannot be written to AEDAT 2.0 (32-bit "
+                            "timestamps)")
         if self.events == 0 and chip.layout == "davis" and (int(words[0]) & 0xFF) == 0x23:
             lead = encode_records(chip, x[:1], y[:1], t[:1], p[:1], first=True)[:1]
             self.fh.write(lead.tobytes())  # the special record, see encode_records

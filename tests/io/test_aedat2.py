@@ -419,9 +419,16 @@ def test_writer_refuses_gaps_over_2_31_us(tmp_path):
     ev = EventPacket(geometry=g, t_start=0, t_end=2**31 + 10, x=np.array([1, 2], np.uint16),
                      y=np.array([1, 2], np.uint16), t=np.array([0, 2**31 + 5], np.int64),
                      p=np.array([1, 1], np.int8))
-    with pytest.raises(DataError, match="gap of 2\\^31 us"):
+    with pytest.raises(DataError, match=r"gap\.aedat: event 1 .*gap of 2\^31 us"):
         write_aedat2(tmp_path / "gap.aedat", ev)
     assert not (tmp_path / "gap.aedat").exists()
+
+
+def test_writer_refuses_events_outside_the_chip(tmp_path):
+    ev = random_events(10, Geometry(128, 48), seed=1).replace(x=np.full(10, 150, np.uint16))
+    with pytest.raises(DataError, match=r"big\.aedat: event 0 at \(150, \d+\) is outside the "
+                                        r"128x128 sensor of chip dvs128"):
+        write_aedat2(tmp_path / "big.aedat", ev, chip="dvs128")
 
 
 # --- shipped data, quick start, failed runs --------------------------------------------------
