@@ -20,7 +20,7 @@ def test_direction_colours_follow_angle():
 
 
 def test_gif_of_flow_with_overlays(tmp_path):
-    packets, truth = expansion_stream(n_packets=4, packet_us=25_000)
+    packets, truth = expansion_stream(n_packets=4, packet_us=25_000, foe_series=True)
     f = Video()
     f.setup(Video.Params(path="flow.gif", frame_us=20_000, scale=1),
             make_context(packets[0].geometry, truth, tmp_path))
