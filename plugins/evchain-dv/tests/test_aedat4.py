@@ -102,15 +102,26 @@ def test_no_events_gives_a_readable_file(tmp_path):
     assert got is None and ctx.geometry == Geometry(64, 48)
 
 
-def test_failed_run_leaves_only_partial(tmp_path):
+@pytest.mark.parametrize("buffer_events", [0, 1_000_000])
+def test_failed_run_leaves_only_partial(tmp_path, buffer_events):
     (tmp_path / "run.aedat4").write_bytes(b"stale output of an earlier run")
     w = Aedat4Writer()
-    w.setup(Aedat4Writer.Params(path="run.aedat4"), Context(out_dir=tmp_path))
+    w.setup(Aedat4Writer.Params(path="run.aedat4", buffer_events=buffer_events),
+            Context(out_dir=tmp_path))
     for p in stream(n=300)[:3]:
         w.process(p)
     w.close()  # no flush: the run failed
     assert not (tmp_path / "run.aedat4").exists()
-    assert (tmp_path / "run.aedat4.partial").exists()
+    # the partial file exists once the writer has opened it (buffer full)
+    assert (tmp_path / "run.aedat4.partial").exists() == (buffer_events == 0)
+
+
+@pytest.mark.parametrize("buffer_events", [0, 100, 10**9])
+def test_buffering_does_not_change_the_file(tmp_path, buffer_events):
+    packets = stream(n=1000, seed=4)
+    path = write_file(tmp_path / f"b{buffer_events}.aedat4", packets,
+                      buffer_events=buffer_events)
+    assert_same_events(read_all(path)[0], packets)
 
 
 def test_writer_needs_aedat4_name():

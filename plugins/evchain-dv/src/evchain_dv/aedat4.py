@@ -197,6 +197,10 @@ class Aedat4Writer(Filter):
                           "relative to the run folder")
         camera: str = Field("evchain", description="camera name recorded in the file")
         compression: str = Field("lz4", description="none, lz4, lz4_high, zstd or zstd_high")
+        buffer_events: int = Field(1_000_000, ge=0, description="events held (16 bytes each) "
+                                   "before the file is opened: dv-processing's writer thread "
+                                   "busy-waits while a file is open, so shorter streams are "
+                                   "written in one go by flush()")
 
     def setup(self, params, context):
         self.dv = _dv()
@@ -214,6 +218,9 @@ class Aedat4Writer(Filter):
         self.path = self.context.output_path(self.params.path)
         self.tmp = partial_path(self.path)
         self.geometry = None
+        self.pending: list = []  # converted event stores not yet handed to the writer
+        self.pending_events = 0
+        self.dirty = False  # a run has started and not been committed
 
     def _open(self, geometry: Geometry) -> None:
         dv = self.dv
@@ -240,12 +247,13 @@ class Aedat4Writer(Filter):
         self.geometry = geometry
 
     def process(self, packet: EventPacket) -> EventPacket:
-        if self.writer is None:
-            self._open(packet.geometry)
+        if self.geometry is None:
+            self.geometry = packet.geometry
         elif packet.geometry.shape != self.geometry.shape:
             raise DataError(f"{self.path}: packet at {packet.t_start} us is "
-                            f"{packet.geometry.width}x{packet.geometry.height}, the file was "
-                            f"opened for {self.geometry.width}x{self.geometry.height}")
+                            f"{packet.geometry.width}x{packet.geometry.height}, the file is "
+                            f"for {self.geometry.width}x{self.geometry.height}")
+        self.dirty = True
         if len(packet):
             # dv-processing takes no numpy arrays: one push_back per event. The tuple overload
             # driven by map() is about 3x faster than push_back(t, x, y, p) in a Python loop.
@@ -253,26 +261,39 @@ class Aedat4Writer(Filter):
             rows = zip(packet.t.tolist(), packet.x.tolist(), packet.y.tolist(),
                        (packet.p > 0).tolist(), strict=True)
             deque(map(store.push_back, rows), maxlen=0)
-            self.writer.writeEvents(store)
+            self.pending.append(store)
+            self.pending_events += len(packet)
+            if self.writer is not None or self.pending_events > self.params.buffer_events:
+                self._drain()
         return packet
 
-    def flush(self):
+    def _drain(self) -> None:
         if self.writer is None:
-            geometry = self.context.geometry
-            if geometry is None:
+            self._open(self.geometry)
+        for store in self.pending:
+            self.writer.writeEvents(store)
+        self.pending, self.pending_events = [], 0
+
+    def flush(self):
+        if self.geometry is None:
+            self.geometry = self.context.geometry
+            if self.geometry is None:
                 raise DataError(f"{self.path}: no packets and no sensor geometry; cannot write "
                                 "an AEDAT 4.0 file")
-            self._open(geometry)
+        self._drain()
         self.writer = None  # the destructor finishes the file (file data table) and closes it
         os.replace(self.tmp, self.path)
         self._remove_link()
+        self.dirty = False
         return None
 
     def _abort(self) -> None:
-        if getattr(self, "writer", None) is not None:
-            self.writer = None
-            if self.path.exists():
-                self.path.unlink()
+        """No flush: finish the partial file if one is open, remove any stale ``NAME``."""
+        self.writer = None
+        self.pending, self.pending_events = [], 0
+        if getattr(self, "dirty", False) and self.path.exists():
+            self.path.unlink()
+        self.dirty = False
         self._remove_link()
 
     def _remove_link(self) -> None:
