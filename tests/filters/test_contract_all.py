@@ -6,6 +6,8 @@ that fails here with defaults needs an entry (or a fix).
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -24,7 +26,10 @@ BUILTIN = sorted(n for n, i in REGISTRY.filters.items() if i.distribution == "ev
 
 # Per-filter parameters for the contract run ({} = defaults). Callables get tmp_path.
 PARAMS = {
+    "aedat": {"path": str(Path(__file__).resolve().parents[1] / "data" /
+                          "moving_edge_davis240.aedat")},
     "aedat_writer": lambda tmp: {"path": str(tmp / "out.aedat")},
+    "scene": {"width": 64, "height": 48, "supersample": 1, "duration_s": 0.04},
 }
 
 
@@ -74,7 +79,6 @@ NEEDS_FOE_SERIES = {"ttc"}
 
 # Sources that cannot run without a file are covered by their own tests.
 SOURCE_SKIP = {
-    "aedat": "needs a file; covered in tests/io",
     "frames": "needs a file; covered in tests/io",
     "hdf5": "needs a file; covered in tests/io/test_hdf5.py",
 }
