@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from pydantic import ValidationError
 
 pytest.importorskip("dv_processing")
 
@@ -124,12 +125,19 @@ def test_buffering_does_not_change_the_file(tmp_path, buffer_events):
     assert_same_events(read_all(path)[0], packets)
 
 
-def test_writer_needs_aedat4_name():
-    w = Aedat4Writer()
-    with pytest.raises(ConfigError, match="must end in '.aedat4'"):
-        w.setup(Aedat4Writer.Params(path="out.bin"), Context())
-    with pytest.raises(ConfigError, match="unknown compression"):
-        w.setup(Aedat4Writer.Params(compression="gzip"), Context())
+def test_writer_needs_aedat4_name(tmp_path):
+    with pytest.raises(ValidationError, match="must end in '.aedat4'"):
+        Aedat4Writer.Params(path="out.aedat4.bak")
+    # and in a pipeline file it is a ConfigError naming the file, before anything runs
+    import evchain
+
+    yaml = tmp_path / "bad.yaml"
+    yaml.write_text("name: bad\nseed: 0\nchain:\n  - use: aedat4\n    path: in.aedat4\n"
+                    "  - use: aedat4_writer\n    path: out.bin\n")
+    with pytest.raises(ConfigError, match=r"bad\.yaml.*must end in '\.aedat4'"):
+        evchain.run(yaml, out_dir=tmp_path / "out")
+    with pytest.raises(ValidationError, match="compression"):
+        Aedat4Writer.Params(compression="gzip")
 
 
 def _open(path, **params):

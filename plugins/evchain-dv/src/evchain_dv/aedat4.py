@@ -25,13 +25,14 @@ import tempfile
 from collections import deque
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import EventPacket, Geometry
 from evchain.errors import ConfigError, DataError
 from evchain.io.atomic import partial_path
-from pydantic import Field
+from pydantic import Field, field_validator
 
 MAGIC = b"#!AER-DAT4.0"
 COMPRESSIONS = {"none": "NONE", "lz4": "LZ4", "lz4_high": "LZ4_HIGH", "zstd": "ZSTD",
@@ -196,20 +197,22 @@ class Aedat4Writer(Filter):
         path: str = Field("events.aedat4", description="output file (must end in .aedat4), "
                           "relative to the run folder")
         camera: str = Field("evchain", description="camera name recorded in the file")
-        compression: str = Field("lz4", description="none, lz4, lz4_high, zstd or zstd_high")
+        compression: Literal["none", "lz4", "lz4_high", "zstd", "zstd_high"] = Field(
+            "lz4", description="compression of the file's event packets")
         buffer_events: int = Field(1_000_000, ge=0, description="events held (16 bytes each) "
                                    "before the file is opened: dv-processing's writer thread "
                                    "busy-waits while a file is open, so shorter streams are "
                                    "written in one go by flush()")
 
+        @field_validator("path")
+        @classmethod
+        def _aedat4_name(cls, value: str) -> str:
+            if not value.endswith(".aedat4"):  # dv-processing aborts the process otherwise
+                raise ValueError("must end in '.aedat4' (dv-processing writes no other names)")
+            return value
+
     def setup(self, params, context):
         self.dv = _dv()
-        if not params.path.endswith(".aedat4"):
-            raise ConfigError(f"aedat4_writer: path {params.path!r} must end in '.aedat4' "
-                              "(dv-processing refers to the extension)", key="path")
-        if params.compression not in COMPRESSIONS:
-            raise ConfigError(f"aedat4_writer: unknown compression {params.compression!r}; "
-                              f"expected one of {', '.join(COMPRESSIONS)}", key="compression")
         self.writer = None
         super().setup(params, context)
 
