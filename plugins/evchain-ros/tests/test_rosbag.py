@@ -18,7 +18,7 @@ from rosbags.highlevel import AnyReader  # noqa: E402
 from rosbags.rosbag1 import Writer as Writer1  # noqa: E402
 
 from evchain_ros.bench import split, write_bag  # noqa: E402
-from evchain_ros.msgs import EVENT_ARRAY, decode, encode, typestore  # noqa: E402
+from evchain_ros.msgs import EVENT_ARRAY, ROS1_MD5, decode, encode, typestore  # noqa: E402
 from evchain_ros.rosbag import RosbagSource, RosbagWriter  # noqa: E402
 
 GEOMETRY = Geometry(240, 180)
@@ -81,6 +81,32 @@ def test_codec_matches_rosbags_byte_for_byte(ros2):
             assert (h, w) == (180, 240)
             for k, v in {"x": x, "y": y, "t": t, "p": p}.items():
                 np.testing.assert_array_equal(cols[k], v, err_msg=k)
+
+
+def test_ros1_type_hash_is_rpg_dvs_ros():
+    assert typestore(False).generate_msgdef(EVENT_ARRAY)[1] == ROS1_MD5
+
+
+def test_other_eventarray_layout_is_refused(tmp_path):
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    store = get_typestore(Stores.ROS1_NOETIC)  # same type name, fields in another order
+    store.register({**get_types_from_msg("uint16 x\nuint16 y\ntime ts\nbool polarity\n",
+                                         "dvs_msgs/msg/Event"),
+                    **get_types_from_msg("Header header\ndvs_msgs/Event[] events\n"
+                                         "uint32 height\nuint32 width\n", EVENT_ARRAY)})
+    T, H, EA = (store.types[k] for k in ("builtin_interfaces/msg/Time", "std_msgs/msg/Header",
+                                         EVENT_ARRAY))
+    msg = EA(header=H(seq=0, stamp=T(sec=1, nanosec=0), frame_id=""), events=[], height=1,
+             width=1)
+    w = Writer1(tmp_path / "other.bag")
+    w.open()
+    conn = w.add_connection("/dvs/events", EVENT_ARRAY, typestore=store)
+    w.write(conn, 1, store.serialize_ros1(msg, EVENT_ARRAY))
+    w.close()
+    with pytest.raises(DataError, match=r"other\.bag: topic '/dvs/events': "
+                                        r"dvs_msgs/msg/EventArray with MD5 \w+, a layout other"):
+        read_all(tmp_path / "other.bag")
 
 
 @pytest.mark.parametrize("ros2", [False, True])

@@ -26,6 +26,7 @@ import numpy as np
 
 EVENT_ARRAY = "dvs_msgs/msg/EventArray"
 EVENT = "dvs_msgs/msg/Event"
+ROS1_MD5 = "5e8beee5a6c107e504c2e78903c224b8"  # rpg_dvs_ros' dvs_msgs/EventArray (ROS 1)
 
 MSG_ROS1 = {
     EVENT: "uint16 x\nuint16 y\ntime ts\nbool polarity\n",

@@ -30,7 +30,7 @@ from evchain.errors import ConfigError, DataError
 from evchain.io.atomic import partial_path
 from pydantic import Field
 
-from evchain_ros.msgs import EVENT_ARRAY, LayoutError, decode, encode, typestore
+from evchain_ros.msgs import EVENT_ARRAY, ROS1_MD5, LayoutError, decode, encode, typestore
 
 
 def slice_stream(chunks: Iterator[dict[str, np.ndarray]], geometry: Geometry,
@@ -111,6 +111,11 @@ class RosbagSource(Filter):
         if types != {EVENT_ARRAY}:
             raise DataError(f"{self.path}: topic {params.topic!r} has type "
                             f"{', '.join(sorted(types))}; expected {EVENT_ARRAY}")
+        digests = {c.digest for c in self.connections} - {"", None}
+        if not self.ros2 and digests - {ROS1_MD5}:
+            raise DataError(f"{self.path}: topic {params.topic!r}: {EVENT_ARRAY} with MD5 "
+                            f"{', '.join(sorted(digests))}, a layout other than rpg_dvs_ros' "
+                            f"(MD5 {ROS1_MD5}: header, height, width, events)")
         width, height = params.width, params.height
         if width is None or height is None:
             for _, h, w in self._messages(first_only=True):
