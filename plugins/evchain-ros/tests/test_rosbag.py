@@ -120,12 +120,15 @@ def test_decode_truncates_sub_microsecond_parts(ros2):
     np.testing.assert_array_equal(cols["t"], [T0, T0 + 1, T0 + 1])
 
 
-@pytest.mark.parametrize("fmt,storage", [("ros1", "sqlite3"), ("ros2", "sqlite3"),
-                                         ("ros2", "mcap")])
-def test_round_trip_identical_events(tmp_path, filter_contract, fmt, storage):
+@pytest.mark.parametrize("fmt,storage,compression", [
+    ("ros1", "sqlite3", "none"), ("ros1", "sqlite3", "lz4"), ("ros1", "sqlite3", "bz2"),
+    ("ros2", "sqlite3", "none"), ("ros2", "mcap", "none")])
+def test_round_trip_identical_events(tmp_path, filter_contract, fmt, storage, compression):
     packets = stream()
     path = write_bag(tmp_path / ("rt.bag" if fmt == "ros1" else "rt"), packets, format=fmt,
-                     storage=storage)
+                     storage=storage, compression=compression)
+    if compression != "none":
+        assert f"compression={compression}".encode() in path.read_bytes()
     if fmt == "ros2":
         assert (path / f"rt.{'db3' if storage == 'sqlite3' else 'mcap'}").is_file()
     assert path.is_file() if fmt == "ros1" else (path / "metadata.yaml").is_file()

@@ -187,6 +187,8 @@ class RosbagWriter(Filter):
                                                 "ros2: a bag folder (version 9)")
         storage: Literal["sqlite3", "mcap"] = Field("sqlite3", description="ROS 2 storage "
                                                     "format (ignored for ros1)")
+        compression: Literal["none", "bz2", "lz4"] = Field("none", description="ROS 1 chunk "
+                                                           "compression (ignored for ros2)")
         frame_id: str = Field("dvs", description="header.frame_id of every message")
 
     def setup(self, params, context):
@@ -221,6 +223,9 @@ class RosbagWriter(Filter):
             writer = Writer2(self.tmp / self.path.name, version=9, storage_plugin=plugin)
         else:
             writer = Writer1(self.tmp)
+            if self.params.compression != "none":
+                writer.set_compression(getattr(Writer1.CompressionFormat,
+                                               self.params.compression.upper()))
         try:
             writer.open()
             self.connection = writer.add_connection(self.params.topic, EVENT_ARRAY,
