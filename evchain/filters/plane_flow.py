@@ -53,6 +53,9 @@ class PlaneFlow(Filter):
         max_speed_pxs: float = Field(1000.0, gt=0, le=1e12,
                                      description="th3 as a speed ceiling: drop faster flow")
         max_iterations: int = Field(10, ge=1, description="iterative fits: refits at most")
+        min_spread_px: float = Field(
+            0.0, ge=0, description="neighbours must spread at least this (std. dev., px) across "
+                                   "their principal direction: rejects single-edge-line sets")
 
     def reset(self) -> None:
         from evchain.kernels.plane_flow import VARIANTS, new_state
@@ -83,7 +86,7 @@ class PlaneFlow(Filter):
             k = plane_flow_kernel(packet.x, packet.y, packet.t, packet.p, self._state,
                                   self._variant, r, prm.window_us, prm.refractory_us, margin,
                                   prm.min_points, prm.th1, prm.th2_s, prm.max_speed_pxs,
-                                  prm.max_iterations, idx, vx, vy)
+                                  prm.max_iterations, prm.min_spread_px, idx, vx, vy)
         idx = idx[:k]
         out = FlowPacket.from_events(packet, idx, vx[:k], vy[:k])
         self._end = packet.t_end

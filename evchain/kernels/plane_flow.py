@@ -29,7 +29,7 @@ import math
 import numpy as np
 from numba import njit
 
-NO_EVENT = np.iinfo(np.int64).min
+NO_EVENT = -(1 << 62)  # 'never fired': any age computed against it is huge, never overflows
 VARIANTS = {"single": 0, "iterative": 1, "robust": 2, "original": 3, "savitzky_golay": 4}
 # 1 - corr(x, y)^2 below this: points (numerically) collinear -> no plane. For integer pixel
 # offsets a non-collinear set has at least 1 / (n^2 r^4) (~5e-6 for r = 3): well above.
@@ -272,45 +272,50 @@ def iterate_homogeneous(X, Y, T, use, n, th1, th2, max_iter):
 
 
 @njit(cache=True)
-def sg_gradient(win, r, t_now, window_us):
+def sg_gradient(wt, wv, size):
     """Mean pairwise timestamp slopes along rows and columns of the window (s/px).
 
-    ``win`` is the (2r+1)^2 patch of the surface; (ok, gx, gy); ok needs at least one pair in
-    each direction.
+    ``wt``: the window's timestamps relative to the event (µs as float64, 0 where invalid),
+    ``wv`` its validity as 0.0/1.0, both row-major ``size x size``. Branch-free: pair
+    differences are summed per distance d (exact: whole µs), then weighted by 1/d.
+    (ok, gx, gy); ok needs a pair in each direction.
     """
-    size = 2 * r + 1
     gx = 0.0
     gy = 0.0
-    nx = 0
-    ny = 0
-    for i in range(size):
-        for j in range(size):
-            tij = win[i, j]
-            if tij == NO_EVENT or t_now - tij > window_us:
-                continue
-            for k in range(j + 1, size):  # same row, to the right
-                tik = win[i, k]
-                if tik == NO_EVENT or t_now - tik > window_us:
-                    continue
-                gx += (tik - tij) * 1e-6 / (k - j)
-                nx += 1
-            for k in range(i + 1, size):  # same column, below
-                tkj = win[k, j]
-                if tkj == NO_EVENT or t_now - tkj > window_us:
-                    continue
-                gy += (tkj - tij) * 1e-6 / (k - i)
-                ny += 1
-    if nx == 0 or ny == 0:
+    nx = 0.0
+    ny = 0.0
+    for d in range(1, size):  # rows: pairs (line, a) - (line, a + d)
+        sd = 0.0
+        for line in range(size):
+            base = line * size
+            for a in range(size - d):
+                ka = base + a
+                both = wv[ka] * wv[ka + d]
+                sd += both * (wt[ka + d] - wt[ka])
+                nx += both
+        gx += sd / d
+    for d in range(1, size):  # columns: pairs k - (k + d size), contiguous in k
+        sd = 0.0
+        step = d * size
+        for ka in range((size - d) * size):
+            both = wv[ka] * wv[ka + step]
+            sd += both * (wt[ka + step] - wt[ka])
+            ny += both
+        gy += sd / d
+    if nx == 0.0 or ny == 0.0:
         return False, 0.0, 0.0
-    return True, gx / nx, gy / ny
+    return True, gx * 1e-6 / nx, gy * 1e-6 / ny
 
 
 @njit(cache=True)
 def plane_flow_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, margin,
-                      min_points, th1, th2, max_speed, max_iter, out_idx, out_vx, out_vy):
+                      min_points, th1, th2, max_speed, max_iter, min_spread, out_idx, out_vx,
+                      out_vy):
     """Process events in order, updating ``ts`` in place; returns the number of flow events.
 
-    ``out_idx`` (int64), ``out_vx``, ``out_vy`` (float64) need room for ``len(x)`` entries.
+    ``min_spread`` (px): the neighbours' positions must spread at least this much (standard
+    deviation) across their principal direction, 0 = off (jAER). ``out_idx`` (int64),
+    ``out_vx``, ``out_vy`` (float64) need room for ``len(x)`` entries.
     """
     height = ts.shape[1]
     width = ts.shape[2]
@@ -320,7 +325,10 @@ def plane_flow_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, marg
     Y = np.empty(cap, np.float64)
     T = np.empty(cap, np.float64)
     use = np.empty(cap, np.bool_)
-    g_min = 1.0 / max_speed
+    wt = np.empty(cap, np.float64)
+    wv = np.empty(cap, np.float64)
+    g_min2 = 1.0 / (max_speed * max_speed)
+    spread2 = min_spread * min_spread
     n_out = 0
     for i in range(len(x)):
         xi = np.int64(x[i])
@@ -333,64 +341,94 @@ def plane_flow_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, marg
             continue
         if xi < margin or yi < margin or xi >= width - margin or yi >= height - margin:
             continue
-        y0 = max(yi - r, 0)
-        y1 = min(yi + r, height - 1)
-        x0 = max(xi - r, 0)
-        x1 = min(xi + r, width - 1)
+        full = xi >= r and yi >= r and xi + r < width and yi + r < height
+        if variant == 4 and not full:
+            continue  # SG needs the whole stencil (border_px < r)
+        n = 0
+        sx = 0
+        sy = 0
+        sxx = 0
+        syy = 0
+        sxy = 0
+        if variant == 4:  # SG: only the window's times and validity (branch-free)
+            for dy in range(-r, r + 1):
+                row = ts[pi, yi + dy]
+                k0 = (dy + r) * size + r
+                for dx in range(-r, r + 1):
+                    age = ti - row[xi + dx]
+                    ok = 1 if age <= window_us else 0
+                    wv[k0 + dx] = ok
+                    wt[k0 + dx] = -age * ok
+                    n += ok
+                    sx += dx * ok
+                    sy += dy * ok
+                    sxx += dx * dx * ok
+                    syy += dy * dy * ok
+                    sxy += dx * dy * ok
+        else:  # the valid neighbours as points (the event itself included), branch-free
+            for dy in range(-r, r + 1):
+                yy = yi + dy
+                if yy < 0 or yy >= height:
+                    continue
+                row = ts[pi, yy]
+                for dx in range(-r, r + 1):
+                    xx = xi + dx
+                    if xx < 0 or xx >= width:
+                        continue
+                    age = ti - row[xx]
+                    ok = 1 if age <= window_us else 0
+                    X[n] = dx
+                    Y[n] = dy
+                    T[n] = -age * 1e-6
+                    use[n] = True
+                    n += ok
+                    sx += dx * ok
+                    sy += dy * ok
+                    sxx += dx * dx * ok
+                    syy += dy * dy * ok
+                    sxy += dx * dy * ok
+        if n < min_points or n < 3:
+            continue
+        if spread2 > 0.0:
+            cxx = (sxx - sx * sx / n) / n
+            cyy = (syy - sy * sy / n) / n
+            cxy = (sxy - sx * sy / n) / n
+            half = 0.5 * (cxx + cyy)
+            lam = half - math.sqrt(max(0.25 * (cxx - cyy) ** 2 + cxy * cxy, 0.0))
+            if lam < spread2:
+                continue
         if variant == 4:
-            if x0 != xi - r or y0 != yi - r or x1 != xi + r or y1 != yi + r:
-                continue  # SG needs the full stencil (margin < r)
-            ok, gx, gy = sg_gradient(ts[pi, y0:y1 + 1, x0:x1 + 1], r, ti, window_us)
+            ok, gx, gy = sg_gradient(wt, wv, size)
             if not ok:
                 continue
-            n = 0
-            for yy in range(y0, y1 + 1):
-                for xx in range(x0, x1 + 1):
-                    tt = ts[pi, yy, xx]
-                    if tt != NO_EVENT and ti - tt <= window_us:
-                        n += 1
-            if n < min_points:
+        elif variant == 0:
+            ok, gx, gy, c = fit_explicit(X, Y, T, use, n)
+            if not ok:
+                continue
+        elif variant == 1:
+            ok, gx, gy = iterate_explicit(X, Y, T, use, n, th1, th2, max_iter)
+            if not ok:
                 continue
         else:
-            n = 0
-            for yy in range(y0, y1 + 1):
-                for xx in range(x0, x1 + 1):
-                    tt = ts[pi, yy, xx]
-                    if tt != NO_EVENT and ti - tt <= window_us:
-                        X[n] = xx - xi
-                        Y[n] = yy - yi
-                        T[n] = (tt - ti) * 1e-6
-                        use[n] = True
-                        n += 1
-            if n < min_points or n < 3:
+            ok, nx, ny, nt = iterate_homogeneous(X, Y, T, use, n, th1, th2, max_iter)
+            if not ok or nt <= 0.0:
                 continue
-            if variant == 0 or variant == 1:
-                if variant == 0:
-                    ok, gx, gy, c = fit_explicit(X, Y, T, use, n)
-                else:
-                    ok, gx, gy = iterate_explicit(X, Y, T, use, n, th1, th2, max_iter)
-                if not ok:
+            if variant == 3:
+                if nx == 0.0 or ny == 0.0:
                     continue
-            else:
-                ok, nx, ny, nt = iterate_homogeneous(X, Y, T, use, n, th1, th2, max_iter)
-                if not ok or nt <= 0.0:
+                vx = -nt / nx
+                vy = -nt / ny
+                if vx * vx + vy * vy > max_speed * max_speed:
                     continue
-                if variant == 3:
-                    if nx == 0.0 or ny == 0.0:
-                        continue
-                    vx = -nt / nx
-                    vy = -nt / ny
-                    if vx * vx + vy * vy > max_speed * max_speed:
-                        continue
-                    out_idx[n_out] = i
-                    out_vx[n_out] = vx
-                    out_vy[n_out] = vy
-                    n_out += 1
-                    continue
-                gx = -nx / nt
-                gy = -ny / nt
+                out_idx[n_out] = i
+                out_vx[n_out] = vx
+                out_vy[n_out] = vy
+                n_out += 1
+                continue
+            gx = -nx / nt
+            gy = -ny / nt
         g2 = gx * gx + gy * gy
-        if g2 < g_min * g_min or g2 == 0.0:
+        if g2 < g_min2 or g2 == 0.0:
             continue
         out_idx[n_out] = i
         out_vx[n_out] = gx / g2

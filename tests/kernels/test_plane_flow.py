@@ -20,7 +20,8 @@ from evchain.testing.synthetic import moving_edge_events, random_events
 from tests.naive.plane_flow import plane_flow_naive
 
 DEFAULTS = dict(variant="single", r=2, window_us=80_000, refractory_us=0, margin=None,
-                min_points=3, th1=1e-5, th2=0.01, max_speed=1e4, max_iter=10)
+                min_points=3, th1=1e-5, th2=0.01, max_speed=1e4, max_iter=10,
+                min_spread=0.0)
 FITTING = ("single", "iterative", "robust", "savitzky_golay")
 
 
@@ -34,7 +35,7 @@ def run_kernel(x, y, t, p, width, height, **kw):
                           np.asarray(t, np.int64), np.asarray(p, np.int8), ts,
                           VARIANTS[q["variant"]], q["r"], q["window_us"], q["refractory_us"],
                           margin, q["min_points"], q["th1"], q["th2"], q["max_speed"],
-                          q["max_iter"], idx, vx, vy)
+                          q["max_iter"], q["min_spread"], idx, vx, vy)
     return idx[:k], vx[:k], vy[:k]
 
 
@@ -42,7 +43,7 @@ def run_naive(x, y, t, p, width, height, **kw):
     q = {**DEFAULTS, **kw}
     return plane_flow_naive(x, y, t, p, width, height, q["variant"], q["r"], q["window_us"],
                             q["refractory_us"], q["margin"], q["min_points"], q["th1"], q["th2"],
-                            q["max_speed"], q["max_iter"])
+                            q["max_speed"], q["max_iter"], q["min_spread"])
 
 
 def assert_same(ev, width, height, **kw):
@@ -70,14 +71,15 @@ def test_random_stream_matches_reference(variant):
 @given(seed=st.integers(0, 10_000), variant=st.sampled_from(list(VARIANTS)),
        r=st.integers(1, 3), window_us=st.integers(5_000, 200_000),
        refractory_us=st.integers(0, 20_000), margin=st.integers(0, 4),
-       min_points=st.integers(3, 8), th2=st.sampled_from([1e-3, 1e-2, 5e-2]))
+       min_points=st.integers(3, 8), th2=st.sampled_from([1e-3, 1e-2, 5e-2]),
+       min_spread=st.sampled_from([0.0, 0.3, 0.6]))
 def test_random_parameters_match_reference(seed, variant, r, window_us, refractory_us, margin,
-                                           min_points, th2):
+                                           min_points, th2, min_spread):
     g = Geometry(16, 14)
     ev = random_events(500, g, 0, 100_000, seed=seed)
     assert_same(ev, g.width, g.height, variant=variant, r=r, window_us=window_us,
                 refractory_us=refractory_us, margin=margin, min_points=min_points, th2=th2,
-                max_speed=200.0)
+                max_speed=200.0, min_spread=min_spread)
 
 
 def test_noisy_edge_matches_reference():

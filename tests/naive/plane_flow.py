@@ -83,7 +83,7 @@ def _sg(win, valid):
 
 def plane_flow_naive(x, y, t, p, width, height, variant="single", r=2, window_us=80_000,
                      refractory_us=0, margin=None, min_points=3, th1=1e-5, th2=0.01,
-                     max_speed=1000.0, max_iter=10):
+                     max_speed=1000.0, max_iter=10, min_spread=0.0):
     """Returns (index, vx, vy) lists of the events that got flow."""
     margin = r if margin is None else margin
     ts = {}
@@ -102,8 +102,13 @@ def plane_flow_naive(x, y, t, p, width, height, variant="single", r=2, window_us
                 tt = ts.get((pi, xx, yy))
                 if tt is not None and ti - tt <= window_us:
                     pts.append((xx - xi, yy - yi, (tt - ti) * 1e-6))
-        if len(pts) < max(min_points, 1 if variant == "savitzky_golay" else 3):
+        if len(pts) < max(min_points, 3):
             continue
+        if min_spread > 0:
+            P = np.array([q[:2] for q in pts], float)
+            cov = np.cov(P.T, bias=True)
+            if np.linalg.eigvalsh(cov)[0] < min_spread ** 2:
+                continue
         if variant == "savitzky_golay":
             inside = (xi - r >= 0 and yi - r >= 0 and xi + r < width and yi + r < height)
             if not inside:
