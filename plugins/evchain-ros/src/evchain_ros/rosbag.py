@@ -102,6 +102,15 @@ class RosbagSource(Filter):
         except Exception as exc:  # rosbags raises several types for unreadable input
             raise DataError(f"{self.path}: not a readable ROS bag (a ROS 1 .bag file or a "
                             f"ROS 2 bag folder): {exc}") from None
+        try:
+            context.geometry = self._check(params)
+        except BaseException:
+            self.close()  # the chain may not call close() when setup fails
+            raise
+        super().setup(params, context)
+
+    def _check(self, params) -> Geometry:
+        """Find the topic, check its type, and the sensor size."""
         self.ros2 = bool(self.reader.is2)
         self.connections = [c for c in self.reader.connections if c.topic == params.topic]
         if not self.connections:
@@ -124,8 +133,7 @@ class RosbagSource(Filter):
             raise DataError(f"{self.path}: topic {params.topic!r}: no message gives the sensor "
                             "size (no messages or width/height 0); give the parameters width "
                             "and height")
-        context.geometry = Geometry(int(width), int(height))
-        super().setup(params, context)
+        return Geometry(int(width), int(height))
 
     def time_span_us(self):
         return None  # bag times are receive times, not event times
