@@ -14,35 +14,40 @@ from evchain.errors import DataError
 FOE_DTYPE = [("t", "i8"), ("x", "f8"), ("y", "f8"), ("support", "f8"), ("total", "f8")]
 
 
-def region_rows(geometry: Geometry, radius_px: float | None):
-    """Region A as rows: ``(x0, y0, lo, hi)`` with absolute column bounds per row (hi < lo: empty).
+def region_cells(geometry: Geometry, radius_px: float | None):
+    """Region A: ``(x0, y0, lo, hi, clo, chi)``: its bounding box origin, the absolute column
+    bounds per row ``y0..`` and the absolute row bounds per column ``x0..`` (hi < lo: empty).
 
     A disc of ``radius_px`` around the principal point (cells whose centre lies inside), clipped
-    to the sensor; the whole sensor when ``radius_px`` is None.
+    to the sensor; the whole sensor when ``radius_px`` is None. Both are convex, so every row and
+    column of A is one interval.
     """
     w, h = geometry.width, geometry.height
+    ys, xs = np.mgrid[0:h, 0:w]
     if radius_px is None:
-        lo = np.zeros(h, np.int64)
-        hi = np.full(h, w - 1, np.int64)
-        return 0, 0, lo, hi
-    cx, cy, r = float(geometry.cx), float(geometry.cy), float(radius_px)
-    y_first = max(0, math.ceil(cy - r))
-    y_last = min(h - 1, math.floor(cy + r))
-    if y_last < y_first:
-        raise DataError(f"foe_map: region A (radius {r} px around ({cx}, {cy})) misses the "
-                        f"{w}x{h} sensor; use a larger region_radius_px or none")
-    ys = np.arange(y_first, y_last + 1)
-    lo = np.empty(len(ys), np.int64)
-    hi = np.empty(len(ys), np.int64)
-    for i, yy in enumerate(ys):
-        xs = np.arange(w)
-        inside = (xs - cx) ** 2 + (yy - cy) ** 2 <= r * r
-        if inside.any():
-            lo[i], hi[i] = xs[inside][0], xs[inside][-1]
-        else:
-            lo[i], hi[i] = 0, -1
-    x0 = int(lo[hi >= lo].min()) if (hi >= lo).any() else 0
-    return x0, int(y_first), lo, hi
+        mask = np.ones((h, w), bool)
+    else:
+        r = float(radius_px)
+        mask = (xs - float(geometry.cx)) ** 2 + (ys - float(geometry.cy)) ** 2 <= r * r
+        if not mask.any():
+            raise DataError(f"foe_map: region A (radius {r} px around ({geometry.cx}, "
+                            f"{geometry.cy})) holds no pixel of the {w}x{h} sensor; use a "
+                            "larger region_radius_px or none")
+    rows = np.nonzero(mask.any(axis=1))[0]
+    cols = np.nonzero(mask.any(axis=0))[0]
+    y0, x0 = int(rows[0]), int(cols[0])
+    box = mask[y0:rows[-1] + 1, x0:cols[-1] + 1]
+
+    def bounds(m, offset):
+        any_ = m.any(axis=1)
+        first = np.where(any_, np.argmax(m, axis=1), 0) + offset
+        last = np.where(any_, m.shape[1] - 1 - np.argmax(m[:, ::-1], axis=1), -1) + offset
+        last = np.where(any_, last, first - 1)
+        return first.astype(np.int64), last.astype(np.int64)
+
+    lo, hi = bounds(box, x0)
+    clo, chi = bounds(box.T, y0)
+    return x0, y0, lo, hi, clo, chi
 
 
 class FoeMap(Filter):
@@ -86,14 +91,23 @@ class FoeMap(Filter):
     def _allocate(self, geometry: Geometry) -> None:
         p = self.params
         self._geometry = geometry
-        self._x0, self._y0, self._lo, self._hi = region_rows(geometry, p.region_radius_px)
-        nx = int(self._hi.max()) - self._x0 + 2 if len(self._hi) else 1
-        self._diff = np.zeros((len(self._lo), max(nx, 1)), np.float64)
+        x0, y0, lo, hi, clo, chi = region_cells(geometry, p.region_radius_px)
+        self._x0, self._y0, self._lo, self._hi, self._clo, self._chi = x0, y0, lo, hi, clo, chi
+        ny, nx = len(lo), len(clo)
+        self._diffR = np.zeros((ny, nx + 1), np.float64)
+        self._constR = np.zeros(ny + 1, np.float64)
+        self._diffC = np.zeros((nx, ny + 1), np.float64)
+        self._constC = np.zeros(nx + 1, np.float64)
+        self._mbuf = np.empty((ny, nx), np.float64)
         if p.region_radius_px is None:
             self._disc = ((geometry.width - 1) / 2.0, (geometry.height - 1) / 2.0,
                           0.5 * math.hypot(geometry.width, geometry.height))
         else:
             self._disc = (float(geometry.cx), float(geometry.cy), float(p.region_radius_px))
+
+    def _maps(self):
+        return (self._diffR, self._constR, self._diffC, self._constC, self._lo, self._hi,
+                self._clo, self._chi, self._x0, self._y0)
 
     def process(self, packet: FlowPacket) -> FlowPacket:
         if not isinstance(packet, FlowPacket):
@@ -116,8 +130,8 @@ class FoeMap(Filter):
         tau_us = p.tau_ms * 1000.0
         gate_on = p.max_angle_deg is not None
         cos_gate = math.cos(math.radians(p.max_angle_deg)) if gate_on else -1.0
-        n = k.process(packet.x, packet.y, packet.t, packet.vx, packet.vy, self._diff, self._lo,
-                      self._hi, self._x0, self._y0, self._fst, self._ist, tau_us,
+        n = k.process(packet.x, packet.y, packet.t, packet.vx, packet.vy, *self._maps(),
+                      self._mbuf, self._fst, self._ist, tau_us,
                       float(p.min_speed_pxs), cos_gate, gate_on, period,
                       float(p.refine_fraction), float(p.min_support), int(packet.t_end),
                       *self._disc, *cols)
@@ -132,8 +146,8 @@ class FoeMap(Filter):
         """
         from evchain.kernels import foe_map as k
 
-        out = np.empty((self._diff.shape[0], self._diff.shape[1] - 1), np.float64)
-        k.materialize(self._diff, self._lo, self._hi, self._x0, self._y0, self._fst[0], out)
+        out = np.empty_like(self._mbuf)
+        k.materialize(*self._maps(), self._fst[0], out)
         return out * math.exp(-(t_us - int(self._ist[0])) / (self.params.tau_ms * 1000.0))
 
     @property

@@ -1,17 +1,25 @@
 """Numba kernels of ``foe_map``: half-plane voting for the focus of expansion (Clady et al. 2014).
 
-The map covers region A: per map row ``r`` (image row ``y0 + r``) the cells ``lo[r]..hi[r]``
-(absolute image columns; ``hi < lo`` means the row is outside A). It is stored as per-row
-difference arrays ``diff[r, c - x0]`` (+w at the first column of an interval, -w one past its last)
-plus ``whole``, the weight of votes whose half-plane covers all of A. Weights grow as
-``exp((t - t_ref) / tau)`` (lazy decay); the map is rescaled and ``t_ref`` reset before overflow.
+The map covers region A, given per map row ``r`` (image row ``y0 + r``) as the columns
+``lo[r]..hi[r]`` and per map column ``c`` (image column ``x0 + c``) as the rows ``clo[c]..chi[c]``
+(absolute image coordinates; ``hi < lo`` means empty). A vote's boundary line crosses few rows or
+few columns: a flatter line is written into per-row difference arrays ``diffR[r, x - x0]`` (+w at
+the first column of an interval, -w one past its last), a steeper one into per-column difference
+arrays ``diffC[c, y - y0]``; only the rows (columns) the line crosses inside A (widened by 2 px)
+are touched. The rows (columns) before and after that range lie wholly on one side of the line, so
+they get one range update each in ``constR`` (``constC``), a difference array over rows (columns).
+Votes whose half-plane holds all of A, or none, cost O(1). So the cost per event is O(rows the
+line crosses), at most O(rows), and the map equals the brute-force sum cell by cell.
+
+Weights grow as ``exp((t - t_ref) / tau)`` (lazy decay); the map is rescaled and ``t_ref`` reset
+before overflow.
 
 State arrays (allocated by the filter):
 
 * ``ist`` int64: ``[0]`` t_ref (µs), ``[1]`` next read time (µs), ``[2]`` 1 once an estimate
   exists, ``[3]`` 1 when votes arrived since the last read;
-* ``fst`` float64: ``[0]`` whole, ``[1]`` last x, ``[2]`` last y, ``[3]`` last max (map units),
-  ``[4]`` total weight of accepted votes (map units).
+* ``fst`` float64: ``[0]`` whole (votes covering all of A), ``[1]`` last x, ``[2]`` last y,
+  ``[3]`` last max (map units), ``[4]`` total weight of accepted votes (map units).
 """
 
 from __future__ import annotations
@@ -24,87 +32,118 @@ from numba import njit
 RENORM_EXPONENT = 40.0
 
 
-@njit(cache=True)
-def _cond(px, py, vx, vy, q, y):
-    return (px - q) * vx + (py - y) * vy > 0.0
+@njit(cache=True, error_model="numpy", inline="always")
+def _cond(px, py, vx, vy, qx, qy):
+    """The exact test of the brute force: is cell q in the half-plane {q : (p - q).v > 0}?"""
+    return (px - qx) * vx + (py - qy) * vy > 0.0
 
 
-@njit(cache=True)
-def vote(diff, lo, hi, x0, y0, fst, px, py, vx, vy, w, ccx, ccy, crad):
-    """Add weight ``w`` to the half-plane {q : (p - q).v > 0} inside region A.
-
-    ``(ccx, ccy, crad)`` is a disc containing every cell of A (for the all-or-nothing shortcut).
-    """
-    speed = math.sqrt(vx * vx + vy * vy)
-    pv = px * vx + py * vy
-    cv = ccx * vx + ccy * vy
-    margin = (crad + 2.0) * speed
-    if cv + margin < pv:          # every cell of A in the half-plane
-        fst[0] += w
-        return
-    if cv - margin > pv:          # no cell of A in the half-plane
-        return
-    ny = lo.shape[0]
-    for r in range(ny):
-        a = lo[r]
-        b = hi[r]
-        if b < a:
-            continue
-        yy = float(y0 + r)
-        if vx == 0.0:
-            if (py - yy) * vy > 0.0:
-                diff[r, a - x0] += w
-                diff[r, b + 1 - x0] -= w
-            continue
-        bound = px + (py - yy) * vy / vx
-        if vx > 0.0:
-            # cells q < bound: the largest such integer, fixed up with the exact test
-            if bound > b + 1.0:
-                k = b
-            elif bound < a - 1.0:
-                k = a - 1
-            else:
-                k = int(math.ceil(bound)) - 1
-            while k + 1 <= b and _cond(px, py, vx, vy, float(k + 1), yy):
-                k += 1
-            while k >= a and not _cond(px, py, vx, vy, float(k), yy):
-                k -= 1
-            if k >= a:
-                diff[r, a - x0] += w
-                diff[r, k + 1 - x0] -= w
-        else:
-            # cells q > bound: the smallest such integer
-            if bound < a - 1.0:
-                k = a
-            elif bound > b + 1.0:
-                k = b + 1
-            else:
-                k = int(math.floor(bound)) + 1
-            while k - 1 >= a and _cond(px, py, vx, vy, float(k - 1), yy):
-                k -= 1
-            while k <= b and not _cond(px, py, vx, vy, float(k), yy):
-                k += 1
-            if k <= b:
-                diff[r, k - x0] += w
-                diff[r, b + 1 - x0] -= w
+@njit(cache=True, error_model="numpy", inline="always")
+def _first_out(a, b, yy, px, py, vx, vy, slope):
+    """Row yy, cells a..b, vx > 0 (the half-plane is qx < bound): the first cell outside,
+    clipped to [a, b + 1]. Computed directly; fixed up with the exact test of the brute force
+    only when the boundary lies within 1e-9 of a cell centre."""
+    bound = px + (py - yy) * slope
+    if bound > b + 1.0:
+        return b + 1
+    if bound < a - 1.0:
+        return a
+    k = int(math.ceil(bound))
+    if abs(bound - math.floor(bound + 0.5)) < 1e-9 * (1.0 + abs(bound)):
+        while k <= b and _cond(px, py, vx, vy, float(k), yy):
+            k += 1
+        while k > a and not _cond(px, py, vx, vy, float(k - 1), yy):
+            k -= 1
+    return max(a, min(k, b + 1))
 
 
-@njit(cache=True)
-def read_estimate(diff, lo, hi, x0, y0, whole, refine_fraction):
-    """(x, y, max, min) of the map: centroid of the maximal set, refined.
+@njit(cache=True, error_model="numpy", inline="always")
+def _first_in(a, b, yy, px, py, vx, vy, slope):
+    """Row yy, cells a..b, vx < 0 (the half-plane is qx > bound): the first cell inside,
+    clipped to [a, b + 1]."""
+    bound = px + (py - yy) * slope
+    if bound < a - 1.0:
+        return a
+    if bound > b + 1.0:
+        return b + 1
+    k = int(math.floor(bound)) + 1
+    if abs(bound - math.floor(bound + 0.5)) < 1e-9 * (1.0 + abs(bound)):
+        while k - 1 >= a and _cond(px, py, vx, vy, float(k - 1), yy):
+            k -= 1
+        while k <= b and not _cond(px, py, vx, vy, float(k), yy):
+            k += 1
+    return max(a, min(k, b + 1))
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _first_out_t(a, b, xx, px, py, vx, vy, slope):
+    """Column xx, rows a..b, vy > 0 (qy < bound): the first row outside, in [a, b + 1]."""
+    bound = py + (px - xx) * slope
+    if bound > b + 1.0:
+        return b + 1
+    if bound < a - 1.0:
+        return a
+    k = int(math.ceil(bound))
+    if abs(bound - math.floor(bound + 0.5)) < 1e-9 * (1.0 + abs(bound)):
+        while k <= b and _cond(px, py, vx, vy, xx, float(k)):
+            k += 1
+        while k > a and not _cond(px, py, vx, vy, xx, float(k - 1)):
+            k -= 1
+    return max(a, min(k, b + 1))
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _first_in_t(a, b, xx, px, py, vx, vy, slope):
+    """Column xx, rows a..b, vy < 0 (qy > bound): the first row inside, in [a, b + 1]."""
+    bound = py + (px - xx) * slope
+    if bound < a - 1.0:
+        return a
+    if bound > b + 1.0:
+        return b + 1
+    k = int(math.floor(bound)) + 1
+    if abs(bound - math.floor(bound + 0.5)) < 1e-9 * (1.0 + abs(bound)):
+        while k - 1 >= a and _cond(px, py, vx, vy, xx, float(k - 1)):
+            k -= 1
+        while k <= b and not _cond(px, py, vx, vy, xx, float(k)):
+            k += 1
+    return max(a, min(k, b + 1))
+
+
+@njit(cache=True, error_model="numpy")
+def materialize(diffR, constR, diffC, constC, lo, hi, clo, chi, x0, y0, whole, out):
+    """The dense map (NaN outside A) into ``out[ny, nx]`` (map units, not decayed)."""
+    out[:, :] = np.nan
+    rc = 0.0
+    for r in range(lo.shape[0]):
+        rc += constR[r]
+        acc = 0.0
+        for x in range(lo[r], hi[r] + 1):
+            acc += diffR[r, x - x0]
+            out[r, x - x0] = whole + rc + acc
+    cc = 0.0
+    for c in range(clo.shape[0]):
+        cc += constC[c]
+        acc = 0.0
+        for y in range(clo[c], chi[c] + 1):
+            acc += diffC[c, y - y0]
+            out[y - y0, c] += cc + acc
+
+
+@njit(cache=True, error_model="numpy")
+def read_estimate(m, x0, y0, refine_fraction):
+    """(x, y, max, min) of a dense map ``m`` (NaN outside A): centroid of the maximal set,
+    refined.
 
     With ``refine_fraction`` f > 0 the estimate is the centroid of the cells within
     f * (max - min) of the max, weighted by their height above that threshold; with f = 0 the
     plain centroid of the maximal set (ties within a relative 1e-12).
     """
-    ny = lo.shape[0]
+    ny, nx = m.shape
     best = -np.inf
     worst = np.inf
     for r in range(ny):
-        acc = 0.0
-        for c in range(lo[r], hi[r] + 1):
-            acc += diff[r, c - x0]
-            v = whole + acc
+        for c in range(nx):
+            v = m[r, c]
             if v > best:
                 best = v
             if v < worst:
@@ -115,17 +154,16 @@ def read_estimate(diff, lo, hi, x0, y0, whole, refine_fraction):
         thr = best - refine_fraction * (best - worst)
     else:
         thr = best - 1e-12 * abs(best)
+    weighted = refine_fraction > 0.0 and best > thr
     sx = 0.0
     sy = 0.0
     sw = 0.0
     for r in range(ny):
-        acc = 0.0
-        for c in range(lo[r], hi[r] + 1):
-            acc += diff[r, c - x0]
-            v = whole + acc
+        for c in range(nx):
+            v = m[r, c]
             if v >= thr:
-                wt = v - thr if (refine_fraction > 0.0 and best > thr) else 1.0
-                sx += wt * c
+                wt = v - thr if weighted else 1.0
+                sx += wt * (x0 + c)
                 sy += wt * (y0 + r)
                 sw += wt
     if sw <= 0.0:
@@ -133,21 +171,10 @@ def read_estimate(diff, lo, hi, x0, y0, whole, refine_fraction):
     return sx / sw, sy / sw, best, worst
 
 
-@njit(cache=True)
-def materialize(diff, lo, hi, x0, y0, whole, out):
-    """The dense map (NaN outside A) into ``out[ny, nx]`` (map units, not decayed)."""
-    out[:, :] = np.nan
-    for r in range(lo.shape[0]):
-        acc = 0.0
-        for c in range(lo[r], hi[r] + 1):
-            acc += diff[r, c - x0]
-            out[r, c - x0] = whole + acc
-
-
-@njit(cache=True)
-def process(x, y, t, vx, vy, diff, lo, hi, x0, y0, fst, ist, tau_us, min_speed_pxs,
-            cos_gate, gate_on, period_us, refine_fraction, min_support, t_end,
-            ccx, ccy, crad, out_t, out_x, out_y, out_sup, out_tot):
+@njit(cache=True, error_model="numpy")
+def process(x, y, t, vx, vy, diffR, constR, diffC, constC, lo, hi, clo, chi, x0, y0, mbuf,
+            fst, ist, tau_us, min_speed_pxs, cos_gate, gate_on, period_us, refine_fraction,
+            min_support, t_end, ccx, ccy, crad, out_t, out_x, out_y, out_sup, out_tot):
     """Vote with every flow event of a packet; read estimates at multiples of ``period_us``.
 
     A read at time T sees exactly the events with t < T. Reads happen before the first event at
@@ -163,8 +190,9 @@ def process(x, y, t, vx, vy, diff, lo, hi, x0, y0, fst, ist, tau_us, min_speed_p
         while ist[1] < t_next or (i < n and ist[1] == t_next):
             T = ist[1]
             if ist[3] == 1:
-                ex, ey, best, worst = read_estimate(diff, lo, hi, x0, y0, fst[0],
-                                                    refine_fraction)
+                materialize(diffR, constR, diffC, constC, lo, hi, clo, chi, x0, y0, fst[0],
+                            mbuf)
+                ex, ey, best, worst = read_estimate(mbuf, x0, y0, refine_fraction)
                 ist[3] = 0
                 if best > 0.0 and ex == ex:
                     fst[1] = ex
@@ -196,23 +224,126 @@ def process(x, y, t, vx, vy, diff, lo, hi, x0, y0, fst, ist, tau_us, min_speed_p
                 ry = py - fst[2]
                 rn = math.sqrt(rx * rx + ry * ry)
                 if rn > 1.0:
-                    c = (rx * fvx + ry * fvy) / (rn * math.sqrt(s2))
-                    ok = c >= cos_gate
+                    cg = (rx * fvx + ry * fvy) / (rn * math.sqrt(s2))
+                    ok = cg >= cos_gate
             if ok:
                 ti = t[i]
                 e = (ti - ist[0]) / tau_us
                 if e > RENORM_EXPONENT:
                     s = math.exp(-e)
-                    for r in range(diff.shape[0]):
-                        for c2 in range(diff.shape[1]):
-                            diff[r, c2] *= s
+                    diffR *= s
+                    constR *= s
+                    diffC *= s
+                    constC *= s
                     fst[0] *= s
                     fst[3] *= s
                     fst[4] *= s
                     ist[0] = ti
                     e = 0.0
                 w = math.exp(e)
-                vote(diff, lo, hi, x0, y0, fst, px, py, fvx, fvy, w, ccx, ccy, crad)
+                # vote: all of A (O(1)), none of it, or the rows (columns) the boundary crosses
+                # plus two caps. Written out here: calls passing many arrays per event cost
+                # refcount traffic that is slower than the work itself.
+                speed = math.sqrt(fvx * fvx + fvy * fvy)
+                pv = px * fvx + py * fvy
+                cv = ccx * fvx + ccy * fvy
+                margin = (crad + 2.0) * speed
+                if cv + margin < pv:          # every cell of A in the half-plane
+                    fst[0] += w
+                elif cv - margin <= pv:       # otherwise no cell of A is in the half-plane
+                    dxl = -fvy / speed
+                    dyl = fvx / speed
+                    ox = px - ccx
+                    oy = py - ccy
+                    bb = ox * dxl + oy * dyl
+                    rr = crad + 2.0
+                    disc = bb * bb - (ox * ox + oy * oy - rr * rr)
+                    sq = math.sqrt(disc) if disc > 0.0 else 0.0
+                    if abs(fvx) >= abs(fvy):
+                        ncol = clo.shape[0]
+                        xa = px + (-bb - sq) * dxl
+                        xb = px + (-bb + sq) * dxl
+                        k0 = max(int(math.floor(min(xa, xb))) - 1 - x0, 0)
+                        k1 = min(int(math.ceil(max(xa, xb))) + 1 - x0, ncol - 1)
+                        if disc <= 0.0 or k0 > k1:
+                            k0 = ncol
+                            k1 = ncol - 1
+                        if fvy == 0.0:
+                            for c in range(k0, k1 + 1):
+                                if chi[c] >= clo[c] and (px - (x0 + c)) * fvx > 0.0:
+                                    diffC[c, clo[c] - y0] += w
+                        elif fvy > 0.0:
+                            sl = fvx / fvy
+                            if k1 >= k0:
+                                constC[k0] += w
+                                constC[k1 + 1] -= w
+                            for c in range(k0, k1 + 1):
+                                if chi[c] >= clo[c]:
+                                    k = _first_out_t(clo[c], chi[c],
+                                                     float(x0 + c), px, py, fvx, fvy, sl)
+                                    diffC[c, k - y0] -= w
+                        else:
+                            sl = fvx / fvy
+                            for c in range(k0, k1 + 1):
+                                if chi[c] >= clo[c]:
+                                    k = _first_in_t(clo[c], chi[c],
+                                                    float(x0 + c), px, py, fvx, fvy, sl)
+                                    diffC[c, k - y0] += w
+                        c = min(k0, ncol) - 1
+                        while c >= 0 and chi[c] < clo[c]:
+                            c -= 1
+                        if c >= 0 and _cond(px, py, fvx, fvy, float(x0 + c), float(clo[c])):
+                            constC[0] += w
+                            constC[min(k0, ncol)] -= w
+                        c = k1 + 1 if k1 >= k0 else ncol
+                        first = c
+                        while c < ncol and chi[c] < clo[c]:
+                            c += 1
+                        if c < ncol and _cond(px, py, fvx, fvy, float(x0 + c), float(clo[c])):
+                            constC[first] += w
+                            constC[ncol] -= w
+                    else:
+                        nrow = lo.shape[0]
+                        ya = py + (-bb - sq) * dyl
+                        yb = py + (-bb + sq) * dyl
+                        k0 = max(int(math.floor(min(ya, yb))) - 1 - y0, 0)
+                        k1 = min(int(math.ceil(max(ya, yb))) + 1 - y0, nrow - 1)
+                        if disc <= 0.0 or k0 > k1:
+                            k0 = nrow
+                            k1 = nrow - 1
+                        if fvx == 0.0:
+                            for r in range(k0, k1 + 1):
+                                if hi[r] >= lo[r] and (py - (y0 + r)) * fvy > 0.0:
+                                    diffR[r, lo[r] - x0] += w
+                        elif fvx > 0.0:
+                            sl = fvy / fvx
+                            if k1 >= k0:
+                                constR[k0] += w
+                                constR[k1 + 1] -= w
+                            for r in range(k0, k1 + 1):
+                                if hi[r] >= lo[r]:
+                                    k = _first_out(lo[r], hi[r],
+                                                   float(y0 + r), px, py, fvx, fvy, sl)
+                                    diffR[r, k - x0] -= w
+                        else:
+                            sl = fvy / fvx
+                            for r in range(k0, k1 + 1):
+                                if hi[r] >= lo[r]:
+                                    k = _first_in(lo[r], hi[r], float(y0 + r), px, py, fvx, fvy, sl)
+                                    diffR[r, k - x0] += w
+                        r = min(k0, nrow) - 1
+                        while r >= 0 and hi[r] < lo[r]:
+                            r -= 1
+                        if r >= 0 and _cond(px, py, fvx, fvy, float(lo[r]), float(y0 + r)):
+                            constR[0] += w
+                            constR[min(k0, nrow)] -= w
+                        r = k1 + 1 if k1 >= k0 else nrow
+                        first = r
+                        while r < nrow and hi[r] < lo[r]:
+                            r += 1
+                        if r < nrow and _cond(px, py, fvx, fvy, float(lo[r]), float(y0 + r)):
+                            constR[first] += w
+                            constR[nrow] -= w
                 fst[4] += w
                 ist[3] = 1
         i += 1
