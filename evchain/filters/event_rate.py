@@ -1,0 +1,95 @@
+"""Sink ``event_rate_plot``: event rate at one pixel column over time (thesis Fig. 4.3)."""
+
+from __future__ import annotations
+
+import numpy as np
+from pydantic import Field
+
+from evchain.core.filter import Filter, FilterParams
+from evchain.core.packets import EventPacket
+
+
+class EventRatePlot(Filter):
+    """Event rate at one pixel column in bins: series ``event_rate`` and a PNG plot at the end.
+
+    Counts the events with ``x == column`` (all rows) in bins ``[k*bin_us, (k+1)*bin_us)``. A
+    bin's series entry is emitted with the packet that completes it; its ``t`` is the bin's last
+    µs (``t_bin_end - 1``, inside that packet's slice); fields ``t_bin_start``, ``t_bin_end``,
+    ``rate_eps`` (events per second), ``on``, ``off``. Passes events on unchanged.
+    """
+
+    name = "event_rate_plot"
+    consumes = EventPacket
+    produces = None
+
+    class Params(FilterParams):
+        column: int = Field(0, ge=0, description="pixel column x to observe")
+        bin_us: int = Field(10_000, ge=1, description="bin width")
+        series: str = Field("event_rate", description="name of the emitted series")
+        path: str | None = Field("event_rate.png", description="PNG written at the end "
+                                 "(relative to the output folder); null for none")
+        title: str = Field("", description="plot title")
+
+    def reset(self) -> None:
+        self._bin = None          # index of the open bin
+        self._on = 0
+        self._off = 0
+        self._rows: list[tuple[int, int, int]] = []
+        self._last_end = None
+
+    def _close_bins(self, upto_bin: int) -> np.ndarray:
+        from evchain.report.event_rate import RATE_DTYPE
+
+        b = self.params.bin_us
+        out = []
+        while self._bin is not None and self._bin < upto_bin:
+            s, e = self._bin * b, (self._bin + 1) * b
+            out.append((e - 1, s, e, (self._on + self._off) * 1e6 / b, self._on, self._off))
+            self._rows.append(out[-1])
+            self._bin += 1
+            self._on = self._off = 0
+        return np.array(out, dtype=RATE_DTYPE)
+
+    def process(self, packet: EventPacket) -> EventPacket:
+        b = self.params.bin_us
+        if self._bin is None:
+            self._bin = packet.t_start // b
+        self._last_end = packet.t_end
+        sel = packet.x == self.params.column
+        t = packet.t[sel]
+        p = packet.p[sel]
+        entries = []
+        if len(t):
+            bins = t // b
+            for k in np.unique(bins):
+                entries.append(self._close_bins(int(k)))
+                m = bins == k
+                self._on += int((p[m] > 0).sum())
+                self._off += int((p[m] < 0).sum())
+        entries.append(self._close_bins(packet.t_end // b))   # bins ending <= t_end
+        done = np.concatenate(entries)
+        return packet.with_series(self.params.series, done) if len(done) else packet
+
+    def flush(self) -> EventPacket | None:
+        from evchain.report.event_rate import RATE_DTYPE, plot_event_rate
+
+        if self._bin is None or self.context.geometry is None:
+            return None
+        b = self.params.bin_us
+        last = self._last_end
+        tail = np.zeros(0, RATE_DTYPE)
+        if self._on + self._off > 0 or (last % b):
+            # the partial last bin, rate over the covered part
+            s = self._bin * b
+            span = max(last - s, 1)
+            tail = np.array([(max(last - 1, s), s, last, (self._on + self._off) * 1e6 / span,
+                              self._on, self._off)], RATE_DTYPE)
+            self._rows.append(tuple(tail[0]))
+            self._on = self._off = 0
+        if self.params.path:
+            allrows = np.array(self._rows, dtype=RATE_DTYPE)
+            plot_event_rate(allrows, self.context.output_path(self.params.path),
+                            title=self.params.title or f"event rate at column "
+                            f"{self.params.column}")
+        out = EventPacket.empty(self.context.geometry, last, last)
+        return out.with_series(self.params.series, tail) if len(tail) else out

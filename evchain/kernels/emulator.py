@@ -1,0 +1,381 @@
+"""Numba kernels of the DVS emulator (filter ``emulator``); see ``docs/explanation/emulator.md``.
+
+Per pixel state (all ``[H, W]``): ``l0`` (float64 log level of the first frame), ``n_on``,
+``n_off`` (int64 counts of reference moves), ``c_on``, ``c_off`` (float64 thresholds in natural
+log units), ``last_t`` (float64 µs of the last emitted event, for the refractory period),
+``e_ref`` (float64 exp of the reference, kept by multiplication), ``r_on = exp(c_on)``,
+``r_off = exp(-c_off)``, the float32 intensity gates ``hi``/``lo`` and a cache of log
+intensities (``lcache``/``ltag``, 4 slots by frame index mod 4). The reference level is always
+recomputed from the integer state, ``L_ref = l0 + (n_on*c_on - n_off*c_off)``, so it never
+drifts.
+
+Firing rule (non-strict, tie tolerance ``tol`` in log units): with ``L1 = ln(float64(I1) + eps)``
+an ON event fires when ``L1 >= L_ref + c_on - tol``, an OFF event when
+``L1 <= L_ref - c_off + tol``. Both sides are deterministic functions of the input and the
+integer state, so whether a pixel that returns exactly to a level fires never depends on
+rounding in a running sum. The float32 gates are only a conservative prefilter (a relative
+margin of 1e-6 below/above the exact intensity thresholds): a pixel with ``lo < I1 < hi`` cannot
+fire, which costs two float32 compares and no logarithm per pixel and frame.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+ERR_NONE = 0
+ERR_NONFINITE = 1
+ERR_NEGATIVE = 2
+#: relative margin of the prefilter gates (covers float32 rounding and e_ref drift)
+GATE_MARGIN = 1e-6
+#: minus the smallest normal float32: the OFF gate when no OFF level is reachable
+LO_NONE = -1.1754944e-38
+
+
+@njit(cache=True)
+def gates(e_ref, r_on, r_off, eps, k_hi, k_lo):
+    """Conservative float32 gates (hi, lo) from e_ref = exp(L_ref)."""
+    hi = np.float32(e_ref * r_on * k_hi - eps)
+    lo = e_ref * r_off * k_lo - eps
+    if lo < 0:
+        return hi, np.float32(LO_NONE)
+    return hi, np.float32(lo)
+
+
+@njit(cache=True)
+def gate_factors(tol):
+    """(k_hi, k_lo): exp(-tol) and exp(tol) widened by the gate margin."""
+    return np.exp(-tol) * (1.0 - GATE_MARGIN), np.exp(tol) * (1.0 + GATE_MARGIN)
+
+
+@njit(cache=True)
+def init_state(frame, eps, tol, l0, n_on, n_off, c_on, c_off, r_on, r_off, e_ref, hi, lo,
+               last_t, ltag):
+    """Initialise every pixel's reference from ``frame``; returns (err, y, x)."""
+    h, w = frame.shape
+    k_hi, k_lo = gate_factors(tol)
+    for y in range(h):
+        for x in range(w):
+            v = frame[y, x]
+            if not np.isfinite(v):
+                return ERR_NONFINITE, y, x
+            if v < 0:
+                return ERR_NEGATIVE, y, x
+            l0[y, x] = np.log(np.float64(v) + eps)
+            n_on[y, x] = 0
+            n_off[y, x] = 0
+            last_t[y, x] = -1e300
+            r_on[y, x] = np.exp(c_on[y, x])
+            r_off[y, x] = np.exp(-c_off[y, x])
+            e_ref[y, x] = np.float64(v) + eps
+            a, b = gates(e_ref[y, x], r_on[y, x], r_off[y, x], eps, k_hi, k_lo)
+            hi[y, x] = a
+            lo[y, x] = b
+            for k in range(ltag.shape[0]):
+                ltag[k, y, x] = -1
+    return ERR_NONE, 0, 0
+
+
+@njit(cache=True)
+def slope3(d1, d2, h1, h2):
+    """Limited three-point slope at a node between secants d1 (width h1) and d2 (width h2).
+
+    Exact for quadratics; zero at extrema; clipped to 3*min(|d1|, |d2|) (Fritsch-Carlson), so
+    the cubic Hermite pieces on both sides stay monotone.
+    """
+    if d1 * d2 <= 0.0:
+        return 0.0
+    d = (h2 * d1 + h1 * d2) / (h1 + h2)
+    m = 3.0 * min(abs(d1), abs(d2))
+    if abs(d) > m:
+        d = m if d > 0 else -m
+    return d
+
+
+@njit(cache=True)
+def hermite(s, la, lb, m0, m1):
+    """Cubic Hermite on s in [0, 1] (end values la, lb; end slopes m0, m1 per unit s)."""
+    s2 = s * s
+    s3 = s2 * s
+    return ((2 * s3 - 3 * s2 + 1) * la + (s3 - 2 * s2 + s) * m0 + (-2 * s3 + 3 * s2) * lb
+            + (s3 - s2) * m1)
+
+
+@njit(cache=True)
+def hermite_d(s, la, lb, m0, m1):
+    s2 = s * s
+    return ((6 * s2 - 6 * s) * la + (3 * s2 - 4 * s + 1) * m0 + (-6 * s2 + 6 * s) * lb
+            + (3 * s2 - 2 * s) * m1)
+
+
+@njit(cache=True)
+def solve_crossing(level, la, lb, m0, m1, cubic):
+    """Fraction s in [0, 1] of the interval where the (monotone) piece reaches ``level``.
+
+    Linear: (level - la) / (lb - la). Cubic: safeguarded Newton on the monotone Hermite piece
+    (bisection whenever Newton leaves the bracket). Levels outside [la, lb] clip to 0 or 1
+    (a level within the tie tolerance just beyond lb gives s = 1; a carried-over crossing gives 0).
+    """
+    if lb == la:
+        return 0.0
+    s = (level - la) / (lb - la)
+    if s <= 0.0:
+        return 0.0
+    if s >= 1.0:
+        return 1.0
+    if not cubic:
+        return s
+    up = lb > la
+    a = 0.0
+    b = 1.0
+    for _ in range(60):
+        f = hermite(s, la, lb, m0, m1) - level
+        if f == 0.0:
+            return s
+        if (f < 0.0) == up:
+            a = s
+        else:
+            b = s
+        df = hermite_d(s, la, lb, m0, m1)
+        sn = s - f / df if df != 0.0 else -1.0
+        if not (a < sn < b):
+            sn = 0.5 * (a + b)
+        if abs(sn - s) < 1e-13:
+            return sn
+        s = sn
+    return s
+
+
+@njit(cache=True)
+def _grow(arr, n):
+    out = np.empty(max(2 * arr.shape[0], n), arr.dtype)
+    out[:arr.shape[0]] = arr
+    return out
+
+
+@njit(cache=True)
+def _logi(fr, g, i, eps, lcache, ltag):
+    """ln(I + eps) of flat pixel i of global frame g, through the 4-slot cache."""
+    k = g & 3
+    if ltag[k, i] == g:
+        return lcache[k, i]
+    v = np.log(np.float64(fr[i]) + eps)
+    lcache[k, i] = v
+    ltag[k, i] = g
+    return v
+
+
+@njit(cache=True)
+def _interval(f0, f1, fm, fp, g, t0, dt, hprev, hnext, has_prev, has_next, cubic, eps, tol,
+              k_hi, k_lo, refractory_us, cap, l0, n_on, n_off, c_on, c_off, r_on, r_off, e_ref,
+              hi, lo, last_t, lcache, ltag, first, ui, utf, up_, u):
+    """Events of one frame interval for pixels ``first ..``, appended to ``ui`` (flat pixel
+    index), ``utf``, ``up_`` from position ``u``. A pixel's state is committed only when all
+    its events fit, so on a full buffer the call stops before that pixel.
+
+    Returns ``(u, resume, err, err_pixel)``: ``resume`` is -1 when done, else the pixel to
+    restart from after growing the buffers.
+    """
+    npix = hi.shape[0]
+    cap_u = ui.shape[0]
+    c_start = first - (first % 64)
+    for c0 in range(c_start, npix, 64):
+        c1 = min(c0 + 64, npix)
+        hit = False
+        for i in range(c0, c1):
+            v = f1[i]
+            hit |= not (v < hi[i] and v > lo[i])
+        if not hit:
+            continue
+        for i in range(max(c0, first), c1):
+            v1 = f1[i]
+            if v1 < hi[i] and v1 > lo[i]:
+                continue
+            if not np.isfinite(v1):
+                return u, -1, ERR_NONFINITE, i
+            if v1 < 0:
+                return u, -1, ERR_NEGATIVE, i
+            lb = _logi(f1, g + 1, i, eps, lcache, ltag)
+            con = c_on[i]
+            coff = c_off[i]
+            k_on = n_on[i]
+            k_off = n_off[i]
+            base = l0[i]
+            lev = base + ((k_on + 1) * con - k_off * coff)
+            if lb < lev - tol:
+                lev = base + (k_on * con - (k_off + 1) * coff)
+                if lb > lev + tol:
+                    # prefilter false alarm: refresh the gates exactly
+                    e = np.exp(base + (k_on * con - k_off * coff))
+                    e_ref[i] = e
+                    hi[i], lo[i] = gates(e, r_on[i], r_off[i], eps, k_hi, k_lo)
+                    continue
+            la = _logi(f0, g, i, eps, lcache, ltag)
+            m0 = lb - la
+            m1 = lb - la
+            if cubic:
+                sec = (lb - la) / dt
+                da = sec
+                db = sec
+                if has_prev:
+                    lm = _logi(fm, g - 1, i, eps, lcache, ltag)
+                    if np.isfinite(lm):
+                        da = slope3((la - lm) / hprev, sec, hprev, dt)
+                if has_next:
+                    lp = _logi(fp, g + 2, i, eps, lcache, ltag)
+                    if np.isfinite(lp):
+                        db = slope3(sec, (lp - lb) / hnext, dt, hnext)
+                m0 = da * dt
+                m1 = db * dt
+            e = e_ref[i]
+            ron = r_on[i]
+            roff = r_off[i]
+            lt = last_t[i]
+            uu = u
+            count = 0
+            while cap < 0 or count < cap:
+                lev = base + ((k_on + 1) * con - k_off * coff)
+                if lb >= lev - tol:
+                    k_on += 1
+                    e *= ron
+                    pol = 1
+                else:
+                    lev = base + (k_on * con - (k_off + 1) * coff)
+                    if lb <= lev + tol:
+                        k_off += 1
+                        e *= roff
+                        pol = -1
+                    else:
+                        break
+                count += 1
+                tf = t0 + solve_crossing(lev, la, lb, m0, m1, cubic) * dt
+                if tf - lt < refractory_us:
+                    continue
+                lt = tf
+                if uu >= cap_u:
+                    return u, i, ERR_NONE, 0       # pixel i not committed
+                ui[uu] = i
+                utf[uu] = tf
+                up_[uu] = pol
+                uu += 1
+            u = uu
+            last_t[i] = lt
+            n_on[i] = k_on
+            n_off[i] = k_off
+            e_ref[i] = e
+            hi[i], lo[i] = gates(e, ron, roff, eps, k_hi, k_lo)
+    return u, -1, ERR_NONE, 0
+
+
+@njit(cache=True)
+def emulate(held, cur, times, j_first, j_last, total, g_base, cubic, eps, tol, refractory_us,
+            cap, l0, n_on, n_off, c_on, c_off, r_on, r_off, e_ref, hi, lo, last_t, lcache, ltag,
+            noise_off, noise_y, noise_x, noise_t, noise_p, cap_hint):
+    """Emit the events of frame intervals ``j_first .. j_last - 1`` (indices into the frame list
+    ``held`` + ``cur`` whose times are ``times``; interval j runs from frame j to frame j + 1;
+    frame j has the global index ``g_base + j``, used to tag the log cache).
+
+    All ``[H, W]`` state arrays are passed flattened (1-D views). ``total`` is the number of
+    frames known (look-ahead for the cubic; a missing neighbour falls back to the interval's
+    secant slope). Noise events of interval ``j_first + k`` are
+    ``noise_*[noise_off[k]:noise_off[k+1]]`` (times float µs). Events of each interval are
+    ordered by rounded time (stable counting sort over the generation order: row, column, then
+    time order at one pixel; noise last). Returns
+    ``(x, y, t, tf, p, n, err, err_frame, err_y, err_x)``; ``t = floor(tf + 0.5)``.
+    """
+    nh = held.shape[0]
+    w = held.shape[2] if nh > 0 else cur.shape[2]
+    k_hi, k_lo = gate_factors(tol)
+    cap_n = max(cap_hint, 16)
+    ox = np.empty(cap_n, np.uint16)
+    oy = np.empty(cap_n, np.uint16)
+    ot = np.empty(cap_n, np.int64)
+    otf = np.empty(cap_n, np.float64)
+    op = np.empty(cap_n, np.int8)
+    ucap = max(cap_n // max(j_last - j_first, 1), 1024)
+    ui = np.empty(ucap, np.int64)
+    utf = np.empty(ucap, np.float64)
+    up_ = np.empty(ucap, np.int8)
+    ub = np.empty(ucap, np.int64)
+    buckets = np.zeros(1, np.int64)
+    n = 0
+    for j in range(j_first, j_last):
+        f0 = (held[j] if j < nh else cur[j - nh]).ravel()
+        f1 = (held[j + 1] if j + 1 < nh else cur[j + 1 - nh]).ravel()
+        has_prev = cubic and j >= 1
+        has_next = cubic and j + 2 < total
+        fm = f0
+        fp = f1
+        if has_prev:
+            fm = (held[j - 1] if j - 1 < nh else cur[j - 1 - nh]).ravel()
+        if has_next:
+            fp = (held[j + 2] if j + 2 < nh else cur[j + 2 - nh]).ravel()
+        g = g_base + j
+        t0 = np.float64(times[j])
+        t1 = np.float64(times[j + 1])
+        dt = t1 - t0
+        hprev = t0 - np.float64(times[j - 1]) if has_prev else 1.0
+        hnext = np.float64(times[j + 2]) - t1 if has_next else 1.0
+        k = j - j_first
+        nnoise = noise_off[k + 1] - noise_off[k]
+        u = 0
+        resume = 0
+        while resume >= 0:
+            u, resume, err, ep = _interval(
+                f0, f1, fm, fp, g, t0, dt, hprev, hnext, has_prev, has_next, cubic, eps, tol,
+                k_hi, k_lo, refractory_us, cap, l0, n_on, n_off, c_on, c_off, r_on, r_off,
+                e_ref, hi, lo, last_t, lcache, ltag, resume, ui, utf, up_, u)
+            if err != ERR_NONE:
+                return ox, oy, ot, otf, op, n, err, j + 1, ep // w, ep % w
+            if resume >= 0 or u + nnoise > ui.shape[0]:
+                ui = _grow(ui, u + nnoise + 1)
+                utf = _grow(utf, u + nnoise + 1)
+                up_ = _grow(up_, u + nnoise + 1)
+                ub = _grow(ub, u + nnoise + 1)
+        for q in range(noise_off[k], noise_off[k + 1]):
+            ui[u] = np.int64(noise_y[q]) * w + noise_x[q]
+            utf[u] = noise_t[q]
+            up_[u] = noise_p[q]
+            u += 1
+        if u == 0:
+            continue
+        # stable counting sort of this interval's events by rounded time
+        it0 = np.int64(times[j])
+        nb = np.int64(times[j + 1]) - it0 + 2
+        for q in range(u):
+            ub[q] = np.int64(np.floor(utf[q] + 0.5)) - it0
+        if n + u > ox.shape[0]:
+            ox = _grow(ox, n + u)
+            oy = _grow(oy, n + u)
+            ot = _grow(ot, n + u)
+            otf = _grow(otf, n + u)
+            op = _grow(op, n + u)
+        if nb <= 4 * u + 4096:
+            if buckets.shape[0] < nb + 1:
+                buckets = np.zeros(nb + 1, np.int64)
+            else:
+                buckets[:nb + 1] = 0
+            for q in range(u):
+                buckets[ub[q] + 1] += 1
+            for b in range(nb):
+                buckets[b + 1] += buckets[b]
+            for q in range(u):
+                pos = n + buckets[ub[q]]
+                buckets[ub[q]] += 1
+                ox[pos] = ui[q] % w
+                oy[pos] = ui[q] // w
+                ot[pos] = ub[q] + it0
+                otf[pos] = utf[q]
+                op[pos] = up_[q]
+        else:
+            order = np.argsort(ub[:u], kind="mergesort")
+            for r in range(u):
+                q = order[r]
+                pos = n + r
+                ox[pos] = ui[q] % w
+                oy[pos] = ui[q] // w
+                ot[pos] = ub[q] + it0
+                otf[pos] = utf[q]
+                op[pos] = up_[q]
+        n += u
+    return ox, oy, ot, otf, op, n, ERR_NONE, 0, 0, 0
