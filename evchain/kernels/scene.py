@@ -31,7 +31,7 @@ import numpy as np
 from numba import njit
 
 _J = dict(cache=True, error_model="numpy")
-_I = dict(cache=True, error_model="numpy", inline="always")
+_I = dict(cache=True, error_model="numpy", inline="always")   # helpers of the hot loops
 
 INF = np.inf
 
@@ -52,17 +52,18 @@ def cellnoise(x, y, cell, seed, fp):
     """Zero-mean value per square cell of size ``cell``, faded out when the pixel footprint
     ``fp`` (metres, the sample spacing) approaches half the cell size (a cheap prefilter against
     aliasing: cells smaller than two samples cannot be resolved)."""
-    a = 1.0 - 2.0 * fp / cell
+    inv = 1.0 / cell   # a constant at every call site: folded by the compiler
+    a = 1.0 - 2.0 * fp * inv
     if a <= 0.0:
         return 0.0
-    i = np.int64(math.floor(x / cell))
-    j = np.int64(math.floor(y / cell))
+    i = np.int64(math.floor(x * inv))
+    j = np.int64(math.floor(y * inv))
     return (hash3(i, j, seed) - 0.5) * a
 
 
 # ----------------------------------------------------------------------------- road geometry
 
-@njit(**_J)
+@njit(**_I)
 def road_coords(x, y, segs):
     """Arc length s along the driving line and signed lateral offset d (left > 0) of (x, y).
 
@@ -199,7 +200,7 @@ def camera_state(t, segs, traj, pos, rot, vc, wc):
 
 # ----------------------------------------------------------------------------- tracing
 
-@njit(**_J)
+@njit(**_I)
 def trace(ox, oy, oz, dx, dy, dz, boxes, cand, start, stop, cand_minz):
     """Nearest hit of the ray o + t d (t > 0) among the ground plane z = 0 and the boxes
     cand[start:stop] (sorted by their lower depth bound cand_minz, which allows early exit).
@@ -251,7 +252,7 @@ def trace(ox, oy, oz, dx, dy, dz, boxes, cand, start, stop, cand_minz):
 
 # ----------------------------------------------------------------------------- textures
 
-@njit(**_J)
+@njit(**_I)
 def ground_albedo(x, y, fp, segs, ground):
     """Albedo of the ground at world (x, y); fp = pixel footprint in metres."""
     s, d = road_coords(x, y, segs)
@@ -289,27 +290,27 @@ def ground_albedo(x, y, fp, segs, ground):
     return a + 0.04 * cellnoise(x, y, 0.5, seed + 8, fp)
 
 
-@njit(**_J)
-def box_albedo(mat, par, bid, u, z):
+@njit(**_I)
+def box_albedo(mat, p0, p1, p2, p3, bid, u, z):
     """Albedo of a box face at face-horizontal coordinate u and height z (materials:
     0 plain, 1 grey window grid, 2 orange facade, 3 orange with extra vertical lines, 4 car)."""
     if mat == 0:
-        return par[0]
+        return p0
     if mat == 1:
-        fh = par[1]
-        cw = par[2]
+        fh = p1
+        cw = p2
         fi = math.floor(z / fh)
         ci = math.floor(u / cw)
         fz = z / fh - fi
         fu = u / cw - ci
         if fz > 0.3 and fz < 0.85 and fu > 0.2 and fu < 0.8:
             return 0.06 + 0.2 * hash3(np.int64(ci), np.int64(fi), bid)
-        return par[0] + 0.06 * (hash3(np.int64(fi), bid, 77) - 0.5)
+        return p0 + 0.06 * (hash3(np.int64(fi), bid, 77) - 0.5)
     if mat == 2 or mat == 3:
         if mat == 3 and u - math.floor(u) < 0.12:
             return 0.15
-        fh = par[1]
-        cw = par[2]
+        fh = p1
+        cw = p2
         fi = math.floor(z / fh)
         ci = math.floor(u / cw)
         fz = z / fh - fi
@@ -317,17 +318,17 @@ def box_albedo(mat, par, bid, u, z):
         if fz > 0.15 and fz < 0.9 and fu > 0.3 and fu < 0.7:
             return 0.1 + 0.15 * hash3(np.int64(ci), np.int64(fi), bid)
         if z - 0.6 * math.floor(z / 0.6) < 0.06:
-            return par[0] * 0.75
-        return par[0]
-    # car: dark window band between par[1] and par[2]
-    if z > par[1] and z < par[2]:
+            return p0 * 0.75
+        return p0
+    # car: dark window band between p1 and p2
+    if z > p1 and z < p2:
         return 0.05
-    if z < par[3]:
+    if z < p3:
         return 0.08
-    return par[0]
+    return p0
 
 
-@njit(**_J)
+@njit(**_I)
 def shade(kind, idx, face, t, ox, oy, oz, dx, dy, dz, fscale, boxes, box_mat, box_par,
           segs, ground, light):
     """Linear intensity seen along a ray with the given hit (fscale = 1 / (f * k): footprint
@@ -341,9 +342,8 @@ def shade(kind, idx, face, t, ox, oy, oz, dx, dy, dz, fscale, boxes, box_mat, bo
     x = ox + t * dx
     y = oy + t * dy
     if kind == 1:
-        n = math.sqrt(dx * dx + dy * dy + dz * dz)
-        cosi = -dz / n
-        fp = t * fscale * n / max(cosi, 0.02)
+        # sample footprint: distance * fscale / cos(incidence) = t * fscale * |d|^2 / (-dz)
+        fp = t * fscale * (dx * dx + dy * dy + dz * dz) / (-dz)
         a = ground_albedo(x, y, fp, segs, ground)
         lam = light[2]
         if lam < 0.0:
@@ -358,11 +358,12 @@ def shade(kind, idx, face, t, ox, oy, oz, dx, dy, dz, fscale, boxes, box_mat, bo
     if axis == 2:
         a = 0.8 * box_par[idx, 0]
     else:
-        a = box_albedo(box_mat[idx], box_par[idx], idx, y if axis == 0 else x, z)
+        a = box_albedo(box_mat[idx], box_par[idx, 0], box_par[idx, 1], box_par[idx, 2],
+                       box_par[idx, 3], idx, y if axis == 0 else x, z)
     return a * (light[4] + light[3] * lam)
 
 
-@njit(**_J)
+@njit(**_I)
 def flow_at(xb, yb, rho, f, vc, wc):
     """Motion field (px/s) at normalised coordinates (xb, yb) with inverse depth rho."""
     u = (-vc[0] + xb * vc[2]) * rho + wc[0] * xb * yb - wc[1] * (1.0 + xb * xb) + wc[2] * yb

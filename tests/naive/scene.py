@@ -172,8 +172,8 @@ def shade(t, kind, idx, face, o, d, f_k, boxes, mats, pars, segs, ground, light)
     sky = light[5] + (light[6] - light[5]) * np.maximum(d[:, 2] / n, 0)
     tt = np.where(np.isfinite(t), t, 0.0)
     p = o + tt[:, None] * d
-    cosi = -d[:, 2] / n
-    fp = tt / f_k * n / np.maximum(cosi, 0.02)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        fp = tt / f_k * n * n / -d[:, 2]
     g = ground_albedo(p[:, 0], p[:, 1], fp, segs, ground) * (light[4] + light[3] * max(light[2], 0))
     bi = np.maximum(idx, 0)
     axis = np.maximum(face, 0) // 2

@@ -55,7 +55,7 @@ def test_box_albedo_all_materials():
         par = np.array([0.5, 3.1, 2.3, 0.4])
         u = rng.uniform(-100, 100, 300)
         z = rng.uniform(0, 60, 300)
-        got = [K.box_albedo(mat, par, 5, a, b) for a, b in zip(u, z, strict=True)]
+        got = [K.box_albedo(mat, *par, 5, a, b) for a, b in zip(u, z, strict=True)]
         want = N.box_albedo(np.full(300, mat), np.tile(par, (300, 1)), 5, u, z)
         np.testing.assert_allclose(got, want, atol=1e-12, err_msg=f"material {mat}")
 

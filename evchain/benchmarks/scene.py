@@ -1,0 +1,87 @@
+"""Benchmarks of the driving-scene simulator.
+
+* ``scene-render``: frames/s rendering the high-rise reference view (320x240, 2x2 supersampling)
+  on one core, at times spread over the drive; the error column is the largest difference of a
+  small frame against the slow numpy reference of tests/naive (0 up to rounding).
+* ``reference-drive``: the reference pipeline (scene -> emulator -> aedat_writer) over the whole
+  14 s drive (quick: the first 1 s), as simulated seconds per wall second; reports the event
+  rate next to the thesis's 259 k events/s.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from evchain.bench import BenchRow
+
+PIPELINE = Path(__file__).resolve().parents[2] / "pipelines" / "reference.yaml"
+
+
+def _naive_error() -> float | None:
+    import sys
+
+    root = Path(__file__).resolve().parents[2]
+    if not (root / "tests" / "naive" / "scene.py").exists():
+        return None          # installed without the tests folder
+    if str(root) not in sys.path:
+        sys.path.insert(0, str(root))
+    from evchain.sim.scene import Scene
+    from tests.naive import scene as naive
+
+    sc = Scene.from_params(scenario="high-rise", width=16, height=12, start_m=150.0)
+    return float(np.abs(sc.render(0.7)[0] - naive.render(sc, 0.7)).max())
+
+
+def scene_render(quick: bool) -> list[BenchRow]:
+    from evchain.sim.scene import Scene
+
+    sc = Scene.from_params(scenario="high-rise", width=320, height=240, supersample=2)
+    n = 8 if quick else 40
+    times = np.linspace(0.0, sc.duration_s * 0.98, n)
+    out = np.empty((240, 320), np.float32)
+    sc.render(0.0, out)                        # compile / warm up
+    w0, c0 = time.perf_counter(), time.process_time()
+    for t in times:
+        sc.render(float(t), out)
+    wall, cpu = time.perf_counter() - w0, time.process_time() - c0
+    rays = 320 * 240 * 4
+    return [BenchRow("scene-render", "scene", n / wall, "frames/s", error=_naive_error(),
+                     error_name="max |frame - numpy ref|",
+                     extra={"cpu_frames_per_s": n / cpu, "ns_per_ray_wall": wall / n / rays * 1e9,
+                            "frames": n, "goal_frames_per_s": 300})]
+
+
+def reference_drive(quick: bool) -> list[BenchRow]:
+    from evchain.core.chain import run_pipeline
+    from evchain.core.config import load_pipeline
+    from evchain.core.registry import make_registry
+
+    registry = make_registry()
+    overrides = ["scene.duration_s=1.0"] if quick else []
+    spec = load_pipeline(PIPELINE, registry, overrides)
+    have_emulator = any(s.use == "emulator" for s in spec.stages)
+    with tempfile.TemporaryDirectory() as tmp:
+        # compile outside the timing: a few frames through the same chain
+        warm = load_pipeline(PIPELINE, registry, ["scene.duration_s=0.002"])
+        run_pipeline(warm, registry, Path(tmp) / "warm")
+        t0 = time.perf_counter()
+        result = run_pipeline(spec, registry, Path(tmp) / "run")
+        wall = time.perf_counter() - t0
+    rep = result.report
+    sim_s = rep["metrics"]["scene"]["duration_s"]
+    stages = {s["name"]: s for s in rep["filters"]}
+    events = stages["emulator"]["events_out"] if have_emulator else 0
+    extra = {"simulated_s": sim_s, "wall_s": wall, "frames": rep["metrics"]["scene"]["frames"],
+             "events": events, "event_rate_eps": events / sim_s,
+             "thesis_event_rate_eps": 259_000,
+             "scene_wall_s": stages["scene"]["wall_s"],
+             "emulator_wall_s": stages.get("emulator", {}).get("wall_s")}
+    return [BenchRow("reference-drive", "scene+emulator", sim_s / wall, "sim s/s",
+                     error=events / sim_s, error_name="event rate (events/s)", extra=extra)]
+
+
+WORKLOADS = {"scene-render": scene_render, "reference-drive": reference_drive}
