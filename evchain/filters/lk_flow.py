@@ -59,6 +59,10 @@ class LKFlow(Filter):
             "[jAER excessSpeedRejectFactor]"))
         max_speed_pxs: float = Field(1e5, gt=0.0, description=(
             "calibrated mode: drop flow faster than this, px/s"))
+        refit_tolerance: float = Field(0.5, ge=0.0, description=(
+            "calibrated mode: drop equations that disagree with the first solution (finite "
+            "differences: relative slope mismatch above this; Savitzky-Golay: pixels farther "
+            "than this, px, from the plane) and solve again once; 0 = off"))
         mode: Literal["faithful", "calibrated"] = Field("calibrated", description=(
             "faithful: jAER's numbers (uncalibrated magnitudes); calibrated: px/s"))
         fifo_depth: int = Field(8, ge=1, le=256, description=(
@@ -100,7 +104,8 @@ class LKFlow(Filter):
                                 q.search_distance, q.window_us, q.refractory_us,
                                 GRADIENTS[q.gradient], q.mode == "faithful", q.eig_threshold,
                                 q.eig_ratio, q.speed_control, q.speed_control_mix,
-                                q.max_speed_factor, q.max_speed_pxs, idx, vx, vy)
+                                q.max_speed_factor, q.max_speed_pxs, q.refit_tolerance,
+                                idx, vx, vy)
         else:
             n_out = 0
         from evchain.filters.flow_scorer import DENSITY_SERIES

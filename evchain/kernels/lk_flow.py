@@ -48,17 +48,15 @@ def new_state(height: int, width: int, depth: int):
 
 
 @njit(cache=True)
-def _calibrated_fd(N, F, V, d, S, gradient, w_inv, eig_ratio):
+def _calibrated_fd(N, F, V, d, S, gradient, w_inv, eig_ratio, tol, GX, GY, keep):
     """Calibrated finite-difference LK over pixels with events. Returns (vx, vy, ok).
 
     Per pixel and axis the variant's stencil when all its points have events, else the mean of
     the available one-sided differences (central variants) or the forward difference (backward
-    variant); pixels without any usable difference give no equation."""
-    sx2 = 0.0
-    sy2 = 0.0
-    sxy = 0.0
-    sxt = 0.0
-    syt = 0.0
+    variant); pixels without any usable difference give no equation. With ``tol > 0`` the
+    equations whose slope disagrees with the first solution by more than ``tol`` (relative:
+    |grad F . v W - 1| > tol) are dropped and the rest solved again, once.
+    ``GX``, ``GY``, ``keep``: scratch arrays of at least (S - 2d)^2 entries."""
     m = 0
     for j in range(d, S - d):
         for i in range(d, S - d):
@@ -103,15 +101,47 @@ def _calibrated_fd(N, F, V, d, S, gradient, w_inv, eig_ratio):
                         and V[i, j + 2] > 0.0:
                     gy = (F[i, j - 2] - 8.0 * F[i, j - 1] + 8.0 * F[i, j + 1]
                           - F[i, j + 2]) / 12.0
-            b = w_inv  # -dF/dt in 1/s
-            sx2 += gx * gx
-            sy2 += gy * gy
-            sxy += gx * gy
-            sxt += gx * b
-            syt += gy * b
+            GX[m] = gx
+            GY[m] = gy
+            keep[m] = True
             m += 1
     if m < 2:
         return 0.0, 0.0, False
+    vx, vy, ok = _solve_rows(GX, GY, keep, m, w_inv, eig_ratio)
+    if not ok or tol <= 0.0:
+        return vx, vy, ok
+    dropped = 0
+    for q in range(m):
+        if abs((GX[q] * vx + GY[q] * vy) / w_inv - 1.0) > tol:
+            keep[q] = False
+            dropped += 1
+    if dropped == 0:
+        return vx, vy, ok
+    if m - dropped < 2:
+        return 0.0, 0.0, False
+    return _solve_rows(GX, GY, keep, m, w_inv, eig_ratio)
+
+
+@njit(cache=True)
+def _solve_rows(GX, GY, keep, m, b, eig_ratio):
+    """Least squares of rows (GX, GY) . v = b (kept rows): full solution when
+    lambda2 >= eig_ratio lambda1, else along the dominant eigenvector. Returns (vx, vy, ok)."""
+    sx2 = 0.0
+    sy2 = 0.0
+    sxy = 0.0
+    sx = 0.0
+    sy = 0.0
+    for q in range(m):
+        if keep[q]:
+            gx = GX[q]
+            gy = GY[q]
+            sx2 += gx * gx
+            sy2 += gy * gy
+            sxy += gx * gy
+            sx += gx
+            sy += gy
+    sxt = sx * b
+    syt = sy * b
     pp = sx2 + sy2
     disc = np.sqrt((sx2 - sy2) * (sx2 - sy2) + 4.0 * sxy * sxy)
     lam1 = 0.5 * (pp + disc)
@@ -139,9 +169,8 @@ def _calibrated_fd(N, F, V, d, S, gradient, w_inv, eig_ratio):
 
 
 @njit(cache=True)
-def _calibrated_sg(N, F, S, R, w_inv):
-    """Calibrated Savitzky-Golay: least-squares plane of F over the pixels with events
-    (coordinates centred on the event); normal flow (1 / W) g / |g|^2."""
+def _plane(U, W, FV, keep, m):
+    """Least-squares plane F = c + gx u + gy w over the kept points. Returns (c, gx, gy, ok)."""
     s1 = 0.0
     su = 0.0
     sw = 0.0
@@ -151,23 +180,22 @@ def _calibrated_sg(N, F, S, R, w_inv):
     sf = 0.0
     suf = 0.0
     swf = 0.0
-    for j in range(S):
-        w = float(j - R)
-        for i in range(S):
-            if N[i, j] > 0:
-                u = float(i - R)
-                f = F[i, j]
-                s1 += 1.0
-                su += u
-                sw += w
-                suu += u * u
-                sww += w * w
-                suw += u * w
-                sf += f
-                suf += u * f
-                swf += w * f
+    for q in range(m):
+        if keep[q]:
+            u = U[q]
+            w = W[q]
+            f = FV[q]
+            s1 += 1.0
+            su += u
+            sw += w
+            suu += u * u
+            sww += w * w
+            suw += u * w
+            sf += f
+            suf += u * f
+            swf += w * f
     if s1 < 3.0:
-        return 0.0, 0.0, False
+        return 0.0, 0.0, 0.0, False
     cuu = suu - su * su / s1
     cww = sww - sw * sw / s1
     cuw = suw - su * sw / s1
@@ -175,12 +203,48 @@ def _calibrated_sg(N, F, S, R, w_inv):
     cwf = swf - sw * sf / s1
     det = cuu * cww - cuw * cuw
     if det <= 1e-9 * (cuu * cww + 1e-300):
-        return 0.0, 0.0, False  # collinear support: no plane
+        return 0.0, 0.0, 0.0, False  # collinear support: no plane
     gx = (cww * cuf - cuw * cwf) / det
     gy = (cuu * cwf - cuw * cuf) / det
+    c = (sf - gx * su - gy * sw) / s1
+    return c, gx, gy, True
+
+
+@njit(cache=True)
+def _calibrated_sg(N, F, S, R, w_inv, tol, U, W, FV, keep):
+    """Calibrated Savitzky-Golay: least-squares plane of F over the pixels with events
+    (coordinates centred on the event); normal flow (1 / W) g / |g|^2. With ``tol > 0`` pixels
+    farther than ``tol`` px (along the normal) from the plane are dropped and the plane fitted
+    again, once."""
+    m = 0
+    for j in range(S):
+        for i in range(S):
+            if N[i, j] > 0:
+                U[m] = float(i - R)
+                W[m] = float(j - R)
+                FV[m] = F[i, j]
+                keep[m] = True
+                m += 1
+    c, gx, gy, ok = _plane(U, W, FV, keep, m)
+    if not ok:
+        return 0.0, 0.0, False
     g2 = gx * gx + gy * gy
     if not g2 > 0.0:
         return 0.0, 0.0, False
+    if tol > 0.0:
+        lim = tol * np.sqrt(g2)
+        dropped = 0
+        for q in range(m):
+            if abs(FV[q] - c - gx * U[q] - gy * W[q]) > lim:
+                keep[q] = False
+                dropped += 1
+        if dropped:
+            c, gx, gy, ok = _plane(U, W, FV, keep, m)
+            if not ok:
+                return 0.0, 0.0, False
+            g2 = gx * gx + gy * gy
+            if not g2 > 0.0:
+                return 0.0, 0.0, False
     return gx * w_inv / g2, gy * w_inv / g2, True
 
 
@@ -246,7 +310,7 @@ def _faithful(N, d, S, R, gradient, stencil_norm, sg_norm, thr):
 @njit(cache=True)
 def lk_flow_run(x, y, t, p, ring, speed_state, r, window_us, refractory_us, gradient,
                 faithful, eig_threshold, eig_ratio, speed_control, mix, max_factor,
-                max_speed_pxs, out_idx, out_vx, out_vy):
+                max_speed_pxs, refit_tolerance, out_idx, out_vx, out_vy):
     """Process events in order; write flow of emitted events into ``out_*``; return their count.
 
     ``out_*`` must have room for ``len(t)`` entries.
@@ -262,6 +326,10 @@ def lk_flow_run(x, y, t, p, ring, speed_state, r, window_us, refractory_us, grad
     N = np.zeros((S, S), np.int64)
     F = np.zeros((S, S), np.float64)
     V = np.zeros((S, S), np.float64)
+    GX = np.zeros(S * S, np.float64)
+    GY = np.zeros(S * S, np.float64)
+    FV = np.zeros(S * S, np.float64)
+    keep = np.zeros(S * S, np.bool_)
     w_inv = 1.0 / window_us
     w_inv_s = 1e6 / window_us
     if faithful:
@@ -327,9 +395,11 @@ def lk_flow_run(x, y, t, p, ring, speed_state, r, window_us, refractory_us, grad
                 continue
         else:
             if gradient == SAVITZKY_GOLAY:
-                vx, vy, ok = _calibrated_sg(N, F, S, R, w_inv_s)
+                vx, vy, ok = _calibrated_sg(N, F, S, R, w_inv_s, refit_tolerance, GX, GY,
+                                            FV, keep)
             else:
-                vx, vy, ok = _calibrated_fd(N, F, V, d, S, gradient, w_inv_s, eig_ratio)
+                vx, vy, ok = _calibrated_fd(N, F, V, d, S, gradient, w_inv_s, eig_ratio,
+                                            refit_tolerance, GX, GY, keep)
             if not ok:
                 continue
             v = np.sqrt(vx * vx + vy * vy)

@@ -14,7 +14,7 @@ from tests.naive.lk_flow import lk_flow_naive
 DEFAULTS = dict(search_distance=2, window_us=80_000, refractory_us=150_000,
                 gradient="savitzky_golay", mode="calibrated", eig_threshold=1.0, eig_ratio=0.1,
                 speed_control=True, speed_control_mix=1e-3, max_speed_factor=2.0,
-                max_speed_pxs=1e5, fifo_depth=8)
+                max_speed_pxs=1e5, refit_tolerance=0.5, fifo_depth=8)
 
 
 def run_kernel(x, y, t, p, width, height, state=None, **kw):
@@ -28,7 +28,8 @@ def run_kernel(x, y, t, p, width, height, state=None, **kw):
                     q["search_distance"], q["window_us"], q["refractory_us"],
                     GRADIENTS[q["gradient"]], q["mode"] == "faithful", q["eig_threshold"],
                     q["eig_ratio"], q["speed_control"], q["speed_control_mix"],
-                    q["max_speed_factor"], q["max_speed_pxs"], idx, vx, vy)
+                    q["max_speed_factor"], q["max_speed_pxs"], q["refit_tolerance"],
+                    idx, vx, vy)
     return idx[:m], vx[:m], vy[:m]
 
 

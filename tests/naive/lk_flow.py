@@ -18,7 +18,7 @@ NORM = {"backward": 1.0, "central": 2.0, "central2": 12.0}
 def lk_flow_naive(x, y, t, p, width, height, *, search_distance=2, window_us=80_000,
                   refractory_us=150_000, gradient="savitzky_golay", mode="calibrated",
                   eig_threshold=1.0, eig_ratio=0.1, speed_control=True, speed_control_mix=1e-3,
-                  max_speed_factor=2.0, max_speed_pxs=1e5, fifo_depth=8):
+                  max_speed_factor=2.0, max_speed_pxs=1e5, refit_tolerance=0.5, fifo_depth=8):
     """Return (index, vx, vy) lists of the emitted events."""
     r = search_distance
     d = MARGIN[gradient]
@@ -65,7 +65,7 @@ def lk_flow_naive(x, y, t, p, width, height, *, search_distance=2, window_us=80_
             if v == 0:
                 continue
         else:
-            res = _calibrated(N, F, hood, gradient, window_us, eig_ratio)
+            res = _calibrated(N, F, hood, gradient, window_us, eig_ratio, refit_tolerance)
             if res is None:
                 continue
             vx, vy = res
@@ -137,26 +137,52 @@ def _one_deriv(F, N, i, j, di, dj, gradient):
     return None
 
 
-def _calibrated(N, F, hood, gradient, window_us, eig_ratio):
-    rate = {key: 1.0 / (window_us * 1e-6) for key in N}
+def _plane_fit(pts, F):
+    """(c, g) of the least-squares plane F = c + g . (i, j), or None if degenerate."""
+    if len(pts) < 3:
+        return None
+    P = np.array(pts, float)
+    Pc = P - P.mean(axis=0)
+    C = Pc.T @ Pc
+    if np.linalg.det(C) <= 1e-9 * (C[0, 0] * C[1, 1] + 1e-300):
+        return None
+    f = np.array([F[q] for q in pts])
+    g = np.linalg.solve(C, Pc.T @ (f - f.mean()))
+    c = f.mean() - g @ P.mean(axis=0)
+    return c, g
+
+
+def _ls(rows, rate, eig_ratio):
+    A = np.array(rows)
+    M = A.T @ A
+    lam2, lam1 = np.linalg.eigvalsh(M)
+    if not lam1 > 0:
+        return None
+    Atb = A.T @ np.full(len(rows), rate)
+    if lam2 > 0 and lam2 >= eig_ratio * lam1:
+        return np.linalg.solve(M, Atb)
+    e1 = np.linalg.eigh(M)[1][:, 1]
+    return e1 * (e1 @ Atb) / lam1
+
+
+def _calibrated(N, F, hood, gradient, window_us, eig_ratio, tol):
+    rate = 1.0 / (window_us * 1e-6)  # -dF/dt of every active pixel, 1/s
     if gradient == "savitzky_golay":
         pts = [(i, j) for (i, j) in hood if N[i, j] > 0]
-        if len(pts) < 3:
+        fit = _plane_fit(pts, F)
+        if fit is None or not fit[1] @ fit[1] > 0:
             return None
-        X = np.array([[1.0, i, j] for (i, j) in pts])
-        Xc = X[:, 1:] - X[:, 1:].mean(axis=0)
-        C = Xc.T @ Xc
-        det = np.linalg.det(C)
-        if det <= 1e-9 * (C[0, 0] * C[1, 1] + 1e-300):
-            return None
-        f = np.array([F[q] for q in pts])
-        g = np.linalg.solve(C, Xc.T @ (f - f.mean()))
+        c, g = fit
+        if tol > 0:
+            near = [q for q in pts if abs(F[q] - c - g @ np.array(q)) <= tol * np.hypot(*g)]
+            if len(near) < len(pts):
+                fit = _plane_fit(near, F)
+                if fit is None or not fit[1] @ fit[1] > 0:
+                    return None
+                c, g = fit
         g2 = g @ g
-        if g2 <= 0:
-            return None
-        bt = np.mean([rate[q] for q in pts])
-        return float(g[0] * bt / g2), float(g[1] * bt / g2)
-    rows, b = [], []
+        return float(g[0] * rate / g2), float(g[1] * rate / g2)
+    rows = []
     for (i, j) in hood:
         if N[i, j] == 0:
             continue
@@ -165,19 +191,17 @@ def _calibrated(N, F, hood, gradient, window_us, eig_ratio):
         if gx is None or gy is None:
             continue
         rows.append((gx, gy))
-        b.append(rate[i, j])
     if len(rows) < 2:
         return None
-    A = np.array(rows)
-    M = A.T @ A
-    lam2, lam1 = np.linalg.eigvalsh(M)
-    if not lam1 > 0:
+    v = _ls(rows, rate, eig_ratio)
+    if v is None:
         return None
-    Atb = A.T @ np.array(b)
-    if lam2 > 0 and lam2 >= eig_ratio * lam1:
-        v = np.linalg.solve(M, Atb)
-        return float(v[0]), float(v[1])
-    w, vecs = np.linalg.eigh(M)
-    e1 = vecs[:, 1]
-    v = e1 * (e1 @ Atb) / lam1
+    if tol > 0:
+        good = [r for r in rows if abs((r[0] * v[0] + r[1] * v[1]) / rate - 1) <= tol]
+        if len(good) < len(rows):
+            if len(good) < 2:
+                return None
+            v = _ls(good, rate, eig_ratio)
+            if v is None:
+                return None
     return float(v[0]), float(v[1])
