@@ -152,7 +152,7 @@ def _progress_bar(source: Filter, enabled: bool):
 
     total = (span[1] - span[0]) if span else None
     bar = tqdm(total=total, unit="us", unit_scale=True, desc=source.id, leave=False,
-               file=sys.stderr, dynamic_ncols=True, mininterval=0.5)
+               file=sys.stderr, dynamic_ncols=True, mininterval=0.5, disable=None)
     bar.n = span[0] if span else 0
     bar.total = span[1] if span else None
     return bar
