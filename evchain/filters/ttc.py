@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 import numpy as np
 from pydantic import Field
 
@@ -24,8 +26,9 @@ class Ttc(Filter):
     one tau each. They are assigned to square clusters (centre of mass, activity-weighted
     updates, growth, decay, removal below ``min_activity``). At every multiple of
     ``estimate_every_us`` each cluster's tau is the median of its recent samples, each moved
-    forward at -1 s/s, fused with its prediction by a gated 1-D Kalman filter. Series ``ttc``
-    (t, tau_s, cluster, x, y, support) holds the most supported cluster per tick, series
+    forward at -1 s/s, fused with its prediction by a gated 1-D Kalman filter; a cluster whose
+    tau reaches 0 is dropped. Series ``ttc`` (t, tau_s, cluster, x, y, support) holds the
+    obstacle's cluster per tick (``select``: nearest the FOE, or most active), series
     ``ttc_clusters`` (t, cluster, x, y, size_px, tau_s, support) every live cluster.
     """
 
@@ -61,6 +64,12 @@ class Ttc(Filter):
                                        "(fraction of tau)")
         process_noise_s2_per_s: float = Field(0.05, ge=0, description="Kalman process noise "
                                               "of tau (s^2 per s)")
+        select: Literal["nearest_foe", "support"] = Field(
+            "nearest_foe", description="which cluster is the obstacle: the one nearest the FOE "
+            "with activity >= select_min_activity (the first thing in the driving corridor; "
+            "ground clusters lie farther below), or the most active one (thesis)")
+        select_min_activity: float = Field(5.0, ge=0, description="activity a cluster needs "
+                                           "to be selected as the obstacle (nearest_foe)")
         gate_sigma: float = Field(3.0, gt=0, description="reject medians farther than this "
                                   "many sigma from the prediction (3 in a row restart)")
 
@@ -101,6 +110,7 @@ class Ttc(Filter):
         no, nc = kern.process(
             packet.x, packet.y, packet.t, packet.vx, packet.vy, ft, fx, fy, self._C, self._I,
             self._ST, self._SV, self._G, int(packet.t_end), period,
+            p.select == "nearest_foe", p.select_min_activity,
             p.region_b_half_width_px, p.region_b_min_below_px, p.min_distance_px,
             p.min_speed_pxs, p.max_speed_pxs, p.min_tau_s, p.max_tau_s, p.cluster_size_px,
             p.max_cluster_size_px, p.join_margin_px, p.activity_tau_ms * 1000.0,

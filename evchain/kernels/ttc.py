@@ -98,7 +98,8 @@ def _cluster_estimate(C, I, ST, SV, k, T, max_age_us, min_samples, rel_floor, q_
 
 
 @njit(cache=True)
-def process(x, y, t, vx, vy, ft, fx, fy, C, I, ST, SV, G, t_end, period_us,
+def process(x, y, t, vx, vy, ft, fx, fy, C, I, ST, SV, G, t_end, period_us, select_nearest,
+            select_min_activity,
             half_width, min_below, min_dist, min_speed, max_speed, min_tau, max_tau,
             init_size, max_size, join_margin, act_tau_us, min_activity,
             max_age_us, min_samples, rel_floor, q_s2_per_s, gate,
@@ -123,6 +124,7 @@ def process(x, y, t, vx, vy, ft, fx, fy, C, I, ST, SV, G, t_end, period_us,
             T = G[3]
             best = -1
             best_sup = 0.0
+            best_d = 1e300
             for k in range(K):
                 if I[k, ACTIVE] == 0:
                     continue
@@ -132,6 +134,9 @@ def process(x, y, t, vx, vy, ft, fx, fy, C, I, ST, SV, G, t_end, period_us,
                     continue
                 _cluster_estimate(C, I, ST, SV, k, T, max_age_us, min_samples, rel_floor,
                                   q_s2_per_s, gate, buf)
+                if C[k, HAS] > 0.0 and C[k, TAU] <= 0.0:  # passed or hit: drop it
+                    I[k, ACTIVE] = 0
+                    continue
                 if C[k, HAS] > 0.0 and nc < c_t.shape[0]:
                     c_t[nc] = T
                     c_id[nc] = I[k, ID]
@@ -141,7 +146,18 @@ def process(x, y, t, vx, vy, ft, fx, fy, C, I, ST, SV, G, t_end, period_us,
                     c_tau[nc] = C[k, TAU]
                     c_sup[nc] = a
                     nc += 1
-                    if a > best_sup:
+                    if select_nearest:
+                        # the supported cluster nearest the FOE (its square's nearest point):
+                        # the first thing in the driving corridor; ties by support
+                        if a >= select_min_activity:
+                            ddx = max(0.0, abs(C[k, CX] - G[1]) - C[k, SIZE])
+                            ddy = max(0.0, abs(C[k, CY] - G[2]) - C[k, SIZE])
+                            d = math.sqrt(ddx * ddx + ddy * ddy)
+                            if d < best_d or (d == best_d and a > best_sup):
+                                best_d = d
+                                best_sup = a
+                                best = k
+                    elif a > best_sup:
                         best_sup = a
                         best = k
             if best >= 0 and no < o_t.shape[0]:

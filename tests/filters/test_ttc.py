@@ -41,18 +41,20 @@ def rel_errors(out, tau0=3.0):
     return np.abs(s["tau_s"] - truth) / truth
 
 
-# (generator options, with foe_map instead of the true FOE, median tolerance, share < 10 %)
+NOISY = dict(normal_only=True, noise_frac=0.2, outlier_frac=0.1)
+# (generator options, foe_map instead of the true FOE, ttc params, median tolerance,
+#  share within 10 %)
 RECOVERY = {
-    "full flow, true FOE": (dict(), False, 0.02, 0.95),
-    "normal flow, true FOE": (dict(normal_only=True), False, 0.02, 0.95),
-    "normal flow + noise + outliers, foe_map": (
-        dict(normal_only=True, noise_frac=0.2, outlier_frac=0.1), True, 0.06, 0.85),
+    "full flow, true FOE": (dict(), False, {}, 0.02, 0.95),
+    "normal flow, true FOE": (dict(normal_only=True), False, {}, 0.02, 0.95),
+    "normal flow + noise + outliers, foe_map": (NOISY, True, {}, 0.09, 0.6),
+    "same, most active cluster": (NOISY, True, {"select": "support"}, 0.06, 0.85),
 }
 
 
 @pytest.mark.parametrize("name", list(RECOVERY))
 def test_recovers_ttc(name):
-    opts, use_map, med_tol, share = RECOVERY[name]
+    opts, use_map, params, med_tol, share = RECOVERY[name]
     packets = approach(**opts)
     if use_map:
         fm = FoeMap()
@@ -60,7 +62,7 @@ def test_recovers_ttc(name):
         packets = [fm.process(p) for p in packets]
     else:
         packets = with_true_foe(packets)
-    rel = rel_errors(run_ttc(packets))
+    rel = rel_errors(run_ttc(packets, **params))
     assert np.median(rel) <= med_tol, np.median(rel)
     assert np.mean(rel <= 0.10) >= share
 
