@@ -231,6 +231,8 @@ class FlowScorer(Filter):
         self.last = None
 
     def _close_bins(self, keys: list[int]) -> np.ndarray:
+        if not keys:
+            return np.zeros(0, ERROR_DTYPE)
         rows = []
         for k in keys:
             parts = self.bins.pop(k)
@@ -258,7 +260,8 @@ class FlowScorer(Filter):
             for kk in np.unique(k).tolist():
                 sel = k == kk
                 self.bins.setdefault(kk, []).append({n: v[sel] for n, v in errs.items()})
-        done = sorted(kk for kk in self.bins if (kk + 1) * self.params.bin_us < packet.t_end)
+        done = sorted(kk for kk in self.bins if (kk + 1) * self.params.bin_us < packet.t_end) \
+            if self.bins else []
         self.last = packet
         return packet.with_series(ERROR_SERIES, self._close_bins(done))
 
