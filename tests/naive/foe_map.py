@@ -7,6 +7,7 @@ import math
 import numpy as np
 
 from evchain.core.packets import FlowPacket, Geometry
+from evchain.testing.synthetic import approach_flow_packets
 
 
 def region_mask(geometry: Geometry, radius_px: float | None) -> np.ndarray:
@@ -91,44 +92,5 @@ def foe_naive(packet: FlowPacket, tau_ms: float, radius_px: float | None, period
     return np.array(out).reshape(-1, 4)
 
 
-def expansion_packets(foe=(60.0, 45.0), tau_s: float = 2.0, n: int = 20000,
-                      geometry: Geometry = Geometry(128, 96, f=100.0),
-                      duration_us: int = 200_000, n_packets: int = 4, seed: int = 0,
-                      normal_only: bool = False, noise_frac: float = 0.0,
-                      outlier_frac: float = 0.0, tau_shrinks: bool = False) -> list[FlowPacket]:
-    """Flow of a pure expansion v = (p - foe) / tau at random pixels, cut into packets.
-
-    ``normal_only`` projects each vector on a random edge normal; ``noise_frac`` adds Gaussian
-    noise of that fraction of the local speed to each component; ``outlier_frac`` replaces that
-    share of vectors by random ones; ``tau_shrinks`` makes tau fall at 1 s/s (approach) so that
-    tau(t) = tau_s - t.
-    """
-    rng = np.random.default_rng(seed)
-    t = np.sort(rng.integers(0, duration_us, n)).astype(np.int64)
-    x = rng.integers(0, geometry.width, n)
-    y = rng.integers(0, geometry.height, n)
-    tau = tau_s - t * 1e-6 if tau_shrinks else np.full(n, tau_s)
-    vx = (x - foe[0]) / tau
-    vy = (y - foe[1]) / tau
-    if normal_only:
-        a = rng.uniform(0, np.pi, n)
-        nx, ny = np.cos(a), np.sin(a)
-        dot = vx * nx + vy * ny
-        vx, vy = dot * nx, dot * ny
-    if noise_frac:
-        sp = np.hypot(vx, vy)
-        vx = vx + rng.normal(0, 1, n) * noise_frac * sp
-        vy = vy + rng.normal(0, 1, n) * noise_frac * sp
-    if outlier_frac:
-        bad = rng.random(n) < outlier_frac
-        vx[bad] = rng.normal(0, 30, bad.sum())
-        vy[bad] = rng.normal(0, 30, bad.sum())
-    edges = np.linspace(0, duration_us, n_packets + 1).astype(np.int64)
-    out = []
-    for a, b in zip(edges[:-1], edges[1:], strict=True):
-        k = (t >= a) & (t < b)
-        out.append(FlowPacket(geometry=geometry, t_start=int(a), t_end=int(b),
-                              x=x[k].astype(np.uint16), y=y[k].astype(np.uint16), t=t[k],
-                              p=np.ones(k.sum(), np.int8), vx=vx[k].astype(np.float32),
-                              vy=vy[k].astype(np.float32)))
-    return out
+# the generator lives in evchain.testing.synthetic (benchmarks use it too)
+expansion_packets = approach_flow_packets

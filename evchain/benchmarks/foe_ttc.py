@@ -1,0 +1,209 @@
+"""FOE and TTC: ``foe_map`` and ``ttc`` on synthetic expansion flow, and the whole chain from
+emulator output to TTC on the reference scene.
+
+* ``foe-map``: flow events/s of ``foe_map`` (defaults: region A radius 60 px, an estimate every
+  1 ms) on a 320x240 pure-expansion field, normal flow on random edge normals with 10 % noise;
+  error = mean distance of the estimates to the true FOE after 0.2 s. ``limit_ratio`` = time of a
+  plain numpy pass over the same columns / stage time.
+* ``ttc-synthetic``: flow events/s of ``ttc`` on an approach (tau = 3 s - t) with the true FOE in
+  the ``foe`` series; error = median relative TTC error.
+* ``chain-reference-lk`` / ``chain-reference-plane``: events/s (emulator output events) of
+  flow -> foe_map -> ttc on the reference scene (high-rise, 20 m/s, 320x240, threshold 20 on the
+  thesis scale) over the last seconds before the obstacle; errors from ``foe_ttc_scorer`` (not
+  timed): FOE mean |dx|, |dy| and the TTC median relative error over the last 3 s. The emulator
+  output is rendered once and cached under ``$EVCHAIN_BENCH_CACHE`` (default
+  ``/tmp/evchain-bench``): rendering takes minutes.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from evchain.bench import BenchRow, best_time
+from evchain.core.filter import Context
+from evchain.core.packets import EventPacket, Geometry, series_array
+from evchain.testing.synthetic import approach_flow_packets
+
+G = Geometry(320, 240, f=380.6)
+CENTRE = (159.5, 119.5)
+
+
+def _cpu_time(fn) -> float:
+    """CPU time of one call (the machine may be shared: wall time then overstates the cost)."""
+    t0 = time.process_time()
+    fn()
+    return time.process_time() - t0
+
+
+def _run(filters, packets):
+    out = None
+    for p in packets:
+        for f in filters:
+            p = f.process(p)
+        out = p
+    return out
+
+
+def foe_map_rows(quick: bool) -> list[BenchRow]:
+    from evchain.filters.foe_map import FoeMap
+
+    n = 1_000_000 if quick else 4_000_000
+    dur = n  # 1 M flow events per second of stream
+    packets = approach_flow_packets(foe=CENTRE, tau_s=5.0, n=n, geometry=G, duration_us=dur,
+                                    n_packets=max(1, dur // 10_000), normal_only=True,
+                                    noise_frac=0.1)
+    series = []
+
+    def stage():
+        f = FoeMap()
+        f.setup(FoeMap.Params(), Context())
+        series.clear()
+        for p in packets:
+            series.append(f.process(p).series["foe"])
+
+    t = best_time(stage, repeat=3)
+    cpu = min(_cpu_time(stage) for _ in range(2))
+    s = np.concatenate(series)
+    s = s[s["t"] >= 200_000]
+    err = float(np.mean(np.hypot(s["x"] - CENTRE[0], s["y"] - CENTRE[1])))
+    cols = [np.concatenate([getattr(p, c) for p in packets]) for c in ("x", "y", "t", "vx",
+                                                                       "vy")]
+    t_limit = best_time(lambda: [c.sum() for c in cols], repeat=3)
+    return [BenchRow("foe-map", "foe_map", n / t, "flow ev/s", err, "foe_err_px", t_limit / t,
+                     {"events": n, "throughput_cpu": n / cpu, "region_radius_px": 60,
+                     "estimate_every_us": 1000,
+                      "field": "320x240 normal flow, 10% noise"})]
+
+
+def ttc_rows(quick: bool) -> list[BenchRow]:
+    from evchain.filters.foe_map import FOE_DTYPE
+    from evchain.filters.ttc import Ttc
+
+    n = 500_000 if quick else 2_000_000
+    dur = 2_000_000
+    packets = approach_flow_packets(foe=CENTRE, tau_s=3.0, n=n, geometry=G, duration_us=dur,
+                                    n_packets=200, normal_only=True, noise_frac=0.1,
+                                    tau_shrinks=True)
+    packets = [p.with_series("foe", series_array(FOE_DTYPE, t=[p.t_start], x=[CENTRE[0]],
+                                                 y=[CENTRE[1]], support=[1.0], total=[1.0]))
+               for p in packets]
+    series = []
+
+    def stage():
+        f = Ttc()
+        f.setup(Ttc.Params(), Context())
+        series.clear()
+        for p in packets:
+            series.append(f.process(p).series["ttc"])
+
+    t = best_time(stage, repeat=3)
+    cpu = min(_cpu_time(stage) for _ in range(2))
+    s = np.concatenate(series)
+    truth = 3.0 - s["t"] * 1e-6
+    err = float(np.median(np.abs(s["tau_s"] - truth) / truth))
+    return [BenchRow("ttc-synthetic", "ttc", n / t, "flow ev/s", err, "ttc_median_rel_err",
+                     None, {"events": n, "throughput_cpu": n / cpu,
+                            "field": "320x240 approach, normal flow, 10% noise",
+                            "true_foe": True})]
+
+
+# -- the whole chain on the reference scene ------------------------------------------------
+
+def _cache_dir() -> Path:
+    return Path(os.environ.get("EVCHAIN_BENCH_CACHE", "/tmp/evchain-bench"))
+
+
+def reference_events(start_m: float, duration_s: float):
+    """Emulator output of the reference drive from ``start_m`` for ``duration_s``, cached; plus
+    the scene's geometry and ground truth (cheap: no rendering)."""
+    from evchain.core.registry import make_registry
+
+    reg = make_registry()
+    ctx = Context(seed=0)
+    scene = reg.get("scene")()
+    scene.id = "scene"
+    scene.setup(scene.Params(scenario="high-rise", speed_mps=20, width=320, height=240,
+                             supersample=2, fov_deg=35, max_motion_px=0.5, start_m=start_m,
+                             duration_s=duration_s), ctx)
+    path = _cache_dir() / f"reference-{start_m:g}m-{duration_s:g}s.npz"
+    if not path.exists():
+        emu = reg.get("emulator")()
+        emu.id = "emulator"
+        emu.setup(emu.Params(threshold_on=20, threshold_off=20, log_mapping="thesis8bit",
+                             mismatch_sigma=0), ctx)
+        evs = [emu.process(p) for p in scene.packets()]
+        last = emu.flush()
+        if last is not None:
+            evs.append(last)
+        ev = EventPacket.concat(evs)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".partial.npz")
+        np.savez(tmp, x=ev.x, y=ev.y, t=ev.t, p=ev.p,
+                 bounds=np.array([e.t_start for e in evs] + [evs[-1].t_end]))
+        os.replace(tmp, path)
+    d = np.load(path)
+    b = d["bounds"]
+    idx = np.searchsorted(d["t"], b)
+    packets = [EventPacket(geometry=ctx.geometry, t_start=int(b0), t_end=int(b1),
+                           x=d["x"][i:j], y=d["y"][i:j], t=d["t"][i:j], p=d["p"][i:j])
+               for b0, b1, i, j in zip(b[:-1], b[1:], idx[:-1], idx[1:], strict=True)]
+    scene.close()
+    return packets, ctx
+
+
+def chain_rows(flow: str, quick: bool) -> list[BenchRow]:
+    from evchain.core.registry import make_registry
+
+    start_m, dur = (220.0, 1.0) if quick else (180.0, 5.0)
+    events, ctx = reference_events(start_m, dur)
+    n_events = sum(len(p) for p in events)
+    reg = make_registry()
+
+    def build(with_scorer: bool):
+        fs = []
+        names = [flow, "foe_map", "ttc"] + (["foe_ttc_scorer"] if with_scorer else [])
+        for name in names:
+            f = reg.get(name)()
+            f.id = name
+            params = {"plots": False, "warmup_s": 1.0} if name == "foe_ttc_scorer" else {}
+            f.setup(f.Params(**params), Context(seed=0, geometry=ctx.geometry, truth=ctx.truth,
+                                                 metrics=ctx.metrics))
+            fs.append(f)
+        return fs
+
+    def stage():
+        fs = build(False)
+        _run(fs, events)
+        for f in fs:
+            f.flush()
+
+    t = best_time(stage, repeat=1 if not quick else 2)
+    cpu = _cpu_time(stage)
+    fs = build(True)  # once more with the scorer (not timed) for the errors
+    _run(fs, events)
+    for f in fs:
+        f.flush()
+    fm, tm = ctx.metrics.get("foe", {}), ctx.metrics.get("ttc", {})
+    name = "lk" if flow == "lk_flow" else "plane"
+    return [BenchRow(f"chain-reference-{name}", f"{flow}+foe_map+ttc", n_events / t, "events/s",
+                     tm.get("median_rel_error_last3s"), "ttc_median_rel_err_last3s", None,
+                     {"events": n_events, "throughput_cpu": n_events / cpu,
+                      "stretch": f"{start_m:g} m + {dur:g} s",
+                      "foe_dx_mean_px": fm.get("dx_mean_px"),
+                      "foe_dy_mean_px": fm.get("dy_mean_px"),
+                      "foe_dx_std_px": fm.get("dx_std_px"),
+                      "foe_dy_std_px": fm.get("dy_std_px"),
+                      "ttc_share_within_20pct": tm.get("share_within_20pct"),
+                      "ttc_share_within_10pct": tm.get("share_within_10pct")})]
+
+
+WORKLOADS = {
+    "foe-map": foe_map_rows,
+    "ttc-synthetic": ttc_rows,
+    "chain-reference-lk": lambda quick: chain_rows("lk_flow", quick),
+    "chain-reference-plane": lambda quick: chain_rows("plane_flow", quick),
+}
