@@ -248,6 +248,8 @@ def _interval(f0, f1, fm, fp, g, t0, dt, hprev, hnext, has_prev, has_next, cubic
                     else:
                         break
                 count += 1
+                # the event time is where the firing rule turns true: L = level -+ tol
+                lev = lev - tol if pol > 0 else lev + tol
                 tf = t0 + solve_crossing(lev, la, lb, m0, m1, cubic) * dt
                 if tf - lt < refractory_us:
                     continue

@@ -169,6 +169,9 @@ class BarTruth:
         pix_off = np.repeat(np.arange(len(xs)), n_off)
         k_off = _ranks(n_off)
         lev_off = l0[pix_off] + (n_on[pix_off] * con[pix_off] - k_off * coff[pix_off])
+        # event time: where the firing rule turns true (L = level -+ tol), as in the emulator
+        lev_on = lev_on - tol
+        lev_off = lev_off + tol
         t_on = self._bisect(xs[pix_on], lev_on, np.full(len(pix_on), t0), tm[pix_on], eps, True)
         t_off = self._bisect(xs[pix_off], lev_off, tm[pix_off], np.full(len(pix_off), t1), eps,
                              False)

@@ -1,0 +1,106 @@
+"""The emulator kernel against the slow reference (tests/naive/emulator.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from evchain.core.filter import Context
+from evchain.core.packets import EventPacket, FramePacket, Geometry
+from evchain.filters.emulator import Emulator
+from tests.naive.emulator import emulate as naive
+
+
+def run_filter(frames, times, cut=None, **params):
+    n, h, w = frames.shape
+    g = Geometry(w, h)
+    f = Emulator()
+    f.record_float_times = True
+    f.setup(Emulator.Params(**params), Context(seed=3))
+    cut = cut or [n]
+    outs, i = [], 0
+    t_end_all = int(times[-1]) + 1
+    for k in cut:
+        j = min(i + k, n)
+        t_start = int(times[i]) if i < n else t_end_all
+        t_end = int(times[j]) if j < n else t_end_all
+        outs.append(f.process(FramePacket(geometry=g, t_start=t_start, t_end=t_end,
+                                          frames=frames[i:j], t=times[i:j])))
+        i = j
+    outs.append(f.flush())
+    ev = EventPacket.concat(outs).validate()
+    tf = np.concatenate(f.float_times) if f.float_times else np.zeros(0)
+    return ev, tf
+
+
+def compare(frames, times, c=0.2, **params):
+    cubic = params.get("interpolation", "cubic") == "cubic"
+    ev, tf = run_filter(frames, times, threshold_on=c, threshold_off=c, **params)
+    x, y, ti, tfn, p = naive(frames, times, c, c, eps=params.get("eps", 1e-3),
+                             tol=params.get("tie_tolerance", 1e-6), cubic=cubic,
+                             refractory_us=params.get("refractory_us", 0.0),
+                             cap=params.get("max_events_per_interval"))
+    assert len(ev) == len(x)
+    np.testing.assert_allclose(tf, tfn, atol=1e-6)
+    np.testing.assert_array_equal(ev.x, x)
+    np.testing.assert_array_equal(ev.y, y)
+    np.testing.assert_array_equal(ev.p, p)
+    np.testing.assert_array_equal(ev.t, ti)
+    return ev
+
+
+def random_stream(seed, n=12, h=5, w=7):
+    rng = np.random.default_rng(seed)
+    frames = np.exp(rng.normal(-1.5, 1.0, (n, h, w))).astype(np.float32)
+    frames[rng.random((n, h, w)) < 0.1] = 0.0
+    times = np.cumsum(rng.integers(50, 3000, n)).astype(np.int64)
+    return frames, times
+
+
+@pytest.mark.parametrize("interpolation", ["linear", "cubic"])
+@pytest.mark.parametrize("seed", range(4))
+def test_random_matches_naive(seed, interpolation):
+    frames, times = random_stream(seed)
+    ev = compare(frames, times, c=0.3, interpolation=interpolation)
+    assert len(ev) > 50          # the comparison is not vacuous
+
+
+@pytest.mark.parametrize("interpolation", ["linear", "cubic"])
+def test_refractory_and_cap_match_naive(interpolation):
+    frames, times = random_stream(11, n=15)
+    compare(frames, times, c=0.15, interpolation=interpolation, refractory_us=400.0)
+    compare(frames, times, c=0.15, interpolation=interpolation, max_events_per_interval=2)
+
+
+def test_hard_inputs_match_naive():
+    # exact returns to earlier levels, zeros, large jumps, equal neighbours
+    eps = 1e-3
+    base = np.float32(0.25)
+    lev = np.exp(np.log(np.float64(base) + eps) + 0.2 * np.array([0, 1, 2, 1, 0, -1, 0, 3, 0]))
+    col = (lev - eps).astype(np.float32)
+    n = len(col)
+    frames = np.zeros((n, 3, 4), np.float32)
+    frames[:, 0, 0] = col
+    frames[:, 0, 1] = base
+    frames[:, 1, 2] = np.where(np.arange(n) % 2, 1.0, 0.0)
+    frames[:, 2, 3] = np.linspace(0, 2, n)
+    times = np.arange(n, dtype=np.int64) * 1000
+    for interp in ("linear", "cubic"):
+        ev = compare(frames, times, c=0.2, interpolation=interp)
+        at = (ev.x == 0) & (ev.y == 0)
+        # ramp by exact thresholds: +2, -1, -1, -1, +1, +3, -3 => one event per threshold
+        assert list(ev.p[at]) == [1, 1, -1, -1, -1, 1, 1, 1, 1, -1, -1, -1]
+        assert not ((ev.x == 1) & (ev.y == 0)).any()
+
+
+def test_packet_cuts_identical():
+    frames, times = random_stream(5, n=20)
+    for interp in ("linear", "cubic"):
+        ref, tref = run_filter(frames, times, interpolation=interp, threshold_on=0.25,
+                               threshold_off=0.25, noise_rate_hz=50.0)
+        for cut in ([1] * 20, [3, 1, 7, 2, 7], [2, 0, 5, 13]):
+            got, tgot = run_filter(frames, times, cut=cut, interpolation=interp,
+                                   threshold_on=0.25, threshold_off=0.25, noise_rate_hz=50.0)
+            for name in ("x", "y", "t", "p"):
+                np.testing.assert_array_equal(getattr(got, name), getattr(ref, name))
+            np.testing.assert_array_equal(tgot, tref)
