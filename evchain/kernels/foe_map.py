@@ -111,7 +111,8 @@ def _first_in_t(a, b, xx, px, py, vx, vy, slope):
 
 @njit(cache=True, error_model="numpy")
 def materialize(diffR, constR, diffC, constC, lo, hi, clo, chi, x0, y0, whole, out):
-    """The dense map (NaN outside A) into ``out[ny, nx]`` (map units, not decayed)."""
+    """The dense map (NaN outside A) into ``out[ny, nx]`` (map units, not decayed); returns its
+    (max, min) over A (-inf, inf when A is empty)."""
     out[:, :] = np.nan
     rc = 0.0
     for r in range(lo.shape[0]):
@@ -120,36 +121,35 @@ def materialize(diffR, constR, diffC, constC, lo, hi, clo, chi, x0, y0, whole, o
         for x in range(lo[r], hi[r] + 1):
             acc += diffR[r, x - x0]
             out[r, x - x0] = whole + rc + acc
+    best = -np.inf
+    worst = np.inf
     cc = 0.0
     for c in range(clo.shape[0]):
         cc += constC[c]
         acc = 0.0
         for y in range(clo[c], chi[c] + 1):
             acc += diffC[c, y - y0]
-            out[y - y0, c] += cc + acc
+            v = out[y - y0, c] + cc + acc
+            out[y - y0, c] = v
+            if v > best:
+                best = v
+            if v < worst:
+                worst = v
+    return best, worst
 
 
 @njit(cache=True, error_model="numpy")
-def read_estimate(m, x0, y0, refine_fraction):
-    """(x, y, max, min) of a dense map ``m`` (NaN outside A): centroid of the maximal set,
-    refined.
+def read_estimate(m, x0, y0, best, worst, refine_fraction):
+    """(x, y) of a dense map ``m`` (NaN outside A) with maximum ``best`` and minimum ``worst``:
+    centroid of the maximal set, refined.
 
     With ``refine_fraction`` f > 0 the estimate is the centroid of the cells within
     f * (max - min) of the max, weighted by their height above that threshold; with f = 0 the
     plain centroid of the maximal set (ties within a relative 1e-12).
     """
     ny, nx = m.shape
-    best = -np.inf
-    worst = np.inf
-    for r in range(ny):
-        for c in range(nx):
-            v = m[r, c]
-            if v > best:
-                best = v
-            if v < worst:
-                worst = v
     if not best > -np.inf:
-        return np.nan, np.nan, 0.0, 0.0
+        return np.nan, np.nan
     if refine_fraction > 0.0:
         thr = best - refine_fraction * (best - worst)
     else:
@@ -167,8 +167,8 @@ def read_estimate(m, x0, y0, refine_fraction):
                 sy += wt * (y0 + r)
                 sw += wt
     if sw <= 0.0:
-        return np.nan, np.nan, best, worst
-    return sx / sw, sy / sw, best, worst
+        return np.nan, np.nan
+    return sx / sw, sy / sw
 
 
 @njit(cache=True, error_model="numpy")
@@ -190,9 +190,9 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, lo, hi, clo, chi, x0,
         while ist[1] < t_next or (i < n and ist[1] == t_next):
             T = ist[1]
             if ist[3] == 1:
-                materialize(diffR, constR, diffC, constC, lo, hi, clo, chi, x0, y0, fst[0],
-                            mbuf)
-                ex, ey, best, worst = read_estimate(mbuf, x0, y0, refine_fraction)
+                best, worst = materialize(diffR, constR, diffC, constC, lo, hi, clo, chi, x0,
+                                          y0, fst[0], mbuf)
+                ex, ey = read_estimate(mbuf, x0, y0, best, worst, refine_fraction)
                 ist[3] = 0
                 if best > 0.0 and ex == ex:
                     fst[1] = ex
