@@ -96,7 +96,7 @@ class FoeMap(Filter):
         ny, nx = len(lo), len(clo)
         self._diffR = np.zeros((ny, nx + 1), np.float64)
         self._constR = np.zeros(ny + 1, np.float64)
-        self._diffC = np.zeros((nx, ny + 1), np.float64)
+        self._diffC = np.zeros((ny + 1, nx), np.float64)
         self._constC = np.zeros(nx + 1, np.float64)
         self._mbuf = np.empty((ny, nx), np.float64)
         if p.region_radius_px is None:

@@ -3,13 +3,16 @@
 The map covers region A, given per map row ``r`` (image row ``y0 + r``) as the columns
 ``lo[r]..hi[r]`` and per map column ``c`` (image column ``x0 + c``) as the rows ``clo[c]..chi[c]``
 (absolute image coordinates; ``hi < lo`` means empty). A vote's boundary line crosses few rows or
-few columns: a flatter line is written into per-row difference arrays ``diffR[r, x - x0]`` (+w at
-the first column of an interval, -w one past its last), a steeper one into per-column difference
-arrays ``diffC[c, y - y0]``; only the rows (columns) the line crosses inside A (widened by 2 px)
-are touched. The rows (columns) before and after that range lie wholly on one side of the line, so
-they get one range update each in ``constR`` (``constC``), a difference array over rows (columns).
-Votes whose half-plane holds all of A, or none, cost O(1). So the cost per event is O(rows the
-line crosses), at most O(rows), and the map equals the brute-force sum cell by cell.
+few columns: a flatter line is written into per-row difference arrays ``diffR[r, x - x0]``, a
+steeper one into per-column difference arrays ``diffC[y - y0, c]`` (stored row-major, so a read
+is one contiguous pass). Only the rows (columns) the line crosses inside A (widened by 2 px) get
+a write, one each: an interval either starts at the row's first cell (then the whole row gets +w
+through ``constR``, a difference array over rows, and -w goes where the interval ends) or ends
+at its last cell (then only its start is written: prefix sums stop at the last cell). The rows
+(columns) before and after that range lie wholly on one side of the line, so they get one range
+update each in ``constR`` (``constC``). Votes whose half-plane holds all of A, or none, cost
+O(1). So the cost per event is O(rows the line crosses), at most O(rows), and the map equals the
+brute-force sum cell by cell.
 
 Weights grow as ``exp((t - t_ref) / tau)`` (lazy decay); the map is rescaled and ``t_ref`` reset
 before overflow.
@@ -112,25 +115,30 @@ def _first_in_t(a, b, xx, px, py, vx, vy, slope):
 @njit(cache=True, error_model="numpy")
 def materialize(diffR, constR, diffC, constC, lo, hi, clo, chi, x0, y0, whole, out):
     """The dense map (NaN outside A) into ``out[ny, nx]`` (map units, not decayed); returns its
-    (max, min) over A (-inf, inf when A is empty)."""
+    (max, min) over A (-inf, inf when A is empty). One pass, row by row: the per-column prefix
+    sums advance one row at a time (entries outside a column's rows of A never matter)."""
+    ny, nx = out.shape
+    ccum = np.empty(nx, np.float64)
+    cacc = np.zeros(nx, np.float64)
+    cc = 0.0
+    for c in range(nx):
+        cc += constC[c]
+        ccum[c] = cc
     out[:, :] = np.nan
-    rc = 0.0
-    for r in range(lo.shape[0]):
-        rc += constR[r]
-        acc = 0.0
-        for x in range(lo[r], hi[r] + 1):
-            acc += diffR[r, x - x0]
-            out[r, x - x0] = whole + rc + acc
     best = -np.inf
     worst = np.inf
-    cc = 0.0
-    for c in range(clo.shape[0]):
-        cc += constC[c]
+    rc = 0.0
+    for r in range(ny):
+        rc += constR[r]
+        for c in range(nx):
+            cacc[c] += diffC[r, c]
         acc = 0.0
-        for y in range(clo[c], chi[c] + 1):
-            acc += diffC[c, y - y0]
-            v = out[y - y0, c] + cc + acc
-            out[y - y0, c] = v
+        base = whole + rc
+        for x in range(lo[r], hi[r] + 1):
+            c = x - x0
+            acc += diffR[r, c]
+            v = base + acc + ccum[c] + cacc[c]
+            out[r, c] = v
             if v > best:
                 best = v
             if v < worst:
@@ -271,7 +279,7 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, lo, hi, clo, chi, x0,
                         if fvy == 0.0:
                             for c in range(k0, k1 + 1):
                                 if chi[c] >= clo[c] and (px - (x0 + c)) * fvx > 0.0:
-                                    diffC[c, clo[c] - y0] += w
+                                    diffC[clo[c] - y0, c] += w
                         elif fvy > 0.0:
                             sl = fvx / fvy
                             if k1 >= k0:
@@ -281,14 +289,14 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, lo, hi, clo, chi, x0,
                                 if chi[c] >= clo[c]:
                                     k = _first_out_t(clo[c], chi[c],
                                                      float(x0 + c), px, py, fvx, fvy, sl)
-                                    diffC[c, k - y0] -= w
+                                    diffC[k - y0, c] -= w
                         else:
                             sl = fvx / fvy
                             for c in range(k0, k1 + 1):
                                 if chi[c] >= clo[c]:
                                     k = _first_in_t(clo[c], chi[c],
                                                     float(x0 + c), px, py, fvx, fvy, sl)
-                                    diffC[c, k - y0] += w
+                                    diffC[k - y0, c] += w
                         c = min(k0, ncol) - 1
                         while c >= 0 and chi[c] < clo[c]:
                             c -= 1
