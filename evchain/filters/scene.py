@@ -35,6 +35,8 @@ class SceneSource(Filter):
         dt_us: int | None = Field(None, ge=1, description="fixed frame interval (no adaptation)")
         max_frames_per_packet: int = Field(64, ge=1, le=100_000,
                                            description="bound on memory per packet")
+        threads: int = Field(1, ge=0, le=1024,
+                             description="render threads (rows in parallel); 0: all cores")
 
         @model_validator(mode="after")
         def _check_dt(self):
@@ -46,7 +48,7 @@ class SceneSource(Filter):
         from evchain.sim.scene import Scene
         from evchain.sim.truth import SceneTruth
 
-        self.scene = Scene(params)
+        self.scene = Scene(params, threads=params.threads)
         self.truth = SceneTruth(self.scene)
         self.duration_us = int(round(self.scene.duration_s * 1e6))
         context.geometry = self.scene.geometry

@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 _J = dict(cache=True, error_model="numpy")
 _I = dict(cache=True, error_model="numpy", inline="always")   # helpers of the hot loops
@@ -509,48 +509,78 @@ def build_tiles(boxes, pos, rot, f, cx, cy, width, height, tile, out_start, out_
 # ----------------------------------------------------------------------------- render
 
 @njit(**_J)
-def render(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground, light,
-           tile, t_start, t_list, t_minz, out):
-    """Render one frame into out [H, W] (float32, linear intensity, k x k supersampling
-    averaged) and return the maximum motion-field magnitude (px/s) over all samples."""
-    h, w = out.shape
+def render_row(j, pos, rot, vc, wc, f, cy, k, boxes, box_mat, box_par, segs, ground, light,
+               tile, t_start, t_list, t_minz, xbs, out):
+    """Render image row j into out[j]; return the row's largest squared image speed."""
+    w = out.shape[1]
     ntx = (w + tile - 1) // tile
     inv_k2 = 1.0 / (k * k)
     fscale = 1.0 / (f * k)
+    inv_f = 1.0 / f
     ox = pos[0]
     oy = pos[1]
     oz = pos[2]
     vmax2 = 0.0
-    inv_f = 1.0 / f
+    trow = (j // tile) * ntx
+    for i in range(w):
+        ti = trow + i // tile
+        s0 = t_start[ti]
+        s1 = t_start[ti + 1]
+        acc = 0.0
+        for b in range(k):
+            yb = (j + (b + 0.5) / k - 0.5 - cy) * inv_f
+            for a in range(k):
+                xb = xbs[i * k + a]
+                dx = rot[0, 0] * xb + rot[0, 1] * yb + rot[0, 2]
+                dy = rot[1, 0] * xb + rot[1, 1] * yb + rot[1, 2]
+                dz = rot[2, 0] * xb + rot[2, 1] * yb + rot[2, 2]
+                t, kind, idx, face = trace(ox, oy, oz, dx, dy, dz, boxes, t_list, s0, s1, t_minz)
+                acc += shade(kind, idx, face, t, ox, oy, oz, dx, dy, dz, fscale, boxes,
+                             box_mat, box_par, segs, ground, light)
+                fu, fv = flow_at(xb, yb, 1.0 / t, f, vc, wc)
+                m2 = fu * fu + fv * fv
+                if m2 > vmax2:
+                    vmax2 = m2
+        out[j, i] = acc * inv_k2
+    return vmax2
+
+
+@njit(**_J)
+def sample_columns(w, k, cx, f):
+    """Normalised x of every sample column."""
     xbs = np.empty(w * k)
     for i in range(w):
         for a in range(k):
-            xbs[i * k + a] = (i + (a + 0.5) / k - 0.5 - cx) * inv_f
-    for j in range(h):
-        trow = (j // tile) * ntx
-        for i in range(w):
-            ti = trow + i // tile
-            s0 = t_start[ti]
-            s1 = t_start[ti + 1]
-            acc = 0.0
-            for b in range(k):
-                yb = (j + (b + 0.5) / k - 0.5 - cy) * inv_f
-                for a in range(k):
-                    xb = xbs[i * k + a]
-                    dx = rot[0, 0] * xb + rot[0, 1] * yb + rot[0, 2]
-                    dy = rot[1, 0] * xb + rot[1, 1] * yb + rot[1, 2]
-                    dz = rot[2, 0] * xb + rot[2, 1] * yb + rot[2, 2]
-                    t, kind, idx, face = trace(ox, oy, oz, dx, dy, dz, boxes, t_list, s0, s1,
-                                               t_minz)
-                    acc += shade(kind, idx, face, t, ox, oy, oz, dx, dy, dz, fscale, boxes,
-                                 box_mat, box_par, segs, ground, light)
-                    rho = 1.0 / t
-                    fu, fv = flow_at(xb, yb, rho, f, vc, wc)
-                    m2 = fu * fu + fv * fv
-                    if m2 > vmax2:
-                        vmax2 = m2
-            out[j, i] = acc * inv_k2
+            xbs[i * k + a] = (i + (a + 0.5) / k - 0.5 - cx) / f
+    return xbs
+
+
+@njit(**_J)
+def render(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground, light,
+           tile, t_start, t_list, t_minz, out):
+    """Render one frame into out [H, W] (float32, linear intensity, k x k supersampling
+    averaged) and return the maximum motion-field magnitude (px/s) over all samples."""
+    xbs = sample_columns(out.shape[1], k, cx, f)
+    vmax2 = 0.0
+    for j in range(out.shape[0]):
+        m2 = render_row(j, pos, rot, vc, wc, f, cy, k, boxes, box_mat, box_par, segs, ground,
+                        light, tile, t_start, t_list, t_minz, xbs, out)
+        if m2 > vmax2:
+            vmax2 = m2
     return math.sqrt(vmax2)
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
+def render_parallel(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground,
+                    light, tile, t_start, t_list, t_minz, out):
+    """:func:`render` with the rows shared among numba's threads (same result)."""
+    h = out.shape[0]
+    xbs = sample_columns(out.shape[1], k, cx, f)
+    rows = np.zeros(h)
+    for j in prange(h):
+        rows[j] = render_row(j, pos, rot, vc, wc, f, cy, k, boxes, box_mat, box_par, segs,
+                             ground, light, tile, t_start, t_list, t_minz, xbs, out)
+    return math.sqrt(rows.max())
 
 
 # ----------------------------------------------------------------------------- ground truth

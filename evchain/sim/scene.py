@@ -20,8 +20,9 @@ TILE_PX = 16
 class Scene:
     """Everything needed to render frames and answer ground truth for one configuration."""
 
-    def __init__(self, cfg: SceneConfig):
+    def __init__(self, cfg: SceneConfig, threads: int = 1):
         self.cfg = cfg
+        self.threads = threads
         self.camera = Camera(cfg.width, cfg.height, cfg.fov_deg, cfg.supersample)
         self.world = build_world(cfg)
         self.boxes, self.box_mat, self.box_par = self.world.arrays()
@@ -49,9 +50,10 @@ class Scene:
         self._wc = np.zeros(3)
 
     @classmethod
-    def from_params(cls, **values) -> Scene:
-        """A scene from keyword parameters (see :class:`SceneConfig`); errors are ConfigError."""
-        return cls(make_config(SceneConfig, **values))
+    def from_params(cls, threads: int = 1, **values) -> Scene:
+        """A scene from keyword parameters (see :class:`SceneConfig`); errors are ConfigError.
+        ``threads`` > 1 (0: all) renders rows in parallel."""
+        return cls(make_config(SceneConfig, **values), threads=threads)
 
     @property
     def geometry(self):
@@ -69,7 +71,7 @@ class Scene:
     def render(self, t_s: float, out: np.ndarray | None = None) -> tuple[np.ndarray, float]:
         """Frame (float32 [H, W], linear intensity) at time t_s and the largest image speed
         (px/s) of any sample at that time (drives the adaptive time step)."""
-        from evchain.kernels.scene import build_tiles, camera_state, render
+        from evchain.kernels.scene import build_tiles, camera_state, render, render_parallel
 
         cam = self.camera
         if out is None:
@@ -77,7 +79,14 @@ class Scene:
         camera_state(float(t_s), self.segs, self.traj, self._pos, self._rot, self._vc, self._wc)
         build_tiles(self.boxes, self._pos, self._rot, cam.f, cam.cx, cam.cy, cam.width,
                     cam.height, TILE_PX, self._t_start, self._t_list, self._t_minz)
-        vmax = render(self._pos, self._rot, self._vc, self._wc, cam.f, cam.cx, cam.cy,
+        kernel = render
+        if self.threads != 1:
+            import numba
+
+            most = numba.config.NUMBA_NUM_THREADS
+            numba.set_num_threads(min(self.threads, most) if self.threads else most)
+            kernel = render_parallel
+        vmax = kernel(self._pos, self._rot, self._vc, self._wc, cam.f, cam.cx, cam.cy,
                       cam.supersample, self.boxes, self.box_mat, self.box_par, self.segs,
                       self.ground, self.light, TILE_PX, self._t_start, self._t_list,
                       self._t_minz, out)

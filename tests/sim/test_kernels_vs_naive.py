@@ -138,3 +138,12 @@ def test_truth_depth_and_flow_vs_naive():
         fx, fy = N.flow_fd(x[ok], y[ok], t, sc)
         np.testing.assert_allclose(vx[ok], fx, atol=1e-3 * (1 + np.abs(fx).max()))
         np.testing.assert_allclose(vy[ok], fy, atol=1e-3 * (1 + np.abs(fy).max()))
+
+
+def test_parallel_render_is_identical():
+    serial = Scene.from_params(width=40, height=30, start_m=100.0)
+    parallel = Scene.from_params(threads=2, width=40, height=30, start_m=100.0)
+    a, va = serial.render(0.4)
+    b, vb = parallel.render(0.4)
+    np.testing.assert_array_equal(a, b)
+    assert va == vb
