@@ -272,7 +272,8 @@ def _faithful(N, d, S, R, gradient, stencil_norm, sg_norm, thr):
         for i in range(d, S - d):
             if gradient == BACKWARD:
                 gx = float(N[i, j] - N[i - 1, j])
-                gy = float(N[i, j] - N[i, j - 1])
+                # jAER's y points up: its backward step y - 1 is our y + 1
+                gy = float(N[i, j + 1] - N[i, j])
             elif gradient == CENTRAL:
                 gx = float(N[i + 1, j] - N[i - 1, j])
                 gy = float(N[i, j + 1] - N[i, j - 1])

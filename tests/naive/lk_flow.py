@@ -93,7 +93,8 @@ def _faithful(N, hood, r, gradient, thr):
     rows = []
     for (i, j) in hood:
         if gradient == "backward":
-            g = (N[i, j] - N[i - 1, j], N[i, j] - N[i, j - 1])
+            # jAER differences backwards along its own y axis, which points up
+            g = (N[i, j] - N[i - 1, j], -(N[i, j] - N[i, j + 1]))
         elif gradient == "central":
             g = (N[i + 1, j] - N[i - 1, j], N[i, j + 1] - N[i, j - 1])
         elif gradient == "central2":
