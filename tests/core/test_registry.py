@@ -45,3 +45,13 @@ def test_misspelled_hook_caught():
     mod.evchain_filterz = hookimpl(lambda: [])
     with pytest.raises(PluginError, match="unknown hook"):
         make_registry(discover=False, plugins=(mod,))
+
+
+def test_listing_filters_imports_no_numba():
+    import subprocess
+    import sys
+
+    code = ("import sys; from evchain.core.registry import make_registry; make_registry(); "
+            "print([m for m in ('numba', 'matplotlib', 'scipy', 'h5py') if m in sys.modules])")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
