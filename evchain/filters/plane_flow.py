@@ -24,7 +24,10 @@ class PlaneFlow(Filter):
     ``savitzky_golay`` (mean pairwise slopes along rows and columns). Velocity v = g / |g|^2 with
     g = (dt/dx, dt/dy); flow faster than ``max_speed_pxs`` is dropped (jAER's th3). Every event
     updates the surface; events within ``refractory_us`` of the previous one at their pixel and
-    polarity, and events within ``border_px`` of the border, get no flow. Degenerate fits
+    polarity, and events within ``border_px`` of the border, get no flow. With ``centre_check``
+    (default) an estimate is dropped when the event itself is more than ``th2_s`` off the
+    fitted plane (the plane then describes older structure: the main source of flow pointing
+    the wrong way on the reference scene). Degenerate fits
     (collinear or too few points, flat surfaces) are skipped, never NaN. Appends the series
     ``flow_density`` (t, n_in, n_out per 100 ms bin).
     """
@@ -48,11 +51,14 @@ class PlaneFlow(Filter):
         min_points: int = Field(3, ge=3, description="fewest neighbours (incl. the event)")
         th1: float = Field(1e-5, gt=0, description="iterative fits: stop when the parameters "
                                                    "change less (s/px, or unit normal)")
-        th2_s: float = Field(0.01, gt=0, description="iterative fits: drop points farther "
-                                                     "from the plane (s)")
+        th2_s: float = Field(0.004, gt=0, description="iterative fits: drop points farther "
+                                                      "from the plane (s); centre_check limit")
         max_speed_pxs: float = Field(1000.0, gt=0, le=1e12,
                                      description="th3 as a speed ceiling: drop faster flow")
         max_iterations: int = Field(10, ge=1, description="iterative fits: refits at most")
+        centre_check: bool = Field(
+            True, description="drop the estimate when the event itself is farther than th2_s "
+                              "from the fitted plane (evchain; jAER: false)")
         min_spread_px: float = Field(
             0.0, ge=0, description="neighbours must spread at least this (std. dev., px) across "
                                    "their principal direction: rejects single-edge-line sets")
@@ -86,7 +92,8 @@ class PlaneFlow(Filter):
             k = plane_flow_kernel(packet.x, packet.y, packet.t, packet.p, self._state,
                                   self._variant, r, prm.window_us, prm.refractory_us, margin,
                                   prm.min_points, prm.th1, prm.th2_s, prm.max_speed_pxs,
-                                  prm.max_iterations, prm.min_spread_px, idx, vx, vy)
+                                  prm.max_iterations, prm.min_spread_px, prm.centre_check,
+                                  idx, vx, vy)
         idx = idx[:k]
         out = FlowPacket.from_events(packet, idx, vx[:k], vy[:k])
         self._end = packet.t_end

@@ -213,10 +213,10 @@ def fit_homogeneous(X, Y, T, use, n):
 
 @njit(cache=True)
 def iterate_explicit(X, Y, T, use, n, th1, th2, max_iter):
-    """Iterative explicit fit; (ok, a, b)."""
+    """Iterative explicit fit; (ok, a, b, c)."""
     ok, a, b, c = fit_explicit(X, Y, T, use, n)
     if not ok:
-        return False, 0.0, 0.0
+        return False, 0.0, 0.0, 0.0
     for _ in range(max_iter):
         removed = 0
         left = 0
@@ -230,23 +230,23 @@ def iterate_explicit(X, Y, T, use, n, th1, th2, max_iter):
         if removed == 0:
             break
         if left <= 3:
-            return False, 0.0, 0.0
+            return False, 0.0, 0.0, 0.0
         ok, a2, b2, c2 = fit_explicit(X, Y, T, use, n)
         if not ok:
-            return False, 0.0, 0.0
+            return False, 0.0, 0.0, 0.0
         change = max(abs(a2 - a), abs(b2 - b), abs(c2 - c))
         a, b, c = a2, b2, c2
         if change < th1:
             break
-    return True, a, b
+    return True, a, b, c
 
 
 @njit(cache=True)
 def iterate_homogeneous(X, Y, T, use, n, th1, th2, max_iter):
-    """Iterative homogeneous fit; (ok, nx, ny, nt)."""
+    """Iterative homogeneous fit; (ok, nx, ny, nt, d)."""
     ok, nx, ny, nt, d = fit_homogeneous(X, Y, T, use, n)
     if not ok:
-        return False, 0.0, 0.0, 0.0
+        return False, 0.0, 0.0, 0.0, 0.0
     for _ in range(max_iter):
         removed = 0
         left = 0
@@ -260,15 +260,15 @@ def iterate_homogeneous(X, Y, T, use, n, th1, th2, max_iter):
         if removed == 0:
             break
         if left <= 3:
-            return False, 0.0, 0.0, 0.0
+            return False, 0.0, 0.0, 0.0, 0.0
         ok, nx2, ny2, nt2, d2 = fit_homogeneous(X, Y, T, use, n)
         if not ok:
-            return False, 0.0, 0.0, 0.0
+            return False, 0.0, 0.0, 0.0, 0.0
         change = max(abs(nx2 - nx), abs(ny2 - ny), abs(nt2 - nt))
         nx, ny, nt, d = nx2, ny2, nt2, d2
         if change < th1:
             break
-    return True, nx, ny, nt
+    return True, nx, ny, nt, d
 
 
 @njit(cache=True)
@@ -309,12 +309,14 @@ def sg_gradient(wt, wv, size):
 
 @njit(cache=True)
 def plane_flow_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, margin,
-                      min_points, th1, th2, max_speed, max_iter, min_spread, out_idx, out_vx,
-                      out_vy):
+                      min_points, th1, th2, max_speed, max_iter, min_spread, centre_check,
+                      out_idx, out_vx, out_vy):
     """Process events in order, updating ``ts`` in place; returns the number of flow events.
 
     ``min_spread`` (px): the neighbours' positions must spread at least this much (standard
-    deviation) across their principal direction, 0 = off (jAER). ``out_idx`` (int64),
+    deviation) across their principal direction, 0 = off (jAER). ``centre_check``: drop the
+    estimate when the event itself lies farther than ``th2`` (s) from the final plane (the plane
+    then describes other, older structure). ``out_idx`` (int64),
     ``out_vx``, ``out_vy`` (float64) need room for ``len(x)`` entries.
     """
     height = ts.shape[1]
@@ -345,6 +347,7 @@ def plane_flow_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, marg
         if variant == 4 and not full:
             continue  # SG needs the whole stencil (border_px < r)
         n = 0
+        st = 0.0
         sx = 0
         sy = 0
         sxx = 0
@@ -359,6 +362,7 @@ def plane_flow_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, marg
                     ok = 1 if age <= window_us else 0
                     wv[k0 + dx] = ok
                     wt[k0 + dx] = -age * ok
+                    st -= age * ok
                     n += ok
                     sx += dx * ok
                     sy += dy * ok
@@ -401,17 +405,21 @@ def plane_flow_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, marg
             ok, gx, gy = sg_gradient(wt, wv, size)
             if not ok:
                 continue
+            # the plane with these slopes through the points' centroid, at the event
+            c = (st * 1e-6 - gx * sx - gy * sy) / n
+            if centre_check and abs(c) > th2:
+                continue
         elif variant == 0:
             ok, gx, gy, c = fit_explicit(X, Y, T, use, n)
-            if not ok:
+            if not ok or (centre_check and abs(c) > th2):
                 continue
         elif variant == 1:
-            ok, gx, gy = iterate_explicit(X, Y, T, use, n, th1, th2, max_iter)
-            if not ok:
+            ok, gx, gy, c = iterate_explicit(X, Y, T, use, n, th1, th2, max_iter)
+            if not ok or (centre_check and abs(c) > th2):
                 continue
         else:
-            ok, nx, ny, nt = iterate_homogeneous(X, Y, T, use, n, th1, th2, max_iter)
-            if not ok or nt <= 0.0:
+            ok, nx, ny, nt, d = iterate_homogeneous(X, Y, T, use, n, th1, th2, max_iter)
+            if not ok or nt <= 0.0 or (centre_check and abs(d) > th2):
                 continue
             if variant == 3:
                 if nx == 0.0 or ny == 0.0:

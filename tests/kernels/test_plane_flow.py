@@ -21,7 +21,7 @@ from tests.naive.plane_flow import plane_flow_naive
 
 DEFAULTS = dict(variant="single", r=2, window_us=80_000, refractory_us=0, margin=None,
                 min_points=3, th1=1e-5, th2=0.01, max_speed=1e4, max_iter=10,
-                min_spread=0.0)
+                min_spread=0.0, centre_check=False)
 FITTING = ("single", "iterative", "robust", "savitzky_golay")
 
 
@@ -35,7 +35,7 @@ def run_kernel(x, y, t, p, width, height, **kw):
                           np.asarray(t, np.int64), np.asarray(p, np.int8), ts,
                           VARIANTS[q["variant"]], q["r"], q["window_us"], q["refractory_us"],
                           margin, q["min_points"], q["th1"], q["th2"], q["max_speed"],
-                          q["max_iter"], q["min_spread"], idx, vx, vy)
+                          q["max_iter"], q["min_spread"], q["centre_check"], idx, vx, vy)
     return idx[:k], vx[:k], vy[:k]
 
 
@@ -43,7 +43,8 @@ def run_naive(x, y, t, p, width, height, **kw):
     q = {**DEFAULTS, **kw}
     return plane_flow_naive(x, y, t, p, width, height, q["variant"], q["r"], q["window_us"],
                             q["refractory_us"], q["margin"], q["min_points"], q["th1"], q["th2"],
-                            q["max_speed"], q["max_iter"], q["min_spread"])
+                            q["max_speed"], q["max_iter"], q["min_spread"],
+                            q["centre_check"])
 
 
 def assert_same(ev, width, height, **kw):
@@ -60,10 +61,12 @@ def assert_same(ev, width, height, **kw):
 
 
 @pytest.mark.parametrize("variant", list(VARIANTS))
-def test_random_stream_matches_reference(variant):
+@pytest.mark.parametrize("centre_check", [False, True])
+def test_random_stream_matches_reference(variant, centre_check):
     g = Geometry(24, 20)
     ev = random_events(1500, g, 0, 150_000, seed=11)
-    got = assert_same(ev, g.width, g.height, variant=variant, refractory_us=3000)
+    got = assert_same(ev, g.width, g.height, variant=variant, refractory_us=3000,
+                      centre_check=centre_check, th2=0.02)
     assert len(got[0]) > 20  # the comparison is not vacuous
 
 
@@ -72,14 +75,14 @@ def test_random_stream_matches_reference(variant):
        r=st.integers(1, 3), window_us=st.integers(5_000, 200_000),
        refractory_us=st.integers(0, 20_000), margin=st.integers(0, 4),
        min_points=st.integers(3, 8), th2=st.sampled_from([1e-3, 1e-2, 5e-2]),
-       min_spread=st.sampled_from([0.0, 0.3, 0.6]))
+       min_spread=st.sampled_from([0.0, 0.3, 0.6]), centre_check=st.booleans())
 def test_random_parameters_match_reference(seed, variant, r, window_us, refractory_us, margin,
-                                           min_points, th2, min_spread):
+                                           min_points, th2, min_spread, centre_check):
     g = Geometry(16, 14)
     ev = random_events(500, g, 0, 100_000, seed=seed)
     assert_same(ev, g.width, g.height, variant=variant, r=r, window_us=window_us,
                 refractory_us=refractory_us, margin=margin, min_points=min_points, th2=th2,
-                max_speed=200.0, min_spread=min_spread)
+                max_speed=200.0, min_spread=min_spread, centre_check=centre_check)
 
 
 def test_noisy_edge_matches_reference():
@@ -96,7 +99,9 @@ def test_noisy_edge_matches_reference():
     o = np.argsort(tt, kind="stable")
     ev = edge.replace(x=x[o], y=y[o], t=tt[o], p=p[o], t_end=int(tt.max()) + 1)
     for variant in VARIANTS:
-        assert_same(ev, g.width, g.height, variant=variant, window_us=200_000, th2=2e-3)
+        for centre_check in (False, True):
+            assert_same(ev, g.width, g.height, variant=variant, window_us=200_000, th2=2e-3,
+                        centre_check=centre_check)
 
 
 def test_eigvec_matches_numpy():

@@ -83,7 +83,8 @@ def _sg(win, valid):
 
 def plane_flow_naive(x, y, t, p, width, height, variant="single", r=2, window_us=80_000,
                      refractory_us=0, margin=None, min_points=3, th1=1e-5, th2=0.01,
-                     max_speed=1000.0, max_iter=10, min_spread=0.0):
+                     max_speed=1000.0, max_iter=10, min_spread=0.0,
+                     centre_check=False):
     """Returns (index, vx, vy) lists of the events that got flow."""
     margin = r if margin is None else margin
     ts = {}
@@ -122,6 +123,10 @@ def plane_flow_naive(x, y, t, p, width, height, variant="single", r=2, window_us
             if g is None:
                 continue
             gx, gy = g
+            P = np.asarray(pts, float)
+            c = np.mean(P[:, 2] - gx * P[:, 0] - gy * P[:, 1])
+            if centre_check and abs(c) > th2:
+                continue
         elif variant in ("single", "iterative"):
             if variant == "single":
                 sol = _explicit(pts)
@@ -132,13 +137,15 @@ def plane_flow_naive(x, y, t, p, width, height, variant="single", r=2, window_us
             if sol is None:
                 continue
             gx, gy = sol[0], sol[1]
+            if centre_check and abs(sol[2]) > th2:
+                continue
         else:
             sol = _iterate(pts, _homogeneous, lambda s, q: s[0] @ np.asarray(q) - s[1],
                            lambda s: s[0], th1, th2, max_iter)
             if sol is None:
                 continue
             n = sol[0]
-            if n[2] <= 0:
+            if n[2] <= 0 or (centre_check and abs(sol[1]) > th2):
                 continue
             if variant == "original":
                 if n[0] == 0 or n[1] == 0:
