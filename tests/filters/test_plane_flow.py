@@ -102,7 +102,7 @@ def test_dvsflow16_square(variant):
                        for c in ("x", "y", "t", "vx", "vy"))
     assert np.isfinite(vx).all() and np.isfinite(vy).all()
     m = score_flow(x, y, t, vx, vy, truth)
-    assert m["n_scored"] >= 150  # the 160 events of the step inside the validity window
+    assert m["n_scored"] >= 140  # of the 160 events of the step inside the validity window
     assert m["aee_pxs"] < 2.5
     assert m["aae_deg"] < 3.0
     # the median event is exact: 20 px/s along the edge normal
