@@ -114,13 +114,12 @@ class Emulator(Filter):
             "c_off": (c_off * roff).ravel(), "r_on": np.zeros(npix), "r_off": np.zeros(npix),
             "e_ref": np.zeros(npix), "hi": np.zeros(npix, np.float32),
             "lo": np.zeros(npix, np.float32), "last_t": np.zeros(npix),
-            "lcache": np.zeros((4, npix)), "ltag": np.zeros((4, npix), np.int64),
         }
         first = np.ascontiguousarray(frames[0], dtype=np.float32)
-        s2 = {k: (v.reshape(4, h, w) if v.ndim == 2 else v.reshape(h, w)) for k, v in st.items()}
+        s2 = {k: v.reshape(h, w) for k, v in st.items()}
         err, y, x = K.init_state(first, eps, self.params.tie_tolerance, s2["l0"], s2["n_on"],
                                  s2["n_off"], s2["c_on"], s2["c_off"], s2["r_on"], s2["r_off"],
-                                 s2["e_ref"], s2["hi"], s2["lo"], s2["last_t"], s2["ltag"])
+                                 s2["e_ref"], s2["hi"], s2["lo"], s2["last_t"])
         self._raise_pixel(err, packet, 0, y, x)
         self._geometry = g
         self._state = st
@@ -208,10 +207,10 @@ class Emulator(Filter):
         cubic = p.interpolation == "cubic"
         total = nh + len(t)
         x, y, tt, tf, pol, n, err, ef, ey, ex = K.emulate(
-            self._held, frames, times, j0, j1, total, base, cubic, self._eps, p.tie_tolerance,
+            self._held, frames, times, j0, j1, total, cubic, self._eps, p.tie_tolerance,
             float(p.refractory_us), cap, st["l0"], st["n_on"], st["n_off"], st["c_on"],
             st["c_off"], st["r_on"], st["r_off"], st["e_ref"], st["hi"], st["lo"],
-            st["last_t"], st["lcache"], st["ltag"], *nf, self._cap_hint)
+            st["last_t"], *nf, self._cap_hint)
         self._cap_hint = max(4096, int(n * 1.25))
         if err:
             self._raise_pixel(err, packet, ef - nh, ey, ex)

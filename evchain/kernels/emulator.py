@@ -4,8 +4,7 @@ Per pixel state (all ``[H, W]``): ``l0`` (float64 log level of the first frame),
 ``n_off`` (int64 counts of reference moves), ``c_on``, ``c_off`` (float64 thresholds in natural
 log units), ``last_t`` (float64 µs of the last emitted event, for the refractory period),
 ``e_ref`` (float64 exp of the reference, kept by multiplication), ``r_on = exp(c_on)``,
-``r_off = exp(-c_off)``, the float32 intensity gates ``hi``/``lo`` and a cache of log
-intensities (``lcache``/``ltag``, 4 slots by frame index mod 4). The reference level is always
+``r_off = exp(-c_off)`` and the float32 intensity gates ``hi``/``lo``. The reference level is always
 recomputed from the integer state, ``L_ref = l0 + (n_on*c_on - n_off*c_off)``, so it never
 drifts.
 
@@ -50,7 +49,7 @@ def gate_factors(tol):
 
 @njit(cache=True)
 def init_state(frame, eps, tol, l0, n_on, n_off, c_on, c_off, r_on, r_off, e_ref, hi, lo,
-               last_t, ltag):
+               last_t):
     """Initialise every pixel's reference from ``frame``; returns (err, y, x)."""
     h, w = frame.shape
     k_hi, k_lo = gate_factors(tol)
@@ -71,8 +70,6 @@ def init_state(frame, eps, tol, l0, n_on, n_off, c_on, c_off, r_on, r_off, e_ref
             a, b = gates(e_ref[y, x], r_on[y, x], r_off[y, x], eps, k_hi, k_lo)
             hi[y, x] = a
             lo[y, x] = b
-            for k in range(ltag.shape[0]):
-                ltag[k, y, x] = -1
     return ERR_NONE, 0, 0
 
 
@@ -140,7 +137,7 @@ def solve_crossing(level, la, lb, m0, m1, cubic):
         sn = s - f / df if df != 0.0 else -1.0
         if not (a < sn < b):
             sn = 0.5 * (a + b)
-        if abs(sn - s) < 1e-13:
+        if abs(sn - s) < 1e-10:
             return sn
         s = sn
     return s
@@ -154,21 +151,15 @@ def _grow(arr, n):
 
 
 @njit(cache=True)
-def _logi(fr, g, i, eps, lcache, ltag):
-    """ln(I + eps) of flat pixel i of global frame g, through the 4-slot cache."""
-    k = g & 3
-    if ltag[k, i] == g:
-        return lcache[k, i]
-    v = np.log(np.float64(fr[i]) + eps)
-    lcache[k, i] = v
-    ltag[k, i] = g
-    return v
+def _logi(fr, i, eps):
+    """ln(I + eps) of flat pixel i (float64 of the float32 input)."""
+    return np.log(np.float64(fr[i]) + eps)
 
 
 @njit(cache=True)
-def _interval(f0, f1, fm, fp, g, t0, dt, hprev, hnext, has_prev, has_next, cubic, eps, tol,
+def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, eps, tol,
               k_hi, k_lo, refractory_us, cap, l0, n_on, n_off, c_on, c_off, r_on, r_off, e_ref,
-              hi, lo, last_t, lcache, ltag, first, ui, utf, up_, u):
+              hi, lo, last_t, first, ui, utf, up_, u):
     """Events of one frame interval for pixels ``first ..``, appended to ``ui`` (flat pixel
     index), ``utf``, ``up_`` from position ``u``. A pixel's state is committed only when all
     its events fit, so on a full buffer the call stops before that pixel.
@@ -195,7 +186,7 @@ def _interval(f0, f1, fm, fp, g, t0, dt, hprev, hnext, has_prev, has_next, cubic
                 return u, -1, ERR_NONFINITE, i
             if v1 < 0:
                 return u, -1, ERR_NEGATIVE, i
-            lb = _logi(f1, g + 1, i, eps, lcache, ltag)
+            lb = _logi(f1, i, eps)
             con = c_on[i]
             coff = c_off[i]
             k_on = n_on[i]
@@ -210,7 +201,7 @@ def _interval(f0, f1, fm, fp, g, t0, dt, hprev, hnext, has_prev, has_next, cubic
                     e_ref[i] = e
                     hi[i], lo[i] = gates(e, r_on[i], r_off[i], eps, k_hi, k_lo)
                     continue
-            la = _logi(f0, g, i, eps, lcache, ltag)
+            la = _logi(f0, i, eps)
             m0 = lb - la
             m1 = lb - la
             if cubic:
@@ -218,11 +209,11 @@ def _interval(f0, f1, fm, fp, g, t0, dt, hprev, hnext, has_prev, has_next, cubic
                 da = sec
                 db = sec
                 if has_prev:
-                    lm = _logi(fm, g - 1, i, eps, lcache, ltag)
+                    lm = _logi(fm, i, eps)
                     if np.isfinite(lm):
                         da = slope3((la - lm) / hprev, sec, hprev, dt)
                 if has_next:
-                    lp = _logi(fp, g + 2, i, eps, lcache, ltag)
+                    lp = _logi(fp, i, eps)
                     if np.isfinite(lp):
                         db = slope3(sec, (lp - lb) / hnext, dt, hnext)
                 m0 = da * dt
@@ -270,12 +261,11 @@ def _interval(f0, f1, fm, fp, g, t0, dt, hprev, hnext, has_prev, has_next, cubic
 
 
 @njit(cache=True)
-def emulate(held, cur, times, j_first, j_last, total, g_base, cubic, eps, tol, refractory_us,
-            cap, l0, n_on, n_off, c_on, c_off, r_on, r_off, e_ref, hi, lo, last_t, lcache, ltag,
+def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractory_us,
+            cap, l0, n_on, n_off, c_on, c_off, r_on, r_off, e_ref, hi, lo, last_t,
             noise_off, noise_y, noise_x, noise_t, noise_p, cap_hint):
     """Emit the events of frame intervals ``j_first .. j_last - 1`` (indices into the frame list
-    ``held`` + ``cur`` whose times are ``times``; interval j runs from frame j to frame j + 1;
-    frame j has the global index ``g_base + j``, used to tag the log cache).
+    ``held`` + ``cur`` whose times are ``times``; interval j runs from frame j to frame j + 1).
 
     All ``[H, W]`` state arrays are passed flattened (1-D views). ``total`` is the number of
     frames known (look-ahead for the cubic; a missing neighbour falls back to the interval's
@@ -300,6 +290,7 @@ def emulate(held, cur, times, j_first, j_last, total, g_base, cubic, eps, tol, r
     up_ = np.empty(ucap, np.int8)
     ub = np.empty(ucap, np.int64)
     buckets = np.zeros(1, np.int64)
+    perm = np.empty(ucap, np.int64)
     n = 0
     for j in range(j_first, j_last):
         f0 = (held[j] if j < nh else cur[j - nh]).ravel()
@@ -312,7 +303,6 @@ def emulate(held, cur, times, j_first, j_last, total, g_base, cubic, eps, tol, r
             fm = (held[j - 1] if j - 1 < nh else cur[j - 1 - nh]).ravel()
         if has_next:
             fp = (held[j + 2] if j + 2 < nh else cur[j + 2 - nh]).ravel()
-        g = g_base + j
         t0 = np.float64(times[j])
         t1 = np.float64(times[j + 1])
         dt = t1 - t0
@@ -324,9 +314,9 @@ def emulate(held, cur, times, j_first, j_last, total, g_base, cubic, eps, tol, r
         resume = 0
         while resume >= 0:
             u, resume, err, ep = _interval(
-                f0, f1, fm, fp, g, t0, dt, hprev, hnext, has_prev, has_next, cubic, eps, tol,
+                f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, eps, tol,
                 k_hi, k_lo, refractory_us, cap, l0, n_on, n_off, c_on, c_off, r_on, r_off,
-                e_ref, hi, lo, last_t, lcache, ltag, resume, ui, utf, up_, u)
+                e_ref, hi, lo, last_t, resume, ui, utf, up_, u)
             if err != ERR_NONE:
                 return ox, oy, ot, otf, op, n, err, j + 1, ep // w, ep % w
             if resume >= 0 or u + nnoise > ui.shape[0]:
@@ -361,23 +351,22 @@ def emulate(held, cur, times, j_first, j_last, total, g_base, cubic, eps, tol, r
                 buckets[ub[q] + 1] += 1
             for b in range(nb):
                 buckets[b + 1] += buckets[b]
+            if perm.shape[0] < u:
+                perm = np.empty(ui.shape[0], np.int64)
             for q in range(u):
-                pos = n + buckets[ub[q]]
-                buckets[ub[q]] += 1
-                ox[pos] = ui[q] % w
-                oy[pos] = ui[q] // w
-                ot[pos] = ub[q] + it0
-                otf[pos] = utf[q]
-                op[pos] = up_[q]
+                b = ub[q]
+                perm[buckets[b]] = q
+                buckets[b] += 1
         else:
-            order = np.argsort(ub[:u], kind="mergesort")
-            for r in range(u):
-                q = order[r]
-                pos = n + r
-                ox[pos] = ui[q] % w
-                oy[pos] = ui[q] // w
-                ot[pos] = ub[q] + it0
-                otf[pos] = utf[q]
-                op[pos] = up_[q]
+            perm = np.argsort(ub[:u], kind="mergesort")
+        for r in range(u):
+            q = perm[r]
+            pos = n + r
+            yy = ui[q] // w
+            ox[pos] = ui[q] - yy * w
+            oy[pos] = yy
+            ot[pos] = ub[q] + it0
+            otf[pos] = utf[q]
+            op[pos] = up_[q]
         n += u
     return ox, oy, ot, otf, op, n, ERR_NONE, 0, 0, 0

@@ -1,0 +1,120 @@
+"""Benchmarks of the DVS emulator (issue 3): ``emulator-sparse`` and ``emulator-bar``.
+
+Throughput is measured through the filter (``process`` on packets of 100 frames, then
+``flush``), best of a few runs, one thread. ``limit_ratio`` = time of one numpy copy of the same
+frames / emulator time (1.0 = as fast as touching the frames once).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from evchain.bench import BenchRow, best_time
+
+W, H = 320, 240
+
+
+def _run(frames, times, params, record=False):
+    from evchain.core.filter import Context
+    from evchain.core.packets import EventPacket, FramePacket, Geometry
+    from evchain.filters.emulator import Emulator
+
+    g = Geometry(W, H)
+    f = Emulator()
+    f.record_float_times = record
+    f.setup(Emulator.Params(**params), Context(seed=0))
+    outs = []
+    n = len(times)
+    for i in range(0, n, 100):
+        j = min(i + 100, n)
+        t_end = int(times[j]) if j < n else int(times[-1]) + 1
+        outs.append(f.process(FramePacket(geometry=g, t_start=int(times[i]), t_end=t_end,
+                                          frames=frames[i:j], t=times[i:j])))
+    outs.append(f.flush())
+    ev = EventPacket.concat(outs)
+    tf = np.concatenate(f.float_times) if record and f.float_times else None
+    return ev, tf
+
+
+def _copy_time(frames) -> float:
+    return best_time(lambda: frames.copy(), repeat=3)
+
+
+def textured_scene(n: int, speed_pxs: float = 20.0, dt_us: int = 1000):
+    """A smooth random texture (sum of 24 oriented sinusoids, linear intensity in [0.05, 1])
+    translating slowly to the right; exact at any time (no resampling)."""
+    rng = np.random.default_rng(7)
+    k = rng.uniform(0.02, 0.25, 24)
+    ang = rng.uniform(0, np.pi, 24)
+    ph = rng.uniform(0, 2 * np.pi, 24)
+    kx, ky = k * np.cos(ang), k * np.sin(ang)
+    y, x = np.mgrid[0:H, 0:W].astype(np.float64)
+    times = np.arange(n, dtype=np.int64) * dt_us
+    frames = np.empty((n, H, W), np.float32)
+    for i, t in enumerate(times):
+        xs = x - speed_pxs * t * 1e-6
+        acc = np.zeros((H, W))
+        for a, b, p in zip(kx, ky, ph, strict=True):
+            acc += np.sin(a * xs + b * y + p)
+        frames[i] = 0.05 + 0.95 / (1.0 + np.exp(-acc / 2.0))
+    return frames, times
+
+
+def sparse(quick: bool) -> list[BenchRow]:
+    n = 200 if quick else 600
+    frames, times = textured_scene(n)
+    params = {"threshold_on": 0.2, "threshold_off": 0.2}
+    ev, _ = _run(frames, times, params)
+    el = best_time(lambda: _run(frames, times, params), repeat=2 if quick else 3)
+    ct = _copy_time(frames)
+    return [BenchRow("emulator-sparse", "emulator", (n - 1) / el, "frames/s",
+                     limit_ratio=ct / el,
+                     extra={"events": len(ev), "events_per_s": len(ev) / el,
+                            "frames": n, "interpolation": "cubic",
+                            "copy_frames_per_s": n / ct})]
+
+
+def bar_frames(n: int):
+    from evchain.sim.bar import Bar
+
+    bar = Bar(width=W, height=H, bar_width_px=40, speed_pxs=200, x0_px=60, edge="erf",
+              edge_width_px=2)
+    times = np.arange(n, dtype=np.int64) * 1000
+    return bar, bar.render(times), times
+
+
+def bar(quick: bool) -> list[BenchRow]:
+    from evchain.report.timing import timing_errors
+    from evchain.sim.bar import BarTruth
+
+    n = 300 if quick else 1000
+    bar_, frames, times = bar_frames(n)
+    t0 = time.perf_counter()
+    truth = BarTruth(bar_).crossing_times(0.2, 0.2, 1e-3, times[0], times[-1])
+    truth_s = time.perf_counter() - t0
+    ct = _copy_time(frames)
+    rows = []
+    for interp, name in (("cubic", "emulator-bar"), ("linear", "emulator-bar-linear")):
+        params = {"threshold_on": 0.2, "threshold_off": 0.2, "eps": 1e-3,
+                  "interpolation": interp}
+        ev, tf = _run(frames, times, params, record=True)
+        el = best_time(lambda p=params: _run(frames, times, p), repeat=2 if quick else 3)
+        e_int = timing_errors(ev.x, ev.y, ev.p, ev.t, truth, W)
+        e_flt = timing_errors(ev.x, ev.y, ev.p, tf, truth, W)
+        rows.append(BenchRow(
+            name, "emulator", (n - 1) / el, "frames/s", error=e_int["median_abs_dt_us"],
+            error_name="median |dt| us", limit_ratio=ct / el,
+            extra={"events_per_s": len(ev) / el, "on": int((ev.p > 0).sum()),
+                   "off": int((ev.p < 0).sum()), "interpolation": interp, "frames": n,
+                   "p95_abs_dt_us": e_int["p95_abs_dt_us"],
+                   "max_abs_dt_us": e_int["max_abs_dt_us"],
+                   "count_diff": e_int["count_diff"],
+                   "float_median_abs_dt_us": e_flt["median_abs_dt_us"],
+                   "float_p95_abs_dt_us": e_flt["p95_abs_dt_us"],
+                   "truth_s": truth_s, "copy_frames_per_s": n / ct}))
+    return rows
+
+
+WORKLOADS = {"emulator-sparse": sparse, "emulator-bar": bar}
