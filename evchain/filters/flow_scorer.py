@@ -41,7 +41,8 @@ OUTLIER_DEG = 45.0  # angular error above 45 degrees
 class DensityCounter:
     """Counts input and flow events per time bin ``[k B, (k+1) B)`` and emits series entries.
 
-    Use in a flow filter: ``entries = counter.add(events.t, events.t[index], packet.t_end)`` in
+    Use in a flow filter: ``entries = counter.add(events.t, events.t[index], packet.t_end)`` (both
+    time arrays sorted, as event times are) in
     ``process`` and ``counter.flush()`` at the end; append both to the output packet's series
     ``flow_density`` (always, even when empty). A bin is emitted, with ``t`` = its end, in the
     first packet whose slice reaches past its end, so entries do not depend on how the stream was
@@ -59,10 +60,18 @@ class DensityCounter:
 
     def add(self, t_in: np.ndarray, t_out: np.ndarray, t_end: int) -> np.ndarray:
         for times, col in ((t_in, 0), (t_out, 1)):
-            if len(times):
-                k, c = np.unique(np.asarray(times, np.int64) // self.bin_us, return_counts=True)
-                for kk, cc in zip(k.tolist(), c.tolist(), strict=True):
-                    self.pending.setdefault(kk, [0, 0])[col] += cc
+            if len(times):  # times are sorted: count per bin by bisection
+                times = np.asarray(times, np.int64)
+                k0 = int(times[0]) // self.bin_us
+                k1 = int(times[-1]) // self.bin_us
+                if k0 == k1:
+                    self.pending.setdefault(k0, [0, 0])[col] += len(times)
+                    continue
+                cuts = np.searchsorted(times, np.arange(k0 + 1, k1 + 1) * self.bin_us)
+                counts = np.diff(np.concatenate([[0], cuts, [len(times)]]))
+                for kk, cc in zip(range(k0, k1 + 1), counts.tolist(), strict=True):
+                    if cc:
+                        self.pending.setdefault(kk, [0, 0])[col] += cc
         done = sorted(k for k in self.pending if (k + 1) * self.bin_us < t_end)
         return self._emit(done)
 

@@ -366,9 +366,14 @@ def plane_flow_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, marg
                     n += ok
                     sx += dx * ok
                     sy += dy * ok
-                    sxx += dx * dx * ok
-                    syy += dy * dy * ok
-                    sxy += dx * dy * ok
+            if spread2 > 0.0:
+                for k in range(cap):
+                    if wv[k] > 0.0:
+                        dx = k % size - r
+                        dy = k // size - r
+                        sxx += dx * dx
+                        syy += dy * dy
+                        sxy += dx * dy
         else:  # the valid neighbours as points (the event itself included), branch-free
             for dy in range(-r, r + 1):
                 yy = yi + dy
