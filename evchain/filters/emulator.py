@@ -108,13 +108,18 @@ class Emulator(Filter):
             roff = np.maximum(1.0 + sigma * self._rng_mismatch.standard_normal((h, w)),
                               MISMATCH_FLOOR)
         npix = h * w
+        # per-pixel state touched on events lives in one row per pixel (array of structs):
+        # an event visit then touches one or two cache lines instead of one per array
+        aos = np.zeros((npix, 8))
+        counts = np.zeros((npix, 2), np.int64)
         st = {
-            "l0": np.zeros(npix), "n_on": np.zeros(npix, np.int64),
-            "n_off": np.zeros(npix, np.int64), "c_on": (c_on * ron).ravel(),
-            "c_off": (c_off * roff).ravel(), "r_on": np.zeros(npix), "r_off": np.zeros(npix),
-            "e_ref": np.zeros(npix), "hi": np.zeros(npix, np.float32),
-            "lo": np.zeros(npix, np.float32), "last_t": np.zeros(npix),
+            "l0": aos[:, 0], "c_on": aos[:, 1], "c_off": aos[:, 2], "r_on": aos[:, 3],
+            "r_off": aos[:, 4], "e_ref": aos[:, 5], "last_t": aos[:, 6],
+            "n_on": counts[:, 0], "n_off": counts[:, 1],
+            "hi": np.zeros(npix, np.float32), "lo": np.zeros(npix, np.float32),
         }
+        st["c_on"][:] = (c_on * ron).ravel()
+        st["c_off"][:] = (c_off * roff).ravel()
         first = np.ascontiguousarray(frames[0], dtype=np.float32)
         s2 = {k: v.reshape(h, w) for k, v in st.items()}
         err, y, x = K.init_state(first, eps, self.params.tie_tolerance, s2["l0"], s2["n_on"],

@@ -156,6 +156,26 @@ def _logi(fr, i, eps):
     return np.log(np.float64(fr[i]) + eps)
 
 
+@njit(cache=True, fastmath={"reassoc", "nsz"})
+def _chunk_hit(f1, hi, lo, c0, c1):
+    """Whether any pixel of ``c0 .. c1 - 1`` may fire or is not finite.
+
+    Branch-free so that it vectorises: max over the chunk of max(I - hi, lo - I) >= 0, plus a
+    sum of I that is NaN or inf when any value is. (Only reassociation is allowed: NaN and inf
+    keep their IEEE meaning.)
+    """
+    m = np.float32(-1.0)
+    acc = np.float32(0.0)
+    for i in range(c0, c1):
+        v = f1[i]
+        a = v - hi[i]
+        b = lo[i] - v
+        a = a if a > b else b
+        m = m if m > a else a
+        acc += v
+    return not (m < 0) or not (abs(acc) < np.inf)
+
+
 @njit(cache=True)
 def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, eps, tol,
               k_hi, k_lo, refractory_us, cap, l0, n_on, n_off, c_on, c_off, r_on, r_off, e_ref,
@@ -172,11 +192,7 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
     c_start = first - (first % 64)
     for c0 in range(c_start, npix, 64):
         c1 = min(c0 + 64, npix)
-        hit = False
-        for i in range(c0, c1):
-            v = f1[i]
-            hit |= not (v < hi[i] and v > lo[i])
-        if not hit:
+        if not _chunk_hit(f1, hi, lo, c0, c1):
             continue
         for i in range(max(c0, first), c1):
             v1 = f1[i]
