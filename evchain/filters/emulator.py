@@ -28,8 +28,10 @@ class Emulator(Filter):
     L = ln(I + eps) per pixel; the reference starts at the first frame; each crossing of
     L_ref + threshold_on (ON) or L_ref - threshold_off (OFF) emits one event and moves L_ref by
     one threshold. Crossing times come from a linear or a monotone cubic interpolation of L
-    between frames (the cubic needs one frame of look-ahead, so output lags by one frame).
-    Events are time-ordered; time is rounded to the nearest µs.
+    between frames; an interval's events leave when its end frame arrives (the cubic needs one
+    more frame of look-ahead), so output slices lag. Events are time-ordered; times are rounded
+    to the nearest µs (set ``record_float_times = True`` before setup to keep the float times
+    in ``float_times``).
     """
 
     name = "emulator"
