@@ -59,10 +59,14 @@ class LKFlow(Filter):
             "[jAER excessSpeedRejectFactor]"))
         max_speed_pxs: float = Field(1e5, gt=0.0, description=(
             "calibrated mode: drop flow faster than this, px/s"))
-        refit_tolerance: float = Field(0.5, ge=0.0, description=(
+        refit_tolerance: float = Field(0.25, ge=0.0, description=(
             "calibrated mode: drop equations that disagree with the first solution (finite "
             "differences: relative slope mismatch above this; Savitzky-Golay: pixels farther "
             "than this, px, from the plane) and solve again once; 0 = off"))
+        centre_check_px: float = Field(0.5, ge=0.0, description=(
+            "calibrated mode: drop the estimate when the event's own onset lies farther than "
+            "this (px, along the normal) from the plane the flow implies through its active "
+            "neighbours, i.e. the neighbours belong to an older edge; 0 = off"))
         mode: Literal["faithful", "calibrated"] = Field("calibrated", description=(
             "faithful: jAER's numbers (uncalibrated magnitudes); calibrated: px/s"))
         fifo_depth: int = Field(8, ge=1, le=256, description=(
@@ -105,7 +109,7 @@ class LKFlow(Filter):
                                 GRADIENTS[q.gradient], q.mode == "faithful", q.eig_threshold,
                                 q.eig_ratio, q.speed_control, q.speed_control_mix,
                                 q.max_speed_factor, q.max_speed_pxs, q.refit_tolerance,
-                                idx, vx, vy)
+                                q.centre_check_px, idx, vx, vy)
         else:
             n_out = 0
         from evchain.filters.flow_scorer import DENSITY_SERIES

@@ -249,6 +249,29 @@ def _calibrated_sg(N, F, S, R, w_inv, tol, U, W, FV, keep):
 
 
 @njit(cache=True)
+def _centre_offset_px(N, F, S, R, d, r, vx, vy, w_inv):
+    """How far (px, along the normal) the current event's onset lies from the plane that the
+    flow v implies through the other active pixels of the (2r+1)^2 neighbourhood: the slope is
+    g = v / (W |v|^2), the offset the mean of F - g.u over those pixels. Large when the event
+    belongs to a newer edge than the onsets around it. Infinite without other active pixels."""
+    v2 = vx * vx + vy * vy
+    if not v2 > 0.0:
+        return np.inf
+    gx = vx * w_inv / v2
+    gy = vy * w_inv / v2
+    sc = 0.0
+    n = 0
+    for j in range(R - r, R + r + 1):
+        for i in range(R - r, R + r + 1):
+            if N[i, j] > 0 and not (i == R and j == R):
+                sc += F[i, j] - gx * (i - R) - gy * (j - R)
+                n += 1
+    if n == 0:
+        return np.inf
+    return abs(F[R, R] - sc / n) / np.sqrt(gx * gx + gy * gy)
+
+
+@njit(cache=True)
 def _faithful(N, d, S, R, gradient, stencil_norm, sg_norm, thr):
     """jAER's LucasKanadeFlow on the count image N. Returns (vx, vy)."""
     gxs = 0.0
@@ -311,7 +334,7 @@ def _faithful(N, d, S, R, gradient, stencil_norm, sg_norm, thr):
 @njit(cache=True)
 def lk_flow_run(x, y, t, p, ring, speed_state, r, window_us, refractory_us, gradient,
                 faithful, eig_threshold, eig_ratio, speed_control, mix, max_factor,
-                max_speed_pxs, refit_tolerance, out_idx, out_vx, out_vy):
+                max_speed_pxs, refit_tolerance, centre_check_px, out_idx, out_vx, out_vy):
     """Process events in order; write flow of emitted events into ``out_*``; return their count.
 
     ``out_*`` must have room for ``len(t)`` entries.
@@ -402,6 +425,9 @@ def lk_flow_run(x, y, t, p, ring, speed_state, r, window_us, refractory_us, grad
                 vx, vy, ok = _calibrated_fd(N, F, V, d, S, gradient, w_inv_s, eig_ratio,
                                             refit_tolerance, GX, GY, keep)
             if not ok:
+                continue
+            if centre_check_px > 0.0 and \
+                    _centre_offset_px(N, F, S, R, d, r, vx, vy, w_inv_s) > centre_check_px:
                 continue
             v = np.sqrt(vx * vx + vy * vy)
             if not np.isfinite(v) or v == 0.0 or v > max_speed_pxs:

@@ -18,7 +18,8 @@ NORM = {"backward": 1.0, "central": 2.0, "central2": 12.0}
 def lk_flow_naive(x, y, t, p, width, height, *, search_distance=2, window_us=80_000,
                   refractory_us=150_000, gradient="savitzky_golay", mode="calibrated",
                   eig_threshold=1.0, eig_ratio=0.1, speed_control=True, speed_control_mix=1e-3,
-                  max_speed_factor=2.0, max_speed_pxs=1e5, refit_tolerance=0.5, fifo_depth=8):
+                  max_speed_factor=2.0, max_speed_pxs=1e5, refit_tolerance=0.25,
+                  centre_check_px=0.5, fifo_depth=8):
     """Return (index, vx, vy) lists of the emitted events."""
     r = search_distance
     d = MARGIN[gradient]
@@ -69,6 +70,9 @@ def lk_flow_naive(x, y, t, p, width, height, *, search_distance=2, window_us=80_
             if res is None:
                 continue
             vx, vy = res
+            if centre_check_px > 0 and _centre_offset(N, F, hood, vx, vy,
+                                                      window_us) > centre_check_px:
+                continue
             v = math.hypot(vx, vy)
             if not math.isfinite(v) or v == 0 or v > max_speed_pxs:
                 continue
@@ -136,6 +140,19 @@ def _one_deriv(F, N, i, j, di, dj, gradient):
     if fwd:
         return F[i + di, j + dj] - F[i, j]
     return None
+
+
+def _centre_offset(N, F, hood, vx, vy, window_us):
+    """Distance (px along the normal) of the centre's onset from the plane of slope
+    g = v / (W |v|^2) through the other active pixels (mean offset)."""
+    v2 = vx * vx + vy * vy
+    if not v2 > 0:
+        return math.inf
+    g = np.array([vx, vy]) / (window_us * 1e-6) / v2
+    others = [F[q] - g @ np.array(q) for q in hood if q != (0, 0) and N[q] > 0]
+    if not others:
+        return math.inf
+    return abs(F[0, 0] - np.mean(others)) / math.hypot(*g)
 
 
 def _plane_fit(pts, F):
