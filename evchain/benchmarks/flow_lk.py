@@ -7,9 +7,9 @@ jAER's default central gradient (``faithful-central``). Parameters: the thesis's
 
 * ``square``: the DVSFLOW16 translating square (``../shared/data/dvsflow16``; no rows when
   absent); error = AEE (px/s) against ``gtTranslatingSquare.mat`` (truth: 20 px/s).
-* ``reference``: 10 s (2 s with ``--quick``) of the reference scene from the ``scene`` source
-  and ``emulator`` when both are registered and run, else a synthetic expanding scene
-  (:func:`evchain.benchmarks.flow_plane.expanding_scene_events`); ``extra["scene"]`` says which.
+* ``reference``: 10 s (2 s with ``--quick``) of the simulator's reference scene from the cache
+  shared with the plane-fit benchmark (see :func:`reference_stream`), else a synthetic expanding
+  scene; ``extra["scene"]`` says which.
   Error = invalid rate (share of flow vectors more than 90° from p - FOE); AEE in ``extra``.
 
 ``throughput`` = input events / s of the filter's ``process`` over 10 ms packets (one thread,
@@ -114,48 +114,28 @@ def bench_square(quick: bool) -> list[BenchRow]:
 
 
 def reference_stream(seconds: float):
-    """(events, truth, label): the first ``seconds`` of the simulator's reference scene (scene
-    + emulator, defaults) when available, else the synthetic expanding scene. Cached per
-    process."""
+    """(events, truth, label): the simulator's reference scene from the cache that
+    ``evchain.benchmarks.flow_plane.make_reference_cache`` writes (the same data as the
+    ``flow-plane-*-reference`` rows: high-rise, 20 m/s, thesis 8-bit log mapping, thresholds
+    20/20; ``seconds`` long, else the longest cached stretch), else the synthetic expanding scene
+    (:func:`evchain.benchmarks.flow_plane.expanding_scene_events`). The label says which."""
     if seconds in _CACHE:
         return _CACHE[seconds]
-    from evchain.benchmarks.flow_plane import expanding_scene_events
+    from evchain.benchmarks.flow_plane import CACHE, expanding_scene_events, load_reference_cache
 
-    label = "synthetic expanding scene (scene/emulator not available)"
-    result = None
-    try:
-        from evchain.core.chain import Chain
-        from evchain.core.config import pipeline_from_text
-        from evchain.core.registry import make_registry
-
-        reg = make_registry()
-        if "scene" in reg.filters and "emulator" in reg.filters:
-            spec = pipeline_from_text("chain:\n  - use: scene\n  - use: emulator\n",
-                                      "<flow-lk-bench>", reg)
-            ctx = Context(seed=0)
-            chain = Chain(spec, ctx)
-            chain.setup()
-            parts = []
-            t0 = time.perf_counter()
-            try:
-                for packet in chain.stream():
-                    if len(packet):
-                        parts.append(packet)
-                    if packet.t_end >= seconds * 1e6:
-                        break
-            finally:
-                chain.close()
-            if parts and ctx.truth is not None and hasattr(ctx.truth, "foe"):
-                ev = EventPacket.concat(parts)
-                keep = ev.t < int(seconds * 1e6)
-                ev = ev.select(keep).replace(t_end=int(seconds * 1e6))
-                result = (ev, ctx.truth, f"scene+emulator (defaults), simulated in "
-                                         f"{time.perf_counter() - t0:.0f} s")
-    except Exception as exc:  # the simulator is optional here: fall back and say so
-        label = f"synthetic expanding scene (scene/emulator failed: {type(exc).__name__})"
-    if result is None:
+    path = CACHE / f"reference_{seconds:g}s.npz"
+    if not path.is_file():
+        cached = sorted(CACHE.glob("reference_*s.npz"),
+                        key=lambda p: float(p.stem.split("_")[1][:-1]))
+        path = cached[-1] if cached else path
+    if path.is_file():
+        ev, truth = load_reference_cache(path)
+        secs = (ev.t_end - ev.t_start) / 1e6
+        result = (ev, truth, f"simulator reference scene (high-rise, 20 m/s), first {secs:g} s")
+    else:
         ev, truth = expanding_scene_events(seconds)
-        result = (ev, truth, label)
+        result = (ev, truth, "synthetic expanding scene (no simulator cache; make it with "
+                             "python -m evchain.benchmarks.flow_plane SECONDS)")
     _CACHE[seconds] = result
     return result
 
