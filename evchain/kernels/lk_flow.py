@@ -390,7 +390,10 @@ def lk_flow_run(x, y, t, p, ring, speed_state, r, window_us, refractory_us, grad
         tmin = te - wlim
         for j in range(S):
             yy = ye - R + j
+            jm = j < d or j >= S - d
             for i in range(S):
+                if jm and (i < d or i >= S - d):
+                    continue  # corner of the stencil margin: never read
                 xx = xe - R + i
                 n = 0
                 f = 0.0
