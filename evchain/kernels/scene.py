@@ -70,6 +70,12 @@ def road_coords(x, y, segs):
     The segment whose extent contains the point and whose |d| is smallest wins; the first and
     last straight segments extend to infinity."""
     m = segs.shape[0]
+    if m == 1 and segs[0, 4] == 0.0:       # one straight line (all scenarios but curves)
+        x0 = segs[0, 0]
+        y0 = segs[0, 1]
+        c = segs[0, 8]
+        sn = segs[0, 9]
+        return (segs[0, 5] + ((x - x0) * c + (y - y0) * sn)), -(x - x0) * sn + (y - y0) * c
     best_s = 0.0
     best_d = INF
     for k in range(m):
@@ -329,41 +335,6 @@ def box_albedo(mat, p0, p1, p2, p3, bid, u, z):
 
 
 @njit(**_I)
-def shade(kind, idx, face, t, ox, oy, oz, dx, dy, dz, fscale, boxes, box_mat, box_par,
-          segs, ground, light):
-    """Linear intensity seen along a ray with the given hit (fscale = 1 / (f * k): footprint
-    per unit depth)."""
-    if kind == 0:
-        n = math.sqrt(dx * dx + dy * dy + dz * dz)
-        e = dz / n
-        if e < 0.0:
-            e = 0.0
-        return light[5] + (light[6] - light[5]) * e
-    x = ox + t * dx
-    y = oy + t * dy
-    if kind == 1:
-        # sample footprint: distance * fscale / cos(incidence) = t * fscale * |d|^2 / (-dz)
-        fp = t * fscale * (dx * dx + dy * dy + dz * dz) / (-dz)
-        a = ground_albedo(x, y, fp, segs, ground)
-        lam = light[2]
-        if lam < 0.0:
-            lam = 0.0
-        return a * (light[4] + light[3] * lam)
-    z = oz + t * dz
-    axis = face // 2
-    sgn = 1.0 if (face % 2) == 1 else -1.0
-    lam = sgn * light[axis]
-    if lam < 0.0:
-        lam = 0.0
-    if axis == 2:
-        a = 0.8 * box_par[idx, 0]
-    else:
-        a = box_albedo(box_mat[idx], box_par[idx, 0], box_par[idx, 1], box_par[idx, 2],
-                       box_par[idx, 3], idx, y if axis == 0 else x, z)
-    return a * (light[4] + light[3] * lam)
-
-
-@njit(**_I)
 def flow_at(xb, yb, rho, f, vc, wc):
     """Motion field (px/s) at normalised coordinates (xb, yb) with inverse depth rho."""
     u = (-vc[0] + xb * vc[2]) * rho + wc[0] * xb * yb - wc[1] * (1.0 + xb * xb) + wc[2] * yb
@@ -374,22 +345,18 @@ def flow_at(xb, yb, rho, f, vc, wc):
 # ----------------------------------------------------------------------------- per-frame culling
 
 @njit(**_J)
-def build_tiles(boxes, pos, rot, f, cx, cy, width, height, tile, out_start, out_list, out_minz):
-    """Screen-space culling: for each tile of ``tile`` x ``tile`` pixels, the boxes whose
-    projection (clipped at a tiny near plane) covers it, sorted by their lower depth bound.
+def frame_boxes(boxes, pos, rot, f, cx, cy, width, height, order, minz):
+    """Boxes whose projection (clipped at a tiny near plane) may touch the image.
 
-    out_start [ntiles + 1] int64, out_list [ntiles * N] int64, out_minz same size.
-    Returns the number of boxes in front of the camera."""
+    Writes their indices into order[:nvis] sorted by their lower depth bound (nearest corner
+    depth, >= 0), which goes into minz[box]; returns nvis."""
     n = boxes.shape[0]
-    ntx = (width + tile - 1) // tile
-    nty = (height + tile - 1) // tile
     zn = 1e-4
-    minz = np.empty(n)
-    bb = np.empty((n, 4), np.int64)
-    vis = np.zeros(n, np.bool_)
+    key = np.full(n, INF)
     cz = np.empty(8)
     cxp = np.empty(8)
     cyp = np.empty(8)
+    nvis = 0
     for b in range(n):
         for c in range(8):
             wx = boxes[b, 3] if (c & 1) else boxes[b, 0]
@@ -401,8 +368,7 @@ def build_tiles(boxes, pos, rot, f, cx, cy, width, height, tile, out_start, out_
             cxp[c] = rot[0, 0] * rx + rot[1, 0] * ry + rot[2, 0] * rz
             cyp[c] = rot[0, 1] * rx + rot[1, 1] * ry + rot[2, 1] * rz
             cz[c] = rot[0, 2] * rx + rot[1, 2] * ry + rot[2, 2] * rz
-        zmax = cz.max()
-        if zmax < zn:
+        if cz.max() < zn:
             continue
         x0 = INF
         x1 = -INF
@@ -432,88 +398,138 @@ def build_tiles(boxes, pos, rot, f, cx, cy, width, height, tile, out_start, out_
                     x1 = max(x1, u)
                     y0 = min(y0, v)
                     y1 = max(y1, v)
-        px0 = f * x0 + cx - 1.0
-        px1 = f * x1 + cx + 1.0
-        py0 = f * y0 + cy - 1.0
-        py1 = f * y1 + cy + 1.0
-        if px1 < -1.0 or py1 < -1.0 or px0 > width or py0 > height:
+        if (f * x1 + cx + 1.0 < -1.0 or f * y1 + cy + 1.0 < -1.0
+                or f * x0 + cx - 1.0 > width or f * y0 + cy - 1.0 > height):
             continue
-        vis[b] = True
         zmin = cz.min()
         minz[b] = zmin if zmin > 0.0 else 0.0
-        bb[b, 0] = max(0, int(math.floor(max(px0, -1.0) + 0.5))) // tile
-        bb[b, 1] = min(ntx - 1, int(math.floor(min(px1, width + 1.0) + 0.5)) // tile)
-        bb[b, 2] = max(0, int(math.floor(max(py0, -1.0) + 0.5))) // tile
-        bb[b, 3] = min(nty - 1, int(math.floor(min(py1, height + 1.0) + 0.5)) // tile)
-    order = np.argsort(np.where(vis, minz, INF))
-    # exact-enough test of each (tile, box): reject when all corners lie outside one of the
-    # four planes through the camera bounding the tile's pixels (the cone is the frustum)
-    pair_tile = np.empty(ntx * nty * max(n, 1), np.int64)
-    pair_box = np.empty(ntx * nty * max(n, 1), np.int64)
-    npair = 0
-    counts = np.zeros(ntx * nty, np.int64)
-    nvis = 0
-    for b in order:
-        if not vis[b]:
-            break
+        key[b] = minz[b]
         nvis += 1
-        for c in range(8):
-            wx = boxes[b, 3] if (c & 1) else boxes[b, 0]
-            wy = boxes[b, 4] if (c & 2) else boxes[b, 1]
-            wz = boxes[b, 5] if (c & 4) else boxes[b, 2]
-            rx = wx - pos[0]
-            ry = wy - pos[1]
-            rz = wz - pos[2]
-            cxp[c] = rot[0, 0] * rx + rot[1, 0] * ry + rot[2, 0] * rz
-            cyp[c] = rot[0, 1] * rx + rot[1, 1] * ry + rot[2, 1] * rz
-            cz[c] = rot[0, 2] * rx + rot[1, 2] * ry + rot[2, 2] * rz
-        for ty in range(bb[b, 2], bb[b, 3] + 1):
-            yb0 = (ty * tile - 0.5 - cy) / f - 1e-9
-            yb1 = (ty * tile + tile - 0.5 - cy) / f + 1e-9
-            for tx in range(bb[b, 0], bb[b, 1] + 1):
-                xb0 = (tx * tile - 0.5 - cx) / f - 1e-9
-                xb1 = (tx * tile + tile - 0.5 - cx) / f + 1e-9
-                o0 = True
-                o1 = True
-                o2 = True
-                o3 = True
-                for c in range(8):
-                    if cxp[c] - xb0 * cz[c] >= 0.0:
-                        o0 = False
-                    if xb1 * cz[c] - cxp[c] >= 0.0:
-                        o1 = False
-                    if cyp[c] - yb0 * cz[c] >= 0.0:
-                        o2 = False
-                    if yb1 * cz[c] - cyp[c] >= 0.0:
-                        o3 = False
-                if o0 or o1 or o2 or o3:
-                    continue
-                i = ty * ntx + tx
-                pair_tile[npair] = i
-                pair_box[npair] = b
-                npair += 1
-                counts[i] += 1
-    out_start[0] = 0
-    for i in range(ntx * nty):
-        out_start[i + 1] = out_start[i] + counts[i]
-    fill = out_start[:-1].copy()
-    for p in range(npair):
-        i = pair_tile[p]
-        b = pair_box[p]
-        out_list[fill[i]] = b
-        out_minz[fill[i]] = minz[b]
-        fill[i] += 1
+    srt = np.argsort(key)
+    for q in range(nvis):
+        order[q] = srt[q]
     return nvis
+
+
+@njit(**_I)
+def box_span(bx0, by0, bx1, by1, ox, oy, xh0, xh1, r0, r1, ta, tb, f, cx, k, ncols):
+    """Sample columns [c0, c1] of one sample row whose rays can meet a box between the ray
+    parameters ta and tb (conservative, with a margin of two samples; c0 > c1: none).
+
+    The rays of a row are o + t (xb X + R) with X the camera's horizontal x axis (no roll) and
+    R = yb Y + Z, so X is orthogonal to R: in the ground-plane projection a point q lies on the
+    ray with t = (q - o).R_h / |R_h|^2 and xb = (q - o).X_h / t. The box's footprint clipped to
+    ta <= t <= tb is a convex polygon, and xb (linear-fractional in q) takes its extremes at
+    the polygon's vertices."""
+    rr = r0 * r0 + r1 * r1
+    if rr < 1e-12 or not (ta <= tb):
+        return 0, ncols - 1
+    lo = INF
+    hi = -INF
+    tcs = np.empty(4)
+    ucs = np.empty(4)
+    for c in range(4):
+        qx = (bx1 if (c == 1 or c == 2) else bx0) - ox
+        qy = (by1 if c >= 2 else by0) - oy
+        t = (qx * r0 + qy * r1) / rr
+        u = qx * xh0 + qy * xh1
+        tcs[c] = t
+        ucs[c] = u
+        if t >= ta and t <= tb:
+            xb = u / t
+            lo = min(lo, xb)
+            hi = max(hi, xb)
+    for e in range(4):
+        e2 = (e + 1) % 4
+        t0 = tcs[e]
+        t1 = tcs[e2]
+        for lv in range(2):
+            level = ta if lv == 0 else tb
+            if (t0 - level) * (t1 - level) < 0.0:
+                s = (level - t0) / (t1 - t0)
+                xb = (ucs[e] + s * (ucs[e2] - ucs[e])) / level
+                lo = min(lo, xb)
+                hi = max(hi, xb)
+    if lo > hi:
+        return 1, 0
+    lo = max(lo, -1e6)
+    hi = min(hi, 1e6)
+    c0 = int(math.floor((lo * f + cx + 0.5) * k - 0.5)) - 2
+    c1 = int(math.ceil((hi * f + cx + 0.5) * k - 0.5)) + 2
+    return max(c0, 0), min(c1, ncols - 1)
 
 
 # ----------------------------------------------------------------------------- render
 
+@njit(**_I)
+def sky_value(xb, yb, rot, light):
+    """Sky intensity along the camera ray (xb, yb, 1): horizon to zenith by elevation."""
+    dx = rot[0, 0] * xb + rot[0, 1] * yb + rot[0, 2]
+    dy = rot[1, 0] * xb + rot[1, 1] * yb + rot[1, 2]
+    dz = rot[2, 0] * xb + rot[2, 1] * yb + rot[2, 2]
+    n = math.sqrt(dx * dx + dy * dy + dz * dz)
+    e = dz / n
+    if e < 0.0:
+        e = 0.0
+    return light[5] + (light[6] - light[5]) * e
+
+
 @njit(**_J)
-def render_row(j, pos, rot, vc, wc, f, cy, k, boxes, box_mat, box_par, segs, ground, light,
-               tile, t_start, t_list, t_minz, xbs, out):
-    """Render image row j into out[j]; return the row's largest squared image speed."""
+def ground_pass(gx, gy, gf, gc, ng, segs, ground, light, acc):
+    """acc[gc[q]] += ground intensity at world (gx, gy)[q] with footprint gf[q], q < ng."""
+    lam = light[2]
+    if lam < 0.0:
+        lam = 0.0
+    lit = light[4] + light[3] * lam
+    for q in range(ng):
+        acc[gc[q]] += ground_albedo(gx[q], gy[q], gf[q], segs, ground) * lit
+
+
+@njit(**_J)
+def box_pass(bu, bz, bi, bfc, bc, nb, box_mat, box_par, light, acc):
+    """acc[bc[q]] += intensity of face bfc[q] of box bi[q] at face coordinate bu[q] and
+    height bz[q], q < nb."""
+    for q in range(nb):
+        idx = bi[q]
+        face = bfc[q]
+        axis = face // 2
+        sgn = 1.0 if (face % 2) == 1 else -1.0
+        lam = sgn * light[axis]
+        if lam < 0.0:
+            lam = 0.0
+        if axis == 2:
+            a = 0.8 * box_par[idx, 0]
+        else:
+            a = box_albedo(box_mat[idx], box_par[idx, 0], box_par[idx, 1], box_par[idx, 2],
+                           box_par[idx, 3], idx, bu[q], bz[q])
+        acc[bc[q]] += a * (light[4] + light[3] * lam)
+
+
+@njit(**_J)
+def row_vmax2(xbs, yb, tb, f, vc, wc):
+    """Largest squared motion-field magnitude (px/s)^2 over the samples (xbs[c], yb) of a row
+    with depths tb[c]."""
+    m = 0.0
+    for c in range(xbs.shape[0]):
+        fu, fv = flow_at(xbs[c], yb, 1.0 / tb[c], f, vc, wc)
+        m2 = fu * fu + fv * fv
+        if m2 > m:
+            m = m2
+    return m
+
+
+@njit(**_J)
+def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground, light,
+               vis, minz, xbs, out):
+    """Render image row j into out[j]; return the row's largest squared image speed.
+
+    Per sample row: the ground hit is one division (no roll: every ray of a row has the same
+    world dz); each visible box gets its exact z-slab for the row and the span of sample columns
+    it can cover (:func:`box_span`); boxes are visited nearest-first and only the samples of
+    their span whose current hit is farther than the box's nearest corner get the exact slab
+    test. The result equals testing every box for every sample."""
     w = out.shape[1]
-    ntx = (w + tile - 1) // tile
+    n = w * k
     inv_k2 = 1.0 / (k * k)
     fscale = 1.0 / (f * k)
     inv_f = 1.0 / f
@@ -521,27 +537,118 @@ def render_row(j, pos, rot, vc, wc, f, cy, k, boxes, box_mat, box_par, segs, gro
     oy = pos[1]
     oz = pos[2]
     vmax2 = 0.0
-    trow = (j // tile) * ntx
-    for i in range(w):
-        ti = trow + i // tile
-        s0 = t_start[ti]
-        s1 = t_start[ti + 1]
-        acc = 0.0
-        for b in range(k):
-            yb = (j + (b + 0.5) / k - 0.5 - cy) * inv_f
-            for a in range(k):
-                xb = xbs[i * k + a]
+    nvis = vis.shape[0]
+    acc = np.zeros(w)
+    tb = np.empty(n)
+    kd = np.empty(n, np.int64)
+    hid = np.empty(n, np.int64)
+    fc = np.empty(n, np.int64)
+    gx = np.empty(n)
+    gy = np.empty(n)
+    gf = np.empty(n)
+    gc = np.empty(n, np.int64)
+    bx = np.empty(n)
+    bz = np.empty(n)
+    bi = np.empty(n, np.int64)
+    bfc = np.empty(n, np.int64)
+    bc = np.empty(n, np.int64)
+    xh0 = rot[0, 0]
+    xh1 = rot[1, 0]
+    for b in range(k):
+        yb = (j + (b + 0.5) / k - 0.5 - cy) * inv_f
+        r0 = rot[0, 1] * yb + rot[0, 2]
+        r1 = rot[1, 1] * yb + rot[1, 2]
+        dz = rot[2, 0] * 0.0 + rot[2, 1] * yb + rot[2, 2]   # rot[2, 0] == 0: no roll
+        tg = INF
+        kind0 = 0
+        if dz < 0.0 and oz > 0.0:
+            tg = -oz / dz
+            kind0 = 1
+        for c in range(n):
+            tb[c] = tg
+            kd[c] = kind0
+            hid[c] = -1
+            fc[c] = -1
+        iz = 1.0 / dz
+        for q in range(nvis):
+            bq = vis[q]
+            mz = minz[bq]
+            if mz >= tg:
+                break
+            t1 = (boxes[bq, 2] - oz) * iz
+            t2 = (boxes[bq, 5] - oz) * iz
+            tzn = min(t1, t2)
+            tzf = max(t1, t2)
+            if tzf <= 0.0 or tzn >= tg:
+                continue
+            ta = max(tzn, mz, 1e-9)
+            tz = min(tzf, tg)
+            if tzn != tzn or tzf != tzf:
+                ta = 1e-9
+                tz = tg
+            c0, c1 = box_span(boxes[bq, 0], boxes[bq, 1], boxes[bq, 3], boxes[bq, 4], ox, oy,
+                              xh0, xh1, r0, r1, ta * (1.0 - 1e-9), tz * (1.0 + 1e-9), f, cx,
+                              k, n)
+            for c in range(c0, c1 + 1):
+                if mz >= tb[c]:
+                    continue
+                xb = xbs[c]
                 dx = rot[0, 0] * xb + rot[0, 1] * yb + rot[0, 2]
                 dy = rot[1, 0] * xb + rot[1, 1] * yb + rot[1, 2]
-                dz = rot[2, 0] * xb + rot[2, 1] * yb + rot[2, 2]
-                t, kind, idx, face = trace(ox, oy, oz, dx, dy, dz, boxes, t_list, s0, s1, t_minz)
-                acc += shade(kind, idx, face, t, ox, oy, oz, dx, dy, dz, fscale, boxes,
-                             box_mat, box_par, segs, ground, light)
-                fu, fv = flow_at(xb, yb, 1.0 / t, f, vc, wc)
-                m2 = fu * fu + fv * fv
-                if m2 > vmax2:
-                    vmax2 = m2
-        out[j, i] = acc * inv_k2
+                u1 = (boxes[bq, 0] - ox) / dx
+                u2 = (boxes[bq, 3] - ox) / dx
+                txn = min(u1, u2)
+                txf = max(u1, u2)
+                u1 = (boxes[bq, 1] - oy) / dy
+                u2 = (boxes[bq, 4] - oy) / dy
+                tyn = min(u1, u2)
+                tyf = max(u1, u2)
+                tn = max(txn, max(tyn, tzn))
+                tf = min(txf, min(tyf, tzf))
+                if tn <= tf and tn > 0.0 and tn < tb[c]:
+                    tb[c] = tn
+                    kd[c] = 2
+                    hid[c] = bq
+                    if txn >= tyn and txn >= tzn:
+                        fc[c] = 0 if dx > 0 else 1
+                    elif tyn >= tzn:
+                        fc[c] = 2 if dy > 0 else 3
+                    else:
+                        fc[c] = 4 if dz > 0 else 5
+        # shading in separate simple passes (one huge inlined loop body compiles to slower
+        # code): sky here, ground and box samples gathered and shaded by their own kernels
+        ng = 0
+        nb = 0
+        for c in range(n):
+            t = tb[c]
+            kc = kd[c]
+            if kc == 0:
+                acc[c // k] += sky_value(xbs[c], yb, rot, light)
+                continue
+            xb = xbs[c]
+            dx = rot[0, 0] * xb + rot[0, 1] * yb + rot[0, 2]
+            dy = rot[1, 0] * xb + rot[1, 1] * yb + rot[1, 2]
+            if kc == 1:
+                gx[ng] = ox + t * dx
+                gy[ng] = oy + t * dy
+                gf[ng] = t * fscale * (dx * dx + dy * dy + dz * dz) / (-dz)
+                gc[ng] = c // k
+                ng += 1
+            else:
+                fa = fc[c]
+                bx[nb] = oy + t * dy if fa // 2 == 0 else ox + t * dx
+                bz[nb] = oz + t * dz
+                bi[nb] = hid[c]
+                bfc[nb] = fa
+                bc[nb] = c // k
+                nb += 1
+        ground_pass(gx, gy, gf, gc, ng, segs, ground, light, acc)
+        box_pass(bx, bz, bi, bfc, bc, nb, box_mat, box_par, light, acc)
+        m2 = row_vmax2(xbs, yb, tb, f, vc, wc)
+        if m2 > vmax2:
+            vmax2 = m2
+    for i in range(w):
+        out[j, i] = acc[i] * inv_k2
     return vmax2
 
 
@@ -557,14 +664,15 @@ def sample_columns(w, k, cx, f):
 
 @njit(**_J)
 def render(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground, light,
-           tile, t_start, t_list, t_minz, out):
+           vis, minz, out):
     """Render one frame into out [H, W] (float32, linear intensity, k x k supersampling
-    averaged) and return the maximum motion-field magnitude (px/s) over all samples."""
+    averaged) and return the maximum motion-field magnitude (px/s) over all samples.
+    vis: visible boxes nearest first, minz their depth bounds (:func:`frame_boxes`)."""
     xbs = sample_columns(out.shape[1], k, cx, f)
     vmax2 = 0.0
     for j in range(out.shape[0]):
-        m2 = render_row(j, pos, rot, vc, wc, f, cy, k, boxes, box_mat, box_par, segs, ground,
-                        light, tile, t_start, t_list, t_minz, xbs, out)
+        m2 = render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
+                        ground, light, vis, minz, xbs, out)
         if m2 > vmax2:
             vmax2 = m2
     return math.sqrt(vmax2)
@@ -572,14 +680,14 @@ def render(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground
 
 @njit(cache=True, error_model="numpy", parallel=True)
 def render_parallel(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground,
-                    light, tile, t_start, t_list, t_minz, out):
+                    light, vis, minz, out):
     """:func:`render` with the rows shared among numba's threads (same result)."""
     h = out.shape[0]
     xbs = sample_columns(out.shape[1], k, cx, f)
     rows = np.zeros(h)
     for j in prange(h):
-        rows[j] = render_row(j, pos, rot, vc, wc, f, cy, k, boxes, box_mat, box_par, segs,
-                             ground, light, tile, t_start, t_list, t_minz, xbs, out)
+        rows[j] = render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
+                             ground, light, vis, minz, xbs, out)
     return math.sqrt(rows.max())
 
 

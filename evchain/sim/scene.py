@@ -14,8 +14,6 @@ from evchain.sim.camera import Camera
 from evchain.sim.config import SceneConfig, make_config
 from evchain.sim.scenarios import build_world
 
-TILE_PX = 16
-
 
 class Scene:
     """Everything needed to render frames and answer ground truth for one configuration."""
@@ -38,12 +36,9 @@ class Scene:
         #: the latest time the route supports (the drive may stop earlier)
         self.max_time_s = ((self.world.route_m - cfg.start_m) / cfg.speed_mps
                            if cfg.speed_mps > 0 else self.duration_s)
-        w, h = cfg.width, cfg.height
-        self._ntiles = ((w + TILE_PX - 1) // TILE_PX) * ((h + TILE_PX - 1) // TILE_PX)
         nb = len(self.boxes)
-        self._t_start = np.zeros(self._ntiles + 1, np.int64)
-        self._t_list = np.zeros(max(1, self._ntiles * nb), np.int64)
-        self._t_minz = np.zeros(max(1, self._ntiles * nb), np.float64)
+        self._order = np.zeros(nb, np.int64)
+        self._minz = np.zeros(nb, np.float64)
         self._pos = np.zeros(3)
         self._rot = np.zeros((3, 3))
         self._vc = np.zeros(3)
@@ -71,14 +66,16 @@ class Scene:
     def render(self, t_s: float, out: np.ndarray | None = None) -> tuple[np.ndarray, float]:
         """Frame (float32 [H, W], linear intensity) at time t_s and the largest image speed
         (px/s) of any sample at that time (drives the adaptive time step)."""
-        from evchain.kernels.scene import build_tiles, camera_state, render, render_parallel
+        from evchain.kernels.scene import camera_state, frame_boxes, render, render_parallel
 
         cam = self.camera
         if out is None:
             out = np.empty((cam.height, cam.width), np.float32)
         camera_state(float(t_s), self.segs, self.traj, self._pos, self._rot, self._vc, self._wc)
-        build_tiles(self.boxes, self._pos, self._rot, cam.f, cam.cx, cam.cy, cam.width,
-                    cam.height, TILE_PX, self._t_start, self._t_list, self._t_minz)
+        if self._rot[2, 0] != 0.0:     # the row renderer relies on it; camera_state ensures it
+            raise RuntimeError("scene camera must not roll")
+        nvis = frame_boxes(self.boxes, self._pos, self._rot, cam.f, cam.cx, cam.cy, cam.width,
+                           cam.height, self._order, self._minz)
         kernel = render
         if self.threads != 1:
             import numba
@@ -88,8 +85,7 @@ class Scene:
             kernel = render_parallel
         vmax = kernel(self._pos, self._rot, self._vc, self._wc, cam.f, cam.cx, cam.cy,
                       cam.supersample, self.boxes, self.box_mat, self.box_par, self.segs,
-                      self.ground, self.light, TILE_PX, self._t_start, self._t_list,
-                      self._t_minz, out)
+                      self.ground, self.light, self._order[:nvis], self._minz, out)
         return out, float(vmax)
 
     def world_to_camera(self, points: np.ndarray, t_s: float) -> np.ndarray:

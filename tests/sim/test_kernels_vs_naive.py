@@ -147,3 +147,40 @@ def test_parallel_render_is_identical():
     b, vb = parallel.render(0.4)
     np.testing.assert_array_equal(a, b)
     assert va == vb
+
+
+@pytest.mark.parametrize("name", sorted(SCENES))
+def test_render_larger_frames_vs_naive(name):
+    """48x36 frames (2x2): the per-row spans and early exits of the renderer against testing
+    every box for every sample, at the start (boxes close to the camera) and later."""
+    sc = Scene.from_params(width=48, height=36, supersample=2, **SCENES[name])
+    for t in (0.0, 0.9):
+        frame, _ = sc.render(t)
+        np.testing.assert_allclose(frame, N.render(sc, t), rtol=2e-6, atol=2e-6)
+
+
+def test_box_span_covers_every_hit():
+    """Every sample of a row whose ray hits a box (naive trace) lies inside the box's span."""
+    rng = np.random.default_rng(6)
+    f, cx, k, w = 300.0, 31.5, 2, 64
+    n = w * k
+    xbs = K.sample_columns(w, k, cx, f)
+    for trial in range(40):
+        psi = rng.uniform(-0.6, 0.6)
+        theta = rng.uniform(-0.1, 0.1)
+        rot = N.rotation(psi, theta)
+        o = np.array([0.0, 0.0, 1.2])
+        lo = rng.uniform([-5, -15, 0], [40, 10, 3])
+        box = np.concatenate([lo, lo + rng.uniform([0.1, 0.1, 0.2], [20, 15, 40])])
+        for yb in rng.uniform(-0.4, 0.4, 6):
+            d = np.stack([xbs, np.full(n, yb), np.ones(n)], 1) @ rot.T
+            t, kind, _, _ = N.trace(o, d, box[None])
+            hit = np.flatnonzero(kind == 2)
+            dz = d[0, 2]
+            tz = sorted(((box[2] - o[2]) / dz, (box[5] - o[2]) / dz)) if dz else [1e-9, np.inf]
+            r0 = rot[0, 1] * yb + rot[0, 2]
+            r1 = rot[1, 1] * yb + rot[1, 2]
+            c0, c1 = K.box_span(box[0], box[1], box[3], box[4], o[0], o[1], rot[0, 0],
+                                rot[1, 0], r0, r1, max(tz[0], 1e-9), tz[1], f, cx, k, n)
+            if len(hit):
+                assert c0 <= hit.min() and hit.max() <= c1, (trial, yb, c0, c1, hit)
