@@ -23,6 +23,7 @@ from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import EventPacket, Geometry
 from evchain.errors import ConfigError, DataError
 from evchain.io.atomic import partial_path
+from evchain.io.slicing import slice_stream
 
 COLUMNS = ("x", "y", "t", "p")
 
@@ -82,24 +83,16 @@ class Hdf5Source(Filter):
         return (int(t[0]), int(t[-1]) + 1) if len(t) else None
 
     def packets(self) -> Iterator[EventPacket]:
-        g, step, chunk = self.context.geometry, self.params.packet_us, 1 << 20
-        n = len(self.group["t"])
-        if n == 0:
-            return
-        buf = {c: np.zeros(0, d) for c, d in EventPacket.columns.items()}
-        t0 = int(self.group["t"][0])
-        for start in range(0, n, chunk):
-            cols = self._read(start, min(start + chunk, n), buf["t"])
-            buf = {c: np.concatenate([buf[c], cols[c]]) for c in buf}
-            final = start + chunk >= n
-            limit = int(buf["t"][-1]) + (1 if final else 0)  # events before limit are complete
-            while t0 + step <= limit or (final and t0 < limit):
-                t1 = min(t0 + step, limit)
-                k = int(np.searchsorted(buf["t"], t1, "left"))
-                yield EventPacket(geometry=g, t_start=t0, t_end=t1,
-                                  **{c: v[:k] for c, v in buf.items()})
-                buf = {c: v[k:] for c, v in buf.items()}
-                t0 = t1
+        n, chunk = len(self.group["t"]), 1 << 20
+        state = {"last": np.zeros(0, np.int64)}
+
+        def chunks():
+            for start in range(0, n, chunk):
+                cols = self._read(start, min(start + chunk, n), state["last"])
+                state["last"] = cols["t"][-1:]
+                yield cols
+
+        yield from slice_stream(chunks(), self.context.geometry, self.params.packet_us)
 
     def _read(self, start: int, stop: int, before: np.ndarray) -> dict[str, np.ndarray]:
         g = self.context.geometry

@@ -32,6 +32,7 @@ from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import EventPacket, Geometry
 from evchain.errors import ConfigError, DataError
 from evchain.io.atomic import partial_path
+from evchain.io.slicing import slice_stream
 from pydantic import Field, field_validator
 
 MAGIC = b"#!AER-DAT4.0"
@@ -58,38 +59,6 @@ def dv_message(exc: BaseException) -> str:
         if line.strip():
             lines.append(line.strip())
     return " ".join(lines) or type(exc).__name__
-
-
-def slice_stream(chunks: Iterator[dict[str, np.ndarray]], geometry: Geometry,
-                 packet_us: int) -> Iterator[EventPacket]:
-    """Cut a stream of time-ordered column chunks into packets of consecutive ``packet_us``
-    slices, from the first event's time to one past the last event's time."""
-    buf: dict[str, np.ndarray] | None = None
-    t0 = None
-    for cols in chunks:
-        if not len(cols["t"]):
-            continue
-        buf = cols if buf is None else {c: np.concatenate([buf[c], cols[c]]) for c in buf}
-        if t0 is None:
-            t0 = int(buf["t"][0])
-        limit = int(buf["t"][-1])  # later chunks may still hold events at this very time
-        while t0 + packet_us <= limit:
-            t1 = t0 + packet_us
-            k = int(np.searchsorted(buf["t"], t1, "left"))
-            yield EventPacket(geometry=geometry, t_start=t0, t_end=t1,
-                              **{c: v[:k] for c, v in buf.items()})
-            buf = {c: v[k:] for c, v in buf.items()}
-            t0 = t1
-    if buf is None:
-        return
-    limit = int(buf["t"][-1]) + 1 if len(buf["t"]) else t0
-    while t0 < limit:
-        t1 = min(t0 + packet_us, limit)
-        k = int(np.searchsorted(buf["t"], t1, "left"))
-        yield EventPacket(geometry=geometry, t_start=t0, t_end=t1,
-                          **{c: v[:k] for c, v in buf.items()})
-        buf = {c: v[k:] for c, v in buf.items()}
-        t0 = t1
 
 
 class Aedat4Source(Filter):
