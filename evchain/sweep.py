@@ -7,10 +7,11 @@ A sweep file::
     mode: one_at_a_time                 # or: grid (every combination)
     set: [scene.duration_s=6]           # overrides applied to every run (optional)
     vary:
-      emulator.threshold_on: [0.22, 0.435, 0.87]
       scene.speed_mps: [10, 20, 30]
+      emulator.threshold_on,emulator.threshold_off: [[10, 10], [20, 20], [40, 40]]
     report: [foe.dx_mean_px, foe.dy_mean_px, ttc.median_rel_error_last3s]
 
+A key naming several parameters, separated by commas, sets them together from a list per value.
 ``one_at_a_time`` varies one key while the others keep the base's values (as the thesis's
 tables do); ``grid`` runs every combination. Each run writes into
 ``OUT/<hash of the resolved pipeline>/``; a run whose folder already holds an ``ok`` report of
@@ -92,19 +93,26 @@ def load_sweep(path: str | Path) -> SweepSpec:
                      report=list(report), file=str(path))
 
 
-def _override(key: str, value: Any) -> str:
-    return f"{key}={json.dumps(value)}"
+def _overrides(key: str, value: Any) -> list[str]:
+    keys = [k.strip() for k in key.split(",")]
+    if len(keys) == 1:
+        return [f"{key}={json.dumps(value)}"]
+    if not isinstance(value, list) or len(value) != len(keys):
+        raise ConfigError(f"each value of {key!r} must be a list of {len(keys)} values, got "
+                          f"{value!r}", key="vary")
+    return [f"{k}={json.dumps(v)}" for k, v in zip(keys, value, strict=True)]
 
 
 def _variations(vary: dict[str, list], mode: str, common: list[str]) -> list[Variation]:
     if mode == "grid":
         keys = list(vary)
         return [Variation(", ".join(f"{k}={v}" for k, v in zip(keys, combo, strict=True)),
-                          common + [_override(k, v) for k, v in zip(keys, combo, strict=True)])
+                          common + [o for k, v in zip(keys, combo, strict=True)
+                                    for o in _overrides(k, v)])
                 for combo in itertools.product(*vary.values())]
     out = []
     for key, values in vary.items():
-        out += [Variation(f"{key}={v}", common + [_override(key, v)]) for v in values]
+        out += [Variation(f"{key}={v}", common + _overrides(key, v)) for v in values]
     return out
 
 

@@ -49,3 +49,15 @@ def test_bad_variation_fails_before_running(tmp_path, registry):
     with pytest.raises(ConfigError, match="toy_source.packets"):
         run_sweep(load_sweep(p), tmp_path / "out", workers=1, registry=registry)
     assert not (tmp_path / "out").exists()
+
+
+def test_joint_keys(tmp_path, registry):
+    p = write(tmp_path, "base: base.yaml\nvary:\n  toy_source.packets,toy_source.width: "
+                        "[[1, 20], [2, 30]]\nreport: [toy.count]\n")
+    sweep = load_sweep(p)
+    assert sweep.variations[1].overrides == ["toy_source.packets=2", "toy_source.width=30"]
+    rows = run_sweep(sweep, tmp_path / "out", workers=1, registry=registry, echo=lambda s: None)
+    assert [r["toy.count"] for r in rows] == [100, 200]
+    bad = write(tmp_path, "base: base.yaml\nvary:\n  a.b,c.d: [[1]]\n")
+    with pytest.raises(ConfigError, match="list of 2 values"):
+        load_sweep(bad)
