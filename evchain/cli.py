@@ -32,7 +32,12 @@ def cmd_run(args) -> int:
     print(f"{spec.name}: done in {rep['wall_s']:.2f} s, results in {out}/")
     for f in rep["filters"]:
         eps = f["throughput_eps"]
-        rate = f"{eps / 1e6:9.2f} M/s" if eps else "        -   "
+        if not eps:
+            rate = "-"
+        elif f.get("unit_in") == "frames":
+            rate = f"{eps:9.0f} frames/s"
+        else:
+            rate = f"{eps / 1e6:9.2f} M events/s"
         print(f"  {f['id']:18s} in {f['events_in']:>11,d}  out {f['events_out']:>11,d}  "
               f"{f['wall_s']:8.3f} s {rate}")
     for group, values in rep["metrics"].items():

@@ -22,7 +22,7 @@ import yaml
 
 from evchain.core.config import PipelineSpec
 from evchain.core.filter import Context, Filter
-from evchain.core.packets import Packet
+from evchain.core.packets import FramePacket, Packet
 from evchain.core.registry import Registry
 from evchain.errors import EvchainError, FilterError
 from evchain.io.atomic import atomic_write_text
@@ -35,11 +35,13 @@ class StageStats:
     events_in: int = 0
     events_out: int = 0
     wall_s: float = 0.0
+    unit_in: str = "events"  # what events_in counts: "events" or "frames"
 
     def as_dict(self) -> dict[str, Any]:
         eps = self.events_in / self.wall_s if self.wall_s > 0 else None
         return {"name": self.name, "id": self.id, "events_in": self.events_in,
-                "events_out": self.events_out, "wall_s": self.wall_s, "throughput_eps": eps}
+                "events_out": self.events_out, "unit_in": self.unit_in, "wall_s": self.wall_s,
+                "throughput_eps": eps}
 
 
 @dataclass
@@ -106,6 +108,8 @@ class Chain:
         for i in range(start, len(self.filters)):
             f, st = self.filters[i], self.stats[i]
             st.events_in += len(packet)
+            if isinstance(packet, FramePacket):
+                st.unit_in = "frames"
             t0 = time.perf_counter()
             packet = _guard(f, packet, "process", f.process, packet)
             st.wall_s += time.perf_counter() - t0

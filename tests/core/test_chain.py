@@ -31,7 +31,7 @@ def test_report_and_outputs(registry, tmp_path):
     assert rep["pipeline"]["chain"][2]["gain"] == 1.0
     assert set(rep["versions"]) >= {"evchain", "python", "numpy", "numba", "plugins"}
     assert [f["name"] for f in rep["filters"]] == ["toy_source", "toy_writer", "toy_flow"]
-    assert rep["filters"][0]["events_out"] == 300
+    assert rep["filters"][0]["events_out"] == 300 and rep["filters"][1]["unit_in"] == "events"
     assert rep["filters"][1]["events_in"] == 300 and rep["filters"][2]["events_out"] == 300
     assert all(f["wall_s"] >= 0 for f in rep["filters"])
     assert rep["metrics"] == {"toy": {"count": 300}}
