@@ -543,6 +543,10 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
     kd = np.empty(n, np.int64)
     hid = np.empty(n, np.int64)
     fc = np.empty(n, np.int64)
+    dxs = np.empty(n)
+    dys = np.empty(n)
+    ixs = np.empty(n)
+    iys = np.empty(n)
     gx = np.empty(n)
     gy = np.empty(n)
     gf = np.empty(n)
@@ -569,6 +573,13 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
             kd[c] = kind0
             hid[c] = -1
             fc[c] = -1
+            xb = xbs[c]
+            dx = rot[0, 0] * xb + rot[0, 1] * yb + rot[0, 2]
+            dy = rot[1, 0] * xb + rot[1, 1] * yb + rot[1, 2]
+            dxs[c] = dx
+            dys[c] = dy
+            ixs[c] = 1.0 / dx
+            iys[c] = 1.0 / dy
         iz = 1.0 / dz
         for q in range(nvis):
             bq = vis[q]
@@ -589,18 +600,23 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
             c0, c1 = box_span(boxes[bq, 0], boxes[bq, 1], boxes[bq, 3], boxes[bq, 4], ox, oy,
                               xh0, xh1, r0, r1, ta * (1.0 - 1e-9), tz * (1.0 + 1e-9), f, cx,
                               k, n)
+            ex0 = boxes[bq, 0] - ox
+            ex1 = boxes[bq, 3] - ox
+            ey0 = boxes[bq, 1] - oy
+            ey1 = boxes[bq, 4] - oy
             for c in range(c0, c1 + 1):
                 if mz >= tb[c]:
                     continue
-                xb = xbs[c]
-                dx = rot[0, 0] * xb + rot[0, 1] * yb + rot[0, 2]
-                dy = rot[1, 0] * xb + rot[1, 1] * yb + rot[1, 2]
-                u1 = (boxes[bq, 0] - ox) / dx
-                u2 = (boxes[bq, 3] - ox) / dx
+                dx = dxs[c]
+                dy = dys[c]
+                ix = ixs[c]
+                iy = iys[c]
+                u1 = ex0 * ix
+                u2 = ex1 * ix
                 txn = min(u1, u2)
                 txf = max(u1, u2)
-                u1 = (boxes[bq, 1] - oy) / dy
-                u2 = (boxes[bq, 4] - oy) / dy
+                u1 = ey0 * iy
+                u2 = ey1 * iy
                 tyn = min(u1, u2)
                 tyf = max(u1, u2)
                 tn = max(txn, max(tyn, tzn))
@@ -625,9 +641,8 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
             if kc == 0:
                 acc[c // k] += sky_value(xbs[c], yb, rot, light)
                 continue
-            xb = xbs[c]
-            dx = rot[0, 0] * xb + rot[0, 1] * yb + rot[0, 2]
-            dy = rot[1, 0] * xb + rot[1, 1] * yb + rot[1, 2]
+            dx = dxs[c]
+            dy = dys[c]
             if kc == 1:
                 gx[ng] = ox + t * dx
                 gy[ng] = oy + t * dy
