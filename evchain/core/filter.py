@@ -32,9 +32,9 @@ from evchain.core.packets import Geometry, Packet
 class GroundTruth(Protocol):
     """What a source knows exactly. Times ``t_us`` are µs (scalars or arrays, float allowed).
 
-    Providers implement what they can; a method they cannot answer raises
-    ``NotImplementedError``-free :class:`AttributeError` by simply not existing. Scorers check with
-    ``hasattr``. Undefined values are NaN (e.g. the FOE when not moving forward).
+    Providers implement what they can (``flow``, ``foe``, ``ttc``, ``depth``); a method they cannot
+    answer simply does not exist, and scorers check with ``hasattr``. Undefined values are NaN
+    (e.g. the FOE when not moving forward).
     """
 
     def flow(self, x: np.ndarray, y: np.ndarray, t_us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -104,11 +104,11 @@ class Filter:
 
     def process(self, packet: Packet) -> Packet:
         """Turn one packet into the next; sinks pass it on unchanged."""
-        raise NotImplementedError(f"filter {self.name!r} does not implement process()")
+        raise TypeError(f"filter {self.name!r} is a source: it has packets(), not process()")
 
     def packets(self) -> Iterator[Packet]:
         """Sources only: yield packets of consecutive slices."""
-        raise NotImplementedError(f"filter {self.name!r} is not a source")
+        raise TypeError(f"filter {self.name!r} is not a source: it has process(), not packets()")
 
     def time_span_us(self) -> tuple[int, int] | None:
         """Sources: the stream's first and last time if known (drives the progress bar)."""
