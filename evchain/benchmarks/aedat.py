@@ -8,12 +8,11 @@ live in a temporary folder (normally the page cache, so this measures decoding, 
 from __future__ import annotations
 
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
 
-from evchain.bench import BenchRow, best_time
+from evchain.bench import BenchRow, best_cpu_time, best_time
 from evchain.core.filter import Context
 from evchain.core.packets import EventPacket, Geometry
 from evchain.io.aedat2 import AedatSource, AedatWriter, write_aedat2
@@ -55,21 +54,11 @@ def aedat_read(quick: bool) -> list[BenchRow]:
         t_stage = best_time(stage, repeat=3)
         t_limit = best_time(lambda: np.fromfile(path, dtype=np.uint8), repeat=3)
         t_kernel = best_time(_decode_only(path), repeat=3)
-        cpu = _cpu_time(stage)
+        cpu = best_cpu_time(stage)
     return [BenchRow("aedat-read", "aedat", n / t_stage, "events/s", None, None,
                      t_limit / t_stage, {"events": n, "packet_us": 10_000,
                                          "decode_kernel_eps": n / t_kernel,
                                          "cpu_time_eps": n / cpu})]
-
-
-def _cpu_time(fn, repeat: int = 3) -> float:
-    """Best process CPU time of ``fn`` (less sensitive than wall time to a busy machine)."""
-    best = float("inf")
-    for _ in range(repeat):
-        c0 = time.process_time()
-        fn()
-        best = min(best, time.process_time() - c0)
-    return best
 
 
 def _decode_only(path: Path):
@@ -104,7 +93,7 @@ def aedat_write(quick: bool) -> list[BenchRow]:
             w.close()
 
         t_stage = best_time(stage, repeat=3)
-        cpu = _cpu_time(stage)
+        cpu = best_cpu_time(stage)
         data = np.fromfile(Path(tmp) / "bench0.aedat", dtype=np.uint8)
         t_limit = best_time(lambda: data.tofile(Path(tmp) / f"plain{next(runs)}.bin"), repeat=3)
     ev = EventPacket.concat(packets)

@@ -24,10 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
-from evchain.bench import BenchRow, best_time
+from evchain.bench import BenchRow, best_time, cut_every
 from evchain.core.filter import Context
 from evchain.core.packets import EventPacket
-from evchain.testing.contract import recut
+from evchain.testing.contract import run_filter
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "dvsflow16"
 THESIS = dict(search_distance=2, window_us=80_000, refractory_us=150_000, eig_threshold=1.0)
@@ -42,20 +42,13 @@ VARIANTS = {
 _CACHE: dict[float, tuple] = {}
 
 
-def _packets(ev: EventPacket, packet_us: int = 10_000) -> list[EventPacket]:
-    return recut([ev], list(range(ev.t_start + packet_us, ev.t_end, packet_us)))
-
-
-def _run(packets, params):
+def _lk(params, packets):
+    """One pass of ``LKFlow`` with ``params`` over ``packets`` (process, then flush)."""
     from evchain.filters.lk_flow import LKFlow
 
     f = LKFlow()
     f.setup(LKFlow.Params(**params), Context(geometry=packets[0].geometry))
-    outs = [f.process(p) for p in packets]
-    last = f.flush()
-    if last is not None:
-        outs.append(last)
-    return outs
+    return run_filter(f, packets, check=False)
 
 
 def _kernel_rate(ev: EventPacket, params, repeat: int) -> float:
@@ -78,13 +71,13 @@ def _kernel_rate(ev: EventPacket, params, repeat: int) -> float:
 def _rows(workload, ev, truth, error_key, quick, extra) -> list[BenchRow]:
     from evchain.filters.flow_scorer import score_flow
 
-    packets = _packets(ev)
+    packets = cut_every(ev)
     n_in = len(ev)
     rows = []
     for variant, vparams in VARIANTS.items():
         prm = {**THESIS, **vparams}
-        outs = _run(packets, prm)
-        secs = best_time(lambda prm=prm: _run(packets, prm), repeat=1 if quick else 3)
+        outs = _lk(prm, packets)
+        secs = best_time(lambda prm=prm: _lk(prm, packets), repeat=1 if quick else 3)
         x, y, t, vx, vy = (np.concatenate([getattr(o, c) for o in outs])
                            for c in ("x", "y", "t", "vx", "vy"))
         m = score_flow(x, y, t, vx, vy, truth)

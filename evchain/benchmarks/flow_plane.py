@@ -19,12 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
-from evchain.bench import BenchRow, best_time
+from evchain.bench import BenchRow, best_cpu_time, best_time, cut_every
 from evchain.core.filter import Context
 from evchain.core.packets import EventPacket, Geometry
 from evchain.filters.flow_scorer import score_flow
 from evchain.filters.plane_flow import PlaneFlow
-from evchain.testing.contract import recut
+from evchain.testing.contract import run_filter
 from evchain.testing.synthetic import ExpansionTruth
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "dvsflow16"
@@ -204,31 +204,11 @@ def _reference_stream(seconds: float):
                        "python -m evchain.benchmarks.flow_plane SECONDS)")
 
 
-def _packets(ev: EventPacket, packet_us: int = 10_000) -> list[EventPacket]:
-    cuts = list(range(ev.t_start + packet_us, ev.t_end, packet_us))
-    return recut([ev], cuts)
-
-
-def _run(packets, params):
+def _plane(params, packets):
+    """One pass of ``PlaneFlow`` with ``params`` over ``packets`` (process, then flush)."""
     f = PlaneFlow()
     f.setup(PlaneFlow.Params(**params), Context(geometry=packets[0].geometry))
-    outs = [f.process(p) for p in packets]
-    last = f.flush()
-    if last is not None:
-        outs.append(last)
-    return outs
-
-
-def _cpu_best(fn, repeat: int) -> float:
-    """Best CPU time of this thread over ``repeat`` calls after a warm-up: the machine is
-    shared, and wall time counts the other processes' turns."""
-    fn()
-    best = float("inf")
-    for _ in range(repeat):
-        t0 = time.thread_time()
-        fn()
-        best = min(best, time.thread_time() - t0)
-    return max(best, 1e-9)
+    return run_filter(f, packets, check=False)
 
 
 def _rows(workload: str, packets, truth, params, error_key: str, quick: bool,
@@ -237,9 +217,10 @@ def _rows(workload: str, packets, truth, params, error_key: str, quick: bool,
     rows = []
     for variant in VARIANTS:
         prm = {**params, "variant": variant}
-        outs = _run(packets, prm)
-        secs = _cpu_best(lambda prm=prm: _run(packets, prm), repeat=1 if quick else 3)
-        wall = best_time(lambda prm=prm: _run(packets, prm), repeat=1)
+        outs = _plane(prm, packets)
+        secs = best_cpu_time(lambda prm=prm: _plane(prm, packets), repeat=1 if quick else 3,
+                             warmup=True, clock=time.thread_time)
+        wall = best_time(lambda prm=prm: _plane(prm, packets), repeat=1)
         x, y, t, vx, vy = (np.concatenate([getattr(o, c) for o in outs])
                            for c in ("x", "y", "t", "vx", "vy"))
         m = score_flow(x, y, t, vx, vy, truth)
@@ -265,14 +246,14 @@ def bench_square(quick: bool) -> list[BenchRow]:
     ev = read_aedat2(path, chip="davis240")
     truth = DVSFLOW16Truth(DATA / "gtTranslatingSquare.mat", 180, 240)
     params = dict(search_distance=2, window_us=100_000, refractory_us=0)
-    return _rows("square", _packets(ev), truth, params, "aee_pxs", quick,
+    return _rows("square", cut_every(ev), truth, params, "aee_pxs", quick,
                  {"data": "DVSFLOW16 TranslatingSquare"})
 
 
 def bench_reference(quick: bool) -> list[BenchRow]:
     seconds = 2.0 if quick else 10.0
     ev, truth, label = _reference_stream(seconds)
-    packets = _packets(ev)
+    packets = cut_every(ev)
     rows = _rows("reference", packets, truth, REFERENCE_PARAMS, "invalid_rate", quick,
                  {"scene": label})
     if not quick:  # the same without evchain's centre check: what jAER's fits give

@@ -18,25 +18,17 @@ emulator output to TTC on the reference scene.
 from __future__ import annotations
 
 import os
-import time
 from pathlib import Path
 
 import numpy as np
 
-from evchain.bench import BenchRow, best_time
+from evchain.bench import BenchRow, best_cpu_time, best_time
 from evchain.core.filter import Context
 from evchain.core.packets import EventPacket, Geometry, series_array
 from evchain.testing.synthetic import approach_flow_packets
 
 G = Geometry(320, 240, f=380.6)
 CENTRE = (159.5, 119.5)
-
-
-def _cpu_time(fn) -> float:
-    """CPU time of one call (the machine may be shared: wall time then overstates the cost)."""
-    t0 = time.process_time()
-    fn()
-    return time.process_time() - t0
 
 
 def _run(filters, packets):
@@ -66,7 +58,7 @@ def foe_map_rows(quick: bool) -> list[BenchRow]:
             series.append(f.process(p).series["foe"])
 
     t = best_time(stage, repeat=3)
-    cpu = min(_cpu_time(stage) for _ in range(2))
+    cpu = best_cpu_time(stage, repeat=2)
     s = np.concatenate(series)
     s = s[s["t"] >= 200_000]
     err = float(np.mean(np.hypot(s["x"] - CENTRE[0], s["y"] - CENTRE[1])))
@@ -101,7 +93,7 @@ def ttc_rows(quick: bool) -> list[BenchRow]:
             series.append(f.process(p).series["ttc"])
 
     t = best_time(stage, repeat=3)
-    cpu = min(_cpu_time(stage) for _ in range(2))
+    cpu = best_cpu_time(stage, repeat=2)
     s = np.concatenate(series)
     truth = 3.0 - s["t"] * 1e-6
     err = float(np.median(np.abs(s["tau_s"] - truth) / truth))
@@ -182,7 +174,7 @@ def chain_rows(flow: str, quick: bool) -> list[BenchRow]:
             f.flush()
 
     t = best_time(stage, repeat=1 if not quick else 2)
-    cpu = _cpu_time(stage)
+    cpu = best_cpu_time(stage, repeat=1)
     fs = build(True)  # once more with the scorer (not timed) for the errors
     _run(fs, events)
     for f in fs:
