@@ -115,10 +115,14 @@ def check_filter(cls: type[Filter], params: dict[str, Any], packets: list[Packet
                  truth=None, out_dir: Path | None = None, seed: int = 0) -> dict[str, np.ndarray]:
     """Check the contract for ``cls`` with ``params`` on the stream ``packets``.
 
-    Returns the reference output (columns and series, concatenated) for further checks.
+    Files go to ``out_dir``, else to a temporary directory removed afterwards. Returns the
+    reference output (columns and series, concatenated) for further checks.
     """
     if not packets:
         raise ValueError("check_filter needs a non-empty input stream")
+    if out_dir is None:
+        with tempfile.TemporaryDirectory(prefix="evchain-contract-") as tmp:
+            return check_filter(cls, params, packets, truth, Path(tmp), seed)
     geometry = packets[0].geometry
     p = cls.Params(**params)
 
@@ -159,8 +163,14 @@ def _mutated(before: list[dict[str, np.ndarray]], packets: list[Packet]) -> list
 
 def check_source(cls: type[Filter], params: dict[str, Any], out_dir: Path | None = None,
                  seed: int = 0, max_packets: int = 50) -> list[Packet]:
-    """A source yields valid packets with consecutive slices, and the same after reset()."""
-    context = Context(seed=seed, out_dir=Path(out_dir or tempfile.mkdtemp()), debug=True)
+    """A source yields valid packets with consecutive slices, and the same after reset().
+
+    Files go to ``out_dir``, else to a temporary directory removed afterwards.
+    """
+    if out_dir is None:
+        with tempfile.TemporaryDirectory(prefix="evchain-contract-") as tmp:
+            return check_source(cls, params, Path(tmp), seed, max_packets)
+    context = Context(seed=seed, out_dir=Path(out_dir), debug=True)
     f = cls()
     f.id = cls.name
     f.setup(cls.Params(**params), context)
