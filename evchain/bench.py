@@ -9,12 +9,15 @@ time, so 1.0 means "as fast as touching the data once".
 
 from __future__ import annotations
 
+import itertools
 import json
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from evchain.io.atomic import atomic_write_text
 
@@ -70,6 +73,56 @@ def cut_every(packet, packet_us: int = 10_000) -> list:
     from evchain.testing.contract import recut
 
     return recut([packet], list(range(packet.t_start + packet_us, packet.t_end, packet_us)))
+
+
+def _file_parts(path: Path) -> list[Path]:
+    """The files of ``path``: itself, or every file below it (formats stored as folders)."""
+    return sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
+
+
+def source_row(workload: str, cls, params: dict[str, Any], path: Path, events: int,
+               extra: dict[str, Any] | None = None) -> BenchRow:
+    """Row for a file source reading ``path`` (``events`` events) in events/s; ``limit_ratio``
+    = time of ``np.fromfile`` over the same bytes / time of the source."""
+    from evchain.testing.contract import run_source
+
+    def stage():
+        got = sum(len(p) for p in run_source(cls, params, path.parent)[0])
+        if got != events:
+            raise RuntimeError(f"{cls.name} read {got} events from {path}, expected {events}")
+
+    t_stage = best_time(stage)
+    cpu = best_cpu_time(stage)
+    parts = _file_parts(path)
+    t_limit = best_time(lambda: [np.fromfile(f, np.uint8) for f in parts])
+    return BenchRow(workload, cls.name, events / t_stage, "events/s", None, None,
+                    t_limit / t_stage, {"events": events, "cpu_time_eps": events / cpu,
+                                        "bytes": sum(f.stat().st_size for f in parts),
+                                        **(extra or {})})
+
+
+def sink_row(workload: str, cls, packets: list, out_dir: Path, name: str,
+             params: dict[str, Any] | None = None,
+             extra: dict[str, Any] | None = None) -> BenchRow:
+    """Row for a file writer writing ``packets`` to ``out_dir/name`` in events/s (``name`` has a
+    ``{}`` for the run number: replacing a big file costs more than writing a new one);
+    ``limit_ratio`` = time of ``ndarray.tofile`` of the same bytes / time of the writer."""
+    from evchain.testing.contract import run_sink
+
+    runs = itertools.count()
+    events = sum(len(p) for p in packets)
+
+    def stage():
+        run_sink(cls, {"path": name.format(next(runs)), **(params or {})}, packets, out_dir)
+
+    t_stage = best_time(stage, repeat=2)
+    cpu = best_cpu_time(stage, repeat=1)
+    data = np.concatenate([np.fromfile(f, np.uint8)
+                           for f in _file_parts(out_dir / name.format(0))])
+    t_limit = best_time(lambda: data.tofile(out_dir / f"plain{next(runs)}.bin"))
+    return BenchRow(workload, cls.name, events / t_stage, "events/s", None, None,
+                    t_limit / t_stage, {"events": events, "cpu_time_eps": events / cpu,
+                                        **(extra or {})})
 
 
 def select(workloads: dict[str, Callable], prefixes: list[str]) -> dict[str, Callable]:

@@ -12,53 +12,26 @@ from pathlib import Path
 
 import numpy as np
 
-from evchain.bench import BenchRow, best_cpu_time, best_time
-from evchain.core.filter import Context
+from evchain.bench import BenchRow, best_time, cut_every, sink_row, source_row
 from evchain.core.packets import EventPacket, Geometry
 from evchain.io.aedat2 import AedatSource, AedatWriter, write_aedat2
+from evchain.testing.synthetic import random_events
 
 RATE_EPS = 1_000_000  # events per second of stream time: 10 ms packets of 10 000 events
 
 
-def _events(n: int) -> EventPacket:
-    rng = np.random.default_rng(0)
-    g = Geometry(240, 180)
-    t = np.sort(rng.integers(0, n * 1_000_000 // RATE_EPS, n)).astype(np.int64)
-    return EventPacket(geometry=g, t_start=0, t_end=int(t[-1]) + 1,
-                       x=rng.integers(0, g.width, n).astype(np.uint16),
-                       y=rng.integers(0, g.height, n).astype(np.uint16),
-                       t=t, p=rng.choice(np.array([-1, 1], np.int8), n))
-
-
-def _split(ev: EventPacket, packet_us: int) -> list[EventPacket]:
-    edges = np.arange(ev.t_start, ev.t_end + packet_us, packet_us)
-    idx = np.searchsorted(ev.t, edges)
-    return [ev.replace(t_start=int(a), t_end=int(b), **{c: getattr(ev, c)[i:j]
-                                                        for c in EventPacket.columns})
-            for a, b, i, j in zip(edges[:-1], edges[1:], idx[:-1], idx[1:], strict=True)]
+def _packets(n: int) -> list[EventPacket]:
+    """``n`` random events on a DAVIS240, 10 ms packets of 10 000 events."""
+    return cut_every(random_events(n, Geometry(240, 180), t_end=n * 1_000_000 // RATE_EPS))
 
 
 def aedat_read(quick: bool) -> list[BenchRow]:
     n = 1_000_000 if quick else 10_000_000
     with tempfile.TemporaryDirectory() as tmp:
-        path = write_aedat2(Path(tmp) / "bench.aedat", _events(n))
-
-        def stage():
-            src = AedatSource()
-            src.id = "aedat"
-            src.setup(AedatSource.Params(path=str(path)), Context(out_dir=Path(tmp)))
-            count = sum(len(p) for p in src.packets())
-            src.close()
-            assert count == n
-
-        t_stage = best_time(stage, repeat=3)
-        t_limit = best_time(lambda: np.fromfile(path, dtype=np.uint8), repeat=3)
+        path = write_aedat2(Path(tmp) / "bench.aedat", EventPacket.concat(_packets(n)))
         t_kernel = best_time(_decode_only(path), repeat=3)
-        cpu = best_cpu_time(stage)
-    return [BenchRow("aedat-read", "aedat", n / t_stage, "events/s", None, None,
-                     t_limit / t_stage, {"events": n, "packet_us": 10_000,
-                                         "decode_kernel_eps": n / t_kernel,
-                                         "cpu_time_eps": n / cpu})]
+        return [source_row("aedat-read", AedatSource, {"path": str(path)}, path, n,
+                           {"packet_us": 10_000, "decode_kernel_eps": n / t_kernel})]
 
 
 def _decode_only(path: Path):
@@ -78,31 +51,13 @@ def aedat_write(quick: bool) -> list[BenchRow]:
     from evchain.kernels.aedat2 import encode
 
     n = 1_000_000 if quick else 10_000_000
-    packets = _split(_events(n), 10_000)
-    with tempfile.TemporaryDirectory() as tmp:
-        ctx = Context(out_dir=Path(tmp), geometry=packets[0].geometry)
-        runs = iter(range(1000))
-
-        def stage():  # a new name each time: replacing a big file costs more than writing it
-            w = AedatWriter()
-            w.id = "aedat_writer"
-            w.setup(AedatWriter.Params(path=f"bench{next(runs)}.aedat"), ctx)
-            for p in packets:
-                w.process(p)
-            w.flush()
-            w.close()
-
-        t_stage = best_time(stage, repeat=3)
-        cpu = best_cpu_time(stage)
-        data = np.fromfile(Path(tmp) / "bench0.aedat", dtype=np.uint8)
-        t_limit = best_time(lambda: data.tofile(Path(tmp) / f"plain{next(runs)}.bin"), repeat=3)
+    packets = _packets(n)
     ev = EventPacket.concat(packets)
     words = np.empty(2 * n, "<u4")
     t_kernel = best_time(lambda: encode(ev.x, ev.y, ev.t, ev.p, 0, 240, 180, 0, words), repeat=3)
-    return [BenchRow("aedat-write", "aedat_writer", n / t_stage, "events/s", None, None,
-                     t_limit / t_stage, {"events": n, "packet_us": 10_000,
-                                         "encode_kernel_eps": n / t_kernel,
-                                         "cpu_time_eps": n / cpu})]
+    with tempfile.TemporaryDirectory() as tmp:
+        return [sink_row("aedat-write", AedatWriter, packets, Path(tmp), "bench{}.aedat",
+                         extra={"packet_us": 10_000, "encode_kernel_eps": n / t_kernel})]
 
 
 WORKLOADS = {"aedat-read": aedat_read, "aedat-write": aedat_write}

@@ -103,6 +103,33 @@ def run_filter(f: Filter, packets: list[Packet], check: bool = True) -> list[Pac
     return outs
 
 
+def run_source(cls: type[Filter], params: dict[str, Any],
+               out_dir: Path) -> tuple[list[Packet], Context]:
+    """Every packet of the source ``cls`` with ``params``, and the context it filled in."""
+    src = cls()
+    src.id = cls.name
+    context = Context(out_dir=Path(out_dir))
+    src.setup(cls.Params(**params), context)
+    try:
+        return list(src.packets()), context
+    finally:
+        src.close()
+
+
+def run_sink(cls: type[Filter], params: dict[str, Any], packets: list[Packet],
+             out_dir: Path) -> Context:
+    """``packets`` through the filter ``cls`` (typically a writer), flushed and closed."""
+    f = cls()
+    f.id = cls.name
+    context = Context(out_dir=Path(out_dir), geometry=packets[0].geometry)
+    f.setup(cls.Params(**params), context)
+    try:
+        run_filter(f, packets, check=False)
+    finally:
+        f.close()
+    return context
+
+
 def flatten(outs: list[Packet]) -> dict[str, np.ndarray]:
     """Output columns and series of a list of packets, concatenated."""
     whole = type(outs[0]).concat(outs)

@@ -11,20 +11,21 @@ from pydantic import ValidationError
 
 pytest.importorskip("dv_processing")
 
+from evchain.bench import cut_every  # noqa: E402
 from evchain.core.filter import Context  # noqa: E402
 from evchain.core.packets import EventPacket, Geometry  # noqa: E402
 from evchain.errors import ConfigError, DataError  # noqa: E402
 from evchain.testing.synthetic import random_events  # noqa: E402
 
 from evchain_dv.aedat4 import Aedat4Source, Aedat4Writer  # noqa: E402
-from evchain_dv.bench import split, write_file  # noqa: E402
+from evchain_dv.bench import write_file  # noqa: E402
 
 GEOMETRY = Geometry(346, 260)
 
 
 def stream(n=3000, seed=1, t_start=1_700_000_000_000_000, span=300_000) -> list[EventPacket]:
     ev = random_events(n, GEOMETRY, t_start=t_start, t_end=t_start + span, seed=seed)
-    return split(ev, 7_000)
+    return cut_every(ev, 7_000)
 
 
 def read_all(path: Path, **params) -> tuple[EventPacket, Context]:

@@ -10,6 +10,7 @@ import pytest
 
 pytest.importorskip("rosbags")
 
+from evchain.bench import cut_every  # noqa: E402
 from evchain.core.filter import Context  # noqa: E402
 from evchain.core.packets import EventPacket, Geometry  # noqa: E402
 from evchain.errors import DataError  # noqa: E402
@@ -17,7 +18,7 @@ from evchain.testing.synthetic import random_events  # noqa: E402
 from rosbags.highlevel import AnyReader  # noqa: E402
 from rosbags.rosbag1 import Writer as Writer1  # noqa: E402
 
-from evchain_ros.bench import split, write_bag  # noqa: E402
+from evchain_ros.bench import write_bag  # noqa: E402
 from evchain_ros.msgs import EVENT_ARRAY, ROS1_MD5, decode, encode, typestore  # noqa: E402
 from evchain_ros.rosbag import RosbagSource, RosbagWriter  # noqa: E402
 
@@ -27,7 +28,7 @@ T0 = 1_700_000_000_123_456  # absolute µs, as ROS (Unix) time gives them
 
 def stream(n=3000, seed=1, t_start=T0, span=300_000) -> list[EventPacket]:
     ev = random_events(n, GEOMETRY, t_start=t_start, t_end=t_start + span, seed=seed)
-    return split(ev, 7_000)
+    return cut_every(ev, 7_000)
 
 
 def read_all(path: Path, **params) -> tuple[EventPacket | None, Context]:
