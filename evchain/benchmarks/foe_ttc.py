@@ -137,7 +137,8 @@ def reference_events(start_m: float, duration_s: float):
         np.savez(tmp, x=ev.x, y=ev.y, t=ev.t, p=ev.p,
                  bounds=np.array([e.t_start for e in evs] + [evs[-1].t_end]))
         os.replace(tmp, path)
-    d = np.load(path)
+    with np.load(path) as f:  # every d[key] of an NpzFile reads the array again: once each
+        d = {k: f[k] for k in ("x", "y", "t", "p", "bounds")}
     b = d["bounds"]
     idx = np.searchsorted(d["t"], b)
     packets = [EventPacket(geometry=ctx.geometry, t_start=int(b0), t_end=int(b1),
