@@ -18,6 +18,7 @@ stage by ``id`` or ``use`` name; the value is parsed as YAML (``0.3``, ``true``,
 
 from __future__ import annotations
 
+import difflib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -135,7 +136,14 @@ def pipeline_from_text(text: str, file: str, registry: Registry,
     raw_stages, name, seed, description = _check_shape(data, node, file)
     for item in overrides:
         seed = _apply_override(item, raw_stages, seed)
-    stages = [_validate_stage(raw, registry) for raw in raw_stages]
+    stages, problems = [], []
+    for raw in raw_stages:
+        try:
+            stages.append(_validate_stage(raw, registry))
+        except ConfigError as exc:
+            problems.append(exc)
+    if problems:
+        raise _all_of(problems)
     _check_ids(stages)
     check_wiring(stages)
     return PipelineSpec(name=name or Path(file).stem, seed=seed, stages=stages, file=file,
@@ -191,6 +199,19 @@ def _stage_label(raw: _RawStage) -> str:
     return str(raw.values.get("id", raw.values["use"]))
 
 
+def _all_of(problems: list[ConfigError]) -> ConfigError:
+    """One error for several: the first one's place, every message on its own line."""
+    problems = [q for p in problems for q in getattr(p, "problems", [p])]
+    if len(problems) == 1:
+        return problems[0]
+    first = problems[0]
+    listing = "\n".join(f"  {p}" for p in problems)
+    exc = ConfigError(f"{len(problems)} problems:\n{listing}")
+    exc.file, exc.line, exc.column, exc.key = first.file, first.line, first.column, first.key
+    exc.problems = problems
+    return exc
+
+
 def _validate_stage(raw: _RawStage, registry: Registry) -> StageSpec:
     values = dict(raw.values)
     use = values.pop("use")
@@ -202,22 +223,26 @@ def _validate_stage(raw: _RawStage, registry: Registry) -> StageSpec:
     try:
         params = cls.Params(**values)
     except ValidationError as exc:
-        err = exc.errors()[0]
-        key = str(err["loc"][0]) if err["loc"] else None
-        mark = raw.key_marks.get(key, raw.mark) if key else raw.mark
-        if err["type"] == "extra_forbidden":
-            allowed = sorted(cls.Params.model_fields)
-            import difflib
-
-            close = difflib.get_close_matches(key, allowed, n=1)
-            hint = f"did you mean {close[0]!r}? " if close else ""
-            msg = (f"unknown parameter of filter {use!r}; {hint}allowed: "
-                   f"{', '.join(allowed) or '(none)'}")
-        else:
-            msg = f"{err['msg']} (got {err.get('input')!r}); {_describe_field(cls, key)}"
-        _raise(msg, mark, f"{stage_id}.{key}" if key else stage_id)
+        raise _all_of([_param_error(err, cls, raw, use, stage_id)
+                       for err in exc.errors()]) from None
     return StageSpec(use=use, id=stage_id, cls=cls, params=params, mark=raw.mark,
                      key_marks=raw.key_marks)
+
+
+def _param_error(err, cls: type[Filter], raw: _RawStage, use: str, stage_id: str) -> ConfigError:
+    """A pydantic error of one parameter as a ConfigError at the parameter's line."""
+    key = str(err["loc"][0]) if err["loc"] else None
+    mark = raw.key_marks.get(key, raw.mark) if key else raw.mark
+    if err["type"] == "extra_forbidden":
+        allowed = sorted(cls.Params.model_fields)
+        close = difflib.get_close_matches(key, allowed, n=1)
+        hint = f"did you mean {close[0]!r}? " if close else ""
+        msg = (f"unknown parameter of filter {use!r}; {hint}allowed: "
+               f"{', '.join(allowed) or '(none)'}")
+    else:
+        msg = f"{err['msg']} (got {err.get('input')!r}); {_describe_field(cls, key)}"
+    return ConfigError(msg, file=mark.file, line=mark.line, column=mark.column,
+                       key=f"{stage_id}.{key}" if key else stage_id)
 
 
 def _describe_field(cls: type[Filter], key: str | None) -> str:

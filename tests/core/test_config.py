@@ -51,6 +51,19 @@ def test_config_errors_name_place(registry, text, pattern):
         load(text, registry)
 
 
+def test_every_problem_reported_at_once(registry):
+    """A user fixes all mistakes in one round: each is listed with its own line."""
+    text = ("chain:\n  - use: toy_source\n    packets: many\n    pakets: 2\n"
+            "  - use: toy_flow\n    gain: 20\n  - use: toy_flwo\n")
+    with pytest.raises(ConfigError) as info:
+        load(text, registry)
+    lines = str(info.value).splitlines()
+    assert lines[0] == "4 problems:"
+    assert [line.split(": ")[0].strip() for line in lines[1:]] == [
+        "p.yaml:3:14", "p.yaml:4:13", "p.yaml:6:11", "p.yaml:7:10"]
+    assert (info.value.line, info.value.key) == (3, "toy_source.packets")
+
+
 @pytest.mark.parametrize("text, pattern", [
     ("chain:\n  - use: toy_flow\n", "first stage must be a source"),
     ("chain:\n  - use: toy_frames\n  - use: toy_flow\n",
