@@ -21,7 +21,10 @@ def write_file(path, ev, width=64, height=48, p01=False):
         g["p"] = (ev.p > 0).astype(np.uint8) if p01 else ev.p
 
 
-def test_round_trip_through_pipeline(tmp_path):
+@pytest.mark.parametrize("block_events", [1 << 20, 1000])
+def test_round_trip_through_pipeline(tmp_path, monkeypatch, block_events):
+    """Identical events back, whether the writer appends once at the end or in many blocks."""
+    monkeypatch.setattr("evchain.io.hdf5.WRITE_BLOCK_EVENTS", block_events)
     ev = random_events(5000, t_start=0, t_end=95_000, seed=1)
     write_file(tmp_path / "in.h5", ev, p01=True)
     registry = make_registry()
