@@ -14,7 +14,7 @@ from evchain.errors import DataError
 TTC_DTYPE = [("t", "i8"), ("tau_s", "f8"), ("cluster", "i8"), ("x", "f8"), ("y", "f8"),
              ("support", "f8")]
 CLUSTER_DTYPE = [("t", "i8"), ("cluster", "i8"), ("x", "f8"), ("y", "f8"), ("size_px", "f8"),
-                 ("tau_s", "f8"), ("support", "f8")]
+                 ("tau_s", "f8"), ("support", "f8"), ("ground_ratio", "f8")]
 
 
 class Ttc(Filter):
@@ -28,8 +28,11 @@ class Ttc(Filter):
     ``estimate_every_us`` each cluster's tau is the median of its recent samples, each moved
     forward at -1 s/s, fused with its prediction by a gated 1-D Kalman filter; a cluster whose
     tau reaches 0 is dropped. Series ``ttc`` (t, tau_s, cluster, x, y, support) holds the
-    obstacle's cluster per tick (``select``: nearest the FOE, or most active), series
-    ``ttc_clusters`` (t, cluster, x, y, size_px, tau_s, support) every live cluster.
+    obstacle's cluster per tick (``select``: nearest the FOE, or most active; optionally only
+    clusters off the road plane (``ground_test``: tau * dy below the road's constant
+    K = f h / V, estimated from the events), inside a driving corridor, held between ticks),
+    series ``ttc_clusters`` (t, cluster, x, y, size_px, tau_s, support, ground_ratio) every
+    live cluster (ground_ratio = median(tau * dy) / K, -1 while K is unknown).
     """
 
     name = "ttc"
@@ -72,6 +75,24 @@ class Ttc(Filter):
                                            "to be selected as the obstacle (nearest_foe)")
         gate_sigma: float = Field(3.0, gt=0, description="reject medians farther than this "
                                   "many sigma from the prediction (3 in a row restart)")
+        ground_test: bool = Field(False, description="only clusters nearer than the road at "
+                                  "their rows can be the obstacle: median(tau * dy) / K < 1 - "
+                                  "ground_tolerance, K = f h / V estimated from the events")
+        ground_tolerance: float = Field(0.2, gt=0, lt=1, description="relative band around K "
+                                        "that counts as road (K itself follows events within "
+                                        "twice this band)")
+        ground_rate: float = Field(0.002, gt=0, lt=1, description="relative step of the "
+                                   "running median K per event")
+        ground_min_events: int = Field(500, ge=1, description="events K must have seen before "
+                                       "the ground test applies")
+        corridor_half_width_h: float | None = Field(
+            None, gt=0, description="only clusters reaching into the driving corridor can be "
+            "the obstacle: lateral gap to the FOE <= this times the rows from the FOE to the "
+            "cluster's lower edge (the corridor's half-width in camera heights); None: off")
+        select_hold: bool = Field(False, description="keep the previous tick's obstacle "
+                                  "while it still qualifies (no jumping between clusters)")
+        ground_fallback: bool = Field(True, description="with no cluster off the road, select "
+                                      "among all clusters (else: no obstacle at that tick)")
 
     def reset(self) -> None:
         p = self.params
@@ -82,7 +103,9 @@ class Ttc(Filter):
         self._I = np.zeros((k, 4), np.int64)
         self._ST = np.zeros((k, b), np.float64)
         self._SV = np.zeros((k, b), np.float64)
-        self._G = np.zeros(5, np.float64)
+        self._SK = np.zeros((k, b), np.float64)
+        self._G = np.zeros(8, np.float64)
+        self._G[7] = -1.0
         self._started = False
 
     def process(self, packet: FlowPacket) -> FlowPacket:
@@ -106,21 +129,23 @@ class Ttc(Filter):
         o = [np.empty(n_ticks, np.int64), np.empty(n_ticks), np.empty(n_ticks, np.int64),
              np.empty(n_ticks), np.empty(n_ticks), np.empty(n_ticks)]
         m = n_ticks * p.max_clusters
-        c = [np.empty(m, np.int64), np.empty(m, np.int64)] + [np.empty(m) for _ in range(5)]
+        c = [np.empty(m, np.int64), np.empty(m, np.int64)] + [np.empty(m) for _ in range(6)]
         no, nc = kern.process(
             packet.x, packet.y, packet.t, packet.vx, packet.vy, ft, fx, fy, self._C, self._I,
-            self._ST, self._SV, self._G, int(packet.t_end), period,
+            self._ST, self._SV, self._SK, self._G, int(packet.t_end), period,
             p.select == "nearest_foe", p.select_min_activity,
             p.region_b_half_width_px, p.region_b_min_below_px, p.min_distance_px,
             p.min_speed_pxs, p.max_speed_pxs, p.min_tau_s, p.max_tau_s, p.cluster_size_px,
             p.max_cluster_size_px, p.join_margin_px, p.activity_tau_ms * 1000.0,
             p.min_activity, p.sample_max_age_ms * 1000.0, p.min_samples, p.rel_noise_floor,
-            p.process_noise_s2_per_s, p.gate_sigma, *o, *c)
+            p.process_noise_s2_per_s, p.gate_sigma, p.ground_test, p.ground_tolerance,
+            p.ground_rate, float(p.ground_min_events), p.ground_fallback,
+            p.corridor_half_width_h or 0.0, p.select_hold, *o, *c)
         ttc = np.zeros(no, TTC_DTYPE)
         for name, col in zip(("t", "tau_s", "cluster", "x", "y", "support"), o, strict=True):
             ttc[name] = col[:no]
         cl = np.zeros(nc, CLUSTER_DTYPE)
-        for name, col in zip(("t", "cluster", "x", "y", "size_px", "tau_s", "support"), c,
-                             strict=True):
+        for name, col in zip(("t", "cluster", "x", "y", "size_px", "tau_s", "support",
+                              "ground_ratio"), c, strict=True):
             cl[name] = col[:nc]
         return packet.with_series("ttc", ttc).with_series("ttc_clusters", cl)

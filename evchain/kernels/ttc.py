@@ -3,7 +3,17 @@
 Cluster state ``C[k, :]`` (float64) has the columns below; ``I[k, :]`` (int64) holds id, active
 flag, number of stored samples and ring position. Each cluster keeps a ring of its recent samples
 ``(t_us, tau_s)`` in ``ST[k]``, ``SV[k]``. ``G`` (float64) holds the carried state: ``[0]`` 1 when
-an FOE is known, ``[1]`` foe x, ``[2]`` foe y, ``[3]`` next tick (µs), ``[4]`` next cluster id.
+an FOE is known, ``[1]`` foe x, ``[2]`` foe y, ``[3]`` next tick (µs), ``[4]`` next cluster id,
+``[5]`` the ground constant K (s px), ``[6]`` the number of events K has seen, ``[7]`` the id of
+the last selected cluster (-1: none).
+
+Ground plane: for a road point at ``dy = y - y_foe`` rows below the FOE, seen by a level camera
+at height h moving at speed V, ``tau * dy = f h / V =: K`` (the same for all road points). An
+obstacle point at height hp above the road has ``tau * dy = K (1 - hp / h) < K``: it is nearer
+than the road at its row. K is estimated from the events themselves (a running median of
+``tau * dy``, first over all region-B events, then only over those within ``2 ground_tol`` of
+it: the road's mode); each cluster keeps ``tau * dy`` of its samples in ``SK[k]`` and its
+ratio ``rho = median(tau * dy) / K`` in ``C[k, RHO]``.
 """
 
 from __future__ import annotations
@@ -13,8 +23,8 @@ import math
 import numpy as np
 from numba import njit
 
-CX, CY, SIZE, ACT, TLAST, TAU, VAR, HAS, MISS, TTAU = range(10)
-NCOL = 10
+CX, CY, SIZE, ACT, TLAST, TAU, VAR, HAS, MISS, TTAU, RHO = range(11)
+NCOL = 11
 ID, ACTIVE, NS, POS = range(4)
 
 
@@ -46,11 +56,48 @@ def event_tau(px, py, vx, vy, fx, fy, half_width, min_below, min_dist, min_speed
 
 
 @njit(cache=True)
-def _cluster_estimate(C, I, ST, SV, k, T, max_age_us, min_samples, rel_floor, q_s2_per_s,
-                      gate, buf):
-    """Update cluster k's fused tau at tick time T from its recent samples (median, MAD)."""
+def ground_update(G, kg, tol, rate, min_events):
+    """One step of the ground constant K = G[5] (events seen: G[6]) with kg = tau * dy > 0.
+
+    A running median by multiplicative sign steps of size max(rate, 1 / (n + 2)): over every
+    event until ``min_events`` have been seen, then only over events within ``2 tol`` of K
+    (the road's mode, so that a large obstacle close by does not drag K down).
+    """
+    if not (kg > 0.0):
+        return
+    nk = G[6]
+    if nk == 0.0:
+        G[5] = kg
+        G[6] = 1.0
+    elif nk < min_events or abs(kg - G[5]) <= 2.0 * tol * G[5]:
+        step = max(rate, 1.0 / (nk + 2.0))
+        if kg > G[5]:
+            G[5] *= 1.0 + step
+        elif kg < G[5]:
+            G[5] *= 1.0 - step
+        G[6] = nk + 1.0
+
+
+@njit(cache=True)
+def _median_sorted(vals, n):
+    return vals[n // 2] if n % 2 == 1 else 0.5 * (vals[n // 2 - 1] + vals[n // 2])
+
+
+@njit(cache=True)
+def _cluster_estimate(C, I, ST, SV, SK, k, T, max_age_us, min_samples, rel_floor, q_s2_per_s,
+                      gate, k_ground, buf):
+    """Update cluster k's fused tau at tick time T from its recent samples (median, MAD), and
+    its ground ratio rho (median of tau * dy over K; 0 while K is unknown)."""
     n = 0
     nb = I[k, NS]
+    for j in range(nb):
+        age = T - ST[k, j]
+        if age <= max_age_us:
+            buf[n] = SK[k, j]
+            n += 1
+    if n >= min_samples and k_ground > 0.0:
+        C[k, RHO] = _median_sorted(np.sort(buf[:n]), n) / k_ground
+    n = 0
     for j in range(nb):
         age = T - ST[k, j]
         if age <= max_age_us:
@@ -65,14 +112,11 @@ def _cluster_estimate(C, I, ST, SV, k, T, max_age_us, min_samples, rel_floor, q_
     if n < min_samples:
         return
     vals = np.sort(buf[:n])
-    if n % 2 == 1:
-        med = vals[n // 2]
-    else:
-        med = 0.5 * (vals[n // 2 - 1] + vals[n // 2])
+    med = _median_sorted(vals, n)
     for j in range(n):
         vals[j] = abs(vals[j] - med)
     vals = np.sort(vals)
-    mad = vals[n // 2] if n % 2 == 1 else 0.5 * (vals[n // 2 - 1] + vals[n // 2])
+    mad = _median_sorted(vals, n)
     sigma = 1.4826 * mad / math.sqrt(n) + rel_floor * abs(med)
     r = sigma * sigma + 1e-12
     if not has:
@@ -98,16 +142,26 @@ def _cluster_estimate(C, I, ST, SV, k, T, max_age_us, min_samples, rel_floor, q_
 
 
 @njit(cache=True)
-def process(x, y, t, vx, vy, ft, fx, fy, C, I, ST, SV, G, t_end, period_us, select_nearest,
-            select_min_activity,
+def process(x, y, t, vx, vy, ft, fx, fy, C, I, ST, SV, SK, G, t_end, period_us,
+            select_nearest, select_min_activity,
             half_width, min_below, min_dist, min_speed, max_speed, min_tau, max_tau,
             init_size, max_size, join_margin, act_tau_us, min_activity,
             max_age_us, min_samples, rel_floor, q_s2_per_s, gate,
-            o_t, o_tau, o_id, o_x, o_y, o_sup, c_t, c_id, c_x, c_y, c_size, c_tau, c_sup):
+            ground_test, ground_tol, ground_rate, ground_min_events, ground_fallback,
+            corridor, hold,
+            o_t, o_tau, o_id, o_x, o_y, o_sup, c_t, c_id, c_x, c_y, c_size, c_tau, c_sup,
+            c_rho):
     """Process one packet; returns (number of obstacle rows, number of cluster rows).
 
     Ticks at multiples of ``period_us`` see the events before them (cut-independent). FOE
-    entries ``ft`` apply to the events at or after their time.
+    entries ``ft`` apply to the events at or after their time. With ``ground_test`` only
+    clusters with rho < 1 - ground_tol (nearer than the road at their rows) can be the
+    obstacle once K has seen ``ground_min_events`` events; when there is none,
+    ``ground_fallback`` selects among all clusters, else the tick has no obstacle row. With
+    ``corridor`` > 0 a cluster must reach into the driving corridor: the lateral gap between
+    its square and the FOE at most ``corridor`` times the depth of its lower edge below the FOE
+    (a road point at (dx, dy) below the FOE lies dx / dy camera heights to the side). With
+    ``hold`` the previous tick's obstacle (id in ``G[7]``) stays selected while it qualifies.
     """
     K = C.shape[0]
     B = ST.shape[1]
@@ -122,9 +176,15 @@ def process(x, y, t, vx, vy, ft, fx, fy, C, I, ST, SV, G, t_end, period_us, sele
         t_next = t[i] if i < n else t_end
         while G[3] < t_next or (i < n and G[3] == t_next):
             T = G[3]
+            k_ground = G[5] if G[6] >= ground_min_events else 0.0
+            use_ground = ground_test and k_ground > 0.0
             best = -1
             best_sup = 0.0
             best_d = 1e300
+            held = -1
+            fb = -1  # the fallback choice (ground test ignored)
+            fb_sup = 0.0
+            fb_d = 1e300
             for k in range(K):
                 if I[k, ACTIVE] == 0:
                     continue
@@ -132,8 +192,8 @@ def process(x, y, t, vx, vy, ft, fx, fy, C, I, ST, SV, G, t_end, period_us, sele
                 if a < min_activity:
                     I[k, ACTIVE] = 0
                     continue
-                _cluster_estimate(C, I, ST, SV, k, T, max_age_us, min_samples, rel_floor,
-                                  q_s2_per_s, gate, buf)
+                _cluster_estimate(C, I, ST, SV, SK, k, T, max_age_us, min_samples, rel_floor,
+                                  q_s2_per_s, gate, k_ground, buf)
                 if C[k, HAS] > 0.0 and C[k, TAU] <= 0.0:  # passed or hit: drop it
                     I[k, ACTIVE] = 0
                     continue
@@ -145,21 +205,41 @@ def process(x, y, t, vx, vy, ft, fx, fy, C, I, ST, SV, G, t_end, period_us, sele
                     c_size[nc] = C[k, SIZE]
                     c_tau[nc] = C[k, TAU]
                     c_sup[nc] = a
+                    rho = C[k, RHO]
+                    c_rho[nc] = rho if (k_ground > 0.0 and rho == rho) else -1.0
                     nc += 1
+                    if select_nearest and a < select_min_activity:
+                        continue
+                    if corridor > 0.0:
+                        gap = max(0.0, abs(C[k, CX] - G[1]) - C[k, SIZE])
+                        if gap > corridor * (C[k, CY] + C[k, SIZE] - G[2]):
+                            continue  # beside the driving corridor
+                    # nearest the FOE (its square's nearest point; the first thing in the
+                    # driving corridor; ties by support), or the most active
+                    d = 0.0
                     if select_nearest:
-                        # the supported cluster nearest the FOE (its square's nearest point):
-                        # the first thing in the driving corridor; ties by support
-                        if a >= select_min_activity:
-                            ddx = max(0.0, abs(C[k, CX] - G[1]) - C[k, SIZE])
-                            ddy = max(0.0, abs(C[k, CY] - G[2]) - C[k, SIZE])
-                            d = math.sqrt(ddx * ddx + ddy * ddy)
-                            if d < best_d or (d == best_d and a > best_sup):
-                                best_d = d
-                                best_sup = a
-                                best = k
-                    elif a > best_sup:
+                        ddx = max(0.0, abs(C[k, CX] - G[1]) - C[k, SIZE])
+                        ddy = max(0.0, abs(C[k, CY] - G[2]) - C[k, SIZE])
+                        d = math.sqrt(ddx * ddx + ddy * ddy)
+                    if d < fb_d or (d == fb_d and a > fb_sup):
+                        fb_d = d
+                        fb_sup = a
+                        fb = k
+                    if use_ground and not (C[k, RHO] < 1.0 - ground_tol):
+                        continue  # lies on the road (or its rho is not known yet)
+                    if hold and I[k, ID] == G[7]:
+                        held = k
+                    if d < best_d or (d == best_d and a > best_sup):
+                        best_d = d
                         best_sup = a
                         best = k
+            if held >= 0:
+                best = held
+                best_sup = C[held, ACT] * math.exp(-(T - C[held, TLAST]) / act_tau_us)
+            if best < 0 and (ground_fallback or not use_ground):
+                best = fb
+                best_sup = fb_sup
+            G[7] = I[best, ID] if best >= 0 else -1.0
             if best >= 0 and no < o_t.shape[0]:
                 o_t[no] = T
                 o_tau[no] = C[best, TAU]
@@ -183,6 +263,10 @@ def process(x, y, t, vx, vy, ft, fx, fy, C, I, ST, SV, G, t_end, period_us, sele
             py = float(y[i])
             tau = event_tau(px, py, np.float64(vx[i]), np.float64(vy[i]), G[1], G[2], half_width,
                             min_below, min_dist, min_speed, max_speed, min_tau, max_tau)
+            kg = 0.0
+            if tau > 0.0:
+                kg = tau * (py - G[2])
+                ground_update(G, kg, ground_tol, ground_rate, ground_min_events)
             if tau > 0.0:
                 # nearest cluster (inf-norm) whose square, widened by the margin, holds p
                 kb = -1
@@ -222,6 +306,7 @@ def process(x, y, t, vx, vy, ft, fx, fy, C, I, ST, SV, G, t_end, period_us, sele
                     C[kb, TAU] = 0.0
                     C[kb, VAR] = 0.0
                     C[kb, TTAU] = ti
+                    C[kb, RHO] = math.nan
                 else:
                     a = C[kb, ACT] * math.exp(-(ti - C[kb, TLAST]) / act_tau_us) + 1.0
                     C[kb, ACT] = a
@@ -234,6 +319,7 @@ def process(x, y, t, vx, vy, ft, fx, fy, C, I, ST, SV, G, t_end, period_us, sele
                 p = I[kb, POS]
                 ST[kb, p] = ti
                 SV[kb, p] = tau
+                SK[kb, p] = kg
                 I[kb, POS] = (p + 1) % B
                 if I[kb, NS] < B:
                     I[kb, NS] += 1

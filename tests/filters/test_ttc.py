@@ -12,7 +12,7 @@ from evchain.filters.ttc import Ttc
 from evchain.testing.contract import check_filter
 from evchain.testing.synthetic import expansion_stream
 from tests.naive.foe_map import expansion_packets
-from tests.naive.ttc import event_tau_naive
+from tests.naive.ttc import event_tau_naive, ground_constant_naive
 
 G = Geometry(128, 96, f=100.0)
 FOE = (60.0, 40.0)
@@ -130,4 +130,84 @@ def test_event_tau_matches_reference():
 def test_contract():
     packets, truth = expansion_stream(foe_series=True)
     ref = check_filter(Ttc, {"estimate_every_us": 5000, "min_samples": 3}, packets, truth=truth)
+    assert len(ref["series:ttc"]) > 5
+
+
+def road_and_obstacle(tau0=3.0, k_road=40.0, duration_us=1_000_000, n_road=60_000,
+                      n_obs=15_000, n_packets=10, seed=3):
+    """Region B filled with road (tau * dy = k_road, dy = rows below the FOE) plus an obstacle
+    patch off to the side and nearer the horizon (one tau for all its points, falling 1 s/s,
+    so tau * dy < k_road: nearer than the road at its rows); full flow with 2 % noise. A road
+    point straight below the FOE is nearer the FOE than the obstacle."""
+    rng = np.random.default_rng(seed)
+    fx, fy = FOE
+    rx = np.concatenate([rng.uniform(-55, 55, n_road), rng.uniform(25, 40, n_obs)])
+    ry = np.concatenate([rng.uniform(10, 54, n_road), rng.uniform(4, 12, n_obs)])
+    t = np.concatenate([rng.integers(0, duration_us, n_road), rng.integers(0, duration_us, n_obs)])
+    road = np.arange(rx.size) < n_road
+    x, y = np.round(fx + rx), np.round(fy + ry)
+    tau = np.where(road, k_road / (y - fy), tau0 - t * 1e-6)
+    noise = 1.0 + 0.02 * rng.standard_normal((2, rx.size))
+    vx, vy = (x - fx) / tau * noise[0], (y - fy) / tau * noise[1]
+    o = np.argsort(t, kind="stable")
+    cuts = np.linspace(0, duration_us, n_packets + 1).astype(np.int64)
+    idx = np.searchsorted(t[o], cuts)
+    return [FlowPacket(geometry=G, t_start=int(cuts[k]), t_end=int(cuts[k + 1]),
+                       x=x[o][idx[k]:idx[k + 1]].astype(np.uint16),
+                       y=y[o][idx[k]:idx[k + 1]].astype(np.uint16), t=t[o][idx[k]:idx[k + 1]],
+                       p=np.ones(idx[k + 1] - idx[k], np.int8),
+                       vx=vx[o][idx[k]:idx[k + 1]].astype(np.float32),
+                       vy=vy[o][idx[k]:idx[k + 1]].astype(np.float32))
+            for k in range(n_packets)]
+
+
+@pytest.mark.parametrize("ground", [False, True])
+def test_ground_plane_test_selects_the_obstacle(ground):
+    packets = with_true_foe(road_and_obstacle())
+    f = Ttc()
+    f.setup(Ttc.Params(ground_test=ground), Context())
+    out = FlowPacket.concat([f.process(p) for p in packets])
+    s = out.series["ttc"]
+    s = s[s["t"] >= 500_000]
+    assert len(s) > 10 and np.isfinite(s["tau_s"]).all()
+    truth = 3.0 - s["t"] * 1e-6
+    rel = np.median(np.abs(s["tau_s"] - truth) / truth)
+    if ground:   # the road is recognised (K = 40 s px found) and the obstacle is selected
+        np.testing.assert_allclose(f._G[5], 40.0, rtol=0.05)
+        assert rel < 0.05, rel
+        cl = out.series["ttc_clusters"]
+        key = cl["t"] * 10_000 + cl["cluster"]
+        rho = cl["ground_ratio"][np.isin(key, s["t"] * 10_000 + s["cluster"])]
+        assert len(rho) == len(s) and ((rho >= 0) & (rho < 0.8)).all(), rho
+    else:        # the road cluster nearest the FOE wins and its tau is k_road / dy, not 3 - t
+        assert rel > 0.2, rel
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_ground_constant_matches_reference(seed):
+    from evchain.kernels.ttc import ground_update
+
+    rng = np.random.default_rng(seed)
+    kg = rng.lognormal(np.log(40.0), 0.3, 4000)
+    kg[rng.random(kg.size) < 0.3] *= 0.4          # obstacle-like events, below the road
+    kg[::97] = 0.0
+    kg[::89] = -5.0
+    kg[::101] = np.nan
+    kg[1000:1010] = 1e6                          # outliers
+    for tol, rate, min_events in ((0.2, 0.002, 500), (0.1, 0.01, 50), (0.3, 0.0005, 1)):
+        g = np.zeros(8)
+        for v in kg:
+            ground_update(g, v, tol, rate, float(min_events))
+        k, n = ground_constant_naive(kg, tol, rate, min_events)
+        np.testing.assert_allclose(g[5], k, rtol=1e-12)
+        assert g[6] == n
+        if min_events == 500:  # long ungated start: K finds the road's mode (40)
+            assert 30.0 < k < 50.0, k
+
+
+def test_ground_plane_contract():
+    packets = with_true_foe(road_and_obstacle(duration_us=300_000, n_road=12_000, n_obs=3_000,
+                                              n_packets=4))
+    ref = check_filter(Ttc, {"ground_test": True, "ground_min_events": 50, "select_hold": True,
+                             "corridor_half_width_h": 2.0}, packets)
     assert len(ref["series:ttc"]) > 5
