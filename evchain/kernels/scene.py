@@ -108,6 +108,12 @@ def road_coords(x, y, segs):
 
 
 @njit(**_J)
+def road_coords_nrc(x, y, segs):
+    """:func:`road_coords` as a plain (not inlined) call."""
+    return road_coords(x, y, segs)
+
+
+@njit(**_J)
 def path_pose(s, segs):
     """Position (x, y), heading and signed curvature of the driving line at arc length s."""
     m = segs.shape[0]
@@ -258,25 +264,47 @@ def trace(ox, oy, oz, dx, dy, dz, boxes, cand, start, stop, cand_minz):
 
 # ----------------------------------------------------------------------------- textures
 
+@njit(**_J)
+def ground_levels(fp, tex_inv, tex_off, lv_inv, lv_off, lv_mask):
+    """Mip level of each ground texture for a sample footprint fp (m): the finest level whose
+    texels are at least fp wide. Writes its inverse texel size, offset and index mask."""
+    nlev = tex_off.shape[1]
+    for q in range(tex_inv.shape[0]):
+        lv = 0
+        texel = 1.0 / tex_inv[q]
+        while lv < nlev - 1 and texel < fp:
+            lv += 1
+            texel *= 2.0
+        lv_inv[q] = tex_inv[q] * 0.5 ** lv
+        lv_off[q] = tex_off[q, lv]
+        lv_mask[q] = (np.int64(1) << (nlev - 1 - lv)) - 1
+
+
 @njit(**_I)
-def ground_albedo(x, y, fp, segs, ground):
-    """Albedo of the ground at world (x, y); fp = pixel footprint in metres."""
+def tex_lookup(tex, x, y, inv, off, mask):
+    """Nearest texel of a repeating texture level at world (x, y)."""
+    i = np.int64(math.floor(x * inv)) & mask
+    j = np.int64(math.floor(y * inv)) & mask
+    return tex[off + j * (mask + 1) + i]
+
+
+@njit(**_I)
+def ground_albedo(x, y, segs, ground, tex, lv_inv, lv_off, lv_mask):
+    """Albedo of the ground at world (x, y); the noise comes from the mip levels chosen by
+    :func:`ground_levels` for the sample footprint."""
     s, d = road_coords(x, y, segs)
     w = abs(d - ground[0])
     seed = np.int64(ground[8])
     hw = ground[1]
     lw = ground[2] * 0.5
     if w < hw:
-        a = 0.16 + 0.08 * cellnoise(x, y, 2.0, seed, fp)
-        a += 0.06 * cellnoise(x, y, 0.5, seed + 1, fp)
-        a += 0.05 * cellnoise(x, y, 0.13, seed + 2, fp)
         if w < lw:
             per = ground[6]
             if s - per * math.floor(s / per) < ground[5]:
-                a = 0.75
+                return 0.75
         if abs(w - ground[3]) < lw:
-            a = 0.75
-        return a
+            return 0.75
+        return 0.16 + tex_lookup(tex, x, y, lv_inv[0], lv_off[0], lv_mask[0])
     sw = ground[4]
     if w < hw + sw:
         if w < hw + 0.3:
@@ -289,11 +317,8 @@ def ground_albedo(x, y, fp, segs, ground):
         return 0.36 + 0.1 * (hash3(np.int64(math.floor(s / sl)),
                                    np.int64(math.floor((w - hw) / sl)), seed + 3) - 0.5)
     if ground[7] == 0.0:
-        a = 0.1 + 0.05 * cellnoise(x, y, 4.0, seed + 4, fp)
-        a += 0.04 * cellnoise(x, y, 1.0, seed + 5, fp)
-        return a + 0.03 * cellnoise(x, y, 0.25, seed + 6, fp)
-    a = 0.3 + 0.06 * cellnoise(x, y, 3.0, seed + 7, fp)
-    return a + 0.04 * cellnoise(x, y, 0.5, seed + 8, fp)
+        return 0.1 + tex_lookup(tex, x, y, lv_inv[1], lv_off[1], lv_mask[1])
+    return 0.3 + tex_lookup(tex, x, y, lv_inv[2], lv_off[2], lv_mask[2])
 
 
 @njit(**_I)
@@ -412,6 +437,31 @@ def frame_boxes(boxes, pos, rot, f, cx, cy, width, height, order, minz):
 
 
 @njit(**_I)
+def _span_corner(qx, qy, r0, r1, rr, xh0, xh1):
+    return (qx * r0 + qy * r1) / rr, qx * xh0 + qy * xh1
+
+
+@njit(**_I)
+def _span_vertex(t, u, ta, tb, lo, hi):
+    if t >= ta and t <= tb:
+        xb = u / t
+        return min(lo, xb), max(hi, xb)
+    return lo, hi
+
+
+@njit(**_I)
+def _span_edge(t0, u0, t1, u1, ta, tb, lo, hi):
+    for lv in range(2):
+        level = ta if lv == 0 else tb
+        if (t0 - level) * (t1 - level) < 0.0:
+            s = (level - t0) / (t1 - t0)
+            xb = (u0 + s * (u1 - u0)) / level
+            lo = min(lo, xb)
+            hi = max(hi, xb)
+    return lo, hi
+
+
+@njit(**_I)
 def box_span(bx0, by0, bx1, by1, ox, oy, xh0, xh1, r0, r1, ta, tb, f, cx, k, ncols):
     """Sample columns [c0, c1] of one sample row whose rays can meet a box between the ray
     parameters ta and tb (conservative, with a margin of two samples; c0 > c1: none).
@@ -424,32 +474,22 @@ def box_span(bx0, by0, bx1, by1, ox, oy, xh0, xh1, r0, r1, ta, tb, f, cx, k, nco
     rr = r0 * r0 + r1 * r1
     if rr < 1e-12 or not (ta <= tb):
         return 0, ncols - 1
+    # corners (x0, y0), (x1, y0), (x1, y1), (x0, y1): ray parameter t and lateral u = xb t
+    t0, u0 = _span_corner(bx0 - ox, by0 - oy, r0, r1, rr, xh0, xh1)
+    t1, u1 = _span_corner(bx1 - ox, by0 - oy, r0, r1, rr, xh0, xh1)
+    t2, u2 = _span_corner(bx1 - ox, by1 - oy, r0, r1, rr, xh0, xh1)
+    t3, u3 = _span_corner(bx0 - ox, by1 - oy, r0, r1, rr, xh0, xh1)
     lo = INF
     hi = -INF
-    tcs = np.empty(4)
-    ucs = np.empty(4)
-    for c in range(4):
-        qx = (bx1 if (c == 1 or c == 2) else bx0) - ox
-        qy = (by1 if c >= 2 else by0) - oy
-        t = (qx * r0 + qy * r1) / rr
-        u = qx * xh0 + qy * xh1
-        tcs[c] = t
-        ucs[c] = u
-        if t >= ta and t <= tb:
-            xb = u / t
-            lo = min(lo, xb)
-            hi = max(hi, xb)
-    for e in range(4):
-        e2 = (e + 1) % 4
-        t0 = tcs[e]
-        t1 = tcs[e2]
-        for lv in range(2):
-            level = ta if lv == 0 else tb
-            if (t0 - level) * (t1 - level) < 0.0:
-                s = (level - t0) / (t1 - t0)
-                xb = (ucs[e] + s * (ucs[e2] - ucs[e])) / level
-                lo = min(lo, xb)
-                hi = max(hi, xb)
+    lo, hi = _span_vertex(t0, u0, ta, tb, lo, hi)
+    lo, hi = _span_vertex(t1, u1, ta, tb, lo, hi)
+    lo, hi = _span_vertex(t2, u2, ta, tb, lo, hi)
+    lo, hi = _span_vertex(t3, u3, ta, tb, lo, hi)
+    # edges crossing the levels t = ta and t = tb
+    lo, hi = _span_edge(t0, u0, t1, u1, ta, tb, lo, hi)
+    lo, hi = _span_edge(t1, u1, t2, u2, ta, tb, lo, hi)
+    lo, hi = _span_edge(t2, u2, t3, u3, ta, tb, lo, hi)
+    lo, hi = _span_edge(t3, u3, t0, u0, ta, tb, lo, hi)
     if lo > hi:
         return 1, 0
     lo = max(lo, -1e6)
@@ -475,14 +515,74 @@ def sky_value(xb, yb, rot, light):
 
 
 @njit(**_J)
-def ground_pass(gx, gy, gf, gc, ng, segs, ground, light, acc):
-    """acc[gc[q]] += ground intensity at world (gx, gy)[q] with footprint gf[q], q < ng."""
+def ground_pass(gx, gy, gc, ng, segs, ground, light, tex, lv_inv, lv_off, lv_mask, acc):
+    """acc[gc[q]] += ground intensity at world (gx, gy)[q], q < ng (texture levels given).
+
+    Same values as :func:`ground_albedo`, written out with the parameters in scalars (an
+    inlined helper taking arrays costs reference counting per call)."""
     lam = light[2]
     if lam < 0.0:
         lam = 0.0
     lit = light[4] + light[3] * lam
+    off = ground[0]
+    hw = ground[1]
+    lw = ground[2] * 0.5
+    edge = ground[3]
+    sw = ground[4]
+    dash = ground[5]
+    per = ground[6]
+    seed3 = np.int64(ground[8]) + 3
+    tb_ = 1 if ground[7] == 0.0 else 2
+    base_b = 0.1 if ground[7] == 0.0 else 0.3
+    ia = lv_inv[0]
+    oa = lv_off[0]
+    ma = lv_mask[0]
+    ib = lv_inv[tb_]
+    ob = lv_off[tb_]
+    mb = lv_mask[tb_]
+    straight = segs.shape[0] == 1 and segs[0, 4] == 0.0
+    x0 = segs[0, 0]
+    y0 = segs[0, 1]
+    ch = segs[0, 8]
+    sh = segs[0, 9]
+    s0 = segs[0, 5]
+    sl = 1.2
     for q in range(ng):
-        acc[gc[q]] += ground_albedo(gx[q], gy[q], gf[q], segs, ground) * lit
+        x = gx[q]
+        y = gy[q]
+        if straight:
+            s = s0 + ((x - x0) * ch + (y - y0) * sh)
+            d = -(x - x0) * sh + (y - y0) * ch
+        else:
+            s, d = road_coords_nrc(x, y, segs)
+        w = abs(d - off)
+        if w < hw:
+            a = -1.0
+            if w < lw:
+                if s - per * math.floor(s / per) < dash:
+                    a = 0.75
+            if abs(w - edge) < lw:
+                a = 0.75
+            if a < 0.0:
+                i = np.int64(math.floor(x * ia)) & ma
+                j = np.int64(math.floor(y * ia)) & ma
+                a = 0.16 + tex[oa + j * (ma + 1) + i]
+        elif w < hw + sw:
+            if w < hw + 0.3:
+                a = 0.45
+            else:
+                u = s - sl * math.floor(s / sl)
+                v = (w - hw) - sl * math.floor((w - hw) / sl)
+                if u < 0.05 or v < 0.05:
+                    a = 0.2
+                else:
+                    a = 0.36 + 0.1 * (hash3(np.int64(math.floor(s / sl)),
+                                            np.int64(math.floor((w - hw) / sl)), seed3) - 0.5)
+        else:
+            i = np.int64(math.floor(x * ib)) & mb
+            j = np.int64(math.floor(y * ib)) & mb
+            a = base_b + tex[ob + j * (mb + 1) + i]
+        acc[gc[q]] += a * lit
 
 
 @njit(**_J)
@@ -509,25 +609,51 @@ def box_pass(bu, bz, bi, bfc, bc, nb, box_mat, box_par, light, acc):
 def row_vmax2(xbs, yb, tb, f, vc, wc):
     """Largest squared motion-field magnitude (px/s)^2 over the samples (xbs[c], yb) of a row
     with depths tb[c]."""
+    v0 = vc[0]
+    v1 = vc[1]
+    v2 = vc[2]
+    w0 = wc[0]
+    w1 = wc[1]
+    w2 = wc[2]
     m = 0.0
     for c in range(xbs.shape[0]):
-        fu, fv = flow_at(xbs[c], yb, 1.0 / tb[c], f, vc, wc)
-        m2 = fu * fu + fv * fv
+        xb = xbs[c]
+        rho = 1.0 / tb[c]
+        u = (-v0 + xb * v2) * rho + w0 * xb * yb - w1 * (1.0 + xb * xb) + w2 * yb
+        v = (-v1 + yb * v2) * rho + w0 * (1.0 + yb * yb) - w1 * xb * yb - w2 * xb
+        m2 = u * u + v * v
         if m2 > m:
             m = m2
-    return m
+    return m * f * f
+
+
+@njit(**_J)
+def row_work(n):
+    """Scratch arrays of one sample row of n samples: float64 [7, n], int64 [5, n] and the
+    per-block depth bound of blocks of 16 samples."""
+    return np.empty((7, n)), np.empty((5, n), np.int64), np.empty(n // 16 + 1)
+
+
+@njit(**_J)
+def level_work(ntex):
+    """Per-row texture level scratch: inverse texel sizes, offsets, masks."""
+    return np.empty(ntex), np.empty(ntex, np.int64), np.empty(ntex, np.int64)
 
 
 @njit(**_J)
 def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground, light,
-               vis, minz, xbs, out):
+               tex, tex_inv, tex_off, vis, minz, xbs, pcol, fw, iw, bmax, lv_inv, lv_off,
+               lv_mask, acc, out):
     """Render image row j into out[j]; return the row's largest squared image speed.
 
     Per sample row: the ground hit is one division (no roll: every ray of a row has the same
     world dz); each visible box gets its exact z-slab for the row and the span of sample columns
     it can cover (:func:`box_span`); boxes are visited nearest-first and only the samples of
     their span whose current hit is farther than the box's nearest corner get the exact slab
-    test. The result equals testing every box for every sample."""
+    test (blocks of 16 samples whose farthest current hit is nearer are skipped whole). The
+    result equals testing every box for every sample.
+
+    pcol: pixel column of every sample; fw, iw, bmax: scratch (:func:`row_work`); acc: [W]."""
     w = out.shape[1]
     n = w * k
     inv_k2 = 1.0 / (k * k)
@@ -538,26 +664,29 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
     oz = pos[2]
     vmax2 = 0.0
     nvis = vis.shape[0]
-    acc = np.zeros(w)
-    tb = np.empty(n)
-    kd = np.empty(n, np.int64)
-    hid = np.empty(n, np.int64)
-    fc = np.empty(n, np.int64)
-    dxs = np.empty(n)
-    dys = np.empty(n)
-    ixs = np.empty(n)
-    iys = np.empty(n)
-    gx = np.empty(n)
-    gy = np.empty(n)
-    gf = np.empty(n)
-    gc = np.empty(n, np.int64)
-    bx = np.empty(n)
-    bz = np.empty(n)
-    bi = np.empty(n, np.int64)
-    bfc = np.empty(n, np.int64)
-    bc = np.empty(n, np.int64)
+    nblk = (n + 15) // 16
+    for i in range(w):
+        acc[i] = 0.0
+    tb = fw[0]
+    dxs = fw[1]
+    dys = fw[2]
+    ixs = fw[3]
+    iys = fw[4]
+    gx = fw[5]
+    gy = fw[6]
+    bx = fw[5]      # ground and box samples are gathered in turn into the same scratch
+    bz = fw[6]
+    kd = iw[0]
+    hid = iw[1]
+    fc = iw[2]
+    gc = iw[3]
+    bc = iw[3]
+    bfc = iw[4]
+    bi = hid
     xh0 = rot[0, 0]
     xh1 = rot[1, 0]
+    sky0 = light[5]
+    sky1 = light[6]
     for b in range(k):
         yb = (j + (b + 0.5) / k - 0.5 - cy) * inv_f
         r0 = rot[0, 1] * yb + rot[0, 2]
@@ -574,12 +703,14 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
             hid[c] = -1
             fc[c] = -1
             xb = xbs[c]
-            dx = rot[0, 0] * xb + rot[0, 1] * yb + rot[0, 2]
-            dy = rot[1, 0] * xb + rot[1, 1] * yb + rot[1, 2]
+            dx = xh0 * xb + r0
+            dy = xh1 * xb + r1
             dxs[c] = dx
             dys[c] = dy
             ixs[c] = 1.0 / dx
             iys[c] = 1.0 / dy
+        for q in range(nblk):
+            bmax[q] = tg
         iz = 1.0 / dz
         for q in range(nvis):
             bq = vis[q]
@@ -604,64 +735,83 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
             ex1 = boxes[bq, 3] - ox
             ey0 = boxes[bq, 1] - oy
             ey1 = boxes[bq, 4] - oy
-            for c in range(c0, c1 + 1):
-                if mz >= tb[c]:
+            for blk in range(c0 >> 4, (c1 >> 4) + 1 if c1 >= c0 else c0 >> 4):
+                if mz >= bmax[blk]:
                     continue
-                dx = dxs[c]
-                dy = dys[c]
-                ix = ixs[c]
-                iy = iys[c]
-                u1 = ex0 * ix
-                u2 = ex1 * ix
-                txn = min(u1, u2)
-                txf = max(u1, u2)
-                u1 = ey0 * iy
-                u2 = ey1 * iy
-                tyn = min(u1, u2)
-                tyf = max(u1, u2)
-                tn = max(txn, max(tyn, tzn))
-                tf = min(txf, min(tyf, tzf))
-                if tn <= tf and tn > 0.0 and tn < tb[c]:
-                    tb[c] = tn
-                    kd[c] = 2
-                    hid[c] = bq
-                    if txn >= tyn and txn >= tzn:
-                        fc[c] = 0 if dx > 0 else 1
-                    elif tyn >= tzn:
-                        fc[c] = 2 if dy > 0 else 3
-                    else:
-                        fc[c] = 4 if dz > 0 else 5
-        # shading in separate simple passes (one huge inlined loop body compiles to slower
-        # code): sky here, ground and box samples gathered and shaded by their own kernels
-        ng = 0
-        nb = 0
-        for c in range(n):
-            t = tb[c]
-            kc = kd[c]
-            if kc == 0:
-                acc[c // k] += sky_value(xbs[c], yb, rot, light)
-                continue
-            dx = dxs[c]
-            dy = dys[c]
-            if kc == 1:
-                gx[ng] = ox + t * dx
-                gy[ng] = oy + t * dy
-                gf[ng] = t * fscale * (dx * dx + dy * dy + dz * dz) / (-dz)
-                gc[ng] = c // k
-                ng += 1
-            else:
-                fa = fc[c]
-                bx[nb] = oy + t * dy if fa // 2 == 0 else ox + t * dx
-                bz[nb] = oz + t * dz
-                bi[nb] = hid[c]
-                bfc[nb] = fa
-                bc[nb] = c // k
-                nb += 1
-        ground_pass(gx, gy, gf, gc, ng, segs, ground, light, acc)
-        box_pass(bx, bz, bi, bfc, bc, nb, box_mat, box_par, light, acc)
+                lo = max(c0, blk << 4)
+                hi = min(c1 + 1, (blk + 1) << 4)
+                hit = False
+                for c in range(lo, hi):
+                    if mz >= tb[c]:
+                        continue
+                    ix = ixs[c]
+                    iy = iys[c]
+                    u1 = ex0 * ix
+                    u2 = ex1 * ix
+                    txn = min(u1, u2)
+                    txf = max(u1, u2)
+                    u1 = ey0 * iy
+                    u2 = ey1 * iy
+                    tyn = min(u1, u2)
+                    tyf = max(u1, u2)
+                    tn = max(txn, max(tyn, tzn))
+                    tf = min(txf, min(tyf, tzf))
+                    if tn <= tf and tn > 0.0 and tn < tb[c]:
+                        tb[c] = tn
+                        kd[c] = 2
+                        hid[c] = bq
+                        hit = True
+                        if txn >= tyn and txn >= tzn:
+                            fc[c] = 0 if dxs[c] > 0 else 1
+                        elif tyn >= tzn:
+                            fc[c] = 2 if dys[c] > 0 else 3
+                        else:
+                            fc[c] = 4 if dz > 0 else 5
+                if hit:
+                    m = 0.0
+                    for c in range(blk << 4, min(n, (blk + 1) << 4)):
+                        if tb[c] > m:
+                            m = tb[c]
+                    bmax[blk] = m
         m2 = row_vmax2(xbs, yb, tb, f, vc, wc)
         if m2 > vmax2:
             vmax2 = m2
+        # shading in separate simple passes (one huge inlined loop body compiles to slower
+        # code): sky here, ground and box samples gathered and shaded by their own kernels
+        if kind0 == 1:      # texture levels for the row's largest ground footprint
+            d2 = max(dxs[0] ** 2 + dys[0] ** 2, dxs[n - 1] ** 2 + dys[n - 1] ** 2) + dz * dz
+            ground_levels(tg * fscale * d2 / (-dz), tex_inv, tex_off, lv_inv, lv_off, lv_mask)
+        ng = 0
+        for c in range(n):
+            kc = kd[c]
+            if kc == 0:
+                xb = xbs[c]
+                ddx = xh0 * xb + r0
+                ddy = xh1 * xb + r1
+                e = dz / math.sqrt(ddx * ddx + ddy * ddy + dz * dz)
+                if e < 0.0:
+                    e = 0.0
+                acc[pcol[c]] += sky0 + (sky1 - sky0) * e      # as sky_value
+            elif kc == 1:
+                dx = dxs[c]
+                dy = dys[c]
+                gx[ng] = ox + tg * dx
+                gy[ng] = oy + tg * dy
+                gc[ng] = pcol[c]
+                ng += 1
+        ground_pass(gx, gy, gc, ng, segs, ground, light, tex, lv_inv, lv_off, lv_mask, acc)
+        nb = 0
+        for c in range(n):
+            if kd[c] == 2:
+                t = tb[c]
+                fa = fc[c]
+                bx[nb] = oy + t * dys[c] if fa < 2 else ox + t * dxs[c]
+                bz[nb] = oz + t * dz
+                bi[nb] = hid[c]
+                bfc[nb] = fa
+                bc[nb] = pcol[c]
+                nb += 1
+        box_pass(bx, bz, bi, bfc, bc, nb, box_mat, box_par, light, acc)
     for i in range(w):
         out[j, i] = acc[i] * inv_k2
     return vmax2
@@ -678,16 +828,31 @@ def sample_columns(w, k, cx, f):
 
 
 @njit(**_J)
+def pixel_columns(w, k):
+    """Pixel column of every sample column."""
+    pcol = np.empty(w * k, np.int64)
+    for c in range(w * k):
+        pcol[c] = c // k
+    return pcol
+
+
+@njit(**_J)
 def render(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground, light,
-           vis, minz, out):
+           tex, tex_inv, tex_off, vis, minz, out):
     """Render one frame into out [H, W] (float32, linear intensity, k x k supersampling
     averaged) and return the maximum motion-field magnitude (px/s) over all samples.
     vis: visible boxes nearest first, minz their depth bounds (:func:`frame_boxes`)."""
-    xbs = sample_columns(out.shape[1], k, cx, f)
+    w = out.shape[1]
+    xbs = sample_columns(w, k, cx, f)
+    pcol = pixel_columns(w, k)
+    fw, iw, bmax = row_work(w * k)
+    lv_inv, lv_off, lv_mask = level_work(tex_inv.shape[0])
+    acc = np.empty(w)
     vmax2 = 0.0
     for j in range(out.shape[0]):
         m2 = render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
-                        ground, light, vis, minz, xbs, out)
+                        ground, light, tex, tex_inv, tex_off, vis, minz, xbs, pcol, fw, iw, bmax,
+                        lv_inv, lv_off, lv_mask, acc, out)
         if m2 > vmax2:
             vmax2 = m2
     return math.sqrt(vmax2)
@@ -695,14 +860,22 @@ def render(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground
 
 @njit(cache=True, error_model="numpy", parallel=True)
 def render_parallel(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground,
-                    light, vis, minz, out):
-    """:func:`render` with the rows shared among numba's threads (same result)."""
+                    light, tex, tex_inv, tex_off, vis, minz, out, nchunks):
+    """:func:`render` with the rows shared among numba's threads in nchunks interleaved
+    chunks (same result)."""
     h = out.shape[0]
-    xbs = sample_columns(out.shape[1], k, cx, f)
+    w = out.shape[1]
+    xbs = sample_columns(w, k, cx, f)
+    pcol = pixel_columns(w, k)
     rows = np.zeros(h)
-    for j in prange(h):
-        rows[j] = render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
-                             ground, light, vis, minz, xbs, out)
+    for ch in prange(nchunks):
+        fw, iw, bmax = row_work(w * k)
+        lv_inv, lv_off, lv_mask = level_work(tex_inv.shape[0])
+        acc = np.empty(w)
+        for j in range(ch, h, nchunks):
+            rows[j] = render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par,
+                                 segs, ground, light, tex, tex_inv, tex_off, vis, minz, xbs, pcol,
+                                 fw, iw, bmax, lv_inv, lv_off, lv_mask, acc, out)
     return math.sqrt(rows.max())
 
 

@@ -13,6 +13,7 @@ import numpy as np
 from evchain.sim.camera import Camera
 from evchain.sim.config import SceneConfig, make_config
 from evchain.sim.scenarios import build_world
+from evchain.sim.world import ground_textures
 
 
 class Scene:
@@ -27,6 +28,7 @@ class Scene:
         self.segs = self.world.segs
         self.ground = self.world.ground
         self.light = self.world.light
+        self.tex, self.tex_inv, self.tex_off = ground_textures(int(self.ground[8]))
         self.traj = np.array([
             cfg.start_m, cfg.speed_mps, cfg.camera_height_m,
             math.radians(cfg.pitch_amplitude_deg), cfg.pitch_frequency_hz,
@@ -76,16 +78,19 @@ class Scene:
             raise RuntimeError("scene camera must not roll")
         nvis = frame_boxes(self.boxes, self._pos, self._rot, cam.f, cam.cx, cam.cy, cam.width,
                            cam.height, self._order, self._minz)
-        kernel = render
-        if self.threads != 1:
+        args = (self._pos, self._rot, self._vc, self._wc, cam.f, cam.cx, cam.cy,
+                cam.supersample, self.boxes, self.box_mat, self.box_par, self.segs,
+                self.ground, self.light, self.tex, self.tex_inv, self.tex_off,
+                self._order[:nvis], self._minz, out)
+        if self.threads == 1:
+            vmax = render(*args)
+        else:
             import numba
 
             most = numba.config.NUMBA_NUM_THREADS
-            numba.set_num_threads(min(self.threads, most) if self.threads else most)
-            kernel = render_parallel
-        vmax = kernel(self._pos, self._rot, self._vc, self._wc, cam.f, cam.cx, cam.cy,
-                      cam.supersample, self.boxes, self.box_mat, self.box_par, self.segs,
-                      self.ground, self.light, self._order[:nvis], self._minz, out)
+            nt = min(self.threads, most) if self.threads else most
+            numba.set_num_threads(nt)
+            vmax = render_parallel(*args, 4 * nt)
         return out, float(vmax)
 
     def world_to_camera(self, points: np.ndarray, t_s: float) -> np.ndarray:

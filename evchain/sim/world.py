@@ -55,3 +55,54 @@ def make_light(azimuth_deg: float, elevation_deg: float, sun: float = 0.9, ambie
     az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
     return np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el),
                      sun, ambient, sky_horizon, sky_zenith], np.float64)
+
+
+# ----------------------------------------------------------------------------- ground textures
+
+#: side of every ground texture (texels, a power of two; the textures repeat with this period)
+TEX_N = 512
+#: mip levels per texture: TEX_N, TEX_N / 2, ..., 1 texels
+TEX_LEVELS = 10
+#: ground noise textures: (texel size m, ((cell size in texels, amplitude, seed offset), ...))
+#: 0 asphalt (2 m, 0.5 m, 0.125 m cells), 1 grass (4 m, 1 m, 0.25 m), 2 paving (4 m, 0.5 m)
+GROUND_TEXTURES = (
+    (1.0 / 16.0, ((32, 0.08, 0), (8, 0.06, 1), (2, 0.05, 2))),
+    (1.0 / 8.0, ((32, 0.05, 4), (8, 0.04, 5), (2, 0.03, 6))),
+    (1.0 / 8.0, ((32, 0.06, 7), (4, 0.04, 8))),
+)
+
+
+def hash3_np(i, j, s) -> np.ndarray:
+    """numpy twin of :func:`evchain.kernels.scene.hash3` (integers to [0, 1))."""
+    i, j, s = (np.asarray(v, np.int64) for v in (i, j, s))
+    h = ((i * 374761393) ^ (j * 668265263) ^ (s * 1442695041)) & 0xFFFFFFFF
+    h = ((h ^ (h >> 13)) * 1274126177) & 0xFFFFFFFF
+    h = h ^ (h >> 16)
+    return (h & 0xFFFFFF) / 16777216.0
+
+
+def ground_textures(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pre-filtered (mip-mapped) ground noise textures.
+
+    Level 0 of texture k holds, at texel (i, j) (world x = i * texel, y = j * texel, repeating
+    every TEX_N texels), the sum of zero-mean value-noise octaves amplitude * (hash(cell) - 0.5)
+    with square cells of the given size; level l + 1 is the 2x2 mean of level l. Returns
+    (texels float32, flat: texture k level l row j column i at offsets[k, l] + j * n_l + i with
+    n_l = TEX_N >> l; inverse texel sizes [3] of level 0 in 1/m; offsets [3, TEX_LEVELS] int64).
+    """
+    levels, offsets, inv = [], np.zeros((len(GROUND_TEXTURES), TEX_LEVELS), np.int64), []
+    pos = 0
+    jj, ii = np.mgrid[0:TEX_N, 0:TEX_N]
+    for k, (texel, octaves) in enumerate(GROUND_TEXTURES):
+        img = np.zeros((TEX_N, TEX_N))
+        for cell, amp, off in octaves:
+            img += amp * (hash3_np(ii // cell, jj // cell, seed + off) - 0.5)
+        inv.append(1.0 / texel)
+        for lv in range(TEX_LEVELS):
+            offsets[k, lv] = pos
+            levels.append(img.astype(np.float32).ravel())
+            pos += img.size
+            n = img.shape[0] // 2
+            if n:
+                img = img.reshape(n, 2, n, 2).mean(axis=(1, 3))
+    return np.concatenate(levels), np.array(inv), offsets

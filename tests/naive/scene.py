@@ -50,14 +50,34 @@ def road_coords(x, y, segs):
     return best_s, best_d
 
 
-def ground_albedo(x, y, fp, segs, g):
+def tex_level(fp, texel0, nlev):
+    """Finest mip level whose texels (texel0 * 2**level) are at least fp wide."""
+    fp = np.asarray(fp, float)
+    lv = np.zeros(fp.shape, np.int64)
+    for lvl in range(nlev - 1):
+        lv += texel0 * 2.0 ** lvl < fp
+    return lv
+
+
+def tex_sample(x, y, fp, k, tex, tex_inv, tex_off):
+    """Nearest texel of texture k at world (x, y), at the level chosen for footprint fp."""
+    nlev = tex_off.shape[1]
+    lv = tex_level(fp, 1.0 / tex_inv[k], nlev)
+    inv = tex_inv[k] * 0.5 ** lv
+    n = np.int64(1) << (nlev - 1 - lv)
+    with np.errstate(invalid="ignore"):
+        i = np.nan_to_num(np.floor(x * inv)).astype(np.int64) % n
+        j = np.nan_to_num(np.floor(y * inv)).astype(np.int64) % n
+    return tex[tex_off[k, lv] + j * n + i].astype(np.float64)
+
+
+def ground_albedo(x, y, fp, segs, g, tex, tex_inv, tex_off):
+    """Ground albedo; noise from the mip-mapped textures at the level chosen for fp."""
     s, d = road_coords(x, y, segs)
     w = np.abs(d - g[0])
     seed = int(g[8])
     hw, lw, sw = g[1], g[2] / 2, g[4]
-    asphalt = (0.16 + 0.08 * cellnoise(x, y, 2.0, seed, fp)
-               + 0.06 * cellnoise(x, y, 0.5, seed + 1, fp)
-               + 0.05 * cellnoise(x, y, 0.13, seed + 2, fp))
+    asphalt = 0.16 + tex_sample(x, y, fp, 0, tex, tex_inv, tex_off)
     dashed = (w < lw) & ((s % g[6]) < g[5])
     asphalt = np.where(dashed | (np.abs(w - g[3]) < lw), 0.75, asphalt)
     sl = 1.2
@@ -67,12 +87,9 @@ def ground_albedo(x, y, fp, segs, g):
                                np.floor((w - hw) / sl).astype(np.int64), seed + 3) - 0.5)
     side = np.where(w < hw + 0.3, 0.45, np.where((u < 0.05) | (v < 0.05), 0.2, slab))
     if g[7] == 0:
-        beyond = (0.1 + 0.05 * cellnoise(x, y, 4.0, seed + 4, fp)
-                  + 0.04 * cellnoise(x, y, 1.0, seed + 5, fp)
-                  + 0.03 * cellnoise(x, y, 0.25, seed + 6, fp))
+        beyond = 0.1 + tex_sample(x, y, fp, 1, tex, tex_inv, tex_off)
     else:
-        beyond = (0.3 + 0.06 * cellnoise(x, y, 3.0, seed + 7, fp)
-                  + 0.04 * cellnoise(x, y, 0.5, seed + 8, fp))
+        beyond = 0.3 + tex_sample(x, y, fp, 2, tex, tex_inv, tex_off)
     return np.where(w < hw, asphalt, np.where(w < hw + sw, side, beyond))
 
 
@@ -167,14 +184,16 @@ def trace(o, d, boxes):
     return best, kind, idx, face
 
 
-def shade(t, kind, idx, face, o, d, f_k, boxes, mats, pars, segs, ground, light):
+def shade(t, kind, idx, face, o, d, fp, scene):
+    """Intensity of every ray; fp: ground footprint of each ray's sample row."""
+    boxes, mats, pars = scene.boxes, scene.box_mat, scene.box_par
+    light = scene.light
     n = np.linalg.norm(d, axis=1)
     sky = light[5] + (light[6] - light[5]) * np.maximum(d[:, 2] / n, 0)
     tt = np.where(np.isfinite(t), t, 0.0)
     p = o + tt[:, None] * d
-    with np.errstate(divide="ignore", invalid="ignore"):
-        fp = tt / f_k * n * n / -d[:, 2]
-    g = ground_albedo(p[:, 0], p[:, 1], fp, segs, ground) * (light[4] + light[3] * max(light[2], 0))
+    g = ground_albedo(p[:, 0], p[:, 1], fp, scene.segs, scene.ground, scene.tex, scene.tex_inv,
+                      scene.tex_off) * (light[4] + light[3] * max(light[2], 0))
     bi = np.maximum(idx, 0)
     axis = np.maximum(face, 0) // 2
     sgn = np.where(face % 2 == 1, 1.0, -1.0)
@@ -187,7 +206,9 @@ def shade(t, kind, idx, face, o, d, f_k, boxes, mats, pars, segs, ground, light)
 
 
 def render(scene, t_s):
-    """Frame [H, W] with k x k supersampling, every ray against every box."""
+    """Frame [H, W] with k x k supersampling, every ray against every box. The ground texture
+    level of a sample row follows the row's largest ground footprint: the ground depth of the
+    row times the sample spacing, stretched by the ray's grazing angle (|d|^2 / -d_z)."""
     cam = scene.camera
     k = cam.supersample
     o, rot = pose(t_s, scene.segs, scene.traj)
@@ -195,11 +216,15 @@ def render(scene, t_s):
     ys, xs = np.mgrid[0:cam.height, 0:cam.width].astype(float)
     acc = np.zeros(xs.shape)
     for b in sub:
-        for a in sub:
-            d = rays((xs + a).ravel(), (ys + b).ravel(), cam.f, cam.cx, cam.cy, rot)
+        ds = [rays((xs + a).ravel(), (ys + b).ravel(), cam.f, cam.cx, cam.cy, rot) for a in sub]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            tg = -o[2] / ds[0][:, 2]          # ground depth, the same for the whole row
+            fp_rays = [tg / (cam.f * k) * (d ** 2).sum(1) / -d[:, 2] for d in ds]
+        fp = np.max([f.reshape(xs.shape) for f in fp_rays], axis=(0, 2))       # per row
+        fp = np.repeat(fp, cam.width)
+        for d in ds:
             t, kind, idx, face = trace(o, d, scene.boxes)
-            acc += shade(t, kind, idx, face, o, d, cam.f * k, scene.boxes, scene.box_mat,
-                         scene.box_par, scene.segs, scene.ground, scene.light).reshape(xs.shape)
+            acc += shade(t, kind, idx, face, o, d, fp, scene).reshape(xs.shape)
     return acc / (k * k)
 
 

@@ -44,9 +44,41 @@ def test_road_coords_and_ground(name):
     s, d = N.road_coords(x, y, sc.segs)
     np.testing.assert_allclose(got[:, 0], s, atol=1e-9)
     np.testing.assert_allclose(got[:, 1], d, atol=1e-9)
-    fp = rng.uniform(0, 1, 400)
-    got = [K.ground_albedo(a, b, c, sc.segs, sc.ground) for a, b, c in zip(x, y, fp, strict=True)]
-    np.testing.assert_allclose(got, N.ground_albedo(x, y, fp, sc.segs, sc.ground), atol=1e-12)
+    lv_inv, lv_off, lv_mask = K.level_work(3)
+    lit = sc.light[4] + sc.light[3] * max(sc.light[2], 0.0)
+    for fp in (0.0, 0.05, 0.3, 2.0, 1e3):
+        K.ground_levels(fp, sc.tex_inv, sc.tex_off, lv_inv, lv_off, lv_mask)
+        want = N.ground_albedo(x, y, np.full(400, fp), sc.segs, sc.ground, sc.tex, sc.tex_inv,
+                               sc.tex_off)
+        got = [K.ground_albedo(a, b, sc.segs, sc.ground, sc.tex, lv_inv, lv_off, lv_mask)
+               for a, b in zip(x, y, strict=True)]
+        np.testing.assert_allclose(got, want, atol=1e-12)
+        acc = np.zeros(400)
+        K.ground_pass(x, y, np.arange(400), 400, sc.segs, sc.ground, sc.light, sc.tex, lv_inv,
+                      lv_off, lv_mask, acc)
+        np.testing.assert_allclose(acc / lit, want, atol=1e-12)
+
+
+def test_ground_textures_are_mip_mapped_noise():
+    """Level 0 is the sum of the value-noise octaves; every level is the 2x2 mean of the one
+    below; coarse levels fade to the mean (a pre-filter instead of per-sample noise)."""
+    from evchain.sim.world import GROUND_TEXTURES, TEX_LEVELS, TEX_N, ground_textures
+
+    tex, inv, off = ground_textures(11)
+    for k, (texel, octaves) in enumerate(GROUND_TEXTURES):
+        assert inv[k] == 1.0 / texel
+        jj, ii = np.mgrid[0:TEX_N, 0:TEX_N]
+        want = sum(a * (N.hash3(ii // c, jj // c, 11 + s) - 0.5) for c, a, s in octaves)
+        lv0 = tex[off[k, 0]:off[k, 0] + TEX_N * TEX_N].reshape(TEX_N, TEX_N)
+        np.testing.assert_allclose(lv0, want, atol=1e-7)
+        for lv in range(1, TEX_LEVELS):
+            n = TEX_N >> lv
+            img = tex[off[k, lv]:off[k, lv] + n * n].reshape(n, n)
+            below = tex[off[k, lv - 1]:off[k, lv - 1] + 4 * n * n].reshape(2 * n, 2 * n)
+            np.testing.assert_allclose(img, below.reshape(n, 2, n, 2).mean(axis=(1, 3)),
+                                       atol=1e-6)
+        top = tex[off[k, -1]]
+        assert abs(top) < 0.02 and lv0.std() > 5 * abs(top)
 
 
 def test_box_albedo_all_materials():
