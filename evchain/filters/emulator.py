@@ -120,6 +120,8 @@ class Emulator(Filter):
             "n_on": counts[:, 0], "n_off": counts[:, 1],
             "hi": np.zeros(npix, np.float32), "lo": np.zeros(npix, np.float32),
         }
+        self._lcache = np.zeros((npix, 4))
+        self._lcache[:, 0] = K.NO_CACHE
         st["c_on"][:] = (c_on * ron).ravel()
         st["c_off"][:] = (c_off * roff).ravel()
         first = np.ascontiguousarray(frames[0], dtype=np.float32)
@@ -217,7 +219,7 @@ class Emulator(Filter):
             self._held, frames, times, j0, j1, total, cubic, self._eps, p.tie_tolerance,
             float(p.refractory_us), cap, st["l0"], st["n_on"], st["n_off"], st["c_on"],
             st["c_off"], st["r_on"], st["r_off"], st["e_ref"], st["hi"], st["lo"],
-            st["last_t"], *nf, self._cap_hint)
+            st["last_t"], self._lcache, base, *nf, self._cap_hint)
         self._cap_hint = max(4096, int(n * 1.25))
         if err:
             self._raise_pixel(err, packet, ef - nh, ey, ex)

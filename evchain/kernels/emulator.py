@@ -27,6 +27,10 @@ ERR_NONFINITE = 1
 ERR_NEGATIVE = 2
 #: relative margin of the prefilter gates (covers float32 rounding and e_ref drift)
 GATE_MARGIN = 1e-6
+#: pixels per chunk of the candidate scan
+CHUNK = 64
+#: lcache interval index meaning "nothing cached"
+NO_CACHE = -10.0
 #: minus the smallest normal float32: the OFF gate when no OFF level is reachable
 LO_NONE = -1.1754944e-38
 
@@ -156,43 +160,40 @@ def _logi(fr, i, eps):
     return np.log(np.float64(fr[i]) + eps)
 
 
-@njit(cache=True, fastmath={"reassoc", "nsz"})
-def _chunk_hit(f1, hi, lo, c0, c1):
-    """Whether any pixel of ``c0 .. c1 - 1`` may fire or is not finite.
+@njit(cache=True)
+def _chunk_clear(f, hi, lo):
+    """Whether no pixel of a chunk (views of CHUNK pixels) may fire: lo < I < hi everywhere.
 
-    Branch-free so that it vectorises: max over the chunk of max(I - hi, lo - I) >= 0, plus a
-    sum of I that is NaN or inf when any value is. (Only reassociation is allowed: NaN and inf
-    keep their IEEE meaning.)
+    Branch-free count with a fixed trip count over views (non-negative indices), so that it
+    vectorises; NaN fails both compares, so a chunk holding one is examined (and reported).
     """
-    m = np.float32(-1.0)
-    acc = np.float32(0.0)
-    for i in range(c0, c1):
-        v = f1[i]
-        a = v - hi[i]
-        b = lo[i] - v
-        a = a if a > b else b
-        m = m if m > a else a
-        acc += v
-    return not (m < 0) or not (abs(acc) < np.inf)
+    k = 0
+    for q in range(CHUNK):
+        v = f[q]
+        k += not ((v < hi[q]) & (v > lo[q]))
+    return k == 0
 
 
 @njit(cache=True)
 def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, eps, tol,
               k_hi, k_lo, refractory_us, cap, l0, n_on, n_off, c_on, c_off, r_on, r_off, e_ref,
-              hi, lo, last_t, first, ui, utf, up_, u):
+              hi, lo, last_t, lcache, jg, first, ui, utf, up_, u):
     """Events of one frame interval for pixels ``first ..``, appended to ``ui`` (flat pixel
     index), ``utf``, ``up_`` from position ``u``. A pixel's state is committed only when all
-    its events fit, so on a full buffer the call stops before that pixel.
+    its events fit, so on a full buffer the call stops before that pixel. ``jg`` is the global
+    index of the interval (its first frame); ``lcache`` rows are (interval, L of frames
+    interval-1, interval, interval+1) of the last interval in which the pixel was examined.
 
     Returns ``(u, resume, err, err_pixel)``: ``resume`` is -1 when done, else the pixel to
     restart from after growing the buffers.
     """
     npix = hi.shape[0]
     cap_u = ui.shape[0]
-    c_start = first - (first % 64)
-    for c0 in range(c_start, npix, 64):
-        c1 = min(c0 + 64, npix)
-        if not _chunk_hit(f1, hi, lo, c0, c1):
+    c_start = first - (first % CHUNK)
+    jm = np.float64(jg - 1)
+    for c0 in range(c_start, npix, CHUNK):
+        c1 = min(c0 + CHUNK, npix)
+        if c1 - c0 == CHUNK and _chunk_clear(f1[c0:c1], hi[c0:c1], lo[c0:c1]):
             continue
         for i in range(max(c0, first), c1):
             v1 = f1[i]
@@ -202,7 +203,13 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
                 return u, -1, ERR_NONFINITE, i
             if v1 < 0:
                 return u, -1, ERR_NEGATIVE, i
-            lb = _logi(f1, i, eps)
+            # logs of this pixel from the previous interval (frames jg-1 .. jg+1 when cubic,
+            # jg-1 .. jg when linear): the same float64 values, computed once
+            cached = lcache[i, 0] == jm
+            if cached and cubic:
+                lb = lcache[i, 3]
+            else:
+                lb = _logi(f1, i, eps)
             con = c_on[i]
             coff = c_off[i]
             k_on = n_on[i]
@@ -217,7 +224,10 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
                     e_ref[i] = e
                     hi[i], lo[i] = gates(e, r_on[i], r_off[i], eps, k_hi, k_lo)
                     continue
-            la = _logi(f0, i, eps)
+            if cached:
+                la = lcache[i, 2]
+            else:
+                la = _logi(f0, i, eps)
             m0 = lb - la
             m1 = lb - la
             if cubic:
@@ -225,15 +235,24 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
                 da = sec
                 db = sec
                 if has_prev:
-                    lm = _logi(fm, i, eps)
+                    lm = lcache[i, 1] if cached else _logi(fm, i, eps)
                     if np.isfinite(lm):
                         da = slope3((la - lm) / hprev, sec, hprev, dt)
                 if has_next:
                     lp = _logi(fp, i, eps)
                     if np.isfinite(lp):
                         db = slope3(sec, (lp - lb) / hnext, dt, hnext)
+                    lcache[i, 0] = jg
+                    lcache[i, 1] = la
+                    lcache[i, 2] = lb
+                    lcache[i, 3] = lp
+                else:
+                    lcache[i, 0] = NO_CACHE
                 m0 = da * dt
                 m1 = db * dt
+            else:
+                lcache[i, 0] = jg
+                lcache[i, 2] = lb
             e = e_ref[i]
             ron = r_on[i]
             roff = r_off[i]
@@ -279,11 +298,13 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
 @njit(cache=True)
 def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractory_us,
             cap, l0, n_on, n_off, c_on, c_off, r_on, r_off, e_ref, hi, lo, last_t,
-            noise_off, noise_y, noise_x, noise_t, noise_p, cap_hint):
+            lcache, j_base, noise_off, noise_y, noise_x, noise_t, noise_p, cap_hint):
     """Emit the events of frame intervals ``j_first .. j_last - 1`` (indices into the frame list
     ``held`` + ``cur`` whose times are ``times``; interval j runs from frame j to frame j + 1).
 
-    All ``[H, W]`` state arrays are passed flattened (1-D views). ``total`` is the number of
+    All ``[H, W]`` state arrays are passed flattened (1-D views); ``lcache`` is ``[H*W, 4]``
+    float64 (log values reused between consecutive intervals; column 0 = ``NO_CACHE``
+    initially) and ``j_base`` the global index of frame 0 of ``held``. ``total`` is the number of
     frames known (look-ahead for the cubic; a missing neighbour falls back to the interval's
     secant slope). Noise events of interval ``j_first + k`` are
     ``noise_*[noise_off[k]:noise_off[k+1]]`` (times float µs). Events of each interval are
@@ -332,7 +353,7 @@ def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractor
             u, resume, err, ep = _interval(
                 f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, eps, tol,
                 k_hi, k_lo, refractory_us, cap, l0, n_on, n_off, c_on, c_off, r_on, r_off,
-                e_ref, hi, lo, last_t, resume, ui, utf, up_, u)
+                e_ref, hi, lo, last_t, lcache, j_base + j, resume, ui, utf, up_, u)
             if err != ERR_NONE:
                 return ox, oy, ot, otf, op, n, err, j + 1, ep // w, ep % w
             if resume >= 0 or u + nnoise > ui.shape[0]:
