@@ -79,8 +79,8 @@ class Ttc(Filter):
                                   "their rows can be the obstacle: median(tau * dy) / K < 1 - "
                                   "ground_tolerance, K = f h / V estimated from the events")
         ground_tolerance: float = Field(0.2, gt=0, lt=1, description="relative band around K "
-                                        "that counts as road (K itself follows events within "
-                                        "twice this band)")
+                                        "that counts as road (K itself follows the events "
+                                        "within it)")
         ground_rate: float = Field(0.002, gt=0, lt=1, description="relative step of the "
                                    "running median K per event")
         ground_min_events: int = Field(500, ge=1, description="events K must have seen before "
