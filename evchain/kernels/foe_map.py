@@ -182,7 +182,7 @@ def read_estimate(m, x0, y0, best, worst, refine_fraction):
 @njit(cache=True, error_model="numpy")
 def process(x, y, t, vx, vy, diffR, constR, diffC, constC, lo, hi, clo, chi, x0, y0, mbuf,
             fst, ist, tau_us, min_speed_pxs, cos_gate, gate_on, period_us, refine_fraction,
-            min_support, t_end, ccx, ccy, crad, out_t, out_x, out_y, out_sup, out_tot):
+            min_support, speed_w0, t_end, ccx, ccy, crad, out_t, out_x, out_y, out_sup, out_tot):
     """Vote with every flow event of a packet; read estimates at multiples of ``period_us``.
 
     A read at time T sees exactly the events with t < T. Reads happen before the first event at
@@ -239,16 +239,26 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, lo, hi, clo, chi, x0,
                 e = (ti - ist[0]) / tau_us
                 if e > RENORM_EXPONENT:
                     s = math.exp(-e)
-                    diffR *= s
-                    constR *= s
-                    diffC *= s
-                    constC *= s
+                    # element loops: array expressions here put refcount operations into
+                    # every iteration of the event loop (measured: 6x slower overall)
+                    for a in range(diffR.shape[0]):
+                        for b in range(diffR.shape[1]):
+                            diffR[a, b] *= s
+                    for a in range(constR.shape[0]):
+                        constR[a] *= s
+                    for a in range(diffC.shape[0]):
+                        for b in range(diffC.shape[1]):
+                            diffC[a, b] *= s
+                    for a in range(constC.shape[0]):
+                        constC[a] *= s
                     fst[0] *= s
                     fst[3] *= s
                     fst[4] *= s
                     ist[0] = ti
                     e = 0.0
                 w = math.exp(e)
+                if speed_w0 > 0.0:  # tight constraints (slow normal flow) weigh more
+                    w *= speed_w0 / (speed_w0 + math.sqrt(s2))
                 # vote: all of A (O(1)), none of it, or the rows (columns) the boundary crosses
                 # plus two caps. Written out here: calls passing many arrays per event cost
                 # refcount traffic that is slower than the work itself.

@@ -8,7 +8,7 @@ import pytest
 from evchain.core.filter import Context
 from evchain.core.packets import FlowPacket, Geometry
 from evchain.filters.foe_map import FoeMap
-from tests.naive.foe_map import brute_map, foe_naive, region_mask
+from tests.naive.foe_map import brute_map, cells, foe_naive, region_mask
 
 
 def random_flow(n, g, seed, hard=False, duration_us=40_000):
@@ -31,25 +31,29 @@ def random_flow(n, g, seed, hard=False, duration_us=40_000):
                       vx=vx.astype(np.float32), vy=vy.astype(np.float32))
 
 
-CASES = [
-    (Geometry(40, 30), None, 0.0, None),
-    (Geometry(40, 30), 11.0, 0.05, None),
-    (Geometry(33, 21, cx=5.0, cy=18.0), 9.5, 0.0, None),   # disc clipped by the border
-    (Geometry(40, 30), 14.0, 0.02, 70.0),                   # angular gating on
+CASES = [  # geometry, region radius, refine_fraction, max_angle_deg, other params
+    (Geometry(40, 30), None, 0.0, None, {}),
+    (Geometry(40, 30), 11.0, 0.05, None, {}),
+    (Geometry(33, 21, cx=5.0, cy=18.0), 9.5, 0.0, None, {}),   # disc clipped by the border
+    (Geometry(40, 30), 14.0, 0.02, 70.0, {}),                   # angular gating on
+    (Geometry(40, 30), 11.0, 0.05, None, {"speed_weight_pxs": 20.0}),
+    (Geometry(41, 31), None, 0.0, None, {"cell_px": 2}),         # partial last cells
+    (Geometry(33, 21, cx=5.0, cy=18.0), 9.5, 0.05, 70.0,
+     {"cell_px": 3, "speed_weight_pxs": 5.0}),
 ]
 
 
 @pytest.mark.parametrize("case", range(len(CASES)))
 @pytest.mark.parametrize("hard", [False, True])
 def test_kernel_equals_brute_force(case, hard):
-    g, radius, refine, gate = CASES[case]
+    g, radius, refine, gate, other = CASES[case]
     packet = random_flow(500, g, seed=case + 10 * hard, hard=hard)
     params = FoeMap.Params(tau_ms=15.0, region_radius_px=radius, estimate_every_us=4000,
-                           refine_fraction=refine, max_angle_deg=gate)
+                           refine_fraction=refine, max_angle_deg=gate, **other)
     f = FoeMap()
     f.setup(params, Context())
     got = f.process(packet).series["foe"]
-    ref = foe_naive(packet, 15.0, radius, 4000, refine, max_angle_deg=gate)
+    ref = foe_naive(packet, 15.0, radius, 4000, refine, max_angle_deg=gate, **other)
     assert len(got) == len(ref) > 0
     assert np.array_equal(got["t"], ref[:, 0].astype(np.int64))
     np.testing.assert_allclose(got["x"], ref[:, 1], atol=1e-6)
@@ -58,8 +62,12 @@ def test_kernel_equals_brute_force(case, hard):
     if gate is None:  # the whole map at the end of the packet, cell by cell
         vx, vy = packet.vx.astype(np.float64), packet.vy.astype(np.float64)
         accepted = vx * vx + vy * vy > 0
-        want = brute_map(packet.x, packet.y, packet.t, vx, vy, accepted, packet.t_end,
-                         15000.0, region_mask(g, radius))
+        s0 = other.get("speed_weight_pxs")
+        vote_w = None if s0 is None else s0 / (s0 + np.hypot(vx, vy))
+        gc, rc, xs, ys = cells(packet, radius, other.get("cell_px", 1))
+        want = brute_map(xs, ys, packet.t, vx, vy, accepted, packet.t_end, 15000.0,
+                         region_mask(gc, rc), vote_w)
+        g, radius = gc, rc
         m = f.map_now(packet.t_end)
         x0, y0 = f.origin
         sub = want[y0:y0 + m.shape[0], x0:x0 + m.shape[1]]
