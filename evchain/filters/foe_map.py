@@ -128,6 +128,7 @@ class FoeMap(Filter):
         self._diffC = np.zeros((ny + 1, nx), np.float64)
         self._constC = np.zeros(nx + 1, np.float64)
         self._mbuf = np.empty((ny, nx), np.float64)
+        self._rowmax = np.empty(ny, np.float64)
         if radius is None:
             self._disc = ((cg.width - 1) / 2.0, (cg.height - 1) / 2.0,
                           0.5 * math.hypot(cg.width, cg.height))
@@ -164,7 +165,7 @@ class FoeMap(Filter):
         else:
             x, y = to_cells(packet.x, p.cell_px), to_cells(packet.y, p.cell_px)
         n = k.process(x, y, packet.t, packet.vx, packet.vy, *self._maps(),
-                      self._mbuf, self._fst, self._ist, tau_us,
+                      self._mbuf, self._rowmax, self._fst, self._ist, tau_us,
                       float(p.min_speed_pxs), cos_gate, gate_on, period,
                       float(p.refine_fraction), float(p.min_support),
                       float(p.speed_weight_pxs or 0.0), int(packet.t_end), *self._disc, *cols)
@@ -184,7 +185,7 @@ class FoeMap(Filter):
         from evchain.kernels import foe_map as k
 
         out = np.empty_like(self._mbuf)
-        k.materialize(*self._maps(), self._fst[0], out)
+        k.materialize(*self._maps(), self._fst[0], out, np.empty(len(out)))
         return out * math.exp(-(t_us - int(self._ist[0])) / (self.params.tau_ms * 1000.0))
 
     @property

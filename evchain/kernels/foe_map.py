@@ -113,10 +113,11 @@ def _first_in_t(a, b, xx, px, py, vx, vy, slope):
 
 
 @njit(cache=True, error_model="numpy")
-def materialize(diffR, constR, diffC, constC, lo, hi, clo, chi, x0, y0, whole, out):
-    """The dense map (NaN outside A) into ``out[ny, nx]`` (map units, not decayed); returns its
-    (max, min) over A (-inf, inf when A is empty). One pass, row by row: the per-column prefix
-    sums advance one row at a time (entries outside a column's rows of A never matter)."""
+def materialize(diffR, constR, diffC, constC, lo, hi, clo, chi, x0, y0, whole, out, rowmax):
+    """The dense map (NaN outside A) into ``out[ny, nx]`` (map units, not decayed) and each
+    row's maximum into ``rowmax[ny]`` (-inf for a row outside A); returns the (max, min) over A
+    (-inf, inf when A is empty). One pass, row by row: the per-column prefix sums advance one
+    row at a time (entries outside a column's rows of A never matter)."""
     ny, nx = out.shape
     ccum = np.empty(nx, np.float64)
     cacc = np.zeros(nx, np.float64)
@@ -124,7 +125,6 @@ def materialize(diffR, constR, diffC, constC, lo, hi, clo, chi, x0, y0, whole, o
     for c in range(nx):
         cc += constC[c]
         ccum[c] = cc
-    out[:, :] = np.nan
     best = -np.inf
     worst = np.inf
     rc = 0.0
@@ -134,22 +134,32 @@ def materialize(diffR, constR, diffC, constC, lo, hi, clo, chi, x0, y0, whole, o
             cacc[c] += diffC[r, c]
         acc = 0.0
         base = whole + rc
-        for x in range(lo[r], hi[r] + 1):
-            c = x - x0
+        a = lo[r] - x0
+        b = hi[r] - x0
+        for c in range(0, min(a, nx)):
+            out[r, c] = np.nan
+        for c in range(max(b + 1, 0), nx):
+            out[r, c] = np.nan
+        rbest = -np.inf
+        for c in range(a, b + 1):
             acc += diffR[r, c]
             v = base + acc + ccum[c] + cacc[c]
             out[r, c] = v
-            if v > best:
-                best = v
+            if v > rbest:
+                rbest = v
             if v < worst:
                 worst = v
+        rowmax[r] = rbest
+        if rbest > best:
+            best = rbest
     return best, worst
 
 
 @njit(cache=True, error_model="numpy")
-def read_estimate(m, x0, y0, best, worst, refine_fraction):
-    """(x, y) of a dense map ``m`` (NaN outside A) with maximum ``best`` and minimum ``worst``:
-    centroid of the maximal set, refined.
+def read_estimate(m, x0, y0, best, worst, refine_fraction, lo, hi, rowmax):
+    """(x, y) of a dense map ``m`` (NaN outside A; row r holds A's columns ``lo[r]..hi[r]``,
+    its maximum is ``rowmax[r]``) with maximum ``best`` and minimum ``worst``: centroid of the
+    maximal set, refined. Rows whose maximum is below the threshold are skipped.
 
     With ``refine_fraction`` f > 0 the estimate is the centroid of the cells within
     f * (max - min) of the max, weighted by their height above that threshold; with f = 0 the
@@ -167,7 +177,9 @@ def read_estimate(m, x0, y0, best, worst, refine_fraction):
     sy = 0.0
     sw = 0.0
     for r in range(ny):
-        for c in range(nx):
+        if not rowmax[r] >= thr:
+            continue
+        for c in range(lo[r] - x0, hi[r] - x0 + 1):
             v = m[r, c]
             if v >= thr:
                 wt = v - thr if weighted else 1.0
@@ -181,7 +193,7 @@ def read_estimate(m, x0, y0, best, worst, refine_fraction):
 
 @njit(cache=True, error_model="numpy")
 def process(x, y, t, vx, vy, diffR, constR, diffC, constC, lo, hi, clo, chi, x0, y0, mbuf,
-            fst, ist, tau_us, min_speed_pxs, cos_gate, gate_on, period_us, refine_fraction,
+            rowmax, fst, ist, tau_us, min_speed_pxs, cos_gate, gate_on, period_us, refine_fraction,
             min_support, speed_w0, t_end, ccx, ccy, crad, out_t, out_x, out_y, out_sup, out_tot):
     """Vote with every flow event of a packet; read estimates at multiples of ``period_us``.
 
@@ -199,8 +211,9 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, lo, hi, clo, chi, x0,
             T = ist[1]
             if ist[3] == 1:
                 best, worst = materialize(diffR, constR, diffC, constC, lo, hi, clo, chi, x0,
-                                          y0, fst[0], mbuf)
-                ex, ey = read_estimate(mbuf, x0, y0, best, worst, refine_fraction)
+                                          y0, fst[0], mbuf, rowmax)
+                ex, ey = read_estimate(mbuf, x0, y0, best, worst, refine_fraction, lo, hi,
+                                       rowmax)
                 ist[3] = 0
                 if best > 0.0 and ex == ex:
                     fst[1] = ex
