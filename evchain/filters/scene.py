@@ -35,6 +35,7 @@ class SceneSource(Filter):
         dt_us: int | None = Field(None, ge=1, description="fixed frame interval (no adaptation)")
         max_frames_per_packet: int = Field(64, ge=1, le=100_000,
                                            description="bound on memory per packet")
+        # threads != 1 also renders packets ahead in a background thread (_render_ahead)
         threads: int = Field(1, ge=0, le=1024,
                              description="render threads (rows in parallel); 0: all cores")
 
@@ -72,6 +73,55 @@ class SceneSource(Filter):
         return int(min(max(dt, p.dt_min_us), p.dt_max_us))
 
     def packets(self) -> Iterator[FramePacket]:
+        if self.params.threads == 1:
+            yield from self._render_packets()
+        else:
+            yield from self._render_ahead()
+
+    def _render_ahead(self) -> Iterator[FramePacket]:
+        """The same packets, rendered by a background thread up to two packets ahead, so
+        that the next stages (e.g. the emulator) run while the next frames render (the render
+        kernels release the GIL). Same packets in the same order as without."""
+        import queue
+        import threading
+
+        q: queue.Queue = queue.Queue(maxsize=2)
+        stop = threading.Event()
+
+        def put(item) -> bool:
+            while not stop.is_set():
+                try:
+                    q.put(item, timeout=0.05)
+                    return True
+                except queue.Full:
+                    continue
+            return False
+
+        def work() -> None:
+            try:
+                for pkt in self._render_packets():
+                    if not put(("packet", pkt)):
+                        return
+                put(("end", None))
+            except BaseException as exc:     # handed to the consuming thread
+                put(("error", exc))
+
+        worker = threading.Thread(target=work, name="scene-render-ahead", daemon=True)
+        worker.start()
+        try:
+            while True:
+                kind, value = q.get()
+                if kind == "packet":
+                    yield value
+                elif kind == "error":
+                    raise value
+                else:
+                    return
+        finally:
+            stop.set()
+            worker.join()
+
+    def _render_packets(self) -> Iterator[FramePacket]:
         p = self.params
         geom = self.context.geometry
         end = self.duration_us

@@ -38,7 +38,7 @@ INF = np.inf
 
 # ----------------------------------------------------------------------------- hashing / noise
 
-@njit(**_J)
+@njit(**_I)
 def hash3(i, j, s):
     """Integer hash of three ints to a float in [0, 1) (32-bit mixing, no overflow)."""
     h = ((i * 374761393) ^ (j * 668265263) ^ (s * 1442695041)) & 0xFFFFFFFF
@@ -589,20 +589,21 @@ def ground_pass(gx, gy, gc, ng, segs, ground, light, tex, lv_inv, lv_off, lv_mas
 def box_pass(bu, bz, bi, bfc, bc, nb, box_mat, box_par, light, acc):
     """acc[bc[q]] += intensity of face bfc[q] of box bi[q] at face coordinate bu[q] and
     height bz[q], q < nb."""
+    lit = np.empty(6)
+    for face in range(6):
+        lam = (1.0 if (face % 2) == 1 else -1.0) * light[face // 2]
+        if lam < 0.0:
+            lam = 0.0
+        lit[face] = light[4] + light[3] * lam
     for q in range(nb):
         idx = bi[q]
         face = bfc[q]
-        axis = face // 2
-        sgn = 1.0 if (face % 2) == 1 else -1.0
-        lam = sgn * light[axis]
-        if lam < 0.0:
-            lam = 0.0
-        if axis == 2:
+        if face >= 4:
             a = 0.8 * box_par[idx, 0]
         else:
             a = box_albedo(box_mat[idx], box_par[idx, 0], box_par[idx, 1], box_par[idx, 2],
                            box_par[idx, 3], idx, bu[q], bz[q])
-        acc[bc[q]] += a * (light[4] + light[3] * lam)
+        acc[bc[q]] += a * lit[face]
 
 
 @njit(**_J)
@@ -836,7 +837,7 @@ def pixel_columns(w, k):
     return pcol
 
 
-@njit(**_J)
+@njit(cache=True, error_model="numpy", nogil=True)
 def render(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground, light,
            tex, tex_inv, tex_off, vis, minz, out):
     """Render one frame into out [H, W] (float32, linear intensity, k x k supersampling
@@ -858,7 +859,7 @@ def render(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground
     return math.sqrt(vmax2)
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@njit(cache=True, error_model="numpy", parallel=True, nogil=True)
 def render_parallel(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground,
                     light, tex, tex_inv, tex_off, vis, minz, out, nchunks):
     """:func:`render` with the rows shared among numba's threads in nchunks interleaved

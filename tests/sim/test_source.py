@@ -61,6 +61,28 @@ def test_fixed_step_and_determinism():
     np.testing.assert_array_equal(s1.render(3.0)[0], s2.render(3.0)[0])
 
 
+def test_render_ahead_thread_gives_the_same_packets():
+    """threads != 1 renders packets ahead in a background thread: same packets, same metrics;
+    a consumer that stops early stops the thread."""
+    params = dict(SMALL, packet_us=5000, max_frames_per_packet=4)
+    _, ca, a = _frames(params)
+    _, cb, b = _frames(dict(params, threads=2))
+    assert len(a) == len(b) > 3
+    for p, q in zip(a, b, strict=True):
+        assert (p.t_start, p.t_end) == (q.t_start, q.t_end)
+        np.testing.assert_array_equal(p.t, q.t)
+        np.testing.assert_array_equal(p.frames, q.frames)
+    assert ca.metrics["scene"] == cb.metrics["scene"]
+    import threading
+
+    f = SceneSource()
+    f.setup(SceneSource.Params(**dict(params, threads=2)), make_context(None))
+    gen = f.packets()
+    next(gen)
+    gen.close()
+    assert not any(t.name == "scene-render-ahead" for t in threading.enumerate())
+
+
 @pytest.mark.parametrize("values,needle", [
     (dict(fov_deg=0.0), "fov_deg"),
     (dict(fov_deg=180.0), "fov_deg"),
