@@ -307,6 +307,64 @@ def sg_gradient(wt, wv, size):
     return True, gx * 1e-6 / nx, gy * 1e-6 / ny
 
 
+#: widest window (2r+1) whose Savitzky-Golay slopes use the per-row mask table
+SG_TABLE_MAX_SIZE = 7
+#: common multiple of the pair distances 1..SG_TABLE_MAX_SIZE-1: table coefficients are integers
+SG_SCALE = 60.0
+
+
+@njit(cache=True)
+def sg_tables(size):
+    """Per-line tables of the mean pairwise slope for every validity mask of a line of ``size``.
+
+    For a line with validity bits ``m`` the sum over valid pairs a < b of (t_b - t_a) / (b - a)
+    equals sum_b coef[m, b] t_b with coef[m, b] = sum_{a<b valid} 1/(b-a) - sum_{c>b valid}
+    1/(c-b) (b valid, else 0); stored scaled by :data:`SG_SCALE` (integers, exact).
+    ``pairs[m]``: number of valid pairs. Returns (coef float64[2^size, size], pairs float64)."""
+    nm = 1 << size
+    coef = np.zeros((nm, size), np.float64)
+    pairs = np.zeros(nm, np.float64)
+    for m in range(nm):
+        c = 0
+        for b in range(size):
+            if (m >> b) & 1:
+                c += 1
+                acc = 0.0
+                for a in range(size):
+                    if a != b and (m >> a) & 1:
+                        w = SG_SCALE / abs(b - a)
+                        acc += w if a < b else -w
+                coef[m, b] = acc
+        pairs[m] = c * (c - 1) // 2
+    return coef, pairs
+
+
+@njit(cache=True)
+def sg_gradient_masks(wt, rowmask, colmask, size, coef, pairs):
+    """:func:`sg_gradient` from per-row and per-column validity masks and the tables of
+    :func:`sg_tables` (same result up to rounding: the scaled coefficients and the µs times are
+    integers, so the sums are exact)."""
+    gx = 0.0
+    gy = 0.0
+    nx = 0.0
+    ny = 0.0
+    for line in range(size):
+        m = rowmask[line]
+        if pairs[m] > 0.0:
+            nx += pairs[m]
+            base = line * size
+            for b in range(size):
+                gx += coef[m, b] * wt[base + b]
+        m = colmask[line]
+        if pairs[m] > 0.0:
+            ny += pairs[m]
+            for b in range(size):
+                gy += coef[m, b] * wt[b * size + line]
+    if nx == 0.0 or ny == 0.0:
+        return False, 0.0, 0.0
+    return True, gx * (1e-6 / SG_SCALE) / nx, gy * (1e-6 / SG_SCALE) / ny
+
+
 @njit(cache=True)
 def plane_flow_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, margin,
                       min_points, th1, th2, max_speed, max_iter, min_spread, centre_check,
@@ -329,6 +387,13 @@ def plane_flow_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, marg
     use = np.empty(cap, np.bool_)
     wt = np.empty(cap, np.float64)
     wv = np.empty(cap, np.float64)
+    rowmask = np.zeros(size, np.int64)
+    colmask = np.zeros(size, np.int64)
+    tabulated = variant == 4 and size <= SG_TABLE_MAX_SIZE
+    if tabulated:
+        coef, pairs = sg_tables(size)
+    else:
+        coef, pairs = sg_tables(1)
     g_min2 = 1.0 / (max_speed * max_speed)
     spread2 = min_spread * min_spread
     n_out = 0
@@ -353,7 +418,34 @@ def plane_flow_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, marg
         sxx = 0
         syy = 0
         sxy = 0
-        if variant == 4:  # SG: only the window's times and validity (branch-free)
+        if tabulated:  # SG: the window's times and validity masks per row and column
+            for c in range(size):
+                colmask[c] = 0
+            for dy in range(-r, r + 1):
+                yy = yi + dy
+                k0 = (dy + r) * size + r
+                rm = 0
+                for dx in range(-r, r + 1):
+                    age = ti - ts[pi, yy, xi + dx]
+                    ok = 1 if age <= window_us else 0
+                    wv[k0 + dx] = ok
+                    wt[k0 + dx] = -age * ok
+                    st -= age * ok
+                    n += ok
+                    sx += dx * ok
+                    sy += dy * ok
+                    rm |= ok << (dx + r)
+                    colmask[dx + r] |= ok << (dy + r)
+                rowmask[dy + r] = rm
+            if spread2 > 0.0:
+                for k in range(cap):
+                    if wv[k] > 0.0:
+                        dx = k % size - r
+                        dy = k // size - r
+                        sxx += dx * dx
+                        syy += dy * dy
+                        sxy += dx * dy
+        elif variant == 4:  # SG, wide window: only the window's times and validity
             for dy in range(-r, r + 1):
                 row = ts[pi, yi + dy]
                 k0 = (dy + r) * size + r
@@ -407,7 +499,10 @@ def plane_flow_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, marg
             if lam < spread2:
                 continue
         if variant == 4:
-            ok, gx, gy = sg_gradient(wt, wv, size)
+            if tabulated:
+                ok, gx, gy = sg_gradient_masks(wt, rowmask, colmask, size, coef, pairs)
+            else:
+                ok, gx, gy = sg_gradient(wt, wv, size)
             if not ok:
                 continue
             # the plane with these slopes through the points' centroid, at the event

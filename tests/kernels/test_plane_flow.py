@@ -317,3 +317,22 @@ def test_refractory_updates_memory_but_skips_flow():
     idx, _, _ = run_kernel(x, y, t, np.ones(4), 11, 11, r=1, refractory_us=500,
                            max_speed=1e6)
     assert list(idx) == [2, 3]
+
+
+@pytest.mark.parametrize("size", [3, 5, 7])
+def test_sg_mask_tables_match_pairwise_slopes(size):
+    """The tabulated Savitzky-Golay slopes equal the pairwise sums for random validity masks."""
+    from evchain.kernels.plane_flow import sg_gradient, sg_gradient_masks, sg_tables
+
+    coef, pairs = sg_tables(size)
+    rng = np.random.default_rng(size)
+    for _ in range(300):
+        wv = (rng.random(size * size) < rng.uniform(0.1, 1.0)).astype(np.float64)
+        wt = -rng.integers(0, 80_000, size * size).astype(np.float64) * wv
+        grid = wv.reshape(size, size).astype(np.int64)
+        rowmask = (grid << np.arange(size)).sum(1)
+        colmask = (grid << np.arange(size)[:, None]).sum(0)
+        ref = sg_gradient(wt, wv, size)
+        got = sg_gradient_masks(wt, rowmask, colmask, size, coef, pairs)
+        assert got[0] == ref[0]
+        np.testing.assert_allclose(got[1:], ref[1:], rtol=1e-12, atol=1e-18)
