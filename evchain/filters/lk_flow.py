@@ -103,8 +103,7 @@ class LKFlow(Filter):
         vy = np.empty(n, np.float64)
         if n:
             q = self.params
-            ring, speed = self._state
-            n_out = lk_flow_run(packet.x, packet.y, packet.t, packet.p, ring, speed,
+            n_out = lk_flow_run(packet.x, packet.y, packet.t, packet.p, *self._state,
                                 q.search_distance, q.window_us, q.refractory_us,
                                 GRADIENTS[q.gradient], q.mode == "faithful", q.eig_threshold,
                                 q.eig_ratio, q.speed_control, q.speed_control_mix,

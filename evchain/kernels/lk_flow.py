@@ -2,11 +2,16 @@
 
 One pass over a packet's events in time order. State (kept by the filter between packets):
 
-* ``ring`` int64 ``[2, depth, H, W]``: per polarity (index 0 OFF, 1 ON) the last ``depth``
-  timestamps of every pixel as planes, newest first: ``ring[k, 0]`` is the newest timestamp
-  image, ``ring[k, 1]`` the one before, ... (an insert shifts one pixel through the planes and
-  drops its oldest). Planes keep neighbourhood reads contiguous in x; most neighbours are empty
-  and need only a read of plane 0. Empty slots hold :data:`EMPTY_T`;
+* ``last`` int64 ``[2, H, W]``: per polarity (index 0 OFF, 1 ON) the newest timestamp of every
+  pixel, :data:`EMPTY_T` where none; ``second`` the same for the timestamp before it (shape
+  ``[2, 0, 0]`` when only one is kept); ``fifo`` int64 ``[2, H, W, depth - 2]`` the older ones,
+  newest first, contiguous per pixel. Most neighbours are inactive and need only a read of
+  ``last`` (contiguous in x); most active ones have one event in the window and need one read of
+  ``second``; only the rest walk their ``fifo`` (one or two cache lines). An insert shifts the
+  pixel's timestamps back and drops its oldest; a timestamp already outside the window when it
+  would be shifted can never be counted again (events come in time order), nor can anything
+  behind it, so the shift stops there: a walk stops at the first timestamp outside the window,
+  and the slot it then reads still holds one that is older still;
 * ``speed_state`` float64 ``[2]``: running mean of speeds and a flag "mean initialised".
 
 Gradient codes: 0 backward, 1 central (first order), 2 central2 (second order, 5 points),
@@ -41,10 +46,13 @@ def stencil_margin(gradient: int) -> int:
 
 
 def new_state(height: int, width: int, depth: int):
-    """Fresh state arrays (ring, speed_state)."""
-    ring = np.full((2, depth, height, width), EMPTY_T, np.int64)
+    """Fresh state arrays (last, second, fifo, speed_state) for ``depth`` timestamps per pixel
+    and polarity."""
+    last = np.full((2, height, width), EMPTY_T, np.int64)
+    second = np.full((2, height, width) if depth > 1 else (2, 0, 0), EMPTY_T, np.int64)
+    fifo = np.full((2, height, width, max(depth - 2, 0)), EMPTY_T, np.int64)
     speed_state = np.zeros(2, np.float64)
-    return ring, speed_state
+    return last, second, fifo, speed_state
 
 
 @njit(cache=True)
@@ -332,14 +340,16 @@ def _faithful(N, d, S, R, gradient, stencil_norm, sg_norm, thr):
 
 
 @njit(cache=True)
-def lk_flow_run(x, y, t, p, ring, speed_state, r, window_us, refractory_us, gradient,
+def lk_flow_run(x, y, t, p, last, second, fifo, speed_state, r, window_us, refractory_us, gradient,
                 faithful, eig_threshold, eig_ratio, speed_control, mix, max_factor,
                 max_speed_pxs, refit_tolerance, centre_check_px, out_idx, out_vx, out_vy):
     """Process events in order; write flow of emitted events into ``out_*``; return their count.
 
     ``out_*`` must have room for ``len(t)`` entries.
     """
-    _, depth, height, width = ring.shape
+    _, height, width = last.shape
+    has2 = second.shape[1] > 0
+    deep = fifo.shape[3]
     d = 1
     if gradient == CENTRAL2:
         d = 2
@@ -369,6 +379,9 @@ def lk_flow_run(x, y, t, p, ring, speed_state, r, window_us, refractory_us, grad
         stencil_norm = 12.0
     elif gradient == SAVITZKY_GOLAY:
         stencil_norm = 1.0 / r
+    # calibrated: fewest active pixels of the (2r+1)^2 neighbourhood that can give flow (two
+    # equations, three points for a plane; the centre check needs a neighbour besides the event)
+    min_active = 3 if gradient == SAVITZKY_GOLAY else 2
     n_out = 0
     for e in range(len(t)):
         xe = np.int64(x[e])
@@ -378,16 +391,22 @@ def lk_flow_run(x, y, t, p, ring, speed_state, r, window_us, refractory_us, grad
         inside = xe >= R and xe < width - R and ye >= R and ye < height - R
         if faithful and not inside:
             continue  # jAER: border events never reach the memory
-        prev = ring[k, 0, ye, xe]
-        for j in range(depth - 1, 0, -1):
-            ring[k, j, ye, xe] = ring[k, j - 1, ye, xe]
-        ring[k, 0, ye, xe] = te
+        prev = last[k, ye, xe]
+        if has2 and prev >= te - wlim:  # prev can still be counted: shift it back
+            p2 = second[k, ye, xe]
+            if deep > 0 and p2 >= te - wlim:
+                for j in range(deep - 1, 0, -1):
+                    fifo[k, ye, xe, j] = fifo[k, ye, xe, j - 1]
+                fifo[k, ye, xe, 0] = p2
+            second[k, ye, xe] = prev
+        last[k, ye, xe] = te
         if not inside:
             continue
         if te - prev < refractory_us:
             continue
         # counts (and weights) of the neighbourhood incl. the stencil margin
         tmin = te - wlim
+        active = 0
         for j in range(S):
             yy = ye - R + j
             jm = j < d or j >= S - d
@@ -395,22 +414,30 @@ def lk_flow_run(x, y, t, p, ring, speed_state, r, window_us, refractory_us, grad
                 if jm and (i < d or i >= S - d):
                     continue  # corner of the stencil margin: never read
                 xx = xe - R + i
-                n = 0
-                f = 0.0
-                ts = ring[k, 0, yy, xx]
+                ts = last[k, yy, xx]
                 if ts >= tmin:
                     n = 1
                     oldest = ts
-                    for jj in range(1, depth):
-                        ts = ring[k, jj, yy, xx]
-                        if ts < tmin:
-                            break
-                        n += 1
-                        oldest = ts
-                    f = 1.0 - (te - oldest) * w_inv
-                N[i, j] = n
-                F[i, j] = f
-                V[i, j] = 1.0 if n > 0 else 0.0
+                    if has2:
+                        ts = second[k, yy, xx]
+                        if ts >= tmin:
+                            n = 2
+                            oldest = ts
+                            for jj in range(deep):
+                                ts = fifo[k, yy, xx, jj]
+                                if ts < tmin:
+                                    break
+                                n += 1
+                                oldest = ts
+                    N[i, j] = n
+                    F[i, j] = 1.0 - (te - oldest) * w_inv
+                    V[i, j] = 1.0
+                    if i >= d and i < S - d and not jm:
+                        active += 1
+                else:
+                    N[i, j] = 0
+                    F[i, j] = 0.0
+                    V[i, j] = 0.0
         if faithful:
             vx, vy = _faithful(N, d, S, R, gradient, stencil_norm, sg_norm, eig_threshold)
             v = np.sqrt(vx * vx + vy * vy)
@@ -421,6 +448,8 @@ def lk_flow_run(x, y, t, p, ring, speed_state, r, window_us, refractory_us, grad
             if v == 0.0 or not np.isfinite(v):
                 continue
         else:
+            if active < min_active:
+                continue
             if gradient == SAVITZKY_GOLAY:
                 vx, vy, ok = _calibrated_sg(N, F, S, R, w_inv_s, refit_tolerance, GX, GY,
                                             FV, keep)

@@ -139,3 +139,14 @@ def test_state_carries_across_calls():
     idx = np.concatenate([i + o for (i, _, _), o in zip(parts, offsets, strict=True)])
     np.testing.assert_array_equal(idx, whole[0])
     np.testing.assert_array_equal(np.concatenate([v for _, v, _ in parts]), whole[1])
+
+
+@pytest.mark.parametrize("depth", [1, 2, 3])
+@pytest.mark.parametrize("mode", ["faithful", "calibrated"])
+def test_shallow_memory_matches_naive(depth, mode):
+    """Memory of 1-3 timestamps per pixel (no second plane / no FIFO behind it; counts
+    saturate): the kernel's split memory still matches the reference's plain FIFO."""
+    x, y, t, p = random_stream(9, 600, 18, 14, 150_000)
+    n = compare(x, y, t, p, 18, 14, mode=mode, gradient="central", refractory_us=3_000,
+                window_us=40_000, speed_control=False, eig_threshold=1.37, fifo_depth=depth)
+    assert n > 5
