@@ -87,13 +87,13 @@ class FoeMap(Filter):
     produces = FlowPacket
 
     class Params(FilterParams):
-        tau_ms: float = Field(100.0, gt=0, description="decay time constant of the votes")
+        tau_ms: float = Field(300.0, gt=0, description="decay time constant of the votes")
         region_radius_px: float | None = Field(
             60.0, gt=0, description="radius of region A around the principal point; "
             "null = the whole sensor (slower: every event then touches every row)")
         estimate_every_us: int = Field(1000, ge=1, description="period of the FOE estimates")
         refine_fraction: float = Field(
-            0.02, ge=0, lt=1, description="sub-pixel refinement: centroid of the cells within "
+            0.05, ge=0, lt=1, description="sub-pixel refinement: centroid of the cells within "
             "this fraction of (max - min) below the maximum, weighted by height; 0 = centroid "
             "of the maximal set only")
         min_speed_pxs: float = Field(0.0, ge=0, description="ignore flow slower than this")
@@ -103,7 +103,7 @@ class FoeMap(Filter):
         min_support: float = Field(0.0, ge=0, description="emit an estimate only when the "
                                    "decayed votes at the maximum reach this")
         speed_weight_pxs: float | None = Field(
-            None, gt=0, description="weigh each vote by s0 / (s0 + |v|) with this s0: slow "
+            5.0, gt=0, description="weigh each vote by s0 / (s0 + speed) with this s0: slow "
             "normal flow (a boundary line close to the FOE, a tight constraint) counts more "
             "than fast flow; null = every vote weighs 1")
         cell_px: int = Field(1, ge=1, le=16, description="map resolution: square cells of this "
