@@ -20,6 +20,8 @@ from evchain.errors import DataError
 THESIS8BIT_UNIT = math.log(256.0) / 255.0
 #: relative threshold floor after mismatch (a threshold is never <= 0)
 MISMATCH_FLOOR = 0.01
+#: float64 slots of a pixel's state row (128 bytes)
+ROW = 16
 
 
 class Emulator(Filter):
@@ -110,17 +112,21 @@ class Emulator(Filter):
             roff = np.maximum(1.0 + sigma * self._rng_mismatch.standard_normal((h, w)),
                               MISMATCH_FLOOR)
         npix = h * w
-        # per-pixel state touched on events lives in one row per pixel (array of structs):
-        # an event visit then touches one or two cache lines instead of one per array
-        aos = np.zeros((npix, 8))
-        counts = np.zeros((npix, 2), np.int64)
+        # all per-pixel state touched on events lives in one 128-byte row per pixel (array
+        # of structs, rows aligned to 128 bytes): an event visit touches one pair of adjacent
+        # cache lines instead of one line per array
+        buf = np.zeros(npix * ROW + ROW)
+        off = (-buf.ctypes.data % (ROW * 8)) // 8
+        aos = buf[off:off + npix * ROW].reshape(npix, ROW)
+        counts = aos.view(np.int64)
         st = {
             "l0": aos[:, 0], "c_on": aos[:, 1], "c_off": aos[:, 2], "r_on": aos[:, 3],
             "r_off": aos[:, 4], "e_ref": aos[:, 5], "last_t": aos[:, 6],
-            "n_on": counts[:, 0], "n_off": counts[:, 1],
+            "n_on": counts[:, 7], "n_off": counts[:, 8],
             "hi": np.zeros(npix, np.float32), "lo": np.zeros(npix, np.float32),
         }
-        self._lcache = np.zeros((npix, 4))
+        # log cache: (interval, L of its frames j-1, j, j+1), see kernels/emulator.py
+        self._lcache = aos[:, 9:13]
         self._lcache[:, 0] = K.NO_CACHE
         st["c_on"][:] = (c_on * ron).ravel()
         st["c_off"][:] = (c_off * roff).ravel()

@@ -177,7 +177,7 @@ def _chunk_clear(f, hi, lo):
 @njit(cache=True)
 def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, eps, tol,
               k_hi, k_lo, refractory_us, cap, l0, n_on, n_off, c_on, c_off, r_on, r_off, e_ref,
-              hi, lo, last_t, lcache, jg, first, ui, utf, up_, u):
+              hi, lo, last_t, lcache, jg, first, cand, g0, gm, gp, ui, utf, up_, u):
     """Events of one frame interval for pixels ``first ..``, appended to ``ui`` (flat pixel
     index), ``utf``, ``up_`` from position ``u``. A pixel's state is committed only when all
     its events fit, so on a full buffer the call stops before that pixel. ``jg`` is the global
@@ -191,6 +191,11 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
     cap_u = ui.shape[0]
     c_start = first - (first % CHUNK)
     jm = np.float64(jg - 1)
+    # pass 1: candidates (pixels outside their gates), in pixel order. A pixel's gates change
+    # only when the pixel itself is processed, so the set is the same as when scanning and
+    # processing in one pass.
+    nc = 0
+    bad = -1
     for c0 in range(c_start, npix, CHUNK):
         c1 = min(c0 + CHUNK, npix)
         if c1 - c0 == CHUNK and _chunk_clear(f1[c0:c1], hi[c0:c1], lo[c0:c1]):
@@ -199,99 +204,120 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
             v1 = f1[i]
             if v1 < hi[i] and v1 > lo[i]:
                 continue
-            if not np.isfinite(v1):
-                return u, -1, ERR_NONFINITE, i
-            if v1 < 0:
-                return u, -1, ERR_NEGATIVE, i
-            # logs of this pixel from the previous interval (frames jg-1 .. jg+1 when cubic,
-            # jg-1 .. jg when linear): the same float64 values, computed once
-            cached = lcache[i, 0] == jm
-            if cached and cubic:
-                lb = lcache[i, 3]
-            else:
-                lb = _logi(f1, i, eps)
-            con = c_on[i]
-            coff = c_off[i]
-            k_on = n_on[i]
-            k_off = n_off[i]
-            base = l0[i]
-            lev = base + ((k_on + 1) * con - k_off * coff)
-            if lb < lev - tol:
-                lev = base + (k_on * con - (k_off + 1) * coff)
-                if lb > lev + tol:
-                    # prefilter false alarm: refresh the gates exactly
-                    e = np.exp(base + (k_on * con - k_off * coff))
-                    e_ref[i] = e
-                    hi[i], lo[i] = gates(e, r_on[i], r_off[i], eps, k_hi, k_lo)
-                    continue
-            if cached:
-                la = lcache[i, 2]
-            else:
-                la = _logi(f0, i, eps)
-            m0 = lb - la
-            m1 = lb - la
-            if cubic:
-                sec = (lb - la) / dt
-                da = sec
-                db = sec
-                if has_prev:
-                    lm = lcache[i, 1] if cached else _logi(fm, i, eps)
-                    if np.isfinite(lm):
-                        da = slope3((la - lm) / hprev, sec, hprev, dt)
-                if has_next:
-                    lp = _logi(fp, i, eps)
-                    if np.isfinite(lp):
-                        db = slope3(sec, (lp - lb) / hnext, dt, hnext)
-                    lcache[i, 0] = jg
-                    lcache[i, 1] = la
-                    lcache[i, 2] = lb
-                    lcache[i, 3] = lp
-                else:
-                    lcache[i, 0] = NO_CACHE
-                m0 = da * dt
-                m1 = db * dt
-            else:
+            if not np.isfinite(v1) or v1 < 0:
+                bad = i
+                break
+            cand[nc] = i
+            nc += 1
+        if bad >= 0:
+            break
+    # pass 2: gather the candidates' other frame values and touch their state rows; these
+    # loads are independent, so their cache misses overlap (one pass per interval instead of
+    # one miss after another inside the event loop)
+    touch = 0.0
+    for k in range(nc):
+        i = cand[k]
+        g0[k] = f0[i]
+        gm[k] = fm[i]
+        gp[k] = fp[i]
+        touch += l0[i] + lcache[i, 0]
+    if touch == 1e308:
+        g0[0] = 0.0                      # never: keeps the loads
+    # pass 3: the candidates' events
+    for k in range(nc):
+        i = cand[k]
+        # logs of this pixel from the previous interval (frames jg-1 .. jg+1 when cubic,
+        # jg-1 .. jg when linear): the same float64 values, computed once
+        cached = lcache[i, 0] == jm
+        if cached and cubic:
+            lb = lcache[i, 3]
+        else:
+            lb = _logi(f1, i, eps)
+        con = c_on[i]
+        coff = c_off[i]
+        k_on = n_on[i]
+        k_off = n_off[i]
+        base = l0[i]
+        lev = base + ((k_on + 1) * con - k_off * coff)
+        if lb < lev - tol:
+            lev = base + (k_on * con - (k_off + 1) * coff)
+            if lb > lev + tol:
+                # prefilter false alarm: refresh the gates exactly
+                e = np.exp(base + (k_on * con - k_off * coff))
+                e_ref[i] = e
+                hi[i], lo[i] = gates(e, r_on[i], r_off[i], eps, k_hi, k_lo)
+                continue
+        if cached:
+            la = lcache[i, 2]
+        else:
+            la = _logi(g0, k, eps)
+        m0 = lb - la
+        m1 = lb - la
+        if cubic:
+            sec = (lb - la) / dt
+            da = sec
+            db = sec
+            if has_prev:
+                lm = lcache[i, 1] if cached else _logi(gm, k, eps)
+                if np.isfinite(lm):
+                    da = slope3((la - lm) / hprev, sec, hprev, dt)
+            if has_next:
+                lp = _logi(gp, k, eps)
+                if np.isfinite(lp):
+                    db = slope3(sec, (lp - lb) / hnext, dt, hnext)
                 lcache[i, 0] = jg
+                lcache[i, 1] = la
                 lcache[i, 2] = lb
-            e = e_ref[i]
-            ron = r_on[i]
-            roff = r_off[i]
-            lt = last_t[i]
-            uu = u
-            count = 0
-            while cap < 0 or count < cap:
-                lev = base + ((k_on + 1) * con - k_off * coff)
-                if lb >= lev - tol:
-                    k_on += 1
-                    e *= ron
-                    pol = 1
+                lcache[i, 3] = lp
+            else:
+                lcache[i, 0] = NO_CACHE
+            m0 = da * dt
+            m1 = db * dt
+        else:
+            lcache[i, 0] = jg
+            lcache[i, 2] = lb
+        e = e_ref[i]
+        ron = r_on[i]
+        roff = r_off[i]
+        lt = last_t[i]
+        uu = u
+        count = 0
+        while cap < 0 or count < cap:
+            lev = base + ((k_on + 1) * con - k_off * coff)
+            if lb >= lev - tol:
+                k_on += 1
+                e *= ron
+                pol = 1
+            else:
+                lev = base + (k_on * con - (k_off + 1) * coff)
+                if lb <= lev + tol:
+                    k_off += 1
+                    e *= roff
+                    pol = -1
                 else:
-                    lev = base + (k_on * con - (k_off + 1) * coff)
-                    if lb <= lev + tol:
-                        k_off += 1
-                        e *= roff
-                        pol = -1
-                    else:
-                        break
-                count += 1
-                # the event time is where the firing rule turns true: L = level -+ tol
-                lev = lev - tol if pol > 0 else lev + tol
-                tf = t0 + solve_crossing(lev, la, lb, m0, m1, cubic) * dt
-                if tf - lt < refractory_us:
-                    continue
-                lt = tf
-                if uu >= cap_u:
-                    return u, i, ERR_NONE, 0       # pixel i not committed
-                ui[uu] = i
-                utf[uu] = tf
-                up_[uu] = pol
-                uu += 1
-            u = uu
-            last_t[i] = lt
-            n_on[i] = k_on
-            n_off[i] = k_off
-            e_ref[i] = e
-            hi[i], lo[i] = gates(e, ron, roff, eps, k_hi, k_lo)
+                    break
+            count += 1
+            # the event time is where the firing rule turns true: L = level -+ tol
+            lev = lev - tol if pol > 0 else lev + tol
+            tf = t0 + solve_crossing(lev, la, lb, m0, m1, cubic) * dt
+            if tf - lt < refractory_us:
+                continue
+            lt = tf
+            if uu >= cap_u:
+                return u, i, ERR_NONE, 0       # pixel i not committed
+            ui[uu] = i
+            utf[uu] = tf
+            up_[uu] = pol
+            uu += 1
+        u = uu
+        last_t[i] = lt
+        n_on[i] = k_on
+        n_off[i] = k_off
+        e_ref[i] = e
+        hi[i], lo[i] = gates(e, ron, roff, eps, k_hi, k_lo)
+    if bad >= 0:
+        v1 = f1[bad]
+        return u, -1, (ERR_NONFINITE if not np.isfinite(v1) else ERR_NEGATIVE), bad
     return u, -1, ERR_NONE, 0
 
 
@@ -328,6 +354,11 @@ def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractor
     ub = np.empty(ucap, np.int64)
     buckets = np.zeros(1, np.int64)
     perm = np.empty(ucap, np.int64)
+    npix = l0.shape[0]
+    cand = np.empty(npix, np.int64)
+    g0 = np.empty(npix, np.float32)
+    gm = np.empty(npix, np.float32)
+    gp = np.empty(npix, np.float32)
     n = 0
     for j in range(j_first, j_last):
         f0 = (held[j] if j < nh else cur[j - nh]).ravel()
@@ -353,7 +384,8 @@ def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractor
             u, resume, err, ep = _interval(
                 f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, eps, tol,
                 k_hi, k_lo, refractory_us, cap, l0, n_on, n_off, c_on, c_off, r_on, r_off,
-                e_ref, hi, lo, last_t, lcache, j_base + j, resume, ui, utf, up_, u)
+                e_ref, hi, lo, last_t, lcache, j_base + j, resume, cand, g0, gm, gp, ui, utf,
+                up_, u)
             if err != ERR_NONE:
                 return ox, oy, ot, otf, op, n, err, j + 1, ep // w, ep % w
             if resume >= 0 or u + nnoise > ui.shape[0]:
