@@ -5,6 +5,10 @@ emulator output to TTC on the reference scene.
   1 ms) on a 320x240 pure-expansion field, normal flow on random edge normals with 10 % noise;
   error = mean distance of the estimates to the true FOE after 0.2 s. ``limit_ratio`` = time of a
   plain numpy pass over the same columns / stage time.
+* ``foe-map-cell2``: the same with ``cell_px`` 2 (2x2-pixel map cells).
+* ``foe-map-reference-lk`` / ``-plane`` (and ``-cell2``): CPU-time flow events/s of ``foe_map``
+  alone on the flow of the reference drive (flow computed once and cached); errors = FOE mean
+  |dx| (extra: |dy|, stds) after 1 s.
 * ``ttc-synthetic``: flow events/s of ``ttc`` on an approach (tau = 3 s - t) with the true FOE in
   the ``foe`` series; error = median relative TTC error.
 * ``chain-reference-lk`` / ``chain-reference-plane``: events/s (emulator output events) of
@@ -40,7 +44,7 @@ def _run(filters, packets):
     return out
 
 
-def foe_map_rows(quick: bool) -> list[BenchRow]:
+def foe_map_rows(quick: bool, cell_px: int = 1) -> list[BenchRow]:
     from evchain.filters.foe_map import FoeMap
 
     n = 1_000_000 if quick else 4_000_000
@@ -52,7 +56,7 @@ def foe_map_rows(quick: bool) -> list[BenchRow]:
 
     def stage():
         f = FoeMap()
-        f.setup(FoeMap.Params(), Context())
+        f.setup(FoeMap.Params(cell_px=cell_px), Context())
         series.clear()
         for p in packets:
             series.append(f.process(p).series["foe"])
@@ -65,10 +69,72 @@ def foe_map_rows(quick: bool) -> list[BenchRow]:
     cols = [np.concatenate([getattr(p, c) for p in packets]) for c in ("x", "y", "t", "vx",
                                                                        "vy")]
     t_limit = best_time(lambda: [c.sum() for c in cols], repeat=3)
-    return [BenchRow("foe-map", "foe_map", n / t, "flow ev/s", err, "foe_err_px", t_limit / t,
+    name = "foe-map" if cell_px == 1 else f"foe-map-cell{cell_px}"
+    return [BenchRow(name, "foe_map", n / t, "flow ev/s", err, "foe_err_px", t_limit / t,
                      {"events": n, "throughput_cpu": n / cpu, "region_radius_px": 60,
-                     "estimate_every_us": 1000,
+                      "estimate_every_us": 1000, "cell_px": cell_px,
                       "field": "320x240 normal flow, 10% noise"})]
+
+
+def reference_flow(flow: str, start_m: float, duration_s: float):
+    """Output of ``flow`` (thesis parameters = its defaults) on the cached reference events,
+    cached as well (flow takes a while): (list of FlowPacket, context with the truth)."""
+    from evchain.core.packets import FlowPacket
+    from evchain.core.registry import make_registry
+
+    events, ctx = reference_events(start_m, duration_s)
+    path = _cache_dir() / f"reference-{start_m:g}m-{duration_s:g}s-{flow}.npz"
+    if not path.exists():
+        f = make_registry().get(flow)()
+        f.id = flow
+        f.setup(f.Params(), Context(seed=0, geometry=ctx.geometry, truth=ctx.truth))
+        outs = [f.process(p) for p in events]
+        last = f.flush()
+        if last is not None:
+            outs.append(last)
+        cat = {c: np.concatenate([getattr(o, c) for o in outs])
+               for c in ("x", "y", "t", "p", "vx", "vy")}
+        tmp = path.with_name(path.name + ".partial.npz")
+        np.savez(tmp, **cat, bounds=np.array([o.t_start for o in outs] + [outs[-1].t_end]))
+        os.replace(tmp, path)
+    with np.load(path) as f:
+        d = {k: f[k] for k in ("x", "y", "t", "p", "vx", "vy", "bounds")}
+    b = d["bounds"]
+    idx = np.searchsorted(d["t"], b)
+    packets = [FlowPacket(geometry=ctx.geometry, t_start=int(b0), t_end=int(b1),
+                          **{c: d[c][i:j] for c in ("x", "y", "t", "p", "vx", "vy")})
+               for b0, b1, i, j in zip(b[:-1], b[1:], idx[:-1], idx[1:], strict=True)]
+    return packets, ctx
+
+
+def foe_reference_rows(flow: str, quick: bool, cell_px: int = 1) -> list[BenchRow]:
+    """``foe_map`` alone (defaults) on the flow of the reference drive's last 5 s (``quick``:
+    1 s); error = mean |dx|, |dy| against the true FOE after a 1 s warm-up (the scorer's)."""
+    from evchain.filters.foe_map import FoeMap
+
+    start_m, dur = (220.0, 1.0) if quick else (180.0, 5.0)
+    packets, ctx = reference_flow(flow, start_m, dur)
+    n = sum(len(p) for p in packets)
+    series = []
+
+    def stage():
+        f = FoeMap()
+        f.setup(FoeMap.Params(cell_px=cell_px), Context())
+        series.clear()
+        for p in packets:
+            series.append(f.process(p).series["foe"])
+
+    cpu = best_cpu_time(stage, repeat=3, warmup=True)
+    s = np.concatenate(series)
+    s = s[s["t"] >= packets[0].t_start + (1_000_000 if not quick else 200_000)]
+    xt, yt = ctx.truth.foe(s["t"].astype(np.float64))
+    adx, ady = np.abs(s["x"] - xt), np.abs(s["y"] - yt)
+    name = ("lk" if flow == "lk_flow" else "plane") + ("" if cell_px == 1 else f"-cell{cell_px}")
+    return [BenchRow(f"foe-map-reference-{name}", "foe_map", n / cpu, "flow ev/s (CPU)",
+                     float(adx.mean()), "foe_dx_mean_px", None,
+                     {"events": n, "stretch": f"{start_m:g} m + {dur:g} s", "cell_px": cell_px,
+                      "foe_dx_mean_px": float(adx.mean()), "foe_dx_std_px": float(adx.std()),
+                      "foe_dy_mean_px": float(ady.mean()), "foe_dy_std_px": float(ady.std())})]
 
 
 def ttc_rows(quick: bool) -> list[BenchRow]:
@@ -196,6 +262,11 @@ def chain_rows(flow: str, quick: bool) -> list[BenchRow]:
 
 WORKLOADS = {
     "foe-map": foe_map_rows,
+    "foe-map-cell2": lambda quick: foe_map_rows(quick, cell_px=2),
+    "foe-map-reference-lk": lambda quick: foe_reference_rows("lk_flow", quick),
+    "foe-map-reference-plane": lambda quick: foe_reference_rows("plane_flow", quick),
+    "foe-map-reference-lk-cell2": lambda quick: foe_reference_rows("lk_flow", quick, 2),
+    "foe-map-reference-plane-cell2": lambda quick: foe_reference_rows("plane_flow", quick, 2),
     "ttc-synthetic": ttc_rows,
     "chain-reference-lk": lambda quick: chain_rows("lk_flow", quick),
     "chain-reference-plane": lambda quick: chain_rows("plane_flow", quick),
