@@ -370,11 +370,12 @@ def flow_at(xb, yb, rho, f, vc, wc):
 # ----------------------------------------------------------------------------- per-frame culling
 
 @njit(**_J)
-def frame_boxes(boxes, pos, rot, f, cx, cy, width, height, order, minz):
+def frame_boxes(boxes, pos, rot, f, cx, cy, width, height, order, minz, bbox):
     """Boxes whose projection (clipped at a tiny near plane) may touch the image.
 
     Writes their indices into order[:nvis] sorted by their lower depth bound (nearest corner
-    depth, >= 0), which goes into minz[box]; returns nvis."""
+    depth, >= 0), which goes into minz[box], and the bounding rectangle of the projection in
+    normalised coordinates into bbox[box] = (x0, x1, y0, y1); returns nvis."""
     n = boxes.shape[0]
     zn = 1e-4
     key = np.full(n, INF)
@@ -428,6 +429,10 @@ def frame_boxes(boxes, pos, rot, f, cx, cy, width, height, order, minz):
             continue
         zmin = cz.min()
         minz[b] = zmin if zmin > 0.0 else 0.0
+        bbox[b, 0] = x0
+        bbox[b, 1] = x1
+        bbox[b, 2] = y0
+        bbox[b, 3] = y1
         key[b] = minz[b]
         nvis += 1
     srt = np.argsort(key)
@@ -643,8 +648,8 @@ def level_work(ntex):
 
 @njit(**_J)
 def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground, light,
-               tex, tex_inv, tex_off, vis, minz, xbs, pcol, fw, iw, bmax, lv_inv, lv_off,
-               lv_mask, acc, out):
+               tex, tex_inv, tex_off, vis, minz, bbox, xbs, pcol, fw, iw, bmax, lv_inv,
+               lv_off, lv_mask, acc, out):
     """Render image row j into out[j]; return the row's largest squared image speed.
 
     Per sample row: the ground hit is one division (no roll: every ray of a row has the same
@@ -718,6 +723,10 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
             mz = minz[bq]
             if mz >= tg:
                 break
+            # outside the projection's bounding rectangle (with a relative margin): no hit
+            if yb < bbox[bq, 2] - 1e-9 * (1.0 + abs(bbox[bq, 2])) or \
+                    yb > bbox[bq, 3] + 1e-9 * (1.0 + abs(bbox[bq, 3])):
+                continue
             t1 = (boxes[bq, 2] - oz) * iz
             t2 = (boxes[bq, 5] - oz) * iz
             tzn = min(t1, t2)
@@ -732,6 +741,12 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
             c0, c1 = box_span(boxes[bq, 0], boxes[bq, 1], boxes[bq, 3], boxes[bq, 4], ox, oy,
                               xh0, xh1, r0, r1, ta * (1.0 - 1e-9), tz * (1.0 + 1e-9), f, cx,
                               k, n)
+            bx0 = bbox[bq, 0] * f + cx
+            bx1 = bbox[bq, 1] * f + cx
+            if bx0 > -1e6:
+                c0 = max(c0, int(math.floor((bx0 + 0.5) * k - 0.5)) - 2)
+            if bx1 < 1e6:
+                c1 = min(c1, int(math.ceil((bx1 + 0.5) * k - 0.5)) + 2)
             ex0 = boxes[bq, 0] - ox
             ex1 = boxes[bq, 3] - ox
             ey0 = boxes[bq, 1] - oy
@@ -839,7 +854,7 @@ def pixel_columns(w, k):
 
 @njit(cache=True, error_model="numpy", nogil=True)
 def render(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground, light,
-           tex, tex_inv, tex_off, vis, minz, out):
+           tex, tex_inv, tex_off, vis, minz, bbox, out):
     """Render one frame into out [H, W] (float32, linear intensity, k x k supersampling
     averaged) and return the maximum motion-field magnitude (px/s) over all samples.
     vis: visible boxes nearest first, minz their depth bounds (:func:`frame_boxes`)."""
@@ -852,8 +867,8 @@ def render(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground
     vmax2 = 0.0
     for j in range(out.shape[0]):
         m2 = render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
-                        ground, light, tex, tex_inv, tex_off, vis, minz, xbs, pcol, fw, iw, bmax,
-                        lv_inv, lv_off, lv_mask, acc, out)
+                        ground, light, tex, tex_inv, tex_off, vis, minz, bbox, xbs, pcol, fw,
+                        iw, bmax, lv_inv, lv_off, lv_mask, acc, out)
         if m2 > vmax2:
             vmax2 = m2
     return math.sqrt(vmax2)
@@ -861,7 +876,7 @@ def render(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground
 
 @njit(cache=True, error_model="numpy", parallel=True, nogil=True)
 def render_parallel(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground,
-                    light, tex, tex_inv, tex_off, vis, minz, out, nchunks):
+                    light, tex, tex_inv, tex_off, vis, minz, bbox, out, nchunks):
     """:func:`render` with the rows shared among numba's threads in nchunks interleaved
     chunks (same result)."""
     h = out.shape[0]
@@ -875,8 +890,8 @@ def render_parallel(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, seg
         acc = np.empty(w)
         for j in range(ch, h, nchunks):
             rows[j] = render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par,
-                                 segs, ground, light, tex, tex_inv, tex_off, vis, minz, xbs, pcol,
-                                 fw, iw, bmax, lv_inv, lv_off, lv_mask, acc, out)
+                                 segs, ground, light, tex, tex_inv, tex_off, vis, minz, bbox,
+                                 xbs, pcol, fw, iw, bmax, lv_inv, lv_off, lv_mask, acc, out)
     return math.sqrt(rows.max())
 
 

@@ -41,6 +41,7 @@ class Scene:
         nb = len(self.boxes)
         self._order = np.zeros(nb, np.int64)
         self._minz = np.zeros(nb, np.float64)
+        self._bbox = np.zeros((nb, 4), np.float64)
         self._pos = np.zeros(3)
         self._rot = np.zeros((3, 3))
         self._vc = np.zeros(3)
@@ -77,11 +78,11 @@ class Scene:
         if self._rot[2, 0] != 0.0:     # the row renderer relies on it; camera_state ensures it
             raise RuntimeError("scene camera must not roll")
         nvis = frame_boxes(self.boxes, self._pos, self._rot, cam.f, cam.cx, cam.cy, cam.width,
-                           cam.height, self._order, self._minz)
+                           cam.height, self._order, self._minz, self._bbox)
         args = (self._pos, self._rot, self._vc, self._wc, cam.f, cam.cx, cam.cy,
                 cam.supersample, self.boxes, self.box_mat, self.box_par, self.segs,
                 self.ground, self.light, self.tex, self.tex_inv, self.tex_off,
-                self._order[:nvis], self._minz, out)
+                self._order[:nvis], self._minz, self._bbox, out)
         if self.threads == 1:
             vmax = render(*args)
         else:
