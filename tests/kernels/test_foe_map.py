@@ -48,6 +48,7 @@ CASES = [  # geometry, region radius, refine_fraction, max_angle_deg, other para
 def test_kernel_equals_brute_force(case, hard):
     g, radius, refine, gate, other = CASES[case]
     packet = random_flow(500, g, seed=case + 10 * hard, hard=hard)
+    other = {"speed_weight_pxs": None, **other}  # unweighted unless the case says otherwise
     params = FoeMap.Params(tau_ms=15.0, region_radius_px=radius, estimate_every_us=4000,
                            refine_fraction=refine, max_angle_deg=gate, **other)
     f = FoeMap()
@@ -84,7 +85,7 @@ def test_renormalisation_keeps_map_exact():
     packet = packet.replace(t=packet.t * 50, t_end=2_000_000)  # 1 ms tau, ~2 s span
     f = FoeMap()
     f.setup(FoeMap.Params(tau_ms=1.0, region_radius_px=None, estimate_every_us=100_000,
-                          refine_fraction=0.0), Context())
+                          refine_fraction=0.0, speed_weight_pxs=None), Context())
     got = f.process(packet).series["foe"]
     ref = foe_naive(packet, 1.0, None, 100_000, 0.0)
     assert len(got) == len(ref) > 0
