@@ -13,9 +13,11 @@ class EventRatePlot(Filter):
     """Event rate at one pixel column in bins: series ``event_rate`` and a PNG plot at the end.
 
     Counts the events with ``x == column`` (all rows) in bins ``[k*bin_us, (k+1)*bin_us)``. A
-    bin's series entry is emitted with the packet that completes it; its ``t`` is the bin's last
-    µs (``t_bin_end - 1``, inside that packet's slice); fields ``t_bin_start``, ``t_bin_end``,
-    ``rate_eps`` (events per second), ``on``, ``off``. Passes events on unchanged.
+    bin's series entry has ``t`` = the bin's last µs (``t_bin_end - 1``; for the partial last
+    bin, emitted at flush, the last µs of the input); fields ``t_bin_start``, ``t_bin_end``,
+    ``rate_eps`` (events per second), ``on``, ``off``. Passes events (and other series) on
+    unchanged, with output slices lagging the input by 1 µs: each input packet's last µs leaves
+    with the next output (flush emits the rest), so every entry lies inside its packet's slice.
     """
 
     name = "event_rate_plot"
@@ -36,6 +38,7 @@ class EventRatePlot(Filter):
         self._off = 0
         self._rows: list[tuple[int, int, int]] = []
         self._last_end = None
+        self._pend = None         # input of [cut, last t_end) held back for the next output
 
     def _close_bins(self, upto_bin: int) -> np.ndarray:
         from evchain.report.event_rate import RATE_DTYPE
@@ -68,12 +71,25 @@ class EventRatePlot(Filter):
                 self._off += int((p[m] < 0).sum())
         entries.append(self._close_bins(packet.t_end // b))   # bins ending <= t_end
         done = np.concatenate(entries)
-        return packet.with_series(self.params.series, done) if len(done) else packet
+        if len(done):
+            packet = packet.with_series(self.params.series, done)
+        joined = self._join(packet)
+        out, self._pend = _split(joined, max(packet.t_end - 1, joined.t_start))
+        return out
+
+    def _join(self, packet):
+        """The held-back part and ``packet`` as one packet (copies only when needed)."""
+        pend = self._pend
+        if pend is None:
+            return packet
+        if len(pend) == 0 and not any(len(v) for v in pend.series.values()):
+            return packet.replace(t_start=pend.t_start)
+        return type(packet).concat([pend, packet])
 
     def flush(self) -> EventPacket | None:
         from evchain.report.event_rate import RATE_DTYPE, plot_event_rate
 
-        if self._bin is None or self.context.geometry is None:
+        if self._bin is None or self._pend is None:
             return None
         b = self.params.bin_us
         last = self._last_end
@@ -91,5 +107,21 @@ class EventRatePlot(Filter):
             plot_event_rate(allrows, self.context.output_path(self.params.path),
                             title=self.params.title or f"event rate at column "
                             f"{self.params.column}")
-        out = EventPacket.empty(self.context.geometry, last, last)
+        out, self._pend = self._pend, None
+        # tail t = last - 1 (or the bin start) lies in the held-back slice [cut, last)
         return out.with_series(self.params.series, tail) if len(tail) else out
+
+
+def _split(packet, cut: int):
+    """``packet`` cut at ``cut`` into the parts ``[t_start, cut)`` and ``[cut, t_end)``."""
+    m = packet.t < cut
+    if m.all():
+        before = packet
+        after = packet.select(np.zeros(0, np.int64))
+    else:
+        before = packet.select(m)
+        after = packet.select(~m)
+    sa = {k: v[v["t"] < cut] for k, v in packet.series.items()}
+    sb = {k: v[v["t"] >= cut] for k, v in packet.series.items()}
+    return (before.replace(t_end=cut, series=sa),
+            after.replace(t_start=cut, series=sb))
