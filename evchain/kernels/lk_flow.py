@@ -56,7 +56,7 @@ def new_state(height: int, width: int, depth: int):
 
 
 @njit(cache=True)
-def _calibrated_fd(N, F, V, d, S, gradient, w_inv, eig_ratio, tol, GX, GY, keep):
+def _calibrated_fd(LI, LJ, n_act, F, V, gradient, w_inv, eig_ratio, tol, GX, GY, keep):
     """Calibrated finite-difference LK over pixels with events. Returns (vx, vy, ok).
 
     Per pixel and axis the variant's stencil when all its points have events, else the mean of
@@ -64,55 +64,55 @@ def _calibrated_fd(N, F, V, d, S, gradient, w_inv, eig_ratio, tol, GX, GY, keep)
     variant); pixels without any usable difference give no equation. With ``tol > 0`` the
     equations whose slope disagrees with the first solution by more than ``tol`` (relative:
     |grad F . v W - 1| > tol) are dropped and the rest solved again, once.
-    ``GX``, ``GY``, ``keep``: scratch arrays of at least (S - 2d)^2 entries."""
+    ``LI``, ``LJ``: the ``n_act`` active pixels of the neighbourhood (indices into ``F``, ``V``);
+    ``GX``, ``GY``, ``keep``: scratch arrays of at least ``n_act`` entries."""
     m = 0
-    for j in range(d, S - d):
-        for i in range(d, S - d):
-            if N[i, j] == 0:
+    for q in range(n_act):
+        i = LI[q]
+        j = LJ[q]
+        fc = F[i, j]
+        # x
+        vm = V[i - 1, j]
+        vp = V[i + 1, j]
+        if gradient == BACKWARD:
+            if vm > 0.0:
+                gx = fc - F[i - 1, j]
+            elif vp > 0.0:
+                gx = F[i + 1, j] - fc
+            else:
                 continue
-            fc = F[i, j]
-            # x
-            vm = V[i - 1, j]
-            vp = V[i + 1, j]
-            if gradient == BACKWARD:
-                if vm > 0.0:
-                    gx = fc - F[i - 1, j]
-                elif vp > 0.0:
-                    gx = F[i + 1, j] - fc
-                else:
-                    continue
+        else:
+            den = vm + vp
+            if den == 0.0:
+                continue
+            gx = (vp * (F[i + 1, j] - fc) + vm * (fc - F[i - 1, j])) / den
+            if gradient == CENTRAL2 and den == 2.0 and V[i - 2, j] > 0.0 \
+                    and V[i + 2, j] > 0.0:
+                gx = (F[i - 2, j] - 8.0 * F[i - 1, j] + 8.0 * F[i + 1, j]
+                      - F[i + 2, j]) / 12.0
+        # y
+        vm = V[i, j - 1]
+        vp = V[i, j + 1]
+        if gradient == BACKWARD:
+            if vm > 0.0:
+                gy = fc - F[i, j - 1]
+            elif vp > 0.0:
+                gy = F[i, j + 1] - fc
             else:
-                den = vm + vp
-                if den == 0.0:
-                    continue
-                gx = (vp * (F[i + 1, j] - fc) + vm * (fc - F[i - 1, j])) / den
-                if gradient == CENTRAL2 and den == 2.0 and V[i - 2, j] > 0.0 \
-                        and V[i + 2, j] > 0.0:
-                    gx = (F[i - 2, j] - 8.0 * F[i - 1, j] + 8.0 * F[i + 1, j]
-                          - F[i + 2, j]) / 12.0
-            # y
-            vm = V[i, j - 1]
-            vp = V[i, j + 1]
-            if gradient == BACKWARD:
-                if vm > 0.0:
-                    gy = fc - F[i, j - 1]
-                elif vp > 0.0:
-                    gy = F[i, j + 1] - fc
-                else:
-                    continue
-            else:
-                den = vm + vp
-                if den == 0.0:
-                    continue
-                gy = (vp * (F[i, j + 1] - fc) + vm * (fc - F[i, j - 1])) / den
-                if gradient == CENTRAL2 and den == 2.0 and V[i, j - 2] > 0.0 \
-                        and V[i, j + 2] > 0.0:
-                    gy = (F[i, j - 2] - 8.0 * F[i, j - 1] + 8.0 * F[i, j + 1]
-                          - F[i, j + 2]) / 12.0
-            GX[m] = gx
-            GY[m] = gy
-            keep[m] = True
-            m += 1
+                continue
+        else:
+            den = vm + vp
+            if den == 0.0:
+                continue
+            gy = (vp * (F[i, j + 1] - fc) + vm * (fc - F[i, j - 1])) / den
+            if gradient == CENTRAL2 and den == 2.0 and V[i, j - 2] > 0.0 \
+                    and V[i, j + 2] > 0.0:
+                gy = (F[i, j - 2] - 8.0 * F[i, j - 1] + 8.0 * F[i, j + 1]
+                      - F[i, j + 2]) / 12.0
+        GX[m] = gx
+        GY[m] = gy
+        keep[m] = True
+        m += 1
     if m < 2:
         return 0.0, 0.0, False
     vx, vy, ok = _solve_rows(GX, GY, keep, m, w_inv, eig_ratio)
@@ -219,20 +219,11 @@ def _plane(U, W, FV, keep, m):
 
 
 @njit(cache=True)
-def _calibrated_sg(N, F, S, R, w_inv, tol, U, W, FV, keep):
-    """Calibrated Savitzky-Golay: least-squares plane of F over the pixels with events
-    (coordinates centred on the event); normal flow (1 / W) g / |g|^2. With ``tol > 0`` pixels
-    farther than ``tol`` px (along the normal) from the plane are dropped and the plane fitted
-    again, once."""
-    m = 0
-    for j in range(S):
-        for i in range(S):
-            if N[i, j] > 0:
-                U[m] = float(i - R)
-                W[m] = float(j - R)
-                FV[m] = F[i, j]
-                keep[m] = True
-                m += 1
+def _calibrated_sg(U, W, FV, keep, m, w_inv, tol):
+    """Calibrated Savitzky-Golay: least-squares plane of F over the ``m`` pixels with events
+    (``U``, ``W``: coordinates centred on the event, ``FV``: F; listed by the gather, ``keep``
+    all True); normal flow (1 / W) g / |g|^2. With ``tol > 0`` pixels farther than ``tol`` px
+    (along the normal) from the plane are dropped and the plane fitted again, once."""
     c, gx, gy, ok = _plane(U, W, FV, keep, m)
     if not ok:
         return 0.0, 0.0, False
@@ -257,9 +248,10 @@ def _calibrated_sg(N, F, S, R, w_inv, tol, U, W, FV, keep):
 
 
 @njit(cache=True)
-def _centre_offset_px(N, F, S, R, d, r, vx, vy, w_inv):
+def _centre_offset_points(U, W, FV, m, vx, vy, w_inv):
     """How far (px, along the normal) the current event's onset lies from the plane that the
-    flow v implies through the other active pixels of the (2r+1)^2 neighbourhood: the slope is
+    flow v implies through the other active pixels of the (2r+1)^2 neighbourhood (the ``m``
+    listed points ``U``, ``W``, ``FV``; the event is the one at (0, 0)): the slope is
     g = v / (W |v|^2), the offset the mean of F - g.u over those pixels. Large when the event
     belongs to a newer edge than the onsets around it. Infinite without other active pixels."""
     v2 = vx * vx + vy * vy
@@ -269,14 +261,16 @@ def _centre_offset_px(N, F, S, R, d, r, vx, vy, w_inv):
     gy = vy * w_inv / v2
     sc = 0.0
     n = 0
-    for j in range(R - r, R + r + 1):
-        for i in range(R - r, R + r + 1):
-            if N[i, j] > 0 and not (i == R and j == R):
-                sc += F[i, j] - gx * (i - R) - gy * (j - R)
-                n += 1
+    fc = 0.0
+    for q in range(m):
+        if U[q] == 0.0 and W[q] == 0.0:
+            fc = FV[q]
+        else:
+            sc += FV[q] - gx * U[q] - gy * W[q]
+            n += 1
     if n == 0:
         return np.inf
-    return abs(F[R, R] - sc / n) / np.sqrt(gx * gx + gy * gy)
+    return abs(fc - sc / n) / np.sqrt(gx * gx + gy * gy)
 
 
 @njit(cache=True)
@@ -382,6 +376,13 @@ def lk_flow_run(x, y, t, p, last, second, fifo, speed_state, r, window_us, refra
     # calibrated: fewest active pixels of the (2r+1)^2 neighbourhood that can give flow (two
     # equations, three points for a plane; the centre check needs a neighbour besides the event)
     min_active = 3 if gradient == SAVITZKY_GOLAY else 2
+    # calibrated: the gather lists the active pixels of the neighbourhood (in the order the
+    # fits and the centre check visit them, so their sums are unchanged)
+    listed = not faithful
+    LI = np.zeros(S * S, np.int64)
+    LJ = np.zeros(S * S, np.int64)
+    PU = np.zeros(S * S, np.float64)
+    PW = np.zeros(S * S, np.float64)
     n_out = 0
     for e in range(len(t)):
         xe = np.int64(x[e])
@@ -407,6 +408,7 @@ def lk_flow_run(x, y, t, p, last, second, fifo, speed_state, r, window_us, refra
         # counts (and weights) of the neighbourhood incl. the stencil margin
         tmin = te - wlim
         active = 0
+        m_list = 0
         for j in range(S):
             yy = ye - R + j
             jm = j < d or j >= S - d
@@ -429,11 +431,20 @@ def lk_flow_run(x, y, t, p, last, second, fifo, speed_state, r, window_us, refra
                                     break
                                 n += 1
                                 oldest = ts
+                    fv = 1.0 - (te - oldest) * w_inv
                     N[i, j] = n
-                    F[i, j] = 1.0 - (te - oldest) * w_inv
+                    F[i, j] = fv
                     V[i, j] = 1.0
                     if i >= d and i < S - d and not jm:
                         active += 1
+                    if listed and i >= d and i < S - d and not jm:
+                        LI[m_list] = i
+                        LJ[m_list] = j
+                        PU[m_list] = float(i - R)
+                        PW[m_list] = float(j - R)
+                        FV[m_list] = fv
+                        keep[m_list] = True
+                        m_list += 1
                 else:
                     N[i, j] = 0
                     F[i, j] = 0.0
@@ -451,15 +462,14 @@ def lk_flow_run(x, y, t, p, last, second, fifo, speed_state, r, window_us, refra
             if active < min_active:
                 continue
             if gradient == SAVITZKY_GOLAY:
-                vx, vy, ok = _calibrated_sg(N, F, S, R, w_inv_s, refit_tolerance, GX, GY,
-                                            FV, keep)
+                vx, vy, ok = _calibrated_sg(PU, PW, FV, keep, m_list, w_inv_s, refit_tolerance)
             else:
-                vx, vy, ok = _calibrated_fd(N, F, V, d, S, gradient, w_inv_s, eig_ratio,
+                vx, vy, ok = _calibrated_fd(LI, LJ, m_list, F, V, gradient, w_inv_s, eig_ratio,
                                             refit_tolerance, GX, GY, keep)
             if not ok:
                 continue
-            if centre_check_px > 0.0 and \
-                    _centre_offset_px(N, F, S, R, d, r, vx, vy, w_inv_s) > centre_check_px:
+            if centre_check_px > 0.0 and _centre_offset_points(
+                    PU, PW, FV, m_list, vx, vy, w_inv_s) > centre_check_px:
                 continue
             v = np.sqrt(vx * vx + vy * vy)
             if not np.isfinite(v) or v == 0.0 or v > max_speed_pxs:
