@@ -394,6 +394,14 @@ def plane_flow_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, marg
         coef, pairs = sg_tables(size)
     else:
         coef, pairs = sg_tables(1)
+    # per line mask: number of valid pixels and the sum of their offsets from the centre
+    popcount = np.zeros(coef.shape[0], np.int64)
+    bitsum = np.zeros(coef.shape[0], np.int64)
+    for m in range(coef.shape[0]):
+        for b in range(size):
+            if (m >> b) & 1:
+                popcount[m] += 1
+                bitsum[m] += b - r
     g_min2 = 1.0 / (max_speed * max_speed)
     spread2 = min_spread * min_spread
     n_out = 0
@@ -419,27 +427,29 @@ def plane_flow_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, marg
         syy = 0
         sxy = 0
         if tabulated:  # SG: the window's times and validity masks per row and column
-            for c in range(size):
-                colmask[c] = 0
             for dy in range(-r, r + 1):
-                yy = yi + dy
+                row = ts[pi, yi + dy]
                 k0 = (dy + r) * size + r
                 rm = 0
                 for dx in range(-r, r + 1):
-                    age = ti - ts[pi, yy, xi + dx]
-                    ok = 1 if age <= window_us else 0
-                    wv[k0 + dx] = ok
-                    wt[k0 + dx] = -age * ok
-                    st -= age * ok
-                    n += ok
-                    sx += dx * ok
-                    sy += dy * ok
-                    rm |= ok << (dx + r)
-                    colmask[dx + r] |= ok << (dy + r)
+                    age = ti - row[xi + dx]
+                    # invalid times stay in wt: the tables give them weight 0
+                    wt[k0 + dx] = -age
+                    if age <= window_us:
+                        st -= age
+                        rm |= 1 << (dx + r)
                 rowmask[dy + r] = rm
+                n += popcount[rm]
+                sx += bitsum[rm]
+                sy += dy * popcount[rm]
+            for c in range(size):
+                cm = 0
+                for line in range(size):
+                    cm |= ((rowmask[line] >> c) & 1) << line
+                colmask[c] = cm
             if spread2 > 0.0:
                 for k in range(cap):
-                    if wv[k] > 0.0:
+                    if (rowmask[k // size] >> (k % size)) & 1:
                         dx = k % size - r
                         dy = k // size - r
                         sxx += dx * dx
