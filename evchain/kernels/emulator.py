@@ -15,6 +15,14 @@ integer state, so whether a pixel that returns exactly to a level fires never de
 rounding in a running sum. The float32 gates are only a conservative prefilter (a relative
 margin of 1e-6 below/above the exact intensity thresholds): a pixel with ``lo < I1 < hi`` cannot
 fire, which costs two float32 compares and no logarithm per pixel and frame.
+
+Per interval (``_interval``): pass 1 scans chunks of ``CHUNK`` pixels with a branch-free,
+vectorised count and lists the candidates (pixels outside their gates) in pixel order; pass 2
+gathers their values of the other frames (independent loads, so cache misses overlap); pass 3
+runs the exact rule per candidate. ``lcache`` keeps, per pixel, the logs of the last interval
+it was examined in, so a pixel active in consecutive intervals computes one new logarithm
+instead of four (cubic). Every value is computed by the same float64 operations as before, so
+events and float times do not depend on these shortcuts.
 """
 
 from __future__ import annotations

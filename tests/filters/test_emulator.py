@@ -215,3 +215,16 @@ def test_bad_input_gives_clear_error(bad):
             f.flush()
     if bad in ("nan_later", "negative"):
         assert "pixel (x=" in str(info.value)
+
+
+def test_bad_pixel_in_a_full_chunk_reported_first_in_pixel_order():
+    # 8 x 40 frames: the scan's full chunks; events before the bad pixel, a later bad one too
+    frames = np.full((4, 8, 40), 0.5, np.float32)
+    frames[1:, 0, :10] = 2.0                       # fires before the bad pixel
+    frames[2, 5, 33] = np.nan
+    frames[2, 7, 1] = -1.0
+    times = np.array([0, 1000, 2000, 3000], np.int64)
+    f = Emulator()
+    f.setup(Emulator.Params(interpolation="linear"), Context())
+    with pytest.raises(DataError, match=r"frame 2 .*not finite .*pixel \(x=33, y=5\)"):
+        f.process(bad_packet(frames, times))

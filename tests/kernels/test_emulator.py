@@ -104,3 +104,25 @@ def test_packet_cuts_identical():
             for name in ("x", "y", "t", "p"):
                 np.testing.assert_array_equal(getattr(got, name), getattr(ref, name))
             np.testing.assert_array_equal(tgot, tref)
+
+
+@pytest.mark.parametrize("interpolation", ["linear", "cubic"])
+def test_full_chunks_and_log_cache_match_naive(interpolation):
+    # 9 x 23 = 207 pixels: three full scan chunks of 64 plus a remainder; a smooth drift makes
+    # many pixels fire in consecutive intervals (log cache), a few fire in isolation
+    rng = np.random.default_rng(21)
+    n, h, w = 10, 9, 23
+    base = np.exp(rng.normal(-1.0, 0.7, (h, w)))
+    drift = rng.normal(0.0, 0.25, (h, w))
+    k = np.arange(n)[:, None, None]
+    frames = (base * np.exp(drift * k + 0.05 * np.sin(1.3 * k))).astype(np.float32)
+    frames[:, 4, 5:9] = 0.0                                  # zeros inside a chunk
+    frames[6, 8, 20] *= 4.0                                  # an isolated jump, last chunk
+    times = np.cumsum(rng.integers(200, 2000, n)).astype(np.int64)
+    ev = compare(frames, times, c=0.2, interpolation=interpolation)
+    assert len(ev) > 300
+    for cut in ([1] * n, [4, 3, 3]):          # the cache across packet boundaries
+        got, _ = run_filter(frames, times, cut=cut, interpolation=interpolation,
+                            threshold_on=0.2, threshold_off=0.2)
+        np.testing.assert_array_equal(got.t, ev.t)
+        np.testing.assert_array_equal(got.x, ev.x)
