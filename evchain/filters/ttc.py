@@ -78,9 +78,9 @@ class Ttc(Filter):
         ground_test: bool = Field(False, description="only clusters nearer than the road at "
                                   "their rows can be the obstacle: median(tau * dy) / K < 1 - "
                                   "ground_tolerance, K = f h / V estimated from the events")
-        ground_tolerance: float = Field(0.2, gt=0, lt=1, description="relative band around K "
-                                        "that counts as road (K itself follows the events "
-                                        "within it)")
+        ground_tolerance: float = Field(0.1, gt=0, lt=0.5, description="relative band around "
+                                        "K that counts as road (K itself follows the events "
+                                        "within twice this band)")
         ground_rate: float = Field(0.002, gt=0, lt=1, description="relative step of the "
                                    "running median K per event")
         ground_min_events: int = Field(500, ge=1, description="events K must have seen before "

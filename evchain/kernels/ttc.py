@@ -11,8 +11,9 @@ Ground plane: for a road point at ``dy = y - y_foe`` rows below the FOE, seen by
 at height h moving at speed V, ``tau * dy = f h / V =: K`` (the same for all road points). An
 obstacle point at height hp above the road has ``tau * dy = K (1 - hp / h) < K``: it is nearer
 than the road at its row. K is estimated from the events themselves (a running median of
-``tau * dy``, first over all region-B events, then only over those within ``ground_tol`` of
-it: the road's mode); each cluster keeps ``tau * dy`` of its samples in ``SK[k]`` and its
+``tau * dy``, first over all region-B events, then only over those within ``2 ground_tol`` of
+it: the road's mode; events joining a cluster already known to be off the road are left out);
+each cluster keeps ``tau * dy`` of its samples in ``SK[k]`` and its
 ratio ``rho = median(tau * dy) / K`` in ``C[k, RHO]``.
 """
 
@@ -60,7 +61,7 @@ def ground_update(G, kg, tol, rate, min_events):
     """One step of the ground constant K = G[5] (events seen: G[6]) with kg = tau * dy > 0.
 
     A running median by multiplicative sign steps of size max(rate, 1 / (n + 2)): over every
-    event until ``min_events`` have been seen, then only over events within ``tol`` of K
+    event until ``min_events`` have been seen, then only over events within ``2 tol`` of K
     (the road's mode, so that a large obstacle close by does not drag K down).
     """
     if not (kg > 0.0):
@@ -69,7 +70,7 @@ def ground_update(G, kg, tol, rate, min_events):
     if nk == 0.0:
         G[5] = kg
         G[6] = 1.0
-    elif nk < min_events or abs(kg - G[5]) <= tol * G[5]:
+    elif nk < min_events or abs(kg - G[5]) <= 2.0 * tol * G[5]:
         step = max(rate, 1.0 / (nk + 2.0))
         if kg > G[5]:
             G[5] *= 1.0 + step
@@ -263,11 +264,8 @@ def process(x, y, t, vx, vy, ft, fx, fy, C, I, ST, SV, SK, G, t_end, period_us,
             py = float(y[i])
             tau = event_tau(px, py, np.float64(vx[i]), np.float64(vy[i]), G[1], G[2], half_width,
                             min_below, min_dist, min_speed, max_speed, min_tau, max_tau)
-            kg = 0.0
             if tau > 0.0:
                 kg = tau * (py - G[2])
-                ground_update(G, kg, ground_tol, ground_rate, ground_min_events)
-            if tau > 0.0:
                 # nearest cluster (inf-norm) whose square, widened by the margin, holds p
                 kb = -1
                 db = 1e300
@@ -323,6 +321,9 @@ def process(x, y, t, vx, vy, ft, fx, fy, C, I, ST, SV, SK, G, t_end, period_us,
                 I[kb, POS] = (p + 1) % B
                 if I[kb, NS] < B:
                     I[kb, NS] += 1
+                # K learns from events of clusters not (yet) known to be off the road
+                if not (C[kb, RHO] < 1.0 - ground_tol):
+                    ground_update(G, kg, ground_tol, ground_rate, ground_min_events)
         i += 1
     while j < nf:  # FOE entries after the last event still count for the next packet
         if fx[j] == fx[j] and fy[j] == fy[j]:

@@ -194,7 +194,7 @@ def test_ground_constant_matches_reference(seed):
     kg[::89] = -5.0
     kg[::101] = np.nan
     kg[1000:1010] = 1e6                          # outliers
-    for tol, rate, min_events in ((0.2, 0.002, 500), (0.1, 0.01, 50), (0.3, 0.0005, 1)):
+    for tol, rate, min_events in ((0.1, 0.002, 500), (0.05, 0.01, 50), (0.3, 0.0005, 1)):
         g = np.zeros(8)
         for v in kg:
             ground_update(g, v, tol, rate, float(min_events))

@@ -23,7 +23,7 @@ def event_tau_naive(px, py, vx, vy, fx, fy, half_width, min_below, min_dist, min
 def ground_constant_naive(kg, tol, rate, min_events) -> tuple[float, int]:
     """The ground constant K after the sequence ``kg`` (tau * dy per event), and the number of
     events it has taken: a running median by multiplicative sign steps of max(rate, 1/(n+2)),
-    over every positive kg until ``min_events``, then only over kg within tol of K."""
+    over every positive kg until ``min_events``, then only over kg within 2 tol of K."""
     k, n = 0.0, 0
     for v in kg:
         v = float(v)
@@ -31,7 +31,7 @@ def ground_constant_naive(kg, tol, rate, min_events) -> tuple[float, int]:
             continue
         if n == 0:
             k, n = v, 1
-        elif n < min_events or abs(v - k) <= tol * k:
+        elif n < min_events or abs(v - k) <= 2.0 * tol * k:
             step = max(rate, 1.0 / (n + 2.0))
             if v > k:
                 k *= 1.0 + step
