@@ -88,7 +88,7 @@ def _median_sorted(vals, n):
 def _cluster_estimate(C, I, ST, SV, SK, k, T, max_age_us, min_samples, rel_floor, q_s2_per_s,
                       gate, k_ground, buf):
     """Update cluster k's fused tau at tick time T from its recent samples (median, MAD), and
-    its ground ratio rho (median of tau * dy over K; 0 while K is unknown)."""
+    its ground ratio rho (median of tau * dy over K; left as it is while K is unknown)."""
     n = 0
     nb = I[k, NS]
     for j in range(nb):
