@@ -377,8 +377,7 @@ def lk_flow_run(x, y, t, p, last, second, fifo, speed_state, r, window_us, refra
     # equations, three points for a plane; the centre check needs a neighbour besides the event)
     min_active = 3 if gradient == SAVITZKY_GOLAY else 2
     # calibrated: the gather lists the active pixels of the neighbourhood (in the order the
-    # fits and the centre check visit them, so their sums are unchanged)
-    listed = not faithful
+    # fits and the centre check visit them, so their sums are unchanged); faithful: counts N
     LI = np.zeros(S * S, np.int64)
     LJ = np.zeros(S * S, np.int64)
     PU = np.zeros(S * S, np.float64)
@@ -407,7 +406,6 @@ def lk_flow_run(x, y, t, p, last, second, fifo, speed_state, r, window_us, refra
             continue
         # counts (and weights) of the neighbourhood incl. the stencil margin
         tmin = te - wlim
-        active = 0
         m_list = 0
         for j in range(S):
             yy = ye - R + j
@@ -431,22 +429,23 @@ def lk_flow_run(x, y, t, p, last, second, fifo, speed_state, r, window_us, refra
                                     break
                                 n += 1
                                 oldest = ts
-                    fv = 1.0 - (te - oldest) * w_inv
-                    N[i, j] = n
-                    F[i, j] = fv
-                    V[i, j] = 1.0
-                    if i >= d and i < S - d and not jm:
-                        active += 1
-                    if listed and i >= d and i < S - d and not jm:
-                        LI[m_list] = i
-                        LJ[m_list] = j
-                        PU[m_list] = float(i - R)
-                        PW[m_list] = float(j - R)
-                        FV[m_list] = fv
-                        keep[m_list] = True
-                        m_list += 1
-                else:
+                    if faithful:
+                        N[i, j] = n
+                    else:
+                        fv = 1.0 - (te - oldest) * w_inv
+                        F[i, j] = fv
+                        V[i, j] = 1.0
+                        if i >= d and i < S - d and not jm:
+                            LI[m_list] = i
+                            LJ[m_list] = j
+                            PU[m_list] = float(i - R)
+                            PW[m_list] = float(j - R)
+                            FV[m_list] = fv
+                            keep[m_list] = True
+                            m_list += 1
+                elif faithful:
                     N[i, j] = 0
+                else:
                     F[i, j] = 0.0
                     V[i, j] = 0.0
         if faithful:
@@ -459,7 +458,7 @@ def lk_flow_run(x, y, t, p, last, second, fifo, speed_state, r, window_us, refra
             if v == 0.0 or not np.isfinite(v):
                 continue
         else:
-            if active < min_active:
+            if m_list < min_active:
                 continue
             if gradient == SAVITZKY_GOLAY:
                 vx, vy, ok = _calibrated_sg(PU, PW, FV, keep, m_list, w_inv_s, refit_tolerance)
