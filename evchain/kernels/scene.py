@@ -635,9 +635,10 @@ def row_vmax2(xbs, yb, tb, f, vc, wc):
 
 @njit(**_J)
 def row_work(n):
-    """Scratch arrays of one sample row of n samples: float64 [7, n], int64 [5, n] and the
-    per-block depth bound of blocks of 16 samples."""
-    return np.empty((7, n)), np.empty((5, n), np.int64), np.empty(n // 16 + 1)
+    """Scratch arrays of one sample row of n samples: float64 [7, n], int32 [5, n] (small
+    enough to stay in the L1 cache with the rest) and the per-block depth bound of blocks of 16
+    samples."""
+    return np.empty((7, n)), np.empty((5, n), np.int32), np.empty(n // 16 + 1)
 
 
 @njit(**_J)
@@ -705,9 +706,7 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
             kind0 = 1
         for c in range(n):
             tb[c] = tg
-            kd[c] = kind0
-            hid[c] = -1
-            fc[c] = -1
+            kd[c] = kind0          # hid and fc are read only where kd == 2
             xb = xbs[c]
             dx = xh0 * xb + r0
             dy = xh1 * xb + r1
