@@ -435,9 +435,9 @@ def plane_flow_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, marg
                     age = ti - row[xi + dx]
                     # invalid times stay in wt: the tables give them weight 0
                     wt[k0 + dx] = -age
-                    if age <= window_us:
-                        st -= age
-                        rm |= 1 << (dx + r)
+                    ok = np.int64(age <= window_us)  # branch-free: validity is unpredictable
+                    st -= age * ok
+                    rm |= ok << (dx + r)
                 rowmask[dy + r] = rm
                 n += popcount[rm]
                 sx += bitsum[rm]
