@@ -135,10 +135,12 @@ chain:
 """
 
 
-def make_reference_cache(seconds: float = 10.0, path: Path | None = None) -> Path:
-    """Run ``scene`` + ``emulator`` (thesis reference: high-rise, 20 m/s, threshold 20 on the
-    8-bit log scale) for ``seconds`` and store the events with their exact flow and the FOE
-    (slow: the simulator renders at roughly real time / 100 on a busy machine)."""
+def make_reference_cache(seconds: float = 10.0, path: Path | None = None,
+                         events_file: Path | None = None) -> Path:
+    """Store the thesis reference drive's events (high-rise, 20 m/s, threshold 20 on the 8-bit
+    log scale) of the first ``seconds`` with their exact flow and the FOE. The events come from
+    ``events_file`` (the AEDAT file of ``evchain run pipelines/reference.yaml``) or are made by
+    running ``scene`` + ``emulator`` (slow: the renderer is far from real time)."""
     from evchain.core.chain import Chain
     from evchain.core.config import pipeline_from_text
     from evchain.core.registry import make_registry
@@ -148,26 +150,27 @@ def make_reference_cache(seconds: float = 10.0, path: Path | None = None) -> Pat
     spec = pipeline_from_text(REFERENCE_CHAIN.format(seconds=seconds), "<flow-plane-bench>", reg)
     ctx = Context(seed=0)
     chain = Chain(spec, ctx)
-    chain.setup()
-    cols: dict[str, list[np.ndarray]] = {k: [] for k in ("x", "y", "t", "p", "vx", "vy")}
-    foe = []
+    chain.setup()  # the scene's ground truth is analytic: setting up renders nothing
     try:
-        for packet in chain.stream():
-            if len(packet):
-                vx, vy = ctx.truth.flow(packet.x.astype(float), packet.y.astype(float),
-                                        packet.t.astype(float))
-                for k, v in (("x", packet.x), ("y", packet.y), ("t", packet.t),
-                             ("p", packet.p), ("vx", vx), ("vy", vy)):
-                    cols[k].append(np.asarray(v))
-            fx, fy = ctx.truth.foe(float(packet.t_start))
-            foe.append((packet.t_start, float(fx), float(fy)))
+        if events_file is None:
+            packets = [p for p in chain.stream() if len(p)]
+        else:
+            from evchain.io.aedat2 import AedatSource
+            from evchain.testing.contract import run_source
+
+            got, _ = run_source(AedatSource, {"path": str(events_file)}, Path(events_file).parent)
+            packets = [p.select(p.t < seconds * 1e6) for p in got if p.t_start < seconds * 1e6]
     finally:
         chain.close()
+    ev = EventPacket.concat(packets)
+    vx, vy = ctx.truth.flow(ev.x.astype(float), ev.y.astype(float), ev.t.astype(float))
+    t_foe = np.arange(0, int(seconds * 1e6), 10_000, dtype=np.int64)
+    fx, fy = ctx.truth.foe(t_foe.astype(float))
     g = ctx.geometry
-    f = np.array(foe, np.float64)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".partial.npz")
-    np.savez(tmp, **{k: np.concatenate(v) for k, v in cols.items()}, foe=f,
+    np.savez(tmp, x=ev.x, y=ev.y, t=ev.t, p=ev.p, vx=vx, vy=vy,
+             foe=np.column_stack([t_foe, fx, fy]).astype(np.float64),
              geometry=np.array([g.width, g.height]), seconds=seconds)
     tmp.replace(path)
     return path
@@ -268,4 +271,5 @@ WORKLOADS = {"flow-plane-square": bench_square, "flow-plane-reference": bench_re
 if __name__ == "__main__":
     import sys
 
-    print(make_reference_cache(float(sys.argv[1]) if len(sys.argv) > 1 else 10.0))
+    print(make_reference_cache(float(sys.argv[1]) if len(sys.argv) > 1 else 10.0,
+                               events_file=Path(sys.argv[2]) if len(sys.argv) > 2 else None))
