@@ -26,6 +26,10 @@ def cmd_run(args) -> int:
 
     registry = _registry()
     spec = load_pipeline(args.pipeline, registry, args.set)
+    if args.replay:
+        from evchain.filters.scene_events import replay_spec
+
+        spec = replay_spec(spec, args.replay)
     out = Path(args.out) if args.out else Path("out") / spec.name
     result = run_pipeline(spec, registry, out, progress=not args.no_progress, debug=args.debug)
     rep = result.report
@@ -137,6 +141,10 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--set", action="append", default=[], metavar="STAGE.PARAM=VALUE",
                    help="override a parameter (stage by 'use' name or 'id'); repeatable")
     r.add_argument("--out", help="output folder (default out/NAME)")
+    r.add_argument("--replay", metavar="EVENTS.aedat",
+                   help="instead of scene -> emulator, read their events from an earlier run "
+                        "of the same pipeline start (its folder's events.aedat), with the "
+                        "scene's exact ground truth")
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
     r.set_defaults(fn=cmd_run)
 

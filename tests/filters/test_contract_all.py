@@ -81,4 +81,5 @@ NEEDS_FOE_SERIES = {"ttc"}
 SOURCE_SKIP = {
     "frames": "needs a file; covered in tests/io",
     "hdf5": "needs a file; covered in tests/io/test_hdf5.py",
+    "scene_events": "needs a simulator run's file; covered in tests/sim/test_scene_events.py",
 }

@@ -1,0 +1,105 @@
+"""Source ``scene_events``: the events of an earlier simulator run, replayed with exact truth."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterator
+from pathlib import Path
+
+import yaml
+from pydantic import Field
+
+from evchain.core.filter import Context, Filter
+from evchain.core.packets import EventPacket
+from evchain.errors import DataError
+from evchain.sim.config import SceneConfig
+
+
+class SceneEvents(Filter):
+    """Replays an AEDAT file written by a ``scene`` -> ``emulator`` run with the scene's exact
+    ground truth, so flow, FOE and TTC experiments on a drive need not render it again.
+
+    Give the scene parameters of the run that wrote the file (see its
+    ``pipeline.resolved.yaml``): the truth (flow, depth, FOE, TTC) is computed from them, not
+    read from the file. Sets ``context.geometry`` (with f, cx, cy) and ``context.truth``.
+    """
+
+    name = "scene_events"
+    consumes = None
+    produces = EventPacket
+
+    class Params(SceneConfig):
+        path: str = Field(description="AEDAT 2.0 file written by a run of this scene")
+        packet_us: int = Field(10_000, ge=1, description="duration of one output slice in µs")
+
+    def setup(self, params, context) -> None:
+        from evchain.io.aedat2 import AedatSource
+        from evchain.sim.scene import Scene
+        from evchain.sim.truth import SceneTruth
+
+        scene = Scene(params)
+        self.reader = AedatSource()
+        self.reader.id = f"{self.id}.reader"
+        self.reader.setup(AedatSource.Params(path=params.path, packet_us=params.packet_us),
+                          Context(seed=context.seed, out_dir=context.out_dir,
+                                  metrics=context.metrics))
+        chip = self.reader.chip.geometry
+        self.geometry = scene.geometry
+        if (chip.width, chip.height) != (self.geometry.width, self.geometry.height):
+            raise DataError(f"{params.path}: the sensor is {chip.width}x{chip.height} but the "
+                            f"scene's camera is {self.geometry.width}x{self.geometry.height}: "
+                            "give the width and height of the run that wrote the file")
+        context.geometry = self.geometry
+        context.truth = SceneTruth(scene)
+        super().setup(params, context)
+
+    def time_span_us(self) -> tuple[int, int] | None:
+        return self.reader.time_span_us()
+
+    def packets(self) -> Iterator[EventPacket]:
+        for packet in self.reader.packets():
+            yield packet.replace(geometry=self.geometry)
+
+    def close(self) -> None:
+        reader = getattr(self, "reader", None)
+        if reader is not None:
+            reader.close()
+
+
+#: scene parameters that change how fast frames render, not which events the emulator emits
+RENDER_ONLY = ("threads", "max_frames_per_packet", "packet_us")
+
+
+def replay_spec(spec, events_path: str | Path):
+    """``spec`` with its leading ``scene`` -> ``emulator`` stages replaced by ``scene_events``
+    reading ``events_path``, the events of an earlier run (``evchain run ... --replay``).
+
+    That run's ``pipeline.resolved.yaml`` (beside the file) must show the same scene and
+    emulator parameters, else the events would not be the ones this pipeline makes."""
+    from evchain.core.config import StageSpec
+    from evchain.errors import ConfigError
+
+    stages = spec.stages
+    if len(stages) < 2 or (stages[0].use, stages[1].use) != ("scene", "emulator"):
+        raise ConfigError("--replay needs a pipeline that starts with scene -> emulator",
+                          file=spec.file)
+    recorded = Path(events_path).parent / "pipeline.resolved.yaml"
+    if not recorded.is_file():
+        raise ConfigError(f"{recorded} not found: --replay takes the events file of a run "
+                          "folder (written with its pipeline.resolved.yaml)", file=spec.file)
+    chain = yaml.safe_load(recorded.read_text(encoding="utf-8")).get("chain", [])
+    for i, stage in enumerate(stages[:2]):
+        theirs = chain[i] if i < len(chain) else {}
+        mine = {k: v for k, v in stage.params.model_dump(mode="json").items()
+                if k not in RENDER_ONLY}
+        differ = sorted(k for k, v in mine.items() if theirs.get(k) != v)
+        if theirs.get("use") != stage.use or differ:
+            shown = ", ".join(f"{k}: {theirs.get(k)!r} there, {mine[k]!r} here" for k in differ)
+            raise ConfigError(f"the recorded run ({recorded}) is not this pipeline's "
+                              f"{stage.use}: {shown or 'other stages'}", file=spec.file)
+    scene = stages[0].params
+    params = SceneEvents.Params(path=str(events_path), packet_us=scene.packet_us,
+                                **{k: getattr(scene, k) for k in SceneConfig.model_fields})
+    first = StageSpec(use=SceneEvents.name, id=SceneEvents.name, cls=SceneEvents,
+                      params=params, mark=stages[0].mark)
+    return dataclasses.replace(spec, stages=[first, *stages[2:]])
