@@ -214,6 +214,11 @@ def reference_events(start_m: float, duration_s: float):
     return packets, ctx
 
 
+#: parameters as in pipelines/reference-*.yaml where they differ from the defaults
+CHAIN_PARAMS = {"ttc": {"ground_test": True},
+                "foe_ttc_scorer": {"plots": False, "warmup_s": 1.0}}
+
+
 def chain_rows(flow: str, quick: bool) -> list[BenchRow]:
     from evchain.core.registry import make_registry
 
@@ -228,7 +233,7 @@ def chain_rows(flow: str, quick: bool) -> list[BenchRow]:
         for name in names:
             f = reg.get(name)()
             f.id = name
-            params = {"plots": False, "warmup_s": 1.0} if name == "foe_ttc_scorer" else {}
+            params = CHAIN_PARAMS.get(name, {})
             f.setup(f.Params(**params), Context(seed=0, geometry=ctx.geometry, truth=ctx.truth,
                                                  metrics=ctx.metrics))
             fs.append(f)
