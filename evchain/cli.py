@@ -113,6 +113,8 @@ def cmd_sweep(args) -> int:
     from evchain.sweep import load_sweep, run_sweep
 
     sweep = load_sweep(args.sweep)
+    if args.replay:
+        sweep.replay = Path(args.replay)
     out = Path(args.out) if args.out else Path("out") / "sweeps" / sweep.name
     print(f"sweep {sweep.name}: {len(sweep.variations)} runs of {sweep.base} -> {out}/")
     run_sweep(sweep, out, workers=args.workers, scheduler=args.scheduler)
@@ -164,6 +166,9 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("sweep")
     sw.add_argument("--out", help="output folder (default out/sweeps/NAME)")
     sw.add_argument("--workers", type=int, default=2, help="local processes (1: in-process)")
+    sw.add_argument("--replay", metavar="EVENTS.aedat",
+                    help="every run reads these recorded events instead of scene -> emulator "
+                         "(overrides the sweep's 'replay')")
     sw.add_argument("--scheduler", help="Dask scheduler address (needs evchain[dask])")
     sw.set_defaults(fn=cmd_sweep)
 

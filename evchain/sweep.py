@@ -10,6 +10,7 @@ A sweep file::
       scene.speed_mps: [10, 20, 30]
       emulator.threshold_on,emulator.threshold_off: [[10, 10], [20, 20], [40, 40]]
     report: [foe.dx_mean_px, foe.dy_mean_px, ttc.median_rel_error_last3s]
+    replay: ../../runs/reference/events.aedat   # optional: see below
 
 A key naming several parameters, separated by commas, sets them together from a list per value.
 ``one_at_a_time`` varies one key while the others keep the base's values (as the thesis's
@@ -18,6 +19,10 @@ tables do); ``grid`` runs every combination. Each run writes into
 the same resolved pipeline is not repeated. Runs go to a local process pool, or to a Dask cluster
 when a scheduler address is given (``pip install 'evchain[dask]'``). The table is printed and
 written as ``OUT/sweep.csv`` and ``OUT/sweep.md``.
+
+With ``replay`` (relative to the sweep file, or ``evchain sweep --replay FILE``) every run reads
+the recorded events of an earlier ``scene`` -> ``emulator`` run instead of rendering (see
+``evchain run --replay``), so sweeps over the later stages take seconds per run.
 """
 
 from __future__ import annotations
@@ -35,7 +40,7 @@ from evchain.core.registry import Registry, make_registry
 from evchain.errors import ConfigError
 from evchain.io.atomic import atomic_write_text
 
-SWEEP_KEYS = {"name", "base", "mode", "set", "vary", "report", "description"}
+SWEEP_KEYS = {"name", "base", "mode", "set", "vary", "report", "description", "replay"}
 
 
 @dataclass
@@ -51,6 +56,7 @@ class SweepSpec:
     variations: list[Variation]
     report: list[str]
     file: str
+    replay: Path | None = None
 
 
 def load_sweep(path: str | Path) -> SweepSpec:
@@ -88,9 +94,13 @@ def load_sweep(path: str | Path) -> SweepSpec:
     if not isinstance(common, list):
         fail("must be a list of STAGE.PARAM=VALUE overrides", "set")
     report = data.get("report", []) or []
+    replay = data.get("replay")
+    if replay is not None and not isinstance(replay, str):
+        fail("must be the path of a recorded run's events file", "replay")
     return SweepSpec(name=data.get("name") or path.stem, base=path.parent / data["base"],
                      variations=_variations(vary, mode, [str(c) for c in common]),
-                     report=list(report), file=str(path))
+                     report=list(report), file=str(path),
+                     replay=None if replay is None else path.parent / replay)
 
 
 def _overrides(key: str, value: Any) -> list[str]:
@@ -120,11 +130,21 @@ def config_hash(resolved: dict[str, Any]) -> str:
     return hashlib.sha256(json.dumps(resolved, sort_keys=True).encode()).hexdigest()[:12]
 
 
-def _run_one(base: str, overrides: list[str], out_dir: str, registry: Registry | None = None):
+def _load(base: str, overrides: list[str], registry: Registry, replay: str | None):
+    spec = load_pipeline(base, registry, overrides)
+    if replay is None:
+        return spec
+    from evchain.filters.scene_events import replay_spec
+
+    return replay_spec(spec, replay)
+
+
+def _run_one(base: str, overrides: list[str], out_dir: str, registry: Registry | None = None,
+             replay: str | None = None):
     from evchain.core.chain import run_pipeline
 
     registry = registry or make_registry()
-    spec = load_pipeline(base, registry, overrides)
+    spec = _load(base, overrides, registry, replay)
     report_path = Path(out_dir) / "report.json"
     if report_path.exists():
         old = json.loads(report_path.read_text())
@@ -148,12 +168,13 @@ def run_sweep(sweep: SweepSpec, out_dir: str | Path, workers: int = 2,
     """Run every variation (skipping cached ones) and return one table row per variation."""
     out = Path(out_dir)
     check = registry or make_registry()
+    replay = None if sweep.replay is None else str(sweep.replay)
     jobs = []
     for v in sweep.variations:
-        spec = load_pipeline(sweep.base, check, v.overrides)  # fail early, before any run
+        spec = _load(str(sweep.base), v.overrides, check, replay)  # fail early, before any run
         jobs.append((v, str(out / config_hash(spec.resolved()))))
     if scheduler is None and workers <= 1:
-        results = [_run_one(str(sweep.base), v.overrides, d, registry) for v, d in jobs]
+        results = [_run_one(str(sweep.base), v.overrides, d, registry, replay) for v, d in jobs]
     elif scheduler is not None:
         try:
             from dask.distributed import Client
@@ -161,12 +182,13 @@ def run_sweep(sweep: SweepSpec, out_dir: str | Path, workers: int = 2,
             raise ConfigError("a Dask scheduler needs 'pip install evchain[dask]'",
                               file="--scheduler") from None
         with Client(scheduler) as client:
-            futures = [client.submit(_run_one, str(sweep.base), v.overrides, d, pure=False)
-                       for v, d in jobs]
+            futures = [client.submit(_run_one, str(sweep.base), v.overrides, d, None, replay,
+                                     pure=False) for v, d in jobs]
             results = client.gather(futures)
     else:
         with ProcessPoolExecutor(max_workers=workers) as pool:
-            futures = [pool.submit(_run_one, str(sweep.base), v.overrides, d) for v, d in jobs]
+            futures = [pool.submit(_run_one, str(sweep.base), v.overrides, d, None, replay)
+                       for v, d in jobs]
             results = [f.result() for f in futures]
     rows = []
     for (v, d), (report, cached) in zip(jobs, results, strict=True):

@@ -96,3 +96,23 @@ def test_replay_refuses_a_run_of_other_parameters(recorded, tmp_path):
     with pytest.raises(ConfigError, match=r"not this pipeline's emulator: threshold_on: "
                                           r"0\.2 there, 0\.3 here"):
         replay_spec(spec, recorded)
+
+
+def test_sweep_over_a_recorded_drive(recorded, tmp_path):
+    """``replay:`` in a sweep: every variation reads the recording; varying the emulator, which
+    a recording cannot follow, is refused before anything runs."""
+    from evchain.errors import ConfigError
+    from evchain.sweep import load_sweep, run_sweep
+
+    _flow_pipeline(tmp_path / "flow.yaml")
+    sweep_file = tmp_path / "s.yaml"
+    sweep_file.write_text(f"base: flow.yaml\nreplay: {recorded}\n"
+                          "vary:\n  lk_flow.refractory_us: [0, 100000]\n"
+                          "report: [flow.n_flow]\n")
+    rows = run_sweep(load_sweep(sweep_file), tmp_path / "out", workers=1, echo=lambda _: None)
+    assert rows[0]["flow.n_flow"] > rows[1]["flow.n_flow"] > 0  # refractory thins the flow
+    sweep_file.write_text(f"base: flow.yaml\nreplay: {recorded}\n"
+                          "vary:\n  emulator.threshold_on: [0.2, 0.3]\n")
+    with pytest.raises(ConfigError, match="not this pipeline's emulator: threshold_on"):
+        run_sweep(load_sweep(sweep_file), tmp_path / "out2", workers=1, echo=lambda _: None)
+    assert not (tmp_path / "out2").exists()
