@@ -27,7 +27,9 @@ the recorded events of an earlier ``scene`` -> ``emulator`` run instead of rende
 
 from __future__ import annotations
 
+import csv
 import hashlib
+import io
 import itertools
 import json
 from concurrent.futures import ProcessPoolExecutor
@@ -208,9 +210,12 @@ def _fmt(v) -> str:
 
 def write_table(rows: list[dict[str, Any]], out: Path) -> None:
     cols = list(rows[0]) if rows else []
-    csv = [",".join(cols)] + [",".join(str(r[c]) for c in cols) for r in rows]
+    text = io.StringIO()
+    writer = csv.writer(text, lineterminator="\n")  # quotes labels of joint keys (commas)
+    writer.writerow(cols)
+    writer.writerows([r[c] for c in cols] for r in rows)
     md = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     md += ["| " + " | ".join(_fmt(r[c]) for c in cols) + " |" for r in rows]
-    atomic_write_text(out / "sweep.csv", "\n".join(csv) + "\n")
+    atomic_write_text(out / "sweep.csv", text.getvalue())
     atomic_write_text(out / "sweep.md", "\n".join(md) + "\n")
 

@@ -58,6 +58,11 @@ def test_joint_keys(tmp_path, registry):
     assert sweep.variations[1].overrides == ["toy_source.packets=2", "toy_source.width=30"]
     rows = run_sweep(sweep, tmp_path / "out", workers=1, registry=registry, echo=lambda s: None)
     assert [r["toy.count"] for r in rows] == [100, 200]
+    import csv  # the joint key's label holds commas: the CSV must still read back
+
+    table = list(csv.DictReader((tmp_path / "out" / "sweep.csv").open()))
+    assert [r["variation"] for r in table] == [v.label for v in sweep.variations]
+    assert [int(r["toy.count"]) for r in table] == [100, 200]
     bad = write(tmp_path, "base: base.yaml\nvary:\n  a.b,c.d: [[1]]\n")
     with pytest.raises(ConfigError, match="list of 2 values"):
         load_sweep(bad)
