@@ -44,15 +44,12 @@ def _run(filters, packets):
     return out
 
 
-def foe_map_rows(quick: bool, cell_px: int = 1) -> list[BenchRow]:
+def _foe_map_stage(packets, cell_px: int):
+    """A fresh ``foe_map`` (defaults, ``cell_px``) over ``packets``, and the list that collects
+    its ``foe`` series entries (cleared at every call)."""
     from evchain.filters.foe_map import FoeMap
 
-    n = 1_000_000 if quick else 4_000_000
-    dur = n  # 1 M flow events per second of stream
-    packets = approach_flow_packets(foe=CENTRE, tau_s=5.0, n=n, geometry=G, duration_us=dur,
-                                    n_packets=max(1, dur // 10_000), normal_only=True,
-                                    noise_frac=0.1)
-    series = []
+    series: list[np.ndarray] = []
 
     def stage():
         f = FoeMap()
@@ -60,6 +57,17 @@ def foe_map_rows(quick: bool, cell_px: int = 1) -> list[BenchRow]:
         series.clear()
         for p in packets:
             series.append(f.process(p).series["foe"])
+
+    return stage, series
+
+
+def foe_map_rows(quick: bool, cell_px: int = 1) -> list[BenchRow]:
+    n = 1_000_000 if quick else 4_000_000
+    dur = n  # 1 M flow events per second of stream
+    packets = approach_flow_packets(foe=CENTRE, tau_s=5.0, n=n, geometry=G, duration_us=dur,
+                                    n_packets=max(1, dur // 10_000), normal_only=True,
+                                    noise_frac=0.1)
+    stage, series = _foe_map_stage(packets, cell_px)
 
     t = best_time(stage, repeat=3)
     cpu = best_cpu_time(stage, repeat=2)
@@ -110,19 +118,10 @@ def reference_flow(flow: str, start_m: float, duration_s: float):
 def foe_reference_rows(flow: str, quick: bool, cell_px: int = 1) -> list[BenchRow]:
     """``foe_map`` alone (defaults) on the flow of the reference drive's last 5 s (``quick``:
     1 s); error = mean |dx|, |dy| against the true FOE after a 1 s warm-up (the scorer's)."""
-    from evchain.filters.foe_map import FoeMap
-
     start_m, dur = (220.0, 1.0) if quick else (180.0, 5.0)
     packets, ctx = reference_flow(flow, start_m, dur)
     n = sum(len(p) for p in packets)
-    series = []
-
-    def stage():
-        f = FoeMap()
-        f.setup(FoeMap.Params(cell_px=cell_px), Context())
-        series.clear()
-        for p in packets:
-            series.append(f.process(p).series["foe"])
+    stage, series = _foe_map_stage(packets, cell_px)
 
     cpu = best_cpu_time(stage, repeat=3, warmup=True)
     s = np.concatenate(series)
