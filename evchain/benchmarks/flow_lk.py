@@ -23,9 +23,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import numpy as np
-
-from evchain.bench import BenchRow, best_cpu_time, best_time, cut_every
+from evchain.bench import BenchRow, cut_every
 from evchain.core.filter import Context
 from evchain.core.packets import EventPacket
 from evchain.testing.contract import run_filter
@@ -70,30 +68,16 @@ def _kernel_rate(ev: EventPacket, params, repeat: int) -> float:
 
 
 def _rows(workload, ev, truth, error_key, quick, extra) -> list[BenchRow]:
-    from evchain.filters.flow_scorer import score_flow
+    from evchain.benchmarks.flow_plane import flow_row
 
     packets = cut_every(ev)
-    n_in = len(ev)
     rows = []
     for variant, vparams in VARIANTS.items():
         prm = {**THESIS, **vparams}
-        outs = _lk(prm, packets)
-        secs = best_cpu_time(lambda prm=prm: _lk(prm, packets), repeat=1 if quick else 3,
-                             warmup=True, clock=time.thread_time)
-        wall = best_time(lambda prm=prm: _lk(prm, packets), repeat=1)
-        x, y, t, vx, vy = (np.concatenate([getattr(o, c) for o in outs])
-                           for c in ("x", "y", "t", "vx", "vy"))
-        m = score_flow(x, y, t, vx, vy, truth)
-        rows.append(BenchRow(
-            workload=f"flow-lk-{variant}-{workload}", stage="lk_flow", throughput=n_in / secs,
-            unit="ev/s", error=m[error_key], error_name=error_key,
-            extra={**extra, "events_in": n_in, "throughput_wall_eps": n_in / wall,
-                   "flow_events": int(len(x)),
-                   "density": len(x) / n_in if n_in else None,
-                   "kernel_ev_s": _kernel_rate(ev, prm, 1 if quick else 3),
-                   "aee_pxs": m["aee_pxs"], "aee_normal_pxs": m["aee_normal_pxs"],
-                   "aae_deg": m["aae_deg"], "invalid_rate": m["invalid_rate"],
-                   "ree_pct": m["ree_pct"], "n_scored": m["n_scored"], "params": prm}))
+        rows.append(flow_row(f"flow-lk-{variant}-{workload}", "lk_flow",
+                             lambda prm=prm: _lk(prm, packets), packets, truth, error_key, quick,
+                             {**extra, "params": prm,
+                              "kernel_ev_s": _kernel_rate(ev, prm, 1 if quick else 3)}))
     return rows
 
 

@@ -214,28 +214,36 @@ def _plane(params, packets):
     return run_filter(f, packets, check=False)
 
 
+def flow_row(workload: str, stage: str, run, packets, truth, error_key: str, quick: bool,
+             extra: dict) -> BenchRow:
+    """One benchmark row of a flow filter: ``run()`` processes ``packets`` and returns the
+    output packets. Throughput = input events per CPU second of this thread (best of 1 or 3);
+    the wall-clock rate and the flow metrics against ``truth`` go into ``extra``."""
+    n_in = sum(len(p) for p in packets)
+    outs = run()
+    secs = best_cpu_time(run, repeat=1 if quick else 3, warmup=True, clock=time.thread_time)
+    wall = best_time(run, repeat=1)
+    x, y, t, vx, vy = (np.concatenate([getattr(o, c) for o in outs])
+                       for c in ("x", "y", "t", "vx", "vy"))
+    m = score_flow(x, y, t, vx, vy, truth)
+    return BenchRow(
+        workload=workload, stage=stage, throughput=n_in / secs, unit="ev/s",
+        error=m[error_key], error_name=error_key,
+        extra={**extra, "events_in": n_in, "throughput_wall_eps": n_in / wall,
+               "flow_events": int(len(x)), "density": len(x) / n_in if n_in else None,
+               "aee_pxs": m["aee_pxs"], "aee_normal_pxs": m["aee_normal_pxs"],
+               "aae_deg": m["aae_deg"], "invalid_rate": m["invalid_rate"],
+               "ree_pct": m["ree_pct"], "n_scored": m["n_scored"]})
+
+
 def _rows(workload: str, packets, truth, params, error_key: str, quick: bool,
           extra: dict) -> list[BenchRow]:
-    n_in = sum(len(p) for p in packets)
     rows = []
     for variant in VARIANTS:
         prm = {**params, "variant": variant}
-        outs = _plane(prm, packets)
-        secs = best_cpu_time(lambda prm=prm: _plane(prm, packets), repeat=1 if quick else 3,
-                             warmup=True, clock=time.thread_time)
-        wall = best_time(lambda prm=prm: _plane(prm, packets), repeat=1)
-        x, y, t, vx, vy = (np.concatenate([getattr(o, c) for o in outs])
-                           for c in ("x", "y", "t", "vx", "vy"))
-        m = score_flow(x, y, t, vx, vy, truth)
-        err = m[error_key]
-        rows.append(BenchRow(
-            workload=f"flow-plane-{SHORT[variant]}-{workload}", stage="plane_flow",
-            throughput=n_in / secs, unit="ev/s", error=err, error_name=error_key,
-            extra={**extra, "events_in": n_in, "throughput_wall_eps": n_in / wall,
-                   "density": len(x) / n_in if n_in else None,
-                   "aee_pxs": m["aee_pxs"], "aee_normal_pxs": m["aee_normal_pxs"],
-                   "aae_deg": m["aae_deg"], "invalid_rate": m["invalid_rate"],
-                   "ree_pct": m["ree_pct"], "n_scored": m["n_scored"], "params": prm}))
+        rows.append(flow_row(f"flow-plane-{SHORT[variant]}-{workload}", "plane_flow",
+                             lambda prm=prm: _plane(prm, packets), packets, truth, error_key,
+                             quick, {**extra, "params": prm}))
     return rows
 
 
