@@ -41,6 +41,8 @@ CHUNK = 64
 NO_CACHE = -10.0
 #: minus the smallest normal float32: the OFF gate when no OFF level is reachable
 LO_NONE = -1.1754944e-38
+#: bound on the cubic crossing solve's error, in fractions of the frame interval
+SOLVE_TOL = 1e-13
 
 
 @njit(cache=True)
@@ -102,28 +104,16 @@ def slope3(d1, d2, h1, h2):
 
 
 @njit(cache=True)
-def hermite(s, la, lb, m0, m1):
-    """Cubic Hermite on s in [0, 1] (end values la, lb; end slopes m0, m1 per unit s)."""
-    s2 = s * s
-    s3 = s2 * s
-    return ((2 * s3 - 3 * s2 + 1) * la + (s3 - 2 * s2 + s) * m0 + (-2 * s3 + 3 * s2) * lb
-            + (s3 - s2) * m1)
-
-
-@njit(cache=True)
-def hermite_d(s, la, lb, m0, m1):
-    s2 = s * s
-    return ((6 * s2 - 6 * s) * la + (3 * s2 - 4 * s + 1) * m0 + (-6 * s2 + 6 * s) * lb
-            + (3 * s2 - 2 * s) * m1)
-
-
-@njit(cache=True)
 def solve_crossing(level, la, lb, m0, m1, cubic):
     """Fraction s in [0, 1] of the interval where the (monotone) piece reaches ``level``.
 
     Linear: (level - la) / (lb - la). Cubic: safeguarded Newton on the monotone Hermite piece
-    (bisection whenever Newton leaves the bracket). Levels outside [la, lb] clip to 0 or 1
-    (a level within the tie tolerance just beyond lb gives s = 1; a carried-over crossing gives 0).
+    in power form (Horner), started at the linear solution; bisection whenever Newton leaves
+    the bracket. A Newton step d from s lands within (|p''(s)| d^2 / 2 + |p'''| |d|^3 / 6)
+    / |p'(s)| of the root (Taylor), so it stops as soon as that bound is below ``SOLVE_TOL``
+    (or the step below 1e-10), without a further step to confirm convergence. Levels outside
+    [la, lb] clip to 0 or 1 (a level within the tie tolerance just beyond lb gives s = 1; a
+    carried-over crossing gives 0).
     """
     if lb == la:
         return 0.0
@@ -134,22 +124,34 @@ def solve_crossing(level, la, lb, m0, m1, cubic):
         return 1.0
     if not cubic:
         return s
-    up = lb > la
+    d = lb - la
+    # p(s) - level = g + s (m0 + s (c2 + s c3))
+    c2 = 3.0 * d - 2.0 * m0 - m1
+    c3 = m0 + m1 - 2.0 * d
+    g = la - level
+    ac3 = 2.0 * abs(c3)
+    up = d > 0.0
     a = 0.0
     b = 1.0
-    for _ in range(60):
-        f = hermite(s, la, lb, m0, m1) - level
+    for _ in range(100):
+        f = g + s * (m0 + s * (c2 + s * c3))
         if f == 0.0:
             return s
         if (f < 0.0) == up:
             a = s
         else:
             b = s
-        df = hermite_d(s, la, lb, m0, m1)
-        sn = s - f / df if df != 0.0 else -1.0
-        if not (a < sn < b):
-            sn = 0.5 * (a + b)
-        if abs(sn - s) < 1e-10:
+        df = m0 + s * (2.0 * c2 + 3.0 * c3 * s)
+        sn = 0.5 * (a + b)
+        if df != 0.0:
+            st = f / df
+            if a < s - st < b:
+                sn = s - st
+                ast = abs(st)
+                ddf = 2.0 * c2 + 6.0 * c3 * s
+                if ast < 1e-10 or (abs(ddf) + ac3 * ast) * ast * ast < 2.0 * SOLVE_TOL * abs(df):
+                    return sn
+        if b - a < 1e-15:
             return sn
         s = sn
     return s
