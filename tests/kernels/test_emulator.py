@@ -179,3 +179,46 @@ def test_solve_crossing_matches_bisection():
     assert solve_crossing(1.0, 2.0, 2.0, 0.0, 0.0, True) == 0.0
     assert solve_crossing(3.0, 2.0, 2.5, 0.1, 0.1, True) == 1.0
     assert solve_crossing(1.0, 2.0, 2.5, 0.1, 0.1, True) == 0.0
+
+
+@pytest.mark.parametrize("interpolation", ["linear", "cubic"])
+def test_many_crossings_in_one_interval_match_naive(interpolation):
+    # ~34 crossings per pixel in one interval, ~4 900 in all: more than the first event
+    # buffer (1 024), so the kernel stops, grows and resumes mid-interval; with an empty
+    # interval (equal frames) in between and the refractory period and the cap
+    h, w = 12, 12
+    rng = np.random.default_rng(8)
+    lo_ = rng.uniform(0.0, 0.002, (h, w))
+    frames = np.stack([lo_, lo_, 1.0 + 0 * lo_, 1.0 + 0 * lo_, lo_]).astype(np.float32)
+    times = np.array([0, 1000, 1500, 2700, 3100], np.int64)
+    ev = compare(frames, times, c=0.2, interpolation=interpolation)
+    assert len(ev) > 2 * 1024
+    compare(frames, times, c=0.2, interpolation=interpolation, refractory_us=30.0)
+    compare(frames, times, c=0.2, interpolation=interpolation, max_events_per_interval=5)
+
+
+def test_batched_times_match_bisection():
+    # _times (lockstep Newton over all crossings, checked step, fallback) against bisection
+    from evchain.kernels.emulator import _times
+    from tests.naive.emulator import _hermite, _solve
+
+    rng = np.random.default_rng(5)
+    lev, la, lb, m0, m1 = _pieces(rng, 4000)
+    n = len(lev)
+    piece = np.empty((6, n))
+    piece[:5] = lev, la, lb, m0, m1
+    for cubic in (True, False):
+        ui = np.arange(n, dtype=np.int64)
+        utf = np.empty(n)
+        up_ = np.ones(n, np.int8)
+        last_t = np.full(n, -1e300)
+        assert _times(0, n, cubic, 0.0, 1.0, 0.0, ui, utf, up_, piece.copy(), last_t) == n
+        worst = 0.0
+        for q in range(n):
+            ref = _solve(lev[q], la[q], lb[q], m0[q], m1[q], cubic)
+            assert np.isfinite(utf[q]) and 0.0 <= utf[q] <= 1.0
+            slope = (_hermite(ref + 1e-7, la[q], lb[q], m0[q], m1[q])
+                     - _hermite(ref - 1e-7, la[q], lb[q], m0[q], m1[q])) / 2e-7
+            if not cubic or abs(slope) > 1e-3 * abs(lb[q] - la[q]):
+                worst = max(worst, abs(utf[q] - ref))
+        assert worst < 1e-9
