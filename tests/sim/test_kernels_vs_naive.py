@@ -54,8 +54,8 @@ def test_road_coords_and_ground(name):
                for a, b in zip(x, y, strict=True)]
         np.testing.assert_allclose(got, want, atol=1e-12)
         acc = np.zeros(400)
-        K.ground_pass(x, y, np.arange(400), 400, sc.segs, sc.ground, sc.light, sc.tex, lv_inv,
-                      lv_off, lv_mask, acc)
+        K.ground_pass(np.ones(400, np.int32), x, y, 1.0, 0.0, 0.0, np.arange(400), sc.segs,
+                      sc.ground, sc.light, sc.tex, lv_inv, lv_off, lv_mask, acc)
         np.testing.assert_allclose(acc / lit, want, atol=1e-12)
 
 
