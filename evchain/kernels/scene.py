@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 _J = dict(cache=True, error_model="numpy")
 _I = dict(cache=True, error_model="numpy", inline="always")   # helpers of the hot loops
@@ -612,7 +612,15 @@ def face_light(light):
 @njit(**_J)
 def box_pass(kd, tb, hid, fc, dxs, dys, ox, oy, oz, dz, pcol, box_mat, box_par, lit, acc):
     """acc[pcol[c]] += intensity of the box hit by sample c of a row, for every c with
-    kd[c] == 2 (box hid[c], face fc[c], ray parameter tb[c], direction (dxs, dys, dz)[c])."""
+    kd[c] == 2 (box hid[c], face fc[c], ray parameter tb[c], direction (dxs, dys, dz)[c]).
+
+    Window grids (material 1) are :func:`box_albedo` written out, with the two hashes kept
+    while neighbouring samples stay on the same floor and window column."""
+    pb = -1          # box, floor and column of the cached hashes
+    pf = 0.0
+    pc = 0.0
+    hwin = 0.0
+    hwall = 0.0
     for c in range(kd.shape[0]):
         if kd[c] != 2:
             continue
@@ -623,8 +631,31 @@ def box_pass(kd, tb, hid, fc, dxs, dys, ox, oy, oz, dz, pcol, box_mat, box_par, 
             a = 0.8 * box_par[idx, 0]
         else:
             u = oy + t * dys[c] if face < 2 else ox + t * dxs[c]
-            a = box_albedo(box_mat[idx], box_par[idx, 0], box_par[idx, 1], box_par[idx, 2],
-                           box_par[idx, 3], idx, u, oz + t * dz)
+            z = oz + t * dz
+            mat = box_mat[idx]
+            if mat == 1:
+                fh = box_par[idx, 1]
+                cw = box_par[idx, 2]
+                fi = math.floor(z / fh)
+                ci = math.floor(u / cw)
+                fz = z / fh - fi
+                fu = u / cw - ci
+                if idx != pb or fi != pf:
+                    hwall = hash3(np.int64(fi), idx, 77)
+                    hwin = hash3(np.int64(ci), np.int64(fi), idx)
+                    pb = idx
+                    pf = fi
+                    pc = ci
+                elif ci != pc:
+                    hwin = hash3(np.int64(ci), np.int64(fi), idx)
+                    pc = ci
+                win = 0.06 + 0.2 * hwin
+                wall = box_par[idx, 0] + 0.06 * (hwall - 0.5)
+                inside = (fz > 0.3) & (fz < 0.85) & (fu > 0.2) & (fu < 0.8)
+                a = win if inside else wall
+            else:
+                a = box_albedo(mat, box_par[idx, 0], box_par[idx, 1], box_par[idx, 2],
+                               box_par[idx, 3], idx, u, z)
         acc[pcol[c]] += a * lit[face]
 
 
@@ -849,10 +880,12 @@ def pixel_columns(w, k):
 
 @njit(cache=True, error_model="numpy", nogil=True)
 def render(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground, light,
-           tex, tex_inv, tex_off, vis, minz, bbox, out):
-    """Render one frame into out [H, W] (float32, linear intensity, k x k supersampling
-    averaged) and return the maximum motion-field magnitude (px/s) over all samples.
-    vis: visible boxes nearest first, minz their depth bounds (:func:`frame_boxes`)."""
+           tex, tex_inv, tex_off, vis, minz, bbox, out, j0=0, jstep=1):
+    """Render the rows j0, j0 + jstep, ... of one frame into out [H, W] (float32, linear
+    intensity, k x k supersampling averaged) and return the maximum motion-field magnitude
+    (px/s) over their samples. vis: visible boxes nearest first, minz their depth bounds
+    (:func:`frame_boxes`). Releases the GIL: threads may render interleaved rows of one frame
+    (same result)."""
     w = out.shape[1]
     xbs = sample_columns(w, k, cx, f)
     pcol = pixel_columns(w, k)
@@ -860,34 +893,13 @@ def render(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground
     lv_inv, lv_off, lv_mask = level_work(tex_inv.shape[0])
     acc = np.empty(w)
     vmax2 = 0.0
-    for j in range(out.shape[0]):
+    for j in range(j0, out.shape[0], jstep):
         m2 = render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
                         ground, light, tex, tex_inv, tex_off, vis, minz, bbox, xbs, pcol, fw,
                         iw, bmax, lv_inv, lv_off, lv_mask, acc, out)
         if m2 > vmax2:
             vmax2 = m2
     return math.sqrt(vmax2)
-
-
-@njit(cache=True, error_model="numpy", parallel=True, nogil=True)
-def render_parallel(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground,
-                    light, tex, tex_inv, tex_off, vis, minz, bbox, out, nchunks):
-    """:func:`render` with the rows shared among numba's threads in nchunks interleaved
-    chunks (same result)."""
-    h = out.shape[0]
-    w = out.shape[1]
-    xbs = sample_columns(w, k, cx, f)
-    pcol = pixel_columns(w, k)
-    rows = np.zeros(h)
-    for ch in prange(nchunks):
-        fw, iw, bmax = row_work(w * k)
-        lv_inv, lv_off, lv_mask = level_work(tex_inv.shape[0])
-        acc = np.empty(w)
-        for j in range(ch, h, nchunks):
-            rows[j] = render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par,
-                                 segs, ground, light, tex, tex_inv, tex_off, vis, minz, bbox,
-                                 xbs, pcol, fw, iw, bmax, lv_inv, lv_off, lv_mask, acc, out)
-    return math.sqrt(rows.max())
 
 
 # ----------------------------------------------------------------------------- ground truth
