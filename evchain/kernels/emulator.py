@@ -41,6 +41,10 @@ CHUNK = 64
 NO_CACHE = -10.0
 #: minus the smallest normal float32: the OFF gate when no OFF level is reachable
 LO_NONE = -1.1754944e-38
+#: bound on the cubic crossing solve's error, in fractions of the frame interval
+SOLVE_TOL = 1e-13
+#: Newton steps run over all crossings of an interval together before the checked step
+NEWTON_LOCKSTEP = 2
 
 
 @njit(cache=True)
@@ -102,28 +106,16 @@ def slope3(d1, d2, h1, h2):
 
 
 @njit(cache=True)
-def hermite(s, la, lb, m0, m1):
-    """Cubic Hermite on s in [0, 1] (end values la, lb; end slopes m0, m1 per unit s)."""
-    s2 = s * s
-    s3 = s2 * s
-    return ((2 * s3 - 3 * s2 + 1) * la + (s3 - 2 * s2 + s) * m0 + (-2 * s3 + 3 * s2) * lb
-            + (s3 - s2) * m1)
-
-
-@njit(cache=True)
-def hermite_d(s, la, lb, m0, m1):
-    s2 = s * s
-    return ((6 * s2 - 6 * s) * la + (3 * s2 - 4 * s + 1) * m0 + (-6 * s2 + 6 * s) * lb
-            + (3 * s2 - 2 * s) * m1)
-
-
-@njit(cache=True)
 def solve_crossing(level, la, lb, m0, m1, cubic):
     """Fraction s in [0, 1] of the interval where the (monotone) piece reaches ``level``.
 
     Linear: (level - la) / (lb - la). Cubic: safeguarded Newton on the monotone Hermite piece
-    (bisection whenever Newton leaves the bracket). Levels outside [la, lb] clip to 0 or 1
-    (a level within the tie tolerance just beyond lb gives s = 1; a carried-over crossing gives 0).
+    in power form (Horner), started at the linear solution; bisection whenever Newton leaves
+    the bracket. A Newton step d from s lands within (|p''(s)| d^2 / 2 + |p'''| |d|^3 / 6)
+    / |p'(s)| of the root (Taylor), so it stops as soon as that bound is below ``SOLVE_TOL``
+    (or the step below 1e-10), without a further step to confirm convergence. Levels outside
+    [la, lb] clip to 0 or 1 (a level within the tie tolerance just beyond lb gives s = 1; a
+    carried-over crossing gives 0).
     """
     if lb == la:
         return 0.0
@@ -134,22 +126,34 @@ def solve_crossing(level, la, lb, m0, m1, cubic):
         return 1.0
     if not cubic:
         return s
-    up = lb > la
+    d = lb - la
+    # p(s) - level = g + s (m0 + s (c2 + s c3))
+    c2 = 3.0 * d - 2.0 * m0 - m1
+    c3 = m0 + m1 - 2.0 * d
+    g = la - level
+    ac3 = 2.0 * abs(c3)
+    up = d > 0.0
     a = 0.0
     b = 1.0
-    for _ in range(60):
-        f = hermite(s, la, lb, m0, m1) - level
+    for _ in range(100):
+        f = g + s * (m0 + s * (c2 + s * c3))
         if f == 0.0:
             return s
         if (f < 0.0) == up:
             a = s
         else:
             b = s
-        df = hermite_d(s, la, lb, m0, m1)
-        sn = s - f / df if df != 0.0 else -1.0
-        if not (a < sn < b):
-            sn = 0.5 * (a + b)
-        if abs(sn - s) < 1e-10:
+        df = m0 + s * (2.0 * c2 + 3.0 * c3 * s)
+        sn = 0.5 * (a + b)
+        if df != 0.0:
+            st = f / df
+            if a < s - st < b:
+                sn = s - st
+                ast = abs(st)
+                ddf = 2.0 * c2 + 6.0 * c3 * s
+                if ast < 1e-10 or (abs(ddf) + ac3 * ast) * ast * ast < 2.0 * SOLVE_TOL * abs(df):
+                    return sn
+        if b - a < 1e-15:
             return sn
         s = sn
     return s
@@ -182,21 +186,97 @@ def _chunk_clear(f, hi, lo):
     return k == 0
 
 
+@njit(cache=True, error_model="numpy")
+def _times(u0, u1, cubic, t0, dt, refractory_us, ui, utf, up_, piece, last_t):
+    """Times of the crossings ``u0 .. u1 - 1`` (``piece`` rows: level, la, lb, m0, m1; row 5
+    is scratch), then the refractory period; returns the new end of the event list.
+
+    Cubic: ``NEWTON_LOCKSTEP`` plain Newton steps from the linear solution run over all
+    crossings together (independent, branch-free, so they vectorise instead of waiting on one
+    division after another), then one step per crossing with the error bound of
+    ``solve_crossing``; a crossing that fails it (or leaves the interval) is solved again by
+    ``solve_crossing``. Events of one pixel are consecutive and in time order, so the
+    refractory test runs in list order. (numpy error model: a division by zero gives inf or
+    NaN, which the checked step rejects, instead of raising.)
+    """
+    lev = piece[0]
+    pa = piece[1]
+    pb = piece[2]
+    p0 = piece[3]
+    p1 = piece[4]
+    sv = piece[5]
+    if cubic:
+        for q in range(u0, u1):
+            sv[q] = (lev[q] - pa[q]) / (pb[q] - pa[q])
+        for _ in range(NEWTON_LOCKSTEP):
+            for q in range(u0, u1):
+                s = sv[q]
+                d = pb[q] - pa[q]
+                m0 = p0[q]
+                m1 = p1[q]
+                c2 = 3.0 * d - 2.0 * m0 - m1
+                c3 = m0 + m1 - 2.0 * d
+                f = (pa[q] - lev[q]) + s * (m0 + s * (c2 + s * c3))
+                df = m0 + s * (2.0 * c2 + 3.0 * c3 * s)
+                sv[q] = s - f / df
+    w = u0
+    for q in range(u0, u1):
+        la = pa[q]
+        lb = pb[q]
+        s = (lev[q] - la) / (lb - la)          # as in solve_crossing
+        if lb == la or s <= 0.0:
+            s = 0.0
+        elif s >= 1.0:
+            s = 1.0
+        elif cubic:
+            s = sv[q]
+            d = lb - la
+            m0 = p0[q]
+            m1 = p1[q]
+            c2 = 3.0 * d - 2.0 * m0 - m1
+            c3 = m0 + m1 - 2.0 * d
+            f = (la - lev[q]) + s * (m0 + s * (c2 + s * c3))
+            df = m0 + s * (2.0 * c2 + 3.0 * c3 * s)
+            st = f / df
+            sn = s - st
+            ast = abs(st)
+            ddf = 2.0 * c2 + 6.0 * c3 * s
+            bound = (abs(ddf) + 2.0 * abs(c3) * ast) * ast * ast
+            if 0.0 < sn < 1.0 and bound < 2.0 * SOLVE_TOL * abs(df):
+                s = sn
+            else:
+                s = solve_crossing(lev[q], la, lb, m0, m1, True)
+        tf = t0 + s * dt
+        i = ui[q]
+        if tf - last_t[i] < refractory_us:
+            continue
+        last_t[i] = tf
+        ui[w] = i
+        utf[w] = tf
+        up_[w] = up_[q]
+        w += 1
+    return w
+
+
 @njit(cache=True)
 def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, eps, tol,
               k_hi, k_lo, refractory_us, cap, l0, n_on, n_off, c_on, c_off, r_on, r_off, e_ref,
-              hi, lo, last_t, lcache, jg, first, cand, g0, gm, gp, ui, utf, up_, u):
+              hi, lo, last_t, lcache, jg, first, cand, g0, gm, gp, ui, utf, up_, piece, u):
     """Events of one frame interval for pixels ``first ..``, appended to ``ui`` (flat pixel
     index), ``utf``, ``up_`` from position ``u``. A pixel's state is committed only when all
     its events fit, so on a full buffer the call stops before that pixel. ``jg`` is the global
     index of the interval (its first frame); ``lcache`` rows are (interval, L of frames
     interval-1, interval, interval+1) of the last interval in which the pixel was examined.
 
+    Crossings are listed first (``piece`` rows: level, la, lb, m0, m1) and timed together
+    by ``_times``, which also applies the refractory period.
+
     Returns ``(u, resume, err, err_pixel)``: ``resume`` is -1 when done, else the pixel to
     restart from after growing the buffers.
     """
     npix = hi.shape[0]
     cap_u = ui.shape[0]
+    u_in = u
     c_start = first - (first % CHUNK)
     jm = np.float64(jg - 1)
     # pass 1: candidates (pixels outside their gates), in pixel order. A pixel's gates change
@@ -287,7 +367,6 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
         e = e_ref[i]
         ron = r_on[i]
         roff = r_off[i]
-        lt = last_t[i]
         uu = u
         count = 0
         while cap < 0 or count < cap:
@@ -307,22 +386,24 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
             count += 1
             # the event time is where the firing rule turns true: L = level -+ tol
             lev = lev - tol if pol > 0 else lev + tol
-            tf = t0 + solve_crossing(lev, la, lb, m0, m1, cubic) * dt
-            if tf - lt < refractory_us:
-                continue
-            lt = tf
             if uu >= cap_u:
-                return u, i, ERR_NONE, 0       # pixel i not committed
+                # pixel i not committed
+                return _times(u_in, u, cubic, t0, dt, refractory_us, ui, utf, up_,
+                              piece, last_t), i, ERR_NONE, 0
             ui[uu] = i
-            utf[uu] = tf
             up_[uu] = pol
+            piece[0, uu] = lev
+            piece[1, uu] = la
+            piece[2, uu] = lb
+            piece[3, uu] = m0
+            piece[4, uu] = m1
             uu += 1
         u = uu
-        last_t[i] = lt
         n_on[i] = k_on
         n_off[i] = k_off
         e_ref[i] = e
         hi[i], lo[i] = gates(e, ron, roff, eps, k_hi, k_lo)
+    u = _times(u_in, u, cubic, t0, dt, refractory_us, ui, utf, up_, piece, last_t)
     if bad >= 0:
         v1 = f1[bad]
         return u, -1, (ERR_NONFINITE if not np.isfinite(v1) else ERR_NEGATIVE), bad
@@ -360,6 +441,7 @@ def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractor
     utf = np.empty(ucap, np.float64)
     up_ = np.empty(ucap, np.int8)
     ub = np.empty(ucap, np.int64)
+    piece = np.empty((6, ucap))
     buckets = np.zeros(1, np.int64)
     perm = np.empty(ucap, np.int64)
     npix = l0.shape[0]
@@ -393,7 +475,7 @@ def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractor
                 f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, eps, tol,
                 k_hi, k_lo, refractory_us, cap, l0, n_on, n_off, c_on, c_off, r_on, r_off,
                 e_ref, hi, lo, last_t, lcache, j_base + j, resume, cand, g0, gm, gp, ui, utf,
-                up_, u)
+                up_, piece, u)
             if err != ERR_NONE:
                 return ox, oy, ot, otf, op, n, err, j + 1, ep // w, ep % w
             if resume >= 0 or u + nnoise > ui.shape[0]:
@@ -401,6 +483,9 @@ def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractor
                 utf = _grow(utf, u + nnoise + 1)
                 up_ = _grow(up_, u + nnoise + 1)
                 ub = _grow(ub, u + nnoise + 1)
+                grown = np.empty((6, ui.shape[0]))
+                grown[:, :piece.shape[1]] = piece
+                piece = grown
         for q in range(noise_off[k], noise_off[k + 1]):
             ui[u] = np.int64(noise_y[q]) * w + noise_x[q]
             utf[u] = noise_t[q]

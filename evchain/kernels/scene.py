@@ -28,7 +28,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 _J = dict(cache=True, error_model="numpy")
 _I = dict(cache=True, error_model="numpy", inline="always")   # helpers of the hot loops
@@ -334,9 +334,12 @@ def box_albedo(mat, p0, p1, p2, p3, bid, u, z):
         ci = math.floor(u / cw)
         fz = z / fh - fi
         fu = u / cw - ci
-        if fz > 0.3 and fz < 0.85 and fu > 0.2 and fu < 0.8:
-            return 0.06 + 0.2 * hash3(np.int64(ci), np.int64(fi), bid)
-        return p0 + 0.06 * (hash3(np.int64(fi), bid, 77) - 0.5)
+        # both values and a select instead of branches: at grazing angles neighbouring
+        # samples alternate between window and wall, which branch prediction cannot follow
+        win = 0.06 + 0.2 * hash3(np.int64(ci), np.int64(fi), bid)
+        wall = p0 + 0.06 * (hash3(np.int64(fi), bid, 77) - 0.5)
+        inside = (fz > 0.3) & (fz < 0.85) & (fu > 0.2) & (fu < 0.8)
+        return win if inside else wall
     if mat == 2 or mat == 3:
         if mat == 3 and u - math.floor(u) < 0.12:
             return 0.15
@@ -520,8 +523,10 @@ def sky_value(xb, yb, rot, light):
 
 
 @njit(**_J)
-def ground_pass(gx, gy, gc, ng, segs, ground, light, tex, lv_inv, lv_off, lv_mask, acc):
-    """acc[gc[q]] += ground intensity at world (gx, gy)[q], q < ng (texture levels given).
+def ground_pass(kd, dxs, dys, tg, ox, oy, pcol, segs, ground, light, tex, lv_inv, lv_off,
+                lv_mask, acc):
+    """acc[pcol[c]] += ground intensity at world (ox + tg dxs[c], oy + tg dys[c]) for every
+    sample c of a row with kd[c] == 1 (texture levels given).
 
     Same values as :func:`ground_albedo`, written out with the parameters in scalars (an
     inlined helper taking arrays costs reference counting per call)."""
@@ -552,9 +557,11 @@ def ground_pass(gx, gy, gc, ng, segs, ground, light, tex, lv_inv, lv_off, lv_mas
     sh = segs[0, 9]
     s0 = segs[0, 5]
     sl = 1.2
-    for q in range(ng):
-        x = gx[q]
-        y = gy[q]
+    for c in range(kd.shape[0]):
+        if kd[c] != 1:
+            continue
+        x = ox + tg * dxs[c]
+        y = oy + tg * dys[c]
         if straight:
             s = s0 + ((x - x0) * ch + (y - y0) * sh)
             d = -(x - x0) * sh + (y - y0) * ch
@@ -587,58 +594,102 @@ def ground_pass(gx, gy, gc, ng, segs, ground, light, tex, lv_inv, lv_off, lv_mas
             i = np.int64(math.floor(x * ib)) & mb
             j = np.int64(math.floor(y * ib)) & mb
             a = base_b + tex[ob + j * (mb + 1) + i]
-        acc[gc[q]] += a * lit
+        acc[pcol[c]] += a * lit
 
 
 @njit(**_J)
-def box_pass(bu, bz, bi, bfc, bc, nb, box_mat, box_par, light, acc):
-    """acc[bc[q]] += intensity of face bfc[q] of box bi[q] at face coordinate bu[q] and
-    height bz[q], q < nb."""
+def face_light(light):
+    """Lambert factor ambient + sun * max(0, n.s) of the six box faces (2 * axis + max side)."""
     lit = np.empty(6)
     for face in range(6):
         lam = (1.0 if (face % 2) == 1 else -1.0) * light[face // 2]
         if lam < 0.0:
             lam = 0.0
         lit[face] = light[4] + light[3] * lam
-    for q in range(nb):
-        idx = bi[q]
-        face = bfc[q]
-        if face >= 4:
-            a = 0.8 * box_par[idx, 0]
-        else:
-            a = box_albedo(box_mat[idx], box_par[idx, 0], box_par[idx, 1], box_par[idx, 2],
-                           box_par[idx, 3], idx, bu[q], bz[q])
-        acc[bc[q]] += a * lit[face]
+    return lit
 
 
 @njit(**_J)
-def row_vmax2(xbs, yb, tb, f, vc, wc):
+def box_pass(kd, tb, hid, fc, dxs, dys, ox, oy, oz, dz, pcol, box_mat, box_par, lit, acc):
+    """acc[pcol[c]] += intensity of the box hit by sample c of a row, for every c with
+    kd[c] == 2 (box hid[c], face fc[c], ray parameter tb[c], direction (dxs, dys, dz)[c]).
+
+    Window grids (material 1) are :func:`box_albedo` written out, with the two hashes kept
+    while neighbouring samples stay on the same floor and window column."""
+    pb = -1          # box, floor and column of the cached hashes
+    pf = 0.0
+    pc = 0.0
+    hwin = 0.0
+    hwall = 0.0
+    for c in range(kd.shape[0]):
+        if kd[c] != 2:
+            continue
+        t = tb[c]
+        face = fc[c]
+        idx = hid[c]
+        if face >= 4:
+            a = 0.8 * box_par[idx, 0]
+        else:
+            u = oy + t * dys[c] if face < 2 else ox + t * dxs[c]
+            z = oz + t * dz
+            mat = box_mat[idx]
+            if mat == 1:
+                fh = box_par[idx, 1]
+                cw = box_par[idx, 2]
+                fi = math.floor(z / fh)
+                ci = math.floor(u / cw)
+                fz = z / fh - fi
+                fu = u / cw - ci
+                if idx != pb or fi != pf:
+                    hwall = hash3(np.int64(fi), idx, 77)
+                    hwin = hash3(np.int64(ci), np.int64(fi), idx)
+                    pb = idx
+                    pf = fi
+                    pc = ci
+                elif ci != pc:
+                    hwin = hash3(np.int64(ci), np.int64(fi), idx)
+                    pc = ci
+                win = 0.06 + 0.2 * hwin
+                wall = box_par[idx, 0] + 0.06 * (hwall - 0.5)
+                inside = (fz > 0.3) & (fz < 0.85) & (fu > 0.2) & (fu < 0.8)
+                a = win if inside else wall
+            else:
+                a = box_albedo(mat, box_par[idx, 0], box_par[idx, 1], box_par[idx, 2],
+                               box_par[idx, 3], idx, u, z)
+        acc[pcol[c]] += a * lit[face]
+
+
+@njit(**_J)
+def row_vmax2(xbs, yb, tb, f, vc, wc, m2):
     """Largest squared motion-field magnitude (px/s)^2 over the samples (xbs[c], yb) of a row
-    with depths tb[c]."""
+    with depths tb[c]; m2: scratch [n]. (Two loops: the first, without the reduction, is
+    vectorised.)"""
     v0 = vc[0]
     v1 = vc[1]
     v2 = vc[2]
     w0 = wc[0]
     w1 = wc[1]
     w2 = wc[2]
-    m = 0.0
-    for c in range(xbs.shape[0]):
+    n = xbs.shape[0]
+    for c in range(n):
         xb = xbs[c]
         rho = 1.0 / tb[c]
         u = (-v0 + xb * v2) * rho + w0 * xb * yb - w1 * (1.0 + xb * xb) + w2 * yb
         v = (-v1 + yb * v2) * rho + w0 * (1.0 + yb * yb) - w1 * xb * yb - w2 * xb
-        m2 = u * u + v * v
-        if m2 > m:
-            m = m2
+        m2[c] = u * u + v * v
+    m = 0.0
+    for c in range(n):
+        if m2[c] > m:
+            m = m2[c]
     return m * f * f
 
 
 @njit(**_J)
 def row_work(n):
-    """Scratch arrays of one sample row of n samples: float64 [7, n], int32 [5, n] (small
+    """Scratch arrays of one sample row of n samples: float64 [6, n], int32 [3, n] (small
     enough to stay in the L1 cache with the rest) and the per-block depth bound of blocks of 16
     samples."""
-    return np.empty((7, n)), np.empty((5, n), np.int32), np.empty(n // 16 + 1)
+    return np.empty((6, n)), np.empty((3, n), np.int32), np.empty(n // 16 + 1)
 
 
 @njit(**_J)
@@ -679,17 +730,11 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
     dys = fw[2]
     ixs = fw[3]
     iys = fw[4]
-    gx = fw[5]
-    gy = fw[6]
-    bx = fw[5]      # ground and box samples are gathered in turn into the same scratch
-    bz = fw[6]
+    m2s = fw[5]
     kd = iw[0]
     hid = iw[1]
     fc = iw[2]
-    gc = iw[3]
-    bc = iw[3]
-    bfc = iw[4]
-    bi = hid
+    lit = face_light(light)
     xh0 = rot[0, 0]
     xh1 = rot[1, 0]
     sky0 = light[5]
@@ -788,18 +833,16 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
                         if tb[c] > m:
                             m = tb[c]
                     bmax[blk] = m
-        m2 = row_vmax2(xbs, yb, tb, f, vc, wc)
+        m2 = row_vmax2(xbs, yb, tb, f, vc, wc, m2s)
         if m2 > vmax2:
             vmax2 = m2
-        # shading in separate simple passes (one huge inlined loop body compiles to slower
-        # code): sky here, ground and box samples gathered and shaded by their own kernels
+        # shading in separate simple passes over the row (one huge inlined loop body compiles
+        # to slower code): sky here, ground and box samples by their own kernels
         if kind0 == 1:      # texture levels for the row's largest ground footprint
             d2 = max(dxs[0] ** 2 + dys[0] ** 2, dxs[n - 1] ** 2 + dys[n - 1] ** 2) + dz * dz
             ground_levels(tg * fscale * d2 / (-dz), tex_inv, tex_off, lv_inv, lv_off, lv_mask)
-        ng = 0
         for c in range(n):
-            kc = kd[c]
-            if kc == 0:
+            if kd[c] == 0:
                 xb = xbs[c]
                 ddx = xh0 * xb + r0
                 ddy = xh1 * xb + r1
@@ -807,26 +850,10 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
                 if e < 0.0:
                     e = 0.0
                 acc[pcol[c]] += sky0 + (sky1 - sky0) * e      # as sky_value
-            elif kc == 1:
-                dx = dxs[c]
-                dy = dys[c]
-                gx[ng] = ox + tg * dx
-                gy[ng] = oy + tg * dy
-                gc[ng] = pcol[c]
-                ng += 1
-        ground_pass(gx, gy, gc, ng, segs, ground, light, tex, lv_inv, lv_off, lv_mask, acc)
-        nb = 0
-        for c in range(n):
-            if kd[c] == 2:
-                t = tb[c]
-                fa = fc[c]
-                bx[nb] = oy + t * dys[c] if fa < 2 else ox + t * dxs[c]
-                bz[nb] = oz + t * dz
-                bi[nb] = hid[c]
-                bfc[nb] = fa
-                bc[nb] = pcol[c]
-                nb += 1
-        box_pass(bx, bz, bi, bfc, bc, nb, box_mat, box_par, light, acc)
+        ground_pass(kd, dxs, dys, tg, ox, oy, pcol, segs, ground, light, tex, lv_inv, lv_off,
+                    lv_mask, acc)
+        box_pass(kd, tb, hid, fc, dxs, dys, ox, oy, oz, dz, pcol, box_mat, box_par, lit,
+                 acc)
     for i in range(w):
         out[j, i] = acc[i] * inv_k2
     return vmax2
@@ -853,10 +880,12 @@ def pixel_columns(w, k):
 
 @njit(cache=True, error_model="numpy", nogil=True)
 def render(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground, light,
-           tex, tex_inv, tex_off, vis, minz, bbox, out):
-    """Render one frame into out [H, W] (float32, linear intensity, k x k supersampling
-    averaged) and return the maximum motion-field magnitude (px/s) over all samples.
-    vis: visible boxes nearest first, minz their depth bounds (:func:`frame_boxes`)."""
+           tex, tex_inv, tex_off, vis, minz, bbox, out, j0=0, jstep=1):
+    """Render the rows j0, j0 + jstep, ... of one frame into out [H, W] (float32, linear
+    intensity, k x k supersampling averaged) and return the maximum motion-field magnitude
+    (px/s) over their samples. vis: visible boxes nearest first, minz their depth bounds
+    (:func:`frame_boxes`). Releases the GIL: threads may render interleaved rows of one frame
+    (same result)."""
     w = out.shape[1]
     xbs = sample_columns(w, k, cx, f)
     pcol = pixel_columns(w, k)
@@ -864,34 +893,13 @@ def render(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground
     lv_inv, lv_off, lv_mask = level_work(tex_inv.shape[0])
     acc = np.empty(w)
     vmax2 = 0.0
-    for j in range(out.shape[0]):
+    for j in range(j0, out.shape[0], jstep):
         m2 = render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
                         ground, light, tex, tex_inv, tex_off, vis, minz, bbox, xbs, pcol, fw,
                         iw, bmax, lv_inv, lv_off, lv_mask, acc, out)
         if m2 > vmax2:
             vmax2 = m2
     return math.sqrt(vmax2)
-
-
-@njit(cache=True, error_model="numpy", parallel=True, nogil=True)
-def render_parallel(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground,
-                    light, tex, tex_inv, tex_off, vis, minz, bbox, out, nchunks):
-    """:func:`render` with the rows shared among numba's threads in nchunks interleaved
-    chunks (same result)."""
-    h = out.shape[0]
-    w = out.shape[1]
-    xbs = sample_columns(w, k, cx, f)
-    pcol = pixel_columns(w, k)
-    rows = np.zeros(h)
-    for ch in prange(nchunks):
-        fw, iw, bmax = row_work(w * k)
-        lv_inv, lv_off, lv_mask = level_work(tex_inv.shape[0])
-        acc = np.empty(w)
-        for j in range(ch, h, nchunks):
-            rows[j] = render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par,
-                                 segs, ground, light, tex, tex_inv, tex_off, vis, minz, bbox,
-                                 xbs, pcol, fw, iw, bmax, lv_inv, lv_off, lv_mask, acc, out)
-    return math.sqrt(rows.max())
 
 
 # ----------------------------------------------------------------------------- ground truth

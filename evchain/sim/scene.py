@@ -7,6 +7,8 @@
 from __future__ import annotations
 
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -46,6 +48,7 @@ class Scene:
         self._rot = np.zeros((3, 3))
         self._vc = np.zeros(3)
         self._wc = np.zeros(3)
+        self._pool: ThreadPoolExecutor | None = None
 
     @classmethod
     def from_params(cls, threads: int = 1, **values) -> Scene:
@@ -69,7 +72,7 @@ class Scene:
     def render(self, t_s: float, out: np.ndarray | None = None) -> tuple[np.ndarray, float]:
         """Frame (float32 [H, W], linear intensity) at time t_s and the largest image speed
         (px/s) of any sample at that time (drives the adaptive time step)."""
-        from evchain.kernels.scene import camera_state, frame_boxes, render, render_parallel
+        from evchain.kernels.scene import camera_state, frame_boxes, render
 
         cam = self.camera
         if out is None:
@@ -83,15 +86,14 @@ class Scene:
                 cam.supersample, self.boxes, self.box_mat, self.box_par, self.segs,
                 self.ground, self.light, self.tex, self.tex_inv, self.tex_off,
                 self._order[:nvis], self._minz, self._bbox, out)
-        if self.threads == 1:
-            vmax = render(*args)
-        else:
-            import numba
-
-            most = numba.config.NUMBA_NUM_THREADS
-            nt = min(self.threads, most) if self.threads else most
-            numba.set_num_threads(nt)
-            vmax = render_parallel(*args, 4 * nt)
+        nt = self.threads or (os.cpu_count() or 1)
+        if nt == 1:
+            vmax = render(*args, 0, 1)
+        else:      # interleaved rows on nt threads (the kernel releases the GIL)
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(nt - 1, thread_name_prefix="scene-render")
+            jobs = [self._pool.submit(render, *args, j, nt) for j in range(1, nt)]
+            vmax = max([render(*args, 0, nt)] + [job.result() for job in jobs])
         return out, float(vmax)
 
     def world_to_camera(self, points: np.ndarray, t_s: float) -> np.ndarray:

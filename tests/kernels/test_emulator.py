@@ -126,3 +126,99 @@ def test_full_chunks_and_log_cache_match_naive(interpolation):
                             threshold_on=0.2, threshold_off=0.2)
         np.testing.assert_array_equal(got.t, ev.t)
         np.testing.assert_array_equal(got.x, ev.x)
+
+
+def _pieces(rng, n):
+    """Monotone cubic pieces (Fritsch-Carlson limited slopes) and levels inside them, with
+    hard cases: zero end slopes (extrema), slopes at the 3x limit, levels at the ends, tiny and
+    huge steps."""
+    from tests.naive.emulator import _slope3
+
+    scale = rng.choice([1e-9, 1e-3, 0.3, 5.0], n)
+    nodes = np.cumsum(rng.normal(0, 1, (n, 4)), axis=1) * scale[:, None]
+    la, lb = nodes[:, 1], nodes[:, 2]
+    m0 = np.array([_slope3(q[1] - q[0], q[2] - q[1], 1.0, 1.0) for q in nodes])
+    m1 = np.array([_slope3(q[2] - q[1], q[3] - q[2], 1.0, 1.0) for q in nodes])
+    kind = rng.integers(0, 5, n)
+    m0[kind == 1] = 0.0
+    m1[kind == 2] = 0.0
+    lim = 3.0 * (lb - la)
+    m0[kind == 3] = lim[kind == 3]
+    m1[kind == 3] = lim[kind == 3]
+    m0[kind == 4] = m1[kind == 4] = 0.0
+    frac = rng.random(n)
+    frac[rng.random(n) < 0.05] = 0.0
+    frac[rng.random(n) < 0.05] = 1.0
+    frac[rng.random(n) < 0.05] = 1e-12
+    frac[rng.random(n) < 0.05] = 1.0 - 1e-12
+    return la + frac * (lb - la), la, lb, m0, m1
+
+
+def test_solve_crossing_matches_bisection():
+    # the cubic crossing solve (Newton with an error-bound stop) against plain bisection
+    from evchain.kernels.emulator import solve_crossing
+    from tests.naive.emulator import _hermite, _solve
+
+    rng = np.random.default_rng(4)
+    lev, la, lb, m0, m1 = _pieces(rng, 4000)
+    worst = 0.0
+    for q in range(len(lev)):
+        s = solve_crossing(lev[q], la[q], lb[q], m0[q], m1[q], True)
+        ref = _solve(lev[q], la[q], lb[q], m0[q], m1[q], True)
+        assert np.isfinite(s) and 0.0 <= s <= 1.0
+        # the piece at s is at the level to float precision of the values involved
+        span = abs(la[q]) + abs(lb[q]) + abs(m0[q]) + abs(m1[q])
+        assert abs(_hermite(s, la[q], lb[q], m0[q], m1[q]) - lev[q]) <= 1e-9 * span + 1e-300
+        # where the root is well conditioned (the piece not flat there), s itself is exact
+        slope = (_hermite(ref + 1e-7, la[q], lb[q], m0[q], m1[q])
+                 - _hermite(ref - 1e-7, la[q], lb[q], m0[q], m1[q])) / 2e-7
+        if abs(slope) > 1e-3 * abs(lb[q] - la[q]):
+            worst = max(worst, abs(s - ref))
+    assert worst < 1e-9
+    # equal end values and levels outside the piece
+    assert solve_crossing(1.0, 2.0, 2.0, 0.0, 0.0, True) == 0.0
+    assert solve_crossing(3.0, 2.0, 2.5, 0.1, 0.1, True) == 1.0
+    assert solve_crossing(1.0, 2.0, 2.5, 0.1, 0.1, True) == 0.0
+
+
+@pytest.mark.parametrize("interpolation", ["linear", "cubic"])
+def test_many_crossings_in_one_interval_match_naive(interpolation):
+    # ~34 crossings per pixel in one interval, ~4 900 in all: more than the first event
+    # buffer (1 024), so the kernel stops, grows and resumes mid-interval; with an empty
+    # interval (equal frames) in between and the refractory period and the cap
+    h, w = 12, 12
+    rng = np.random.default_rng(8)
+    lo_ = rng.uniform(0.0, 0.002, (h, w))
+    frames = np.stack([lo_, lo_, 1.0 + 0 * lo_, 1.0 + 0 * lo_, lo_]).astype(np.float32)
+    times = np.array([0, 1000, 1500, 2700, 3100], np.int64)
+    ev = compare(frames, times, c=0.2, interpolation=interpolation)
+    assert len(ev) > 2 * 1024
+    compare(frames, times, c=0.2, interpolation=interpolation, refractory_us=30.0)
+    compare(frames, times, c=0.2, interpolation=interpolation, max_events_per_interval=5)
+
+
+def test_batched_times_match_bisection():
+    # _times (lockstep Newton over all crossings, checked step, fallback) against bisection
+    from evchain.kernels.emulator import _times
+    from tests.naive.emulator import _hermite, _solve
+
+    rng = np.random.default_rng(5)
+    lev, la, lb, m0, m1 = _pieces(rng, 4000)
+    n = len(lev)
+    piece = np.empty((6, n))
+    piece[:5] = lev, la, lb, m0, m1
+    for cubic in (True, False):
+        ui = np.arange(n, dtype=np.int64)
+        utf = np.empty(n)
+        up_ = np.ones(n, np.int8)
+        last_t = np.full(n, -1e300)
+        assert _times(0, n, cubic, 0.0, 1.0, 0.0, ui, utf, up_, piece.copy(), last_t) == n
+        worst = 0.0
+        for q in range(n):
+            ref = _solve(lev[q], la[q], lb[q], m0[q], m1[q], cubic)
+            assert np.isfinite(utf[q]) and 0.0 <= utf[q] <= 1.0
+            slope = (_hermite(ref + 1e-7, la[q], lb[q], m0[q], m1[q])
+                     - _hermite(ref - 1e-7, la[q], lb[q], m0[q], m1[q])) / 2e-7
+            if not cubic or abs(slope) > 1e-3 * abs(lb[q] - la[q]):
+                worst = max(worst, abs(utf[q] - ref))
+        assert worst < 1e-9

@@ -54,8 +54,8 @@ def test_road_coords_and_ground(name):
                for a, b in zip(x, y, strict=True)]
         np.testing.assert_allclose(got, want, atol=1e-12)
         acc = np.zeros(400)
-        K.ground_pass(x, y, np.arange(400), 400, sc.segs, sc.ground, sc.light, sc.tex, lv_inv,
-                      lv_off, lv_mask, acc)
+        K.ground_pass(np.ones(400, np.int32), x, y, 1.0, 0.0, 0.0, np.arange(400), sc.segs,
+                      sc.ground, sc.light, sc.tex, lv_inv, lv_off, lv_mask, acc)
         np.testing.assert_allclose(acc / lit, want, atol=1e-12)
 
 
@@ -216,3 +216,47 @@ def test_box_span_covers_every_hit():
                                 rot[1, 0], r0, r1, max(tz[0], 1e-9), tz[1], f, cx, k, n)
             if len(hit):
                 assert c0 <= hit.min() and hit.max() <= c1, (trial, yb, c0, c1, hit)
+
+
+def _with_boxes(sc, boxes, mats):
+    """The scene with its boxes replaced (materials mats, default parameters of each)."""
+    par = {0: (0.3, 0, 0, 0), 1: (0.35, 3.2, 2.5, 0), 2: (0.5, 3.2, 2.5, 0), 3: (0.5, 3.2, 2.5, 0),
+           4: (0.4, 0.9, 1.3, 0.3)}
+    sc.boxes = np.array(boxes, np.float64).reshape(-1, 6)
+    sc.box_mat = np.array(mats, np.int64)
+    sc.box_par = np.array([par[m] for m in mats], np.float64).reshape(-1, 4)
+    nb = len(sc.boxes)
+    sc._order, sc._minz, sc._bbox = np.zeros(nb, np.int64), np.zeros(nb), np.zeros((nb, 4))
+    return sc
+
+
+@pytest.mark.parametrize("k", [1, 2])
+def test_render_hard_geometry_vs_naive(k):
+    """Frames whose boxes put the camera exactly on face planes, reach behind the camera, are
+    seen along rays parallel to their faces (odd width, k = 1: the centre sample's ray runs
+    along world x) or enclose the camera: renderer = every ray against every box, no NaN.
+    (Not compared: a ray lying *in* a face plane, e.g. the level centre row at exactly a box's
+    bottom height: its slab bound is 0 * inf = NaN, a grazing hit for the renderer and the
+    truth, a miss for numpy's maximum.)"""
+    for threads in (1, 2):
+        sc = Scene.from_params(threads=threads, scenario="high-rise", width=33, height=25,
+                               supersample=k, start_m=100.0)
+        pos, _, _, _ = sc.state(0.0)
+        x, y, z = pos
+        boxes = [
+            (x - 5, y, 0, x + 30, y + 4, 8),            # y-face through the camera, behind it too
+            (x + 10, y - 6, z + 0.5, x + 14, y - 2, z + 3),   # centre row parallel to faces
+            (x, y + 6, 0, x + 8, y + 9, 20),            # x-face through the camera centre
+            (x - 20, y - 9, 0, x - 2, y - 7, 5),        # entirely behind
+            (x + 40, y - 0.5, 0, x + 41, y + 0.5, z),   # top face at the camera height, ahead
+            (x + 60, y - 30, 0, x + 70, y + 30, 40),    # wall closing the view
+        ]
+        _with_boxes(sc, boxes, [1, 4, 2, 0, 3, 1])
+        frame, vmax = sc.render(0.0)
+        assert np.isfinite(frame).all() and np.isfinite(vmax)
+        np.testing.assert_allclose(frame, N.render(sc, 0.0), rtol=2e-6, atol=2e-6)
+        # a camera inside a box: nothing but the box's inside (no NaN either way)
+        _with_boxes(sc, [(x - 1, y - 1, 0, x + 1, y + 1, 3)] + boxes, [0, 1, 4, 2, 0, 3, 1])
+        frame, vmax = sc.render(0.0)
+        assert np.isfinite(frame).all() and np.isfinite(vmax)
+        np.testing.assert_allclose(frame, N.render(sc, 0.0), rtol=2e-6, atol=2e-6)
