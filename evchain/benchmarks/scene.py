@@ -4,7 +4,8 @@
   on one core, at times spread over the drive; the error column is the largest difference of a
   small frame against the slow numpy reference of tests/naive (0 up to rounding). Extra:
   ``cpu_frames_per_s`` from the thread's CPU time (the machine may be shared).
-  ``scene-render-2threads``: the same with rows on two threads (CPU rate per process).
+  ``scene-render-2threads``: the same with rows on two threads (CPU rate and CPU ns per ray
+  of the whole process).
 * ``reference-drive``: the reference pipeline (scene -> emulator -> aedat_writer) over the whole
   14 s drive (quick: the first 1 s), as simulated seconds per wall second; reports the event
   rate next to the thesis's 259 k events/s.
@@ -63,7 +64,7 @@ def scene_render(quick: bool) -> list[BenchRow]:
         rows.append(BenchRow(name, "scene", wall, "frames/s", error=err,
                              error_name="max |frame - numpy ref|",
                              extra={"threads": threads, "cpu_frames_per_s": cpu,
-                                    "cpu_ns_per_ray": 1e9 / (cpu * 320 * 240 * 4) * threads,
+                                    "cpu_ns_per_ray": 1e9 / (cpu * 320 * 240 * 4),
                                     "frames": n, "goal_frames_per_s": 300}))
     return rows
 

@@ -880,12 +880,32 @@ def pixel_columns(w, k):
 
 @njit(cache=True, error_model="numpy", nogil=True)
 def render(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground, light,
-           tex, tex_inv, tex_off, vis, minz, bbox, out, j0=0, jstep=1):
-    """Render the rows j0, j0 + jstep, ... of one frame into out [H, W] (float32, linear
-    intensity, k x k supersampling averaged) and return the maximum motion-field magnitude
-    (px/s) over their samples. vis: visible boxes nearest first, minz their depth bounds
-    (:func:`frame_boxes`). Releases the GIL: threads may render interleaved rows of one frame
-    (same result)."""
+           tex, tex_inv, tex_off, vis, minz, bbox, out):
+    """Render one frame into out [H, W] (float32, linear intensity, k x k supersampling
+    averaged) and return the maximum motion-field magnitude (px/s) over all samples.
+    vis: visible boxes nearest first, minz their depth bounds (:func:`frame_boxes`)."""
+    w = out.shape[1]
+    xbs = sample_columns(w, k, cx, f)
+    pcol = pixel_columns(w, k)
+    fw, iw, bmax = row_work(w * k)
+    lv_inv, lv_off, lv_mask = level_work(tex_inv.shape[0])
+    acc = np.empty(w)
+    vmax2 = 0.0
+    for j in range(out.shape[0]):
+        m2 = render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
+                        ground, light, tex, tex_inv, tex_off, vis, minz, bbox, xbs, pcol, fw,
+                        iw, bmax, lv_inv, lv_off, lv_mask, acc, out)
+        if m2 > vmax2:
+            vmax2 = m2
+    return math.sqrt(vmax2)
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def render_rows(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground, light,
+                tex, tex_inv, tex_off, vis, minz, bbox, out, j0, jstep):
+    """:func:`render` of the rows j0, j0 + jstep, ... only (the maximum speed over their
+    samples): threads render interleaved rows of one frame (same result). (A separate kernel:
+    the row range as arguments of :func:`render` made the one-thread render ~10 % slower.)"""
     w = out.shape[1]
     xbs = sample_columns(w, k, cx, f)
     pcol = pixel_columns(w, k)

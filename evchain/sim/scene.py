@@ -72,7 +72,7 @@ class Scene:
     def render(self, t_s: float, out: np.ndarray | None = None) -> tuple[np.ndarray, float]:
         """Frame (float32 [H, W], linear intensity) at time t_s and the largest image speed
         (px/s) of any sample at that time (drives the adaptive time step)."""
-        from evchain.kernels.scene import camera_state, frame_boxes, render
+        from evchain.kernels.scene import camera_state, frame_boxes, render, render_rows
 
         cam = self.camera
         if out is None:
@@ -88,12 +88,12 @@ class Scene:
                 self._order[:nvis], self._minz, self._bbox, out)
         nt = self.threads or (os.cpu_count() or 1)
         if nt == 1:
-            vmax = render(*args, 0, 1)
+            vmax = render(*args)
         else:      # interleaved rows on nt threads (the kernel releases the GIL)
             if self._pool is None:
                 self._pool = ThreadPoolExecutor(nt - 1, thread_name_prefix="scene-render")
-            jobs = [self._pool.submit(render, *args, j, nt) for j in range(1, nt)]
-            vmax = max([render(*args, 0, nt)] + [job.result() for job in jobs])
+            jobs = [self._pool.submit(render_rows, *args, j, nt) for j in range(1, nt)]
+            vmax = max([render_rows(*args, 0, nt)] + [job.result() for job in jobs])
         return out, float(vmax)
 
     def world_to_camera(self, points: np.ndarray, t_s: float) -> np.ndarray:
