@@ -55,7 +55,8 @@ class Ttc(Filter):
         min_tau_s: float = Field(0.02, ge=0, description="ignore per-event tau below this")
         max_tau_s: float = Field(60.0, gt=0, description="ignore per-event tau above this")
         cluster_size_px: float = Field(6.0, gt=0, description="half-size of a new cluster")
-        max_cluster_size_px: float = Field(60.0, gt=0, description="largest half-size")
+        max_cluster_size_px: float = Field(15.0, gt=0, description="largest half-size (small: "
+                                           "the obstacle is not swallowed by road clusters)")
         join_margin_px: float = Field(4.0, ge=0, description="events this far outside a "
                                       "cluster's square still join it (and grow it)")
         activity_tau_ms: float = Field(100.0, gt=0, description="decay of cluster activity")

@@ -168,7 +168,8 @@ def road_and_obstacle(tau0=3.0, k_road=40.0, duration_us=1_000_000, n_road=60_00
 def test_ground_plane_test_selects_the_obstacle(ground):
     packets = with_true_foe(road_and_obstacle())
     f = Ttc()
-    f.setup(Ttc.Params(ground_test=ground, baseline_px=0), Context())  # random points
+    # random points (tau from the flow); large clusters, as the scenario was built for
+    f.setup(Ttc.Params(ground_test=ground, baseline_px=0, max_cluster_size_px=60.0), Context())
     out = FlowPacket.concat([f.process(p) for p in packets])
     s = out.series["ttc"]
     s = s[s["t"] >= 500_000]
