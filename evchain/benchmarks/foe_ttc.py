@@ -10,7 +10,8 @@ emulator output to TTC on the reference scene.
   alone on the flow of the reference drive (flow computed once and cached); errors = FOE mean
   |dx| (extra: |dy|, stds) after 1 s.
 * ``ttc-synthetic``: flow events/s of ``ttc`` on an approach (tau = 3 s - t) with the true FOE in
-  the ``foe`` series; error = median relative TTC error.
+  the ``foe`` series; error = median relative TTC error. The field is random points with exact
+  flow and no moving edges, so tau comes from the flow's magnitude (``baseline_px`` 0).
 * ``chain-reference-lk`` / ``chain-reference-plane``: events/s (emulator output events) of
   flow -> foe_map -> ttc on the reference scene (high-rise, 20 m/s, 320x240, threshold 20 on the
   thesis scale) over the last seconds before the obstacle; errors from ``foe_ttc_scorer`` (not
@@ -152,7 +153,7 @@ def ttc_rows(quick: bool) -> list[BenchRow]:
 
     def stage():
         f = Ttc()
-        f.setup(Ttc.Params(), Context())
+        f.setup(Ttc.Params(baseline_px=0), Context())  # random points, no moving edges
         series.clear()
         for p in packets:
             series.append(f.process(p).series["ttc"])

@@ -23,8 +23,11 @@ class Ttc(Filter):
     Uses the latest estimate of the ``foe`` series (from ``foe_map`` upstream; nothing before
     the first one). Flow events below the FOE, within ``region_b_half_width_px`` of it
     horizontally, at least ``min_distance_px`` from it, diverging and of plausible speed give
-    one tau each. They are assigned to square clusters (centre of mass, activity-weighted
-    updates, growth, decay, removal below ``min_activity``). At every multiple of
+    one tau each: with ``baseline_px`` > 0 from where the edge was earlier (each pixel's last
+    flow-event time, walked back along the flow direction: a baseline of up to
+    ``baseline_max_ms``, positions and times only), else from the flow's magnitude. They are
+    assigned to square clusters (centre of mass, activity-weighted updates, growth, decay,
+    removal below ``min_activity``). At every multiple of
     ``estimate_every_us`` each cluster's tau is the median of its recent samples, each moved
     forward at -1 s/s, fused with its prediction by a gated 1-D Kalman filter; a cluster whose
     tau reaches 0 is dropped. Series ``ttc`` (t, tau_s, cluster, x, y, support) holds the
@@ -52,7 +55,8 @@ class Ttc(Filter):
         min_tau_s: float = Field(0.02, ge=0, description="ignore per-event tau below this")
         max_tau_s: float = Field(60.0, gt=0, description="ignore per-event tau above this")
         cluster_size_px: float = Field(6.0, gt=0, description="half-size of a new cluster")
-        max_cluster_size_px: float = Field(60.0, gt=0, description="largest half-size")
+        max_cluster_size_px: float = Field(15.0, gt=0, description="largest half-size (small: "
+                                           "the obstacle is not swallowed by road clusters)")
         join_margin_px: float = Field(4.0, ge=0, description="events this far outside a "
                                       "cluster's square still join it (and grow it)")
         activity_tau_ms: float = Field(100.0, gt=0, description="decay of cluster activity")
@@ -91,6 +95,10 @@ class Ttc(Filter):
             "cluster's lower edge (the corridor's half-width in camera heights); None: off")
         select_hold: bool = Field(False, description="keep the previous tick's obstacle "
                                   "while it still qualifies (no jumping between clusters)")
+        baseline_px: int = Field(6, ge=0, le=64, description="per-event tau from where the "
+                                 "edge was up to this many px earlier (the pixels' last flow "
+                                 "times), not from the flow's magnitude; 0: from the flow")
+        baseline_max_ms: float = Field(500.0, gt=0, description="longest baseline")
         ground_fallback: bool = Field(True, description="with no cluster off the road, select "
                                       "among all clusters (else: no obstacle at that tick)")
 
@@ -107,6 +115,7 @@ class Ttc(Filter):
         self._G = np.zeros(8, np.float64)
         self._G[7] = -1.0
         self._started = False
+        self._S = None
 
     def process(self, packet: FlowPacket) -> FlowPacket:
         if not isinstance(packet, FlowPacket):
@@ -115,6 +124,10 @@ class Ttc(Filter):
 
         p = self.params
         period = int(p.estimate_every_us)
+        if self._S is None:
+            g = packet.geometry
+            shape = (2, g.height, g.width) if p.baseline_px > 0 else (2, 0, 0)
+            self._S = np.full(shape, -1e300)
         if not self._started:
             self._G[3] = float(-(-packet.t_start // period) * period)
             self._started = True
@@ -131,8 +144,8 @@ class Ttc(Filter):
         m = n_ticks * p.max_clusters
         c = [np.empty(m, np.int64), np.empty(m, np.int64)] + [np.empty(m) for _ in range(6)]
         no, nc = kern.process(
-            packet.x, packet.y, packet.t, packet.vx, packet.vy, ft, fx, fy, self._C, self._I,
-            self._ST, self._SV, self._SK, self._G, int(packet.t_end), period,
+            packet.x, packet.y, packet.t, packet.p, packet.vx, packet.vy, ft, fx, fy, self._C,
+            self._I, self._ST, self._SV, self._SK, self._G, self._S, int(packet.t_end), period,
             p.select == "nearest_foe", p.select_min_activity,
             p.region_b_half_width_px, p.region_b_min_below_px, p.min_distance_px,
             p.min_speed_pxs, p.max_speed_pxs, p.min_tau_s, p.max_tau_s, p.cluster_size_px,
@@ -140,7 +153,8 @@ class Ttc(Filter):
             p.min_activity, p.sample_max_age_ms * 1000.0, p.min_samples, p.rel_noise_floor,
             p.process_noise_s2_per_s, p.gate_sigma, p.ground_test, p.ground_tolerance,
             p.ground_rate, float(p.ground_min_events), p.ground_fallback,
-            p.corridor_half_width_h or 0.0, p.select_hold, *o, *c)
+            p.corridor_half_width_h or 0.0, p.select_hold, p.baseline_px,
+            p.baseline_max_ms * 1000.0, *o, *c)
         ttc = np.zeros(no, TTC_DTYPE)
         for name, col in zip(("t", "tau_s", "cluster", "x", "y", "support"), o, strict=True):
             ttc[name] = col[:no]

@@ -57,6 +57,42 @@ def event_tau(px, py, vx, vy, fx, fy, half_width, min_below, min_dist, min_speed
 
 
 @njit(cache=True)
+def baseline_tau(S, pol, px, py, nx, ny, d0, ti, max_px, max_age_us):
+    """tau from where the edge through (px, py) was earlier, or -1 when nothing qualifies.
+
+    ``S[pol]`` holds each pixel's last flow-event time (µs). Walking back from p against the
+    unit normal n (away from the FOE, ``d0 = (p - foe).n``) by 1..``max_px`` px (nearest
+    pixels), the times must fall strictly and stay within ``max_age_us`` of ``ti``. For the
+    farthest such pixel q (``dd = (p - q).n`` px earlier, at time tq) an edge approaching at
+    constant speed has ``d(t) = D / (t_c - t)``, so ``tau = (d0 - dd) (ti - tq) / dd``: positions
+    and times only, over a baseline as long as the edge took, no flow magnitude.
+    """
+    h = S.shape[1]
+    w = S.shape[2]
+    ix = int(math.floor(px + 0.5))
+    iy = int(math.floor(py + 0.5))
+    tprev = ti
+    tau = -1.0
+    for k in range(1, max_px + 1):
+        qx = int(math.floor(px - k * nx + 0.5))
+        qy = int(math.floor(py - k * ny + 0.5))
+        if qx < 0 or qy < 0 or qx >= w or qy >= h:
+            break
+        if qx == ix and qy == iy:
+            continue
+        tq = S[pol, qy, qx]
+        if not (tq < tprev) or ti - tq > max_age_us:
+            break
+        dd = (px - qx) * nx + (py - qy) * ny
+        dk = d0 - dd
+        if not (dd > 0.0) or not (dk > 0.0):
+            break
+        tau = dk * (ti - tq) * 1e-6 / dd
+        tprev = tq
+    return tau
+
+
+@njit(cache=True)
 def ground_update(G, kg, tol, rate, min_events):
     """One step of the ground constant K = G[5] (events seen: G[6]) with kg = tau * dy > 0.
 
@@ -143,13 +179,13 @@ def _cluster_estimate(C, I, ST, SV, SK, k, T, max_age_us, min_samples, rel_floor
 
 
 @njit(cache=True)
-def process(x, y, t, vx, vy, ft, fx, fy, C, I, ST, SV, SK, G, t_end, period_us,
+def process(x, y, t, pol, vx, vy, ft, fx, fy, C, I, ST, SV, SK, G, S, t_end, period_us,
             select_nearest, select_min_activity,
             half_width, min_below, min_dist, min_speed, max_speed, min_tau, max_tau,
             init_size, max_size, join_margin, act_tau_us, min_activity,
             max_age_us, min_samples, rel_floor, q_s2_per_s, gate,
             ground_test, ground_tol, ground_rate, ground_min_events, ground_fallback,
-            corridor, hold,
+            corridor, hold, base_px, base_age_us,
             o_t, o_tau, o_id, o_x, o_y, o_sup, c_t, c_id, c_x, c_y, c_size, c_tau, c_sup,
             c_rho):
     """Process one packet; returns (number of obstacle rows, number of cluster rows).
@@ -262,8 +298,16 @@ def process(x, y, t, vx, vy, ft, fx, fy, C, I, ST, SV, SK, G, t_end, period_us,
         if G[0] > 0.0:
             px = float(x[i])
             py = float(y[i])
-            tau = event_tau(px, py, np.float64(vx[i]), np.float64(vy[i]), G[1], G[2], half_width,
+            evx = np.float64(vx[i])
+            evy = np.float64(vy[i])
+            tau = event_tau(px, py, evx, evy, G[1], G[2], half_width,
                             min_below, min_dist, min_speed, max_speed, min_tau, max_tau)
+            if tau > 0.0 and base_px > 0:
+                sp = math.sqrt(evx * evx + evy * evy)
+                tau = baseline_tau(S, 1 if pol[i] > 0 else 0, px, py, evx / sp, evy / sp,
+                                   tau * sp, float(ti), base_px, base_age_us)
+                if tau < min_tau or tau > max_tau:
+                    tau = -1.0
             if tau > 0.0:
                 kg = tau * (py - G[2])
                 # nearest cluster (inf-norm) whose square, widened by the margin, holds p
@@ -324,6 +368,11 @@ def process(x, y, t, vx, vy, ft, fx, fy, C, I, ST, SV, SK, G, t_end, period_us,
                 # K learns from events of clusters not (yet) known to be off the road
                 if not (C[kb, RHO] < 1.0 - ground_tol):
                     ground_update(G, kg, ground_tol, ground_rate, ground_min_events)
+        if S.shape[1] > 0:
+            qx = int(x[i])
+            qy = int(y[i])
+            if 0 <= qx < S.shape[2] and 0 <= qy < S.shape[1]:
+                S[1 if pol[i] > 0 else 0, qy, qx] = ti
         i += 1
     while j < nf:  # FOE entries after the last event still count for the next packet
         if fx[j] == fx[j] and fy[j] == fy[j]:

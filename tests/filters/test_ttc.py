@@ -12,7 +12,7 @@ from evchain.filters.ttc import Ttc
 from evchain.testing.contract import check_filter
 from evchain.testing.synthetic import expansion_stream
 from tests.naive.foe_map import expansion_packets
-from tests.naive.ttc import event_tau_naive, ground_constant_naive
+from tests.naive.ttc import baseline_tau_naive, event_tau_naive, ground_constant_naive
 
 G = Geometry(128, 96, f=100.0)
 FOE = (60.0, 40.0)
@@ -24,6 +24,8 @@ def with_true_foe(packets, foe=FOE):
 
 
 def run_ttc(packets, **params):
+    # the random-point fields below have exact flow but no moving edges: tau from the flow
+    params.setdefault("baseline_px", 0)
     f = Ttc()
     f.setup(Ttc.Params(**params), Context())
     return FlowPacket.concat([f.process(p) for p in packets])
@@ -129,7 +131,8 @@ def test_event_tau_matches_reference():
 
 def test_contract():
     packets, truth = expansion_stream(foe_series=True)
-    ref = check_filter(Ttc, {"estimate_every_us": 5000, "min_samples": 3}, packets, truth=truth)
+    ref = check_filter(Ttc, {"estimate_every_us": 5000, "min_samples": 3, "baseline_px": 0},
+                       packets, truth=truth)
     assert len(ref["series:ttc"]) > 5
 
 
@@ -165,7 +168,8 @@ def road_and_obstacle(tau0=3.0, k_road=40.0, duration_us=1_000_000, n_road=60_00
 def test_ground_plane_test_selects_the_obstacle(ground):
     packets = with_true_foe(road_and_obstacle())
     f = Ttc()
-    f.setup(Ttc.Params(ground_test=ground), Context())
+    # random points (tau from the flow); large clusters, as the scenario was built for
+    f.setup(Ttc.Params(ground_test=ground, baseline_px=0, max_cluster_size_px=60.0), Context())
     out = FlowPacket.concat([f.process(p) for p in packets])
     s = out.series["ttc"]
     s = s[s["t"] >= 500_000]
@@ -209,5 +213,118 @@ def test_ground_plane_contract():
     packets = with_true_foe(road_and_obstacle(duration_us=300_000, n_road=12_000, n_obs=3_000,
                                               n_packets=4))
     ref = check_filter(Ttc, {"ground_test": True, "ground_min_events": 50, "select_hold": True,
-                             "corridor_half_width_h": 2.0}, packets)
+                             "corridor_half_width_h": 2.0, "baseline_px": 0}, packets)
+    assert len(ref["series:ttc"]) > 5
+
+
+# -- tau from a long baseline (positions and times of moving edges) -------------------------
+
+def edge_approach(tc=3.0, duration_s=2.0, speed_factor=1.0, jitter_us=0.0, seed=0):
+    """Events of a frontal rectangle approaching at constant speed (contact at ``tc``) below
+    the FOE: its image offsets grow as R / (tc - t). Each edge fires one event per pixel when
+    it crosses the pixel's centre; the flow is the edge's true normal flow times
+    ``speed_factor`` (2: measured twice too fast, like a short flow window on slow edges)."""
+    rng = np.random.default_rng(seed)
+    fx, fy = FOE
+    xl, xr, yt, yb = -30.0, 30.0, 6.0, 30.0   # offsets at tau = 1 s
+    ev = []
+    for c in range(G.width):              # vertical edges, flow along x
+        for xe, pol in ((xl, 0), (xr, 1)):
+            r = c - fx
+            if r * xe <= 0:
+                continue
+            tau = xe / r
+            t = tc - tau
+            if 0 <= t < duration_s:
+                for row in range(int(np.ceil(fy + yt / tau)), int(np.floor(fy + yb / tau)) + 1):
+                    if 0 <= row < G.height:
+                        ev.append((c, row, t, 2 * pol - 1, speed_factor * r / tau, 0.0))
+    for row in range(G.height):           # horizontal edges, flow along y
+        for ye, pol in ((yt, 0), (yb, 1)):
+            r = row - fy
+            if r <= 0:
+                continue
+            tau = ye / r
+            t = tc - tau
+            if 0 <= t < duration_s:
+                for c in range(int(np.ceil(fx + xl / tau)), int(np.floor(fx + xr / tau)) + 1):
+                    if 0 <= c < G.width:
+                        ev.append((c, row, t, 2 * pol - 1, 0.0, speed_factor * r / tau))
+    a = np.array(ev)
+    a[:, 2] = np.clip(a[:, 2] * 1e6 + rng.normal(0, jitter_us, len(a)) if jitter_us else
+                      a[:, 2] * 1e6, 0, duration_s * 1e6 - 1)
+    a = a[np.argsort(a[:, 2], kind="stable")]
+    bounds = np.linspace(0, duration_s * 1e6, 11).astype(np.int64)
+    idx = np.searchsorted(a[:, 2], bounds)
+    return [FlowPacket(geometry=G, t_start=int(b0), t_end=int(b1),
+                       x=a[i:j, 0].astype(np.uint16), y=a[i:j, 1].astype(np.uint16),
+                       t=a[i:j, 2].astype(np.int64), p=a[i:j, 3].astype(np.int8),
+                       vx=a[i:j, 4].astype(np.float32), vy=a[i:j, 5].astype(np.float32))
+            for b0, b1, i, j in zip(bounds[:-1], bounds[1:], idx[:-1], idx[1:], strict=True)]
+
+
+@pytest.mark.parametrize("speed_factor", [1.0, 2.0])
+@pytest.mark.parametrize("jitter_us", [0.0, 5_000.0])
+def test_baseline_recovers_ttc_of_slow_edges(speed_factor, jitter_us):
+    packets = with_true_foe(edge_approach(speed_factor=speed_factor, jitter_us=jitter_us))
+    s = run_ttc(packets, baseline_px=6, min_samples=4).series["ttc"]
+    s = s[s["t"] >= 500_000]
+    assert len(s) > 50 and np.isfinite(s["tau_s"]).all()
+    truth = 3.0 - s["t"] * 1e-6
+    rel = np.abs(s["tau_s"] - truth) / truth
+    assert np.median(rel) <= 0.05, np.median(rel)
+    assert np.mean(rel <= 0.10) >= 0.9
+    if speed_factor == 2.0:  # the flow's magnitude alone is off by the factor
+        s0 = run_ttc(packets, min_samples=4).series["ttc"]
+        s0 = s0[s0["t"] >= 500_000]
+        truth0 = 3.0 - s0["t"] * 1e-6
+        assert np.median(np.abs(s0["tau_s"] - truth0) / truth0) > 0.3
+
+
+def test_baseline_hard_inputs_are_finite():
+    for case in [(0.0, 0.0, 70, 60), (0.0, 30.0, 60, 70), (25.0, 0.0, 80, 60),
+                 (10.0, 10.0, 60, 40), (1e-30, 0.0, 70, 60)]:
+        vx, vy, x, y = case
+        out = run_ttc(with_true_foe([hard_flow(vx, vy, x, y)]), min_speed_pxs=0.0,
+                      baseline_px=6)
+        # one pixel only: nothing behind any event, so no tau (and no NaN)
+        assert len(out.series["ttc"]) == 0
+    # a single event in region B: a cluster with one sample gives no estimate
+    one = edge_approach()[5]
+    one = FlowPacket(geometry=G, t_start=one.t_start, t_end=one.t_end, x=one.x[:1],
+                     y=one.y[:1], t=one.t[:1], p=one.p[:1], vx=one.vx[:1], vy=one.vy[:1])
+    assert len(run_ttc(with_true_foe([one]), baseline_px=6).series["ttc"]) == 0
+
+
+def test_baseline_tau_matches_reference():
+    from evchain.kernels.ttc import baseline_tau
+
+    rng = np.random.default_rng(2)
+    S = np.full((2, 96, 128), -1e300)
+    S[0] = rng.integers(0, 1_000_000, (96, 128))
+    S[1] = np.where(rng.random((96, 128)) < 0.3, -1e300, rng.integers(0, 1_000_000, (96, 128)))
+    # a smooth field too (times rising away from the FOE: long valid walks)
+    yy, xx = np.mgrid[0:96, 0:128]
+    S[0, :48] = 1_000_000 - 4e6 / (np.hypot(xx - 60.0, yy - 40.0)[:48] + 5.0)
+    n, got_any = 4000, 0
+    for i in range(n):
+        pol = i % 2
+        px, py = float(rng.integers(0, 128)), float(rng.integers(0, 96))
+        ang = rng.uniform(0, 2 * np.pi) if i % 3 else rng.integers(0, 4) * np.pi / 2
+        nx, ny = np.cos(ang), np.sin(ang)
+        d0 = float(rng.uniform(-5, 60))
+        ti = float(rng.integers(500_000, 1_100_000))
+        args = (px, py, nx, ny, d0, ti, int(rng.integers(1, 10)), float(rng.integers(1, 9e5)))
+        want = baseline_tau_naive(S[pol], *args)
+        got = baseline_tau(S, pol, *args)
+        assert np.isfinite(got)
+        assert got == pytest.approx(want, rel=1e-12, abs=1e-15)
+        got_any += want > 0
+    assert got_any > 200
+
+
+def test_baseline_contract():
+    # the pixels' last times carry over packet cuts: the output must not depend on them
+    ref = check_filter(Ttc, {"baseline_px": 6, "min_samples": 4},
+                       with_true_foe(edge_approach(duration_s=1.0, jitter_us=2_000.0)))
     assert len(ref["series:ttc"]) > 5

@@ -39,3 +39,28 @@ def ground_constant_naive(kg, tol, rate, min_events) -> tuple[float, int]:
                 k *= 1.0 - step
             n += 1
     return k, n
+
+
+def baseline_tau_naive(last_t, px, py, nx, ny, d0, ti, max_px, max_age_us) -> float:
+    """tau from the pixel the edge through p crossed earliest within the walk: step back
+    k = 1..max_px px against the unit normal n (nearest pixel; skip p's own pixel), stop at
+    the first pixel outside the image, not strictly older than the previous one, older than
+    ``max_age_us`` or not between the FOE and p; tau = (d0 - dd) (ti - tq) / dd for the last
+    pixel passed (dd its distance behind p along n), -1 when there is none."""
+    h, w = last_t.shape
+    own = (int(np.floor(px + 0.5)), int(np.floor(py + 0.5)))
+    tprev, tau = ti, -1.0
+    for k in range(1, max_px + 1):
+        q = (int(np.floor(px - k * nx + 0.5)), int(np.floor(py - k * ny + 0.5)))
+        if not (0 <= q[0] < w and 0 <= q[1] < h):
+            break
+        if q == own:
+            continue
+        tq = last_t[q[1], q[0]]
+        if not tq < tprev or ti - tq > max_age_us:
+            break
+        dd = (px - q[0]) * nx + (py - q[1]) * ny
+        if not (dd > 0 and d0 - dd > 0):
+            break
+        tau, tprev = (d0 - dd) * (ti - tq) * 1e-6 / dd, tq
+    return tau
