@@ -113,7 +113,7 @@ class FoeMap(Filter):
     def reset(self) -> None:
         self._geometry: Geometry | None = None
         self._ist = np.zeros(4, np.int64)
-        self._fst = np.zeros(5, np.float64)
+        self._fst = np.zeros(6, np.float64)
         self._started = False
 
     def _allocate(self, geometry: Geometry) -> None:
@@ -128,7 +128,8 @@ class FoeMap(Filter):
         self._diffC = np.zeros((ny + 1, nx), np.float64)
         self._constC = np.zeros(nx + 1, np.float64)
         self._mbuf = np.empty((ny, nx), np.float64)
-        self._rowmax = np.empty(ny, np.float64)
+        self._rst = np.zeros((ny, 5), np.float64)
+        self._rst[:, 0] = -np.inf
         if radius is None:
             self._disc = ((cg.width - 1) / 2.0, (cg.height - 1) / 2.0,
                           0.5 * math.hypot(cg.width, cg.height))
@@ -165,7 +166,7 @@ class FoeMap(Filter):
         else:
             x, y = to_cells(packet.x, p.cell_px), to_cells(packet.y, p.cell_px)
         n = k.process(x, y, packet.t, packet.vx, packet.vy, *self._maps(),
-                      self._mbuf, self._rowmax, self._fst, self._ist, tau_us,
+                      self._mbuf, self._rst, self._fst, self._ist, tau_us,
                       float(p.min_speed_pxs), cos_gate, gate_on, period,
                       float(p.refine_fraction), float(p.min_support),
                       float(p.speed_weight_pxs or 0.0), int(packet.t_end), *self._disc, *cols)
