@@ -34,7 +34,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from llvmlite import ir
+from numba import njit, types
+from numba.extending import intrinsic
 
 RENORM_EXPONENT = 40.0
 
@@ -160,6 +162,44 @@ def materialize(diffR, constR, diffC, constC, lo, hi, clo, chi, x0, y0, whole, o
 
 
 @njit(cache=True, error_model="numpy")
+def _row_prefixes(diffR, lo, hi, x0, need, out):
+    """``out[r, c]`` = prefix sum of ``diffR[r, a..c]`` over each needed row's cells a..b, four
+    rows at a time (independent add chains: a single row's chain is latency-bound). Entries of
+    ``diffR`` left of a row's first cell are zero, so starting further left changes nothing;
+    cells right of b get values that are never used."""
+    rows = np.nonzero(need)[0]
+    m = rows.shape[0]
+    for g in range(0, m, 4):
+        r0 = rows[g]
+        r1 = rows[min(g + 1, m - 1)]
+        r2 = rows[min(g + 2, m - 1)]
+        r3 = rows[min(g + 3, m - 1)]
+        c0 = np.uint64(min(min(lo[r0], lo[r1]), min(lo[r2], lo[r3])) - x0)
+        c1 = np.uint64(max(max(hi[r0], hi[r1]), max(hi[r2], hi[r3])) - x0 + 1)
+        a0 = a1 = a2 = a3 = 0.0
+        for c in range(c0, c1):
+            a0 += diffR[r0, c]
+            a1 += diffR[r1, c]
+            a2 += diffR[r2, c]
+            a3 += diffR[r3, c]
+            out[r0, c] = a0
+            out[r1, c] = a1
+            out[r2, c] = a2
+            out[r3, c] = a3
+
+
+_SIGN = np.int64(0x7FFFFFFFFFFFFFFF)
+
+
+@intrinsic
+def _from_bits(typingctx, k):
+    """The float64 whose bits are the int64 ``k``."""
+    def codegen(context, builder, sig, args):
+        return builder.bitcast(args[0], ir.DoubleType())
+    return types.float64(types.int64), codegen
+
+
+@njit(cache=True, error_model="numpy")
 def refresh(diffR, constR, diffC, constC, lo, hi, x0, fst, rst, out, refine_fraction):
     """Bring up to date the rows of the dense map ``out`` (map units) that this read needs;
     returns the (max, min) over A (-inf, inf when A is empty) and sets ``rst[:, 0]`` to each
@@ -181,13 +221,12 @@ def refresh(diffR, constR, diffC, constC, lo, hi, x0, fst, rst, out, refine_frac
     lbest = -np.inf    # the maximum is at least this
     uworst = np.inf    # the minimum is at most this
     lworst = np.inf    # and at least this
+    every = False      # a row without valid bounds: recompute all
     for r in range(ny):
         if hi[r] < lo[r]:
             continue
         if rst[r, 4] == 0.0:
-            lbest = np.inf
-            uworst = -np.inf
-            lworst = -np.inf
+            every = True
             break
         up = whole - rst[r, 2]
         lbest = max(lbest, rst[r, 0] + up - eps)
@@ -204,10 +243,12 @@ def refresh(diffR, constR, diffC, constC, lo, hi, x0, fst, rst, out, refine_frac
         if hi[r] < lo[r]:
             continue
         up = whole - rst[r, 2]
-        if (rst[r, 4] == 0.0 or rst[r, 0] + up + (wpart - rst[r, 3]) + eps >= lthr
+        if (every or rst[r, 0] + up + (wpart - rst[r, 3]) + eps >= lthr
                 or rst[r, 1] + up - eps <= uworst):
             need[r] = True
             last = r
+    _row_prefixes(diffR, lo, hi, x0, need, out)
+    keys = out.view(np.int64)
     cacc = np.zeros(nx, np.float64)
     ccum = np.empty(nx, np.float64)
     cc = 0.0
@@ -221,31 +262,32 @@ def refresh(diffR, constR, diffC, constC, lo, hi, x0, fst, rst, out, refine_frac
         rc += constR[r]
         for c in range(nx):
             cacc[c] += diffC[r, c]
-        if not need[r]:
-            continue
-        acc = 0.0
-        base = whole + rc
-        a = lo[r] - x0
-        b = hi[r] - x0
-        rbest = -np.inf
-        rworst = np.inf
-        for c in range(a, b + 1):
-            acc += diffR[r, c]
-            v = base + acc + ccum[c] + cacc[c]
-            out[r, c] = v
-            if v > rbest:
-                rbest = v
-            if v < rworst:
-                rworst = v
-        rst[r, 0] = rbest
-        rst[r, 1] = rworst
-        rst[r, 2] = whole
-        rst[r, 3] = wpart
-        rst[r, 4] = 1.0
-        if rbest > best:
-            best = rbest
-        if rworst < worst:
-            worst = rworst
+        if need[r]:
+            # the map values (the same sums in the same order as materialize), then the row's
+            # extrema over order-preserving int64 keys: integer max/min reductions vectorise,
+            # floating-point ones do not
+            # (unsigned indices: numba's negative-index wraparound stops vectorisation)
+            a = np.uint64(lo[r] - x0)
+            b = np.uint64(hi[r] - x0 + 1)
+            base = whole + rc
+            for c in range(a, b):
+                out[r, c] = base + out[r, c] + ccum[c] + cacc[c]
+            kb = np.int64(-0x7FFFFFFFFFFFFFFF)
+            kw = np.int64(0x7FFFFFFFFFFFFFFF)
+            for c in range(a, b):
+                k = keys[r, c]
+                k = k ^ ((k >> 63) & _SIGN)
+                kb = max(kb, k)
+                kw = min(kw, k)
+            rbest = _from_bits(kb ^ ((kb >> 63) & _SIGN))
+            rworst = _from_bits(kw ^ ((kw >> 63) & _SIGN))
+            rst[r, 0] = rbest
+            rst[r, 1] = rworst
+            rst[r, 2] = whole
+            rst[r, 3] = wpart
+            rst[r, 4] = 1.0
+            best = max(best, rbest)
+            worst = min(worst, rworst)
     return best, worst
 
 
