@@ -69,8 +69,17 @@ class Packet:
         return len(self.t)
 
     def replace(self, **changes) -> Self:
-        """A copy with some fields changed (columns are shared, not copied)."""
-        return dataclasses.replace(self, **changes)
+        """A copy with some fields changed (columns are shared, not copied). Copies the
+        instance dict instead of calling ``__init__`` as :func:`dataclasses.replace` does:
+        every filter calls this once per packet, and it is 3x faster."""
+        fields = _field_names(type(self))
+        for name in changes:
+            if name not in fields:
+                raise TypeError(f"{type(self).__name__} has no field {name!r}")
+        new = object.__new__(type(self))
+        new.__dict__.update(self.__dict__)
+        new.__dict__.update(changes)
+        return new
 
     def with_series(self, name: str, entries: np.ndarray) -> Self:
         """A copy with ``entries`` appended to series ``name``."""
@@ -253,3 +262,13 @@ def series_array(dtype: list[tuple[str, str]], **columns) -> np.ndarray:
     for name, values in columns.items():
         out[name] = values
     return out
+
+
+_FIELDS: dict[type, frozenset[str]] = {}
+
+
+def _field_names(cls: type) -> frozenset[str]:
+    names = _FIELDS.get(cls)
+    if names is None:
+        names = _FIELDS[cls] = frozenset(f.name for f in dataclasses.fields(cls))
+    return names

@@ -12,6 +12,7 @@ from evchain.core.packets import FlowPacket, Geometry, series_array
 from evchain.errors import DataError
 
 FOE_DTYPE = [("t", "i8"), ("x", "f8"), ("y", "f8"), ("support", "f8"), ("total", "f8")]
+_FOE = np.dtype(FOE_DTYPE)
 
 
 def region_cells(geometry: Geometry, radius_px: float | None):
@@ -113,7 +114,7 @@ class FoeMap(Filter):
     def reset(self) -> None:
         self._geometry: Geometry | None = None
         self._ist = np.zeros(4, np.int64)
-        self._fst = np.zeros(5, np.float64)
+        self._fst = np.zeros(6, np.float64)
         self._started = False
 
     def _allocate(self, geometry: Geometry) -> None:
@@ -128,12 +129,20 @@ class FoeMap(Filter):
         self._diffC = np.zeros((ny + 1, nx), np.float64)
         self._constC = np.zeros(nx + 1, np.float64)
         self._mbuf = np.empty((ny, nx), np.float64)
-        self._rowmax = np.empty(ny, np.float64)
+        self._rst = np.zeros((ny, 5), np.float64)
+        self._rst[:, 0] = -np.inf
         if radius is None:
             self._disc = ((cg.width - 1) / 2.0, (cg.height - 1) / 2.0,
                           0.5 * math.hypot(cg.width, cg.height))
         else:
             self._disc = (float(cg.cx), float(cg.cy), float(radius))
+        gate_on = p.max_angle_deg is not None
+        cos_gate = math.cos(math.radians(p.max_angle_deg)) if gate_on else -1.0
+        # the kernel's arguments that do not change from packet to packet
+        self._state = (*self._maps(), self._mbuf, self._rst, self._fst, self._ist)
+        self._consts = (p.tau_ms * 1000.0, float(p.min_speed_pxs), cos_gate, gate_on,
+                        int(p.estimate_every_us), float(p.refine_fraction),
+                        float(p.min_support), float(p.speed_weight_pxs or 0.0))
 
     def _maps(self):
         return (self._diffR, self._constR, self._diffC, self._constC, self._lo, self._hi,
@@ -147,7 +156,7 @@ class FoeMap(Filter):
         p = self.params
         if self._geometry is None:
             self._allocate(packet.geometry)
-        elif packet.geometry != self._geometry:
+        elif packet.geometry is not self._geometry and packet.geometry != self._geometry:
             raise DataError(f"foe_map: sensor geometry changed from {self._geometry} to "
                             f"{packet.geometry}")
         period = int(p.estimate_every_us)
@@ -155,26 +164,19 @@ class FoeMap(Filter):
             self._ist[1] = -(-packet.t_start // period) * period
             self._started = True
         n_max = max(0, -(-(packet.t_end - int(self._ist[1])) // period))
-        out = np.zeros(n_max, dtype=FOE_DTYPE)
-        cols = [np.empty(n_max, np.int64)] + [np.empty(n_max, np.float64) for _ in range(4)]
-        tau_us = p.tau_ms * 1000.0
-        gate_on = p.max_angle_deg is not None
-        cos_gate = math.cos(math.radians(p.max_angle_deg)) if gate_on else -1.0
+        out = np.empty(n_max, dtype=_FOE)  # the kernel writes its fields
         if p.cell_px == 1:
             x, y = packet.x, packet.y
         else:
             x, y = to_cells(packet.x, p.cell_px), to_cells(packet.y, p.cell_px)
-        n = k.process(x, y, packet.t, packet.vx, packet.vy, *self._maps(),
-                      self._mbuf, self._rowmax, self._fst, self._ist, tau_us,
-                      float(p.min_speed_pxs), cos_gate, gate_on, period,
-                      float(p.refine_fraction), float(p.min_support),
-                      float(p.speed_weight_pxs or 0.0), int(packet.t_end), *self._disc, *cols)
-        for name, col in zip(("t", "x", "y", "support", "total"), cols, strict=True):
-            out[name] = col
+        n = k.process(x, y, packet.t, packet.vx, packet.vy, *self._state, *self._consts,
+                      int(packet.t_end), *self._disc, out["t"], out["x"], out["y"],
+                      out["support"], out["total"])
+        out = out[:n]
         if p.cell_px != 1:
             out["x"] = from_cells(out["x"], p.cell_px)
             out["y"] = from_cells(out["y"], p.cell_px)
-        return packet.with_series("foe", out[:n])
+        return packet.with_series("foe", out)
 
     def map_now(self, t_us: int) -> np.ndarray:
         """The dense vote map decayed to ``t_us`` (NaN outside region A), for tests and plots.

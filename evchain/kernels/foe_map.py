@@ -22,7 +22,11 @@ State arrays (allocated by the filter):
 * ``ist`` int64: ``[0]`` t_ref (µs), ``[1]`` next read time (µs), ``[2]`` 1 once an estimate
   exists, ``[3]`` 1 when votes arrived since the last read;
 * ``fst`` float64: ``[0]`` whole (votes covering all of A), ``[1]`` last x, ``[2]`` last y,
-  ``[3]`` last max (map units), ``[4]`` total weight of accepted votes (map units).
+  ``[3]`` last max (map units), ``[4]`` total weight of accepted votes (map units), ``[5]``
+  total weight of the votes that cover part of A (map units);
+* ``rst`` float64 [rows, 5]: per map row its max and min when last computed, ``fst[0]`` and
+  ``fst[5]`` then, and 1 if valid (reads recompute only the rows that can matter, see
+  :func:`refresh`; a renormalisation invalidates all).
 """
 
 from __future__ import annotations
@@ -30,7 +34,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from llvmlite import ir
+from numba import njit, types
+from numba.extending import intrinsic
 
 RENORM_EXPONENT = 40.0
 
@@ -156,6 +162,136 @@ def materialize(diffR, constR, diffC, constC, lo, hi, clo, chi, x0, y0, whole, o
 
 
 @njit(cache=True, error_model="numpy")
+def _row_prefixes(diffR, lo, hi, x0, need, out):
+    """``out[r, c]`` = prefix sum of ``diffR[r, a..c]`` over each needed row's cells a..b, four
+    rows at a time (independent add chains: a single row's chain is latency-bound). Entries of
+    ``diffR`` left of a row's first cell are zero, so starting further left changes nothing;
+    cells right of b get values that are never used."""
+    rows = np.nonzero(need)[0]
+    m = rows.shape[0]
+    for g in range(0, m, 4):
+        r0 = rows[g]
+        r1 = rows[min(g + 1, m - 1)]
+        r2 = rows[min(g + 2, m - 1)]
+        r3 = rows[min(g + 3, m - 1)]
+        c0 = np.uint64(min(min(lo[r0], lo[r1]), min(lo[r2], lo[r3])) - x0)
+        c1 = np.uint64(max(max(hi[r0], hi[r1]), max(hi[r2], hi[r3])) - x0 + 1)
+        a0 = a1 = a2 = a3 = 0.0
+        for c in range(c0, c1):
+            a0 += diffR[r0, c]
+            a1 += diffR[r1, c]
+            a2 += diffR[r2, c]
+            a3 += diffR[r3, c]
+            out[r0, c] = a0
+            out[r1, c] = a1
+            out[r2, c] = a2
+            out[r3, c] = a3
+
+
+_SIGN = np.int64(0x7FFFFFFFFFFFFFFF)
+
+
+@intrinsic
+def _from_bits(typingctx, k):
+    """The float64 whose bits are the int64 ``k``."""
+    def codegen(context, builder, sig, args):
+        return builder.bitcast(args[0], ir.DoubleType())
+    return types.float64(types.int64), codegen
+
+
+@njit(cache=True, error_model="numpy")
+def refresh(diffR, constR, diffC, constC, lo, hi, x0, fst, rst, out, refine_fraction):
+    """Bring up to date the rows of the dense map ``out`` (map units) that this read needs;
+    returns the (max, min) over A (-inf, inf when A is empty) and sets ``rst[:, 0]`` to each
+    needed row's maximum (rows left out stay below the read's threshold).
+
+    ``rst[r]`` holds row r's maximum and minimum when it was last computed, the ``whole`` votes
+    and the partial votes' total weight (``fst[5]``) at that time, and 1 if valid (0 forces a
+    recomputation). Votes only add, so since then every cell of the row rose by exactly the
+    ``whole`` difference plus at most the partial weight difference: bounds on the row's
+    maximum and minimum now. Only rows that can hold the maximum, the minimum or a cell above
+    the lowest possible threshold are recomputed (the same prefix sums in the same order as
+    :func:`materialize`, so the same values bit for bit); the pass over ``diffC`` stops at the
+    last of them.
+    """
+    ny, nx = out.shape
+    whole = fst[0]
+    wpart = fst[5]
+    eps = 1e-12 * fst[4]
+    lbest = -np.inf    # the maximum is at least this
+    uworst = np.inf    # the minimum is at most this
+    lworst = np.inf    # and at least this
+    every = False      # a row without valid bounds: recompute all
+    for r in range(ny):
+        if hi[r] < lo[r]:
+            continue
+        if rst[r, 4] == 0.0:
+            every = True
+            break
+        up = whole - rst[r, 2]
+        lbest = max(lbest, rst[r, 0] + up - eps)
+        uworst = min(uworst, rst[r, 1] + up + (wpart - rst[r, 3]) + eps)
+        lworst = min(lworst, rst[r, 1] + up - eps)
+    if refine_fraction > 0.0:
+        lthr = lbest - refine_fraction * (lbest - lworst)
+    else:
+        lthr = lbest - 1e-12 * abs(lbest)
+    lthr = min(lthr, lbest) - eps
+    last = -1
+    need = np.zeros(ny, np.bool_)
+    for r in range(ny):
+        if hi[r] < lo[r]:
+            continue
+        up = whole - rst[r, 2]
+        if (every or rst[r, 0] + up + (wpart - rst[r, 3]) + eps >= lthr
+                or rst[r, 1] + up - eps <= uworst):
+            need[r] = True
+            last = r
+    _row_prefixes(diffR, lo, hi, x0, need, out)
+    keys = out.view(np.int64)
+    cacc = np.zeros(nx, np.float64)
+    ccum = np.empty(nx, np.float64)
+    cc = 0.0
+    for c in range(nx):
+        cc += constC[c]
+        ccum[c] = cc
+    best = -np.inf
+    worst = np.inf
+    rc = 0.0
+    for r in range(last + 1):
+        rc += constR[r]
+        for c in range(nx):
+            cacc[c] += diffC[r, c]
+        if need[r]:
+            # the map values (the same sums in the same order as materialize), then the row's
+            # extrema over order-preserving int64 keys: integer max/min reductions vectorise,
+            # floating-point ones do not
+            # (unsigned indices: numba's negative-index wraparound stops vectorisation)
+            a = np.uint64(lo[r] - x0)
+            b = np.uint64(hi[r] - x0 + 1)
+            base = whole + rc
+            for c in range(a, b):
+                out[r, c] = base + out[r, c] + ccum[c] + cacc[c]
+            kb = np.int64(-0x7FFFFFFFFFFFFFFF)
+            kw = np.int64(0x7FFFFFFFFFFFFFFF)
+            for c in range(a, b):
+                k = keys[r, c]
+                k = k ^ ((k >> 63) & _SIGN)
+                kb = max(kb, k)
+                kw = min(kw, k)
+            rbest = _from_bits(kb ^ ((kb >> 63) & _SIGN))
+            rworst = _from_bits(kw ^ ((kw >> 63) & _SIGN))
+            rst[r, 0] = rbest
+            rst[r, 1] = rworst
+            rst[r, 2] = whole
+            rst[r, 3] = wpart
+            rst[r, 4] = 1.0
+            best = max(best, rbest)
+            worst = min(worst, rworst)
+    return best, worst
+
+
+@njit(cache=True, error_model="numpy")
 def read_estimate(m, x0, y0, best, worst, refine_fraction, lo, hi, rowmax):
     """(x, y) of a dense map ``m`` (NaN outside A; row r holds A's columns ``lo[r]..hi[r]``,
     its maximum is ``rowmax[r]``) with maximum ``best`` and minimum ``worst``: centroid of the
@@ -193,7 +329,7 @@ def read_estimate(m, x0, y0, best, worst, refine_fraction, lo, hi, rowmax):
 
 @njit(cache=True, error_model="numpy")
 def process(x, y, t, vx, vy, diffR, constR, diffC, constC, lo, hi, clo, chi, x0, y0, mbuf,
-            rowmax, fst, ist, tau_us, min_speed_pxs, cos_gate, gate_on, period_us, refine_fraction,
+            rst, fst, ist, tau_us, min_speed_pxs, cos_gate, gate_on, period_us, refine_fraction,
             min_support, speed_w0, t_end, ccx, ccy, crad, out_t, out_x, out_y, out_sup, out_tot):
     """Vote with every flow event of a packet; read estimates at multiples of ``period_us``.
 
@@ -210,10 +346,10 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, lo, hi, clo, chi, x0,
         while ist[1] < t_next or (i < n and ist[1] == t_next):
             T = ist[1]
             if ist[3] == 1:
-                best, worst = materialize(diffR, constR, diffC, constC, lo, hi, clo, chi, x0,
-                                          y0, fst[0], mbuf, rowmax)
+                best, worst = refresh(diffR, constR, diffC, constC, lo, hi, x0, fst, rst, mbuf,
+                                      refine_fraction)
                 ex, ey = read_estimate(mbuf, x0, y0, best, worst, refine_fraction, lo, hi,
-                                       rowmax)
+                                       rst[:, 0])
                 ist[3] = 0
                 if best > 0.0 and ex == ex:
                     fst[1] = ex
@@ -267,6 +403,9 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, lo, hi, clo, chi, x0,
                     fst[0] *= s
                     fst[3] *= s
                     fst[4] *= s
+                    fst[5] *= s
+                    for a in range(rst.shape[0]):
+                        rst[a, 4] = 0.0
                     ist[0] = ti
                     e = 0.0
                 w = math.exp(e)
@@ -282,6 +421,7 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, lo, hi, clo, chi, x0,
                 if cv + margin < pv:          # every cell of A in the half-plane
                     fst[0] += w
                 elif cv - margin <= pv:       # otherwise no cell of A is in the half-plane
+                    fst[5] += w
                     dxl = -fvy / speed
                     dyl = fvx / speed
                     ox = px - ccx

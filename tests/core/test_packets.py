@@ -78,3 +78,16 @@ def test_empty_packets():
     e = EventPacket.empty(G, 5, 5).validate()
     assert len(e) == 0
     assert len(FramePacket.empty(G, 0, 10).validate()) == 0
+
+
+def test_replace_copies_and_checks_field_names():
+    g = Geometry(4, 3)
+    a = EventPacket(geometry=g, t_start=0, t_end=10, x=np.array([1], np.uint16),
+                    y=np.array([2], np.uint16), t=np.array([5], np.int64),
+                    p=np.array([1], np.int8))
+    b = a.replace(t_end=20)
+    assert type(b) is EventPacket and b.t_end == 20 and a.t_end == 10 and b.x is a.x
+    c = b.with_series("foe", np.zeros(0, [("t", "i8")]))
+    assert "foe" in c.series and "foe" not in b.series
+    with pytest.raises(TypeError):
+        a.replace(nope=1)

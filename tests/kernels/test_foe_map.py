@@ -91,3 +91,68 @@ def test_renormalisation_keeps_map_exact():
     assert len(got) == len(ref) > 0
     np.testing.assert_allclose(got["x"], ref[:, 1], atol=1e-6)
     np.testing.assert_allclose(got["support"], ref[:, 3], rtol=1e-6)
+
+
+@pytest.mark.parametrize("case", range(len(CASES)))
+@pytest.mark.parametrize("hard", [False, True])
+def test_pruned_reads_equal_full_reads(case, hard):
+    """Reads recompute only the rows that can reach the threshold, the maximum or the minimum;
+    the estimates equal, bit for bit, reads that recompute every row (forced by invalidating
+    the per-row state before each read). Many reads, long decay gaps (renormalisation) and
+    empty packets included."""
+    g, radius, refine, gate, other = CASES[case]
+    packet = random_flow(800, g, seed=100 + case + 10 * hard, hard=hard)
+    packet = packet.replace(t=packet.t * 25, t_end=packet.t_end * 25)  # 1 s, tau 15 ms
+    params = FoeMap.Params(tau_ms=15.0, region_radius_px=radius, estimate_every_us=1000,
+                           refine_fraction=refine, max_angle_deg=gate, **other)
+    cuts = list(range(1000, packet.t_end, 1000))  # one read per packet
+    from evchain.testing.contract import recut
+
+    packets = recut([packet], cuts)
+    pruned, full = FoeMap(), FoeMap()
+    pruned.setup(params, Context())
+    full.setup(params, Context())
+    got, want = [], []
+    for p in packets:
+        got.append(pruned.process(p).series["foe"])
+        if full._geometry is not None:
+            full._rst[:, 4] = 0.0
+        want.append(full.process(p).series["foe"])
+    got, want = np.concatenate(got), np.concatenate(want)
+    assert len(got) == len(want) > 100
+    for name in want.dtype.names:
+        assert np.array_equal(got[name], want[name]), name
+
+
+@pytest.mark.parametrize("radius", [None, 9.5])
+def test_refresh_equals_materialize_with_negative_values(radius):
+    """The read's row pass (prefix sums four rows at a time, extrema over integer keys of the
+    float bits) equals materialize bit for bit, also for negative and zero map values."""
+    from evchain.filters.foe_map import region_cells
+    from evchain.kernels import foe_map as k
+
+    g = Geometry(33, 21, cx=15.0, cy=12.0)
+    x0, y0, lo, hi, clo, chi = region_cells(g, radius)
+    ny, nx = len(lo), len(clo)
+    rng = np.random.default_rng(7)
+    diffR = rng.normal(size=(ny, nx + 1))
+    diffR[:, ::3] = 0.0
+    for r in range(ny):  # the kernel never writes left of a row's first cell
+        diffR[r, :max(lo[r] - x0, 0)] = 0.0
+    constR, diffC, constC = rng.normal(size=ny + 1), rng.normal(size=(ny + 1, nx)), \
+        rng.normal(size=nx + 1)
+    want = np.empty((ny, nx))
+    rowmax = np.empty(ny)
+    best, worst = k.materialize(diffR, constR, diffC, constC, lo, hi, clo, chi, x0, y0, -0.5,
+                                want, rowmax)
+    fst = np.array([-0.5, 0, 0, 0, 1.0, 0.0])
+    rst = np.zeros((ny, 5))
+    got = np.full((ny, nx), np.nan)
+    b2, w2 = k.refresh(diffR, constR, diffC, constC, lo, hi, x0, fst, rst, got, 0.05)
+    assert worst < 0 < best
+    assert (b2, w2) == (best, worst)
+    inside = ~np.isnan(want)
+    assert np.array_equal(got[inside], want[inside])
+    ok = hi >= lo
+    assert np.array_equal(rst[ok, 0], rowmax[ok])
+    assert np.array_equal(rst[ok, 1], np.nanmin(want[ok], axis=1))
