@@ -75,7 +75,7 @@ def test_contract(name, tmp_path):
 
 
 # Stages that read the FOE estimate of an upstream foe_map from the packet's series.
-NEEDS_FOE_SERIES = {"ttc"}
+NEEDS_FOE_SERIES = {"ttc", "foe_fit"}
 
 # Sources that cannot run without a file are covered by their own tests.
 SOURCE_SKIP = {

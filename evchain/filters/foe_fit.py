@@ -1,0 +1,111 @@
+"""``foe_fit``: the FOE refined from normal-flow magnitudes with a piecewise-planar scene model."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from pydantic import Field
+
+from evchain.core.filter import Filter, FilterParams
+from evchain.core.packets import FlowPacket
+from evchain.errors import DataError
+from evchain.filters.foe_map import FOE_DTYPE
+
+
+class FoeFit(Filter):
+    """Refines the ``foe`` series of ``foe_map`` by fitting the flow speeds of a road and two
+    facades (robust Gauss-Newton; see docs/explanation/foe_ttc.md).
+
+    Under pure translation a road point ``dy`` rows below the FOE (level camera) has inverse
+    time to contact ``a0 dy``, a facade point ``dx`` columns beside it ``a1 |dx|`` (left) or
+    ``a2 |dx|`` (right), so its normal flow speed is ``(p - foe).n`` times that. Every
+    ``estimate_every_us`` the five unknowns are fitted to the flow events of the last
+    ``4 tau_ms`` (weights decaying with ``tau_ms``, Tukey on the relative speed residual), from
+    the previous fit, else from the latest ``foe_map`` estimate. When the fit fails (singular,
+    fewer than ``min_inliers`` decayed inliers, or farther than ``max_deviation_px`` from the
+    voting estimate) the voting estimate is emitted and the next fit starts from it again.
+    The ``foe_map`` entries move to series ``foe_votes``; series ``foe`` gets one entry per
+    fit (t, x, y, support = decayed inlier weight, total = decayed weight of modelled events).
+    """
+
+    name = "foe_fit"
+    consumes = FlowPacket
+    produces = FlowPacket
+
+    class Params(FilterParams):
+        tau_ms: float = Field(200.0, gt=0, description="decay time constant of the events' "
+                              "weights; events older than 4 tau are dropped")
+        estimate_every_us: int = Field(10000, ge=1, description="period of the fits")
+        margin_px: float = Field(10.0, ge=0, description="events closer than this to a "
+                                 "plane's vanishing line (the FOE's row or column) are left "
+                                 "out of that plane")
+        tolerance: float = Field(0.5, gt=0, description="Tukey constant on the relative "
+                                 "speed residual |s - predicted| / s")
+        max_iter: int = Field(4, ge=1, description="Gauss-Newton iterations per fit")
+        max_deviation_px: float = Field(20.0, gt=0, description="fall back to the voting "
+                                        "estimate when the fit is farther from it than this")
+        min_inliers: float = Field(50.0, ge=0, description="fall back when the decayed "
+                                   "inlier weight is below this")
+
+    def reset(self) -> None:
+        self._buf = {c: np.zeros(0, np.float64) for c in ("x", "y", "nx", "ny", "s")}
+        self._t = np.zeros(0, np.int64)
+        self._next: int | None = None
+        self._th = np.full(5, np.nan)
+        self._vote: tuple[int, float, float] | None = None
+
+    def process(self, packet: FlowPacket) -> FlowPacket:
+        if not isinstance(packet, FlowPacket):
+            raise DataError(f"foe_fit needs a FlowPacket, got {type(packet).__name__}")
+        from evchain.kernels import foe_fit as k
+
+        p = self.params
+        period, tau_us = int(p.estimate_every_us), p.tau_ms * 1000.0
+        votes = packet.series.get("foe", np.zeros(0, FOE_DTYPE))
+        vx, vy = packet.vx.astype(np.float64), packet.vy.astype(np.float64)
+        s = np.hypot(vx, vy)
+        ok = s > 0
+        new = {"x": packet.x[ok].astype(np.float64), "y": packet.y[ok].astype(np.float64),
+               "nx": vx[ok] / s[ok], "ny": vy[ok] / s[ok], "s": s[ok]}
+        keep = np.searchsorted(self._t, packet.t_start - int(4 * tau_us))
+        buf = {c: np.concatenate([v[keep:], new[c]]) for c, v in self._buf.items()}
+        t = np.concatenate([self._t[keep:], packet.t[ok]])
+        if self._next is None:
+            self._next = -(-packet.t_start // period) * period
+        rows = []
+        while self._next < packet.t_end:
+            T = self._next
+            self._next += period
+            j = np.searchsorted(votes["t"], T, side="right")
+            if j:
+                self._vote = (int(votes["t"][j - 1]), float(votes["x"][j - 1]),
+                              float(votes["y"][j - 1]))
+            if self._vote is None:
+                continue
+            rows.append((T, *self._fit(k, buf, t, T, tau_us)))
+        self._buf, self._t = buf, t
+        out = np.zeros(len(rows), FOE_DTYPE)
+        for i, r in enumerate(rows):
+            out[i] = r
+        series = dict(packet.series)
+        series["foe_votes"] = votes
+        series["foe"] = out
+        return packet.replace(series=series)
+
+    def _fit(self, k, buf, t, T, tau_us):
+        p = self.params
+        _, vx, vy = self._vote
+        if math.isnan(self._th[0]):
+            self._th[:] = (vx, vy, np.nan, np.nan, np.nan)
+        i0 = int(np.searchsorted(t, T - int(4 * tau_us)))
+        i1 = int(np.searchsorted(t, T))
+        th = self._th.copy()
+        ok, inl, tot = k.fit(buf["x"], buf["y"], buf["nx"], buf["ny"], buf["s"], t, i0, i1,
+                             float(T), tau_us, th, p.margin_px, p.tolerance, p.max_iter, 3.0)
+        if (ok and inl >= p.min_inliers
+                and math.hypot(th[0] - vx, th[1] - vy) <= p.max_deviation_px):
+            self._th = th
+            return th[0], th[1], inl, tot
+        self._th[:] = np.nan
+        return vx, vy, inl, tot

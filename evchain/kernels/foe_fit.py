@@ -1,0 +1,193 @@
+"""Numba kernel of ``foe_fit``: the FOE from normal-flow magnitudes with a piecewise-planar scene.
+
+For pure translation a point at image position p with inverse time to contact ``g`` has flow
+``(p - foe) g``; its normal flow along the unit normal n has speed ``s = (p - foe).n g``. Three
+planes are modelled, each with its own scale: the road seen by a level camera (``g = a0 dy``,
+``dy = y - y_foe`` rows below the FOE), a facade left of the FOE (``g = a1 (x_foe - x)``) and one
+right of it (``g = a2 (x - x_foe)``). Unknowns ``th = (x_foe, y_foe, a0, a1, a2)``.
+
+A fit is iteratively reweighted Gauss-Newton: every event within ``margin`` px of a plane's
+vanishing line is left out of that plane; each remaining event is assigned to the plane that
+predicts its speed best (relative residual ``e = |s - pred| / s``) and weighs
+``w_t (1 - (e/c)^2)^2 / s^2`` (Tukey on the relative residual, decay ``w_t`` by age); converging
+events (``(p - foe).n <= 0``) are left out. A plane's scale without a value starts as the
+weighted median of ``s / ((p - foe).n d)`` of its events.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+NP = 5
+
+
+@njit(cache=True, error_model="numpy")
+def solve(A, b):
+    """x with A x = b by Gaussian elimination with partial pivoting (A, b are overwritten);
+    returns False when a pivot is zero."""
+    n = len(b)
+    for k in range(n):
+        p = k
+        for i in range(k + 1, n):
+            if abs(A[i, k]) > abs(A[p, k]):
+                p = i
+        if A[p, k] == 0.0:
+            return False
+        if p != k:
+            for j in range(n):
+                A[k, j], A[p, j] = A[p, j], A[k, j]
+            b[k], b[p] = b[p], b[k]
+        for i in range(k + 1, n):
+            f = A[i, k] / A[k, k]
+            for j in range(k, n):
+                A[i, j] -= f * A[k, j]
+            b[i] -= f * b[k]
+    for k in range(n - 1, -1, -1):
+        acc = b[k]
+        for j in range(k + 1, n):
+            acc -= A[k, j] * b[j]
+        b[k] = acc / A[k, k]
+    return True
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _lever(k, dxx, dyy):
+    """The plane's factor d: dy for the road, -dx left, dx right."""
+    if k == 0:
+        return dyy
+    return -dxx if k == 1 else dxx
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _applies(k, dxx, dyy, margin):
+    if k == 0:
+        return dyy > margin
+    return -dxx > margin if k == 1 else dxx > margin
+
+
+@njit(cache=True, error_model="numpy")
+def _init_scales(x, y, nx, ny, s, wt, i0, i1, th, margin):
+    for k in range(3):
+        if not math.isnan(th[2 + k]):
+            continue
+        r = np.empty(i1 - i0)
+        w = np.empty(i1 - i0)
+        m = 0
+        for i in range(i0, i1):
+            dxx = x[i] - th[0]
+            dyy = y[i] - th[1]
+            dn = dxx * nx[i] + dyy * ny[i]
+            if dn > 0.0 and _applies(k, dxx, dyy, margin):
+                r[m] = s[i] / (dn * _lever(k, dxx, dyy))
+                w[m] = wt[i - i0]
+                m += 1
+        if m == 0:
+            continue
+        o = np.argsort(r[:m])
+        half = 0.0
+        for j in range(m):
+            half += w[j]
+        half *= 0.5
+        acc = 0.0
+        for j in range(m):
+            acc += w[o[j]]
+            if acc >= half:
+                th[2 + k] = r[o[j]]
+                break
+
+
+@njit(cache=True, error_model="numpy")
+def fit(x, y, nx, ny, s, t, i0, i1, T, tau_us, th, margin, c, max_iter, max_step):
+    """Fit ``th`` (in/out, float64[5]; NaN scales are initialised) to events ``i0..i1`` (speed
+    s > 0, unit normal (nx, ny), time t < T). Returns (ok, inlier weight, applicable weight)
+    with the decayed weights of the events (1 at T); ok is False when a system is singular or
+    a value is not finite."""
+    n = i1 - i0
+    wt = np.empty(n)
+    for i in range(i0, i1):
+        wt[i - i0] = math.exp(-(T - t[i]) / tau_us)
+    _init_scales(x, y, nx, ny, s, wt, i0, i1, th, margin)
+    A = np.zeros((NP, NP))
+    b = np.zeros(NP)
+    J = np.zeros(NP)
+    inl = 0.0
+    tot = 0.0
+    for _ in range(max_iter):
+        A[:] = 0.0
+        b[:] = 0.0
+        inl = 0.0
+        tot = 0.0
+        xf, yf = th[0], th[1]
+        for i in range(i0, i1):
+            dxx = x[i] - xf
+            dyy = y[i] - yf
+            dn = dxx * nx[i] + dyy * ny[i]
+            if dn <= 0.0:
+                continue
+            best = -1
+            be = np.inf
+            pred = 0.0
+            for k in range(3):
+                a = th[2 + k]
+                if math.isnan(a) or not _applies(k, dxx, dyy, margin):
+                    continue
+                pk = a * dn * _lever(k, dxx, dyy)
+                e = abs(s[i] - pk) / s[i]
+                if e < be:
+                    be, best, pred = e, k, pk
+            if best < 0:
+                continue
+            tot += wt[i - i0]
+            u = be / c
+            if u >= 1.0:
+                continue
+            w = wt[i - i0] * (1.0 - u * u) ** 2 / (s[i] * s[i])
+            inl += wt[i - i0]
+            a = th[2 + best]
+            lev = _lever(best, dxx, dyy)
+            for q in range(NP):
+                J[q] = 0.0
+            if best == 0:
+                J[0] = -a * nx[i] * dyy
+                J[1] = -a * (ny[i] * dyy + dn)
+            elif best == 1:
+                J[0] = a * (nx[i] * dxx + dn)
+                J[1] = a * ny[i] * dxx
+            else:
+                J[0] = -a * (nx[i] * dxx + dn)
+                J[1] = -a * ny[i] * dxx
+            J[2 + best] = dn * lev
+            r = s[i] - pred
+            for p in range(NP):
+                b[p] += w * J[p] * r
+                for q in range(NP):
+                    A[p, q] += w * J[p] * J[q]
+        tr = 0.0
+        for p in range(NP):
+            tr += A[p, p]
+        if not tr > 0.0:
+            return False, inl, tot
+        for p in range(NP):
+            if A[p, p] <= 1e-12 * tr:  # a plane without events: keep its scale
+                for q in range(NP):
+                    A[p, q] = 0.0
+                    A[q, p] = 0.0
+                A[p, p] = 1.0
+                b[p] = 0.0
+            else:
+                A[p, p] += 1e-9 * tr
+        if not solve(A, b):
+            return False, inl, tot
+        step = max(abs(b[0]), abs(b[1]))
+        scale = 1.0 if step <= max_step else max_step / step
+        for p in range(NP):
+            th[p] += b[p] * (scale if p < 2 else 1.0)
+        for p in range(NP):
+            if not math.isfinite(th[p]) and not (p >= 2 and math.isnan(th[p])):
+                return False, inl, tot
+        if step < 1e-3:
+            break
+    return True, inl, tot

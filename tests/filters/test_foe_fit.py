@@ -1,0 +1,82 @@
+"""foe_fit after foe_map: recovery on piecewise-planar flow, fallback to the votes when the
+model does not hold, and region A off the true FOE."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from evchain.core.filter import Context
+from evchain.core.packets import FlowPacket, Geometry
+from evchain.filters.foe_fit import FoeFit
+from evchain.filters.foe_map import FoeMap
+from tests.naive.foe_fit import planar_flow
+
+A = (1 / 22.8, 1 / 40.0, 1 / 25.0)
+
+
+def packets(foe, geometry, n=60000, duration_us=600_000, n_packets=60, seed=0, **kw):
+    rng = np.random.default_rng(seed)
+    x, y, nx, ny, s = planar_flow(n, foe, A, rng, geometry.width, geometry.height, **kw)
+    t = np.sort(rng.integers(0, duration_us, len(x))).astype(np.int64)
+    out = []
+    for i in range(n_packets):
+        t0, t1 = i * duration_us // n_packets, (i + 1) * duration_us // n_packets
+        m = (t >= t0) & (t < t1)
+        out.append(FlowPacket(geometry=geometry, t_start=t0, t_end=t1, t=t[m],
+                              x=x[m].astype(np.uint16), y=y[m].astype(np.uint16),
+                              p=np.ones(m.sum(), np.int8),
+                              vx=(s * nx)[m].astype(np.float32), vy=(s * ny)[m].astype(np.float32)))
+    return out
+
+
+def run(pk, **fit):
+    m, f = FoeMap(), FoeFit()
+    m.setup(FoeMap.Params(region_radius_px=60), Context())
+    f.setup(FoeFit.Params(**fit), Context())
+    return FlowPacket.concat([f.process(m.process(p)) for p in pk])
+
+
+def last(out):
+    s = out.series["foe"]
+    assert len(s) and np.isfinite(s["x"]).all() and np.isfinite(s["y"]).all()
+    return s[-1]
+
+
+G = Geometry(320, 240, f=380.6)
+
+
+def test_refines_the_votes_on_planar_flow():
+    foe = (159.5, 119.5)
+    out = run(packets(foe, G, noise=0.2, outliers=0.1))
+    e = last(out)
+    assert abs(e["x"] - foe[0]) < 0.5 and abs(e["y"] - foe[1]) < 0.5
+    assert len(out.series["foe_votes"]) > len(out.series["foe"])  # votes kept, 1 ms vs 10 ms
+
+
+def test_region_a_off_the_true_foe():
+    foe = (144.0, 104.0)  # 15 px left of and above the principal point (159.5, 119.5)
+    e = last(run(packets(foe, G, noise=0.2, outliers=0.1)))
+    assert abs(e["x"] - foe[0]) < 0.5 and abs(e["y"] - foe[1]) < 0.5
+
+
+def test_falls_back_to_the_votes_when_nothing_fits():
+    rng = np.random.default_rng(5)
+    pk = packets((159.5, 119.5), G, n=30000)
+    # replace the speeds by unrelated ones: the directions still vote, the magnitudes lie
+    pk = [p.replace(vx=p.vx / np.hypot(p.vx, p.vy) * rng.uniform(1, 200, len(p)).astype(
+        np.float32), vy=p.vy / np.hypot(p.vx, p.vy) * rng.uniform(1, 200, len(p)).astype(
+        np.float32)) for p in pk]
+    out = run(pk, min_inliers=1e9)
+    votes, fits = out.series["foe_votes"], out.series["foe"]
+    j = np.searchsorted(votes["t"], fits["t"], side="right") - 1
+    np.testing.assert_array_equal(fits["x"], votes["x"][j])
+    np.testing.assert_array_equal(fits["y"], votes["y"][j])
+
+
+def test_no_flow_no_estimate():
+    empty = FlowPacket(geometry=G, t_start=0, t_end=50_000, t=np.zeros(0, np.int64),
+                       x=np.zeros(0, np.uint16), y=np.zeros(0, np.uint16),
+                       p=np.zeros(0, np.int8), vx=np.zeros(0, np.float32),
+                       vy=np.zeros(0, np.float32))
+    out = run([empty])
+    assert len(out.series["foe"]) == 0

@@ -1,0 +1,83 @@
+"""``foe_fit`` kernel: recovery on synthetic piecewise-planar flow, against the numpy reference,
+and hard inputs (no road, all events on one line, FOE near the border, nothing at all)."""
+
+import numpy as np
+import pytest
+
+from evchain.kernels import foe_fit as k
+from tests.naive import foe_fit as naive
+
+A = (1 / 22.8, 1 / 40.0, 1 / 25.0)  # road K = f h / V = 22.8 s px; facades
+
+
+def _run(x, y, nx, ny, s, th0, t=None, T=1e6, tau=2e5, margin=10.0, c=0.5, iters=12):
+    t = np.full(len(x), T - 1.0) if t is None else t
+    th = np.array(th0, np.float64)
+    ok, inl, tot = k.fit(x, y, nx, ny, s, t, 0, len(x), T, tau, th, margin, c, iters, 3.0)
+    return ok, th, inl, tot
+
+
+@pytest.mark.parametrize("foe", [(159.5, 119.5), (140.0, 105.0), (20.0, 30.0)])
+def test_recovers_foe_and_scales(foe):
+    rng = np.random.default_rng(1)
+    x, y, nx, ny, s = naive.planar_flow(20000, foe, A, rng, noise=0.1, outliers=0.1)
+    ok, th, inl, tot = _run(x, y, nx, ny, s, (foe[0] + 8, foe[1] - 8, np.nan, np.nan, np.nan))
+    assert ok and 0 < inl <= tot
+    assert abs(th[0] - foe[0]) < 0.3 and abs(th[1] - foe[1]) < 0.3
+    assert abs(th[2] / A[0] - 1) < 0.05
+
+
+def test_matches_naive_on_random_input():
+    rng = np.random.default_rng(2)
+    for _ in range(5):
+        foe = rng.uniform(40, 200, 2)
+        x, y, nx, ny, s = naive.planar_flow(3000, foe, A, rng, noise=0.2, outliers=0.2)
+        t = np.sort(rng.uniform(0, 1e6, len(x)))
+        th0 = (foe[0] + rng.normal(0, 5), foe[1] + rng.normal(0, 5), np.nan, 0.03, np.nan)
+        ok, th, inl, tot = _run(x, y, nx, ny, s, th0, t=t)
+        ok2, th2, inl2, tot2 = naive.fit(x, y, nx, ny, s, t, 1e6, 2e5, th0, 10.0, 0.5, 12, 3.0)
+        assert ok == ok2
+        np.testing.assert_allclose(th, th2, rtol=1e-6, atol=1e-6)
+        np.testing.assert_allclose([inl, tot], [inl2, tot2], rtol=1e-9)
+
+
+def test_no_road_events_still_fits_from_facades():
+    rng = np.random.default_rng(3)
+    foe = (159.5, 119.5)
+    x, y, nx, ny, s = naive.planar_flow(20000, foe, (0.0, A[1], A[2]), rng, noise=0.05)
+    up = y < foe[1]  # only what lies above the FOE
+    ok, th, _, _ = _run(x[up], y[up], nx[up], ny[up], s[up], (165, 112, np.nan, np.nan, np.nan))
+    assert ok and np.isnan(th[2])
+    assert abs(th[0] - foe[0]) < 0.5 and abs(th[1] - foe[1]) < 1.0
+
+
+def test_hard_inputs_do_not_blow_up():
+    e = np.zeros(0)
+    ok, th, inl, tot = _run(e, e, e, e, e, (100, 100, np.nan, np.nan, np.nan))
+    assert not ok and inl == 0 and tot == 0
+    # all events on one line (one row below the FOE, one normal): the system is singular
+    n = 500
+    x = np.linspace(10, 300, n)
+    y = np.full(n, 200.0)
+    nx, ny = np.zeros(n), np.ones(n)
+    s = (y - 119.5) ** 2 * A[0]
+    ok, th, _, _ = _run(x, y, nx, ny, s, (159.5, 119.5, np.nan, np.nan, np.nan))
+    assert np.isfinite(th[:2]).all()
+    # flow exactly along an axis and events at the FOE itself
+    x = np.array([159.5, 200.0, 159.5, 100.0])
+    y = np.array([119.5, 119.5, 200.0, 119.5])
+    nx, ny = np.array([1.0, 1.0, 0.0, -1.0]), np.array([0.0, 0.0, 1.0, 0.0])
+    s = np.array([1.0, 2.0, 3.0, 4.0])
+    ok, th, _, _ = _run(x, y, nx, ny, s, (159.5, 119.5, np.nan, np.nan, np.nan))
+    assert np.isfinite(th[:2]).all()
+
+
+def test_solve_matches_numpy():
+    rng = np.random.default_rng(4)
+    for _ in range(20):
+        M = rng.normal(size=(5, 5)) + 5 * np.eye(5)
+        b = rng.normal(size=5)
+        want = np.linalg.solve(M, b)
+        assert k.solve(M.copy(), b)
+        np.testing.assert_allclose(b, want, rtol=1e-10, atol=1e-12)
+    assert not k.solve(np.zeros((5, 5)), np.ones(5))
