@@ -214,28 +214,36 @@ def reference_events(start_m: float, duration_s: float):
     return packets, ctx
 
 
-#: parameters as in pipelines/reference-*.yaml where they differ from the defaults
-CHAIN_PARAMS = {"ttc": {"ground_test": True},
-                "foe_ttc_scorer": {"plots": False, "warmup_s": 1.0}}
+#: the chain rows run the stages of these pipelines that follow the emulator, as configured there
+PIPELINES = Path(__file__).resolve().parents[2] / "pipelines"
+SCORERS = ("flow_scorer", "foe_ttc_scorer")
 
 
 def chain_rows(flow: str, quick: bool) -> list[BenchRow]:
+    from evchain.core.config import load_pipeline
     from evchain.core.registry import make_registry
 
     start_m, dur = (220.0, 1.0) if quick else (180.0, 5.0)
     events, ctx = reference_events(start_m, dur)
     n_events = sum(len(p) for p in events)
     reg = make_registry()
+    name = "lk" if flow == "lk_flow" else "plane"
+    spec = load_pipeline(PIPELINES / f"reference-{name}.yaml", reg)
+    uses = [s.use for s in spec.stages]
+    stages = spec.stages[uses.index("emulator") + 1:]
 
     def build(with_scorer: bool):
         fs = []
-        names = [flow, "foe_map", "ttc"] + (["foe_ttc_scorer"] if with_scorer else [])
-        for name in names:
-            f = reg.get(name)()
-            f.id = name
-            params = CHAIN_PARAMS.get(name, {})
-            f.setup(f.Params(**params), Context(seed=0, geometry=ctx.geometry, truth=ctx.truth,
-                                                 metrics=ctx.metrics))
+        for st in stages:
+            if st.use in SCORERS and not with_scorer:
+                continue
+            f = st.cls()
+            f.id = st.id
+            params = st.params
+            if st.use == "foe_ttc_scorer":
+                params = params.model_copy(update={"plots": False})
+            f.setup(params, Context(seed=0, geometry=ctx.geometry, truth=ctx.truth,
+                                    metrics=ctx.metrics))
             fs.append(f)
         return fs
 
@@ -252,8 +260,8 @@ def chain_rows(flow: str, quick: bool) -> list[BenchRow]:
     for f in fs:
         f.flush()
     fm, tm = ctx.metrics.get("foe", {}), ctx.metrics.get("ttc", {})
-    name = "lk" if flow == "lk_flow" else "plane"
-    return [BenchRow(f"chain-reference-{name}", f"{flow}+foe_map+ttc", n_events / t, "events/s",
+    timed = "+".join(st.use for st in stages if st.use not in SCORERS)
+    return [BenchRow(f"chain-reference-{name}", timed, n_events / t, "events/s",
                      tm.get("median_rel_error_last3s"), "ttc_median_rel_err_last3s", None,
                      {"events": n_events, "throughput_cpu": n_events / cpu,
                       "stretch": f"{start_m:g} m + {dur:g} s",
