@@ -137,6 +137,48 @@ def foe_reference_rows(flow: str, quick: bool, cell_px: int = 1) -> list[BenchRo
                       "foe_dy_mean_px": float(ady.mean()), "foe_dy_std_px": float(ady.std())})]
 
 
+def foe_fit_reference_rows(flow: str, quick: bool) -> list[BenchRow]:
+    """``foe_fit`` alone on the reference drive's last 5 s (``quick``: 1 s): the pipeline's flow
+    and ``foe_map`` run once (not timed), then ``foe_fit`` as configured in
+    pipelines/reference-*.yaml; error = mean |dy| against the true FOE after the warm-up (the
+    vertical error is what it corrects), |dx| in the extras."""
+    from evchain.core.config import load_pipeline
+    from evchain.core.registry import make_registry
+
+    start_m, dur = (220.0, 1.0) if quick else (180.0, 5.0)
+    packets, ctx = reference_flow(flow, start_m, dur)
+    n = sum(len(p) for p in packets)
+    name = "lk" if flow == "lk_flow" else "plane"
+    spec = load_pipeline(PIPELINES / f"reference-{name}.yaml", make_registry())
+
+    def make(use):
+        st = spec.stage(use)
+        f = st.cls()
+        f.setup(st.params, Context(seed=0, geometry=ctx.geometry))
+        return f
+
+    foe_map = make("foe_map")
+    voted = [foe_map.process(p) for p in packets]
+    series: list[np.ndarray] = []
+
+    def stage():
+        f = make("foe_fit")
+        series.clear()
+        for p in voted:
+            series.append(f.process(p).series["foe"])
+
+    cpu = best_cpu_time(stage, repeat=1)
+    s = np.concatenate(series)
+    s = s[s["t"] >= packets[0].t_start + (1_000_000 if not quick else 200_000)]
+    xt, yt = ctx.truth.foe(s["t"].astype(np.float64))
+    adx, ady = np.abs(s["x"] - xt), np.abs(s["y"] - yt)
+    return [BenchRow(f"foe-fit-reference-{name}", "foe_fit", n / cpu, "flow ev/s (CPU)",
+                     float(ady.mean()), "foe_dy_mean_px", None,
+                     {"events": n, "stretch": f"{start_m:g} m + {dur:g} s",
+                      "foe_dx_mean_px": float(adx.mean()), "foe_dx_std_px": float(adx.std()),
+                      "foe_dy_mean_px": float(ady.mean()), "foe_dy_std_px": float(ady.std())})]
+
+
 def ttc_rows(quick: bool) -> list[BenchRow]:
     from evchain.filters.foe_map import FOE_DTYPE
     from evchain.filters.ttc import Ttc
@@ -280,6 +322,8 @@ WORKLOADS = {
     "foe-map-reference-plane": lambda quick: foe_reference_rows("plane_flow", quick),
     "foe-map-reference-lk-cell2": lambda quick: foe_reference_rows("lk_flow", quick, 2),
     "foe-map-reference-plane-cell2": lambda quick: foe_reference_rows("plane_flow", quick, 2),
+    "foe-fit-reference-lk": lambda quick: foe_fit_reference_rows("lk_flow", quick),
+    "foe-fit-reference-plane": lambda quick: foe_fit_reference_rows("plane_flow", quick),
     "ttc-synthetic": ttc_rows,
     "chain-reference-lk": lambda quick: chain_rows("lk_flow", quick),
     "chain-reference-plane": lambda quick: chain_rows("plane_flow", quick),
