@@ -167,7 +167,7 @@ def foe_fit_reference_rows(flow: str, quick: bool) -> list[BenchRow]:
         for p in voted:
             series.append(f.process(p).series["foe"])
 
-    cpu = best_cpu_time(stage, repeat=1)
+    cpu = best_cpu_time(stage, repeat=1, warmup=True)
     s = np.concatenate(series)
     s = s[s["t"] >= packets[0].t_start + (1_000_000 if not quick else 200_000)]
     xt, yt = ctx.truth.foe(s["t"].astype(np.float64))
