@@ -51,6 +51,7 @@ class FoeFit(Filter):
     def reset(self) -> None:
         self._buf = {c: np.zeros(0, np.float64) for c in ("x", "y", "nx", "ny", "s")}
         self._t = np.zeros(0, np.int64)
+        self._lo = self._hi = 0  # the buffer's live events: [lo, hi)
         self._next: int | None = None
         self._th = np.full(5, np.nan)
         self._vote: tuple[int, float, float] | None = None
@@ -68,9 +69,8 @@ class FoeFit(Filter):
         ok = s > 0
         new = {"x": packet.x[ok].astype(np.float64), "y": packet.y[ok].astype(np.float64),
                "nx": vx[ok] / s[ok], "ny": vy[ok] / s[ok], "s": s[ok]}
-        keep = np.searchsorted(self._t, packet.t_start - int(4 * tau_us))
-        buf = {c: np.concatenate([v[keep:], new[c]]) for c, v in self._buf.items()}
-        t = np.concatenate([self._t[keep:], packet.t[ok]])
+        self._append(new, packet.t[ok], packet.t_start - int(4 * tau_us))
+        buf, t = self._buf, self._t
         if self._next is None:
             self._next = -(-packet.t_start // period) * period
         rows = []
@@ -84,7 +84,6 @@ class FoeFit(Filter):
             if self._vote is None:
                 continue
             rows.append((T, *self._fit(k, buf, t, T, tau_us)))
-        self._buf, self._t = buf, t
         out = np.zeros(len(rows), FOE_DTYPE)
         for i, r in enumerate(rows):
             out[i] = r
@@ -93,13 +92,35 @@ class FoeFit(Filter):
         series["foe"] = out
         return packet.replace(series=series)
 
+    def _append(self, new: dict, t_new: np.ndarray, t_keep: int) -> None:
+        """Drop events before ``t_keep`` and append the new ones; the arrays grow by doubling and
+        are compacted only when full (amortised O(1) per event)."""
+        lo, hi, m = self._lo, self._hi, len(t_new)
+        lo += int(np.searchsorted(self._t[lo:hi], t_keep))
+        if hi + m > len(self._t):
+            n = hi - lo
+            cap = len(self._t) if 2 * (n + m) <= len(self._t) else max(2 * (n + m), 1024)
+            for c, v in self._buf.items():
+                w = np.empty(cap, np.float64)
+                w[:n] = v[lo:hi]
+                self._buf[c] = w
+            tt = np.empty(cap, np.int64)
+            tt[:n] = self._t[lo:hi]
+            self._t = tt
+            lo, hi = 0, n
+        for c, v in self._buf.items():
+            v[hi:hi + m] = new[c]
+        self._t[hi:hi + m] = t_new
+        self._lo, self._hi = lo, hi + m
+
     def _fit(self, k, buf, t, T, tau_us):
         p = self.params
         _, vx, vy = self._vote
         if math.isnan(self._th[0]):
             self._th[:] = (vx, vy, np.nan, np.nan, np.nan)
-        i0 = int(np.searchsorted(t, T - int(4 * tau_us)))
-        i1 = int(np.searchsorted(t, T))
+        lo, hi = self._lo, self._hi
+        i0 = lo + int(np.searchsorted(t[lo:hi], T - int(4 * tau_us)))
+        i1 = lo + int(np.searchsorted(t[lo:hi], T))
         th = self._th.copy()
         ok, inl, tot = k.fit(buf["x"], buf["y"], buf["nx"], buf["ny"], buf["s"], t, i0, i1,
                              float(T), tau_us, th, p.margin_px, p.tolerance, p.max_iter, 3.0)

@@ -200,6 +200,6 @@ def fit(x, y, nx, ny, s, t, i0, i1, T, tau_us, th, margin, c, max_iter, max_step
         for p in range(NP):
             if not math.isfinite(th[p]) and not (p >= 2 and math.isnan(th[p])):
                 return False, inl, tot
-        if step < 1e-3:
+        if step < 0.05:  # px: a warm-started fit moves less than this after 1-2 iterations
             break
     return True, inl, tot
