@@ -21,7 +21,7 @@ class FoeFit(Filter):
     time to contact ``a0 dy``, a facade point ``dx`` columns beside it ``a1 |dx|`` (left) or
     ``a2 |dx|`` (right), so its normal flow speed is ``(p - foe).n`` times that. Every
     ``estimate_every_us`` the five unknowns are fitted to the flow events of the last
-    ``4 tau_ms`` (weights decaying with ``tau_ms``, Tukey on the relative speed residual), from
+    ``3 tau_ms`` (weights decaying with ``tau_ms``, Tukey on the relative speed residual), from
     the previous fit, else from the latest ``foe_map`` estimate. When the fit fails (singular,
     fewer than ``min_inliers`` decayed inliers, or farther than ``max_deviation_px`` from the
     voting estimate) the voting estimate is emitted and the next fit starts from it again.
@@ -35,7 +35,7 @@ class FoeFit(Filter):
 
     class Params(FilterParams):
         tau_ms: float = Field(200.0, gt=0, description="decay time constant of the events' "
-                              "weights; events older than 4 tau are dropped")
+                              "weights; events older than 3 tau are dropped")
         estimate_every_us: int = Field(10000, ge=1, description="period of the fits")
         margin_px: float = Field(10.0, ge=0, description="events closer than this to a "
                                  "plane's vanishing line (the FOE's row or column) are left "
@@ -69,7 +69,7 @@ class FoeFit(Filter):
         ok = s > 0
         new = {"x": packet.x[ok].astype(np.float64), "y": packet.y[ok].astype(np.float64),
                "nx": vx[ok] / s[ok], "ny": vy[ok] / s[ok], "s": s[ok]}
-        self._append(new, packet.t[ok], packet.t_start - int(4 * tau_us))
+        self._append(new, packet.t[ok], packet.t_start - int(3 * tau_us))
         buf, t = self._buf, self._t
         if self._next is None:
             self._next = -(-packet.t_start // period) * period
@@ -119,7 +119,7 @@ class FoeFit(Filter):
         if math.isnan(self._th[0]):
             self._th[:] = (vx, vy, np.nan, np.nan, np.nan)
         lo, hi = self._lo, self._hi
-        i0 = lo + int(np.searchsorted(t[lo:hi], T - int(4 * tau_us)))
+        i0 = lo + int(np.searchsorted(t[lo:hi], T - int(3 * tau_us)))
         i1 = lo + int(np.searchsorted(t[lo:hi], T))
         th = self._th.copy()
         ok, inl, tot = k.fit(buf["x"], buf["y"], buf["nx"], buf["ny"], buf["s"], t, i0, i1,
