@@ -49,7 +49,8 @@ class FoeFit(Filter):
                                    "inlier weight is below this")
 
     def reset(self) -> None:
-        self._buf = {c: np.zeros(0, np.float64) for c in ("x", "y", "nx", "ny", "s")}
+        self._buf = {c: np.zeros(0, np.float64) for c in ("x", "y", "nx", "ny", "s", "e")}
+        self._tref = 0  # e = exp((t - tref) / tau): the decay weights, computed once per event
         self._t = np.zeros(0, np.int64)
         self._lo = self._hi = 0  # the buffer's live events: [lo, hi)
         self._next: int | None = None
@@ -67,8 +68,14 @@ class FoeFit(Filter):
         vx, vy = packet.vx.astype(np.float64), packet.vy.astype(np.float64)
         s = np.hypot(vx, vy)
         ok = s > 0
+        if packet.t_end - self._tref > 4 * tau_us:  # keep e within exp(+-4) for the window
+            tref = packet.t_end - int(2 * tau_us)
+            v = self._buf["e"][self._lo:self._hi]
+            v *= math.exp(-(tref - self._tref) / tau_us)
+            self._tref = tref
         new = {"x": packet.x[ok].astype(np.float64), "y": packet.y[ok].astype(np.float64),
-               "nx": vx[ok] / s[ok], "ny": vy[ok] / s[ok], "s": s[ok]}
+               "nx": vx[ok] / s[ok], "ny": vy[ok] / s[ok], "s": s[ok],
+               "e": np.exp((packet.t[ok] - self._tref) / tau_us)}
         self._append(new, packet.t[ok], packet.t_start - int(3 * tau_us))
         buf, t = self._buf, self._t
         if self._next is None:
@@ -122,8 +129,9 @@ class FoeFit(Filter):
         i0 = lo + int(np.searchsorted(t[lo:hi], T - int(3 * tau_us)))
         i1 = lo + int(np.searchsorted(t[lo:hi], T))
         th = self._th.copy()
-        ok, inl, tot = k.fit(buf["x"], buf["y"], buf["nx"], buf["ny"], buf["s"], t, i0, i1,
-                             float(T), tau_us, th, p.margin_px, p.tolerance, p.max_iter, 3.0)
+        g = math.exp(-(T - self._tref) / tau_us)
+        ok, inl, tot = k.fit(buf["x"], buf["y"], buf["nx"], buf["ny"], buf["s"], buf["e"], i0,
+                             i1, g, th, p.margin_px, p.tolerance, p.max_iter, 3.0)
         if (ok and inl >= p.min_inliers
                 and math.hypot(th[0] - vx, th[1] - vy) <= p.max_deviation_px):
             self._th = th

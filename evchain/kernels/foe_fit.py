@@ -69,7 +69,7 @@ def _applies(k, dxx, dyy, margin):
 
 
 @njit(cache=True, error_model="numpy")
-def _init_scales(x, y, nx, ny, s, wt, i0, i1, th, margin):
+def _init_scales(x, y, nx, ny, s, e, g, i0, i1, th, margin):
     for k in range(3):
         if not math.isnan(th[2 + k]):
             continue
@@ -82,7 +82,7 @@ def _init_scales(x, y, nx, ny, s, wt, i0, i1, th, margin):
             dn = dxx * nx[i] + dyy * ny[i]
             if dn > 0.0 and _applies(k, dxx, dyy, margin):
                 r[m] = s[i] / (dn * _lever(k, dxx, dyy))
-                w[m] = wt[i - i0]
+                w[m] = e[i] * g
                 m += 1
         if m == 0:
             continue
@@ -100,16 +100,13 @@ def _init_scales(x, y, nx, ny, s, wt, i0, i1, th, margin):
 
 
 @njit(cache=True, error_model="numpy")
-def fit(x, y, nx, ny, s, t, i0, i1, T, tau_us, th, margin, c, max_iter, max_step):
+def fit(x, y, nx, ny, s, e, i0, i1, g, th, margin, c, max_iter, max_step):
     """Fit ``th`` (in/out, float64[5]; NaN scales are initialised) to events ``i0..i1`` (speed
-    s > 0, unit normal (nx, ny), time t < T). Returns (ok, inlier weight, applicable weight)
-    with the decayed weights of the events (1 at T); ok is False when a system is singular or
-    a value is not finite."""
-    n = i1 - i0
-    wt = np.empty(n)
-    for i in range(i0, i1):
-        wt[i - i0] = math.exp(-(T - t[i]) / tau_us)
-    _init_scales(x, y, nx, ny, s, wt, i0, i1, th, margin)
+    s > 0, unit normal (nx, ny)) with decay weights ``e g``: ``e = exp((t - t_ref) / tau)`` is
+    kept per event (computed once), ``g = exp(-(T - t_ref) / tau)`` per fit, so an event at the
+    fit time T weighs 1. Returns (ok, inlier weight, applicable weight) with these weights; ok
+    is False when a system is singular or a value is not finite."""
+    _init_scales(x, y, nx, ny, s, e, g, i0, i1, th, margin)
     A = np.zeros((NP, NP))
     b = np.zeros(NP)
     C = np.zeros((3, 4))  # per plane: sum w J0 Ja, w J1 Ja, w Ja Ja, w r Ja (J is 0 elsewhere)
@@ -146,7 +143,7 @@ def fit(x, y, nx, ny, s, t, i0, i1, T, tau_us, th, margin, c, max_iter, max_step
             pred = ps if use_side else pr
             valid = dn > 0.0 and re < np.inf
             u = re / (si * c) if valid else 1.0
-            wti = wt[i - i0]
+            wti = e[i] * g
             tot += wti if valid else 0.0
             inlier = u < 1.0
             inl += wti if inlier else 0.0

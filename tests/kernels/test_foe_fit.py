@@ -13,7 +13,8 @@ A = (1 / 22.8, 1 / 40.0, 1 / 25.0)  # road K = f h / V = 22.8 s px; facades
 def _run(x, y, nx, ny, s, th0, t=None, T=1e6, tau=2e5, margin=10.0, c=0.5, iters=12):
     t = np.full(len(x), T - 1.0) if t is None else t
     th = np.array(th0, np.float64)
-    ok, inl, tot = k.fit(x, y, nx, ny, s, t, 0, len(x), T, tau, th, margin, c, iters, 3.0)
+    e, g = np.exp((t - t[0]) / tau) if len(t) else t, np.exp(-(T - (t[0] if len(t) else 0)) / tau)
+    ok, inl, tot = k.fit(x, y, nx, ny, s, e, 0, len(x), g, th, margin, c, iters, 3.0)
     return ok, th, inl, tot
 
 
