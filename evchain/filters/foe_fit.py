@@ -21,7 +21,7 @@ class FoeFit(Filter):
     time to contact ``a0 dy``, a facade point ``dx`` columns beside it ``a1 |dx|`` (left) or
     ``a2 |dx|`` (right), so its normal flow speed is ``(p - foe).n`` times that. Every
     ``estimate_every_us`` the five unknowns are fitted to the flow events of the last
-    ``4 tau_ms`` (weights decaying with ``tau_ms``, Tukey on the relative speed residual), from
+    ``3 tau_ms`` (weights decaying with ``tau_ms``, Tukey on the relative speed residual), from
     the previous fit, else from the latest ``foe_map`` estimate. When the fit fails (singular,
     fewer than ``min_inliers`` decayed inliers, or farther than ``max_deviation_px`` from the
     voting estimate) the voting estimate is emitted and the next fit starts from it again.
@@ -35,7 +35,7 @@ class FoeFit(Filter):
 
     class Params(FilterParams):
         tau_ms: float = Field(200.0, gt=0, description="decay time constant of the events' "
-                              "weights; events older than 4 tau are dropped")
+                              "weights; events older than 3 tau are dropped")
         estimate_every_us: int = Field(10000, ge=1, description="period of the fits")
         margin_px: float = Field(10.0, ge=0, description="events closer than this to a "
                                  "plane's vanishing line (the FOE's row or column) are left "
@@ -49,8 +49,10 @@ class FoeFit(Filter):
                                    "inlier weight is below this")
 
     def reset(self) -> None:
-        self._buf = {c: np.zeros(0, np.float64) for c in ("x", "y", "nx", "ny", "s")}
+        self._buf = {c: np.zeros(0, np.float64) for c in ("x", "y", "nx", "ny", "s", "e")}
+        self._tref = 0  # e = exp((t - tref) / tau): the decay weights, computed once per event
         self._t = np.zeros(0, np.int64)
+        self._lo = self._hi = 0  # the buffer's live events: [lo, hi)
         self._next: int | None = None
         self._th = np.full(5, np.nan)
         self._vote: tuple[int, float, float] | None = None
@@ -66,11 +68,16 @@ class FoeFit(Filter):
         vx, vy = packet.vx.astype(np.float64), packet.vy.astype(np.float64)
         s = np.hypot(vx, vy)
         ok = s > 0
+        if packet.t_end - self._tref > 4 * tau_us:  # keep e within exp(+-4) for the window
+            tref = packet.t_end - int(2 * tau_us)
+            v = self._buf["e"][self._lo:self._hi]
+            v *= math.exp(-(tref - self._tref) / tau_us)
+            self._tref = tref
         new = {"x": packet.x[ok].astype(np.float64), "y": packet.y[ok].astype(np.float64),
-               "nx": vx[ok] / s[ok], "ny": vy[ok] / s[ok], "s": s[ok]}
-        keep = np.searchsorted(self._t, packet.t_start - int(4 * tau_us))
-        buf = {c: np.concatenate([v[keep:], new[c]]) for c, v in self._buf.items()}
-        t = np.concatenate([self._t[keep:], packet.t[ok]])
+               "nx": vx[ok] / s[ok], "ny": vy[ok] / s[ok], "s": s[ok],
+               "e": np.exp((packet.t[ok] - self._tref) / tau_us)}
+        self._append(new, packet.t[ok], packet.t_start - int(3 * tau_us))
+        buf, t = self._buf, self._t
         if self._next is None:
             self._next = -(-packet.t_start // period) * period
         rows = []
@@ -84,7 +91,6 @@ class FoeFit(Filter):
             if self._vote is None:
                 continue
             rows.append((T, *self._fit(k, buf, t, T, tau_us)))
-        self._buf, self._t = buf, t
         out = np.zeros(len(rows), FOE_DTYPE)
         for i, r in enumerate(rows):
             out[i] = r
@@ -93,16 +99,39 @@ class FoeFit(Filter):
         series["foe"] = out
         return packet.replace(series=series)
 
+    def _append(self, new: dict, t_new: np.ndarray, t_keep: int) -> None:
+        """Drop events before ``t_keep`` and append the new ones; the arrays grow by doubling and
+        are compacted only when full (amortised O(1) per event)."""
+        lo, hi, m = self._lo, self._hi, len(t_new)
+        lo += int(np.searchsorted(self._t[lo:hi], t_keep))
+        if hi + m > len(self._t):
+            n = hi - lo
+            cap = len(self._t) if 2 * (n + m) <= len(self._t) else max(2 * (n + m), 1024)
+            for c, v in self._buf.items():
+                w = np.empty(cap, np.float64)
+                w[:n] = v[lo:hi]
+                self._buf[c] = w
+            tt = np.empty(cap, np.int64)
+            tt[:n] = self._t[lo:hi]
+            self._t = tt
+            lo, hi = 0, n
+        for c, v in self._buf.items():
+            v[hi:hi + m] = new[c]
+        self._t[hi:hi + m] = t_new
+        self._lo, self._hi = lo, hi + m
+
     def _fit(self, k, buf, t, T, tau_us):
         p = self.params
         _, vx, vy = self._vote
         if math.isnan(self._th[0]):
             self._th[:] = (vx, vy, np.nan, np.nan, np.nan)
-        i0 = int(np.searchsorted(t, T - int(4 * tau_us)))
-        i1 = int(np.searchsorted(t, T))
+        lo, hi = self._lo, self._hi
+        i0 = lo + int(np.searchsorted(t[lo:hi], T - int(3 * tau_us)))
+        i1 = lo + int(np.searchsorted(t[lo:hi], T))
         th = self._th.copy()
-        ok, inl, tot = k.fit(buf["x"], buf["y"], buf["nx"], buf["ny"], buf["s"], t, i0, i1,
-                             float(T), tau_us, th, p.margin_px, p.tolerance, p.max_iter, 3.0)
+        g = math.exp(-(T - self._tref) / tau_us)
+        ok, inl, tot = k.fit(buf["x"], buf["y"], buf["nx"], buf["ny"], buf["s"], buf["e"], i0,
+                             i1, g, th, p.margin_px, p.tolerance, p.max_iter, 3.0)
         if (ok and inl >= p.min_inliers
                 and math.hypot(th[0] - vx, th[1] - vy) <= p.max_deviation_px):
             self._th = th

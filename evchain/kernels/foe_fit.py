@@ -69,7 +69,7 @@ def _applies(k, dxx, dyy, margin):
 
 
 @njit(cache=True, error_model="numpy")
-def _init_scales(x, y, nx, ny, s, wt, i0, i1, th, margin):
+def _init_scales(x, y, nx, ny, s, e, g, i0, i1, th, margin):
     for k in range(3):
         if not math.isnan(th[2 + k]):
             continue
@@ -82,7 +82,7 @@ def _init_scales(x, y, nx, ny, s, wt, i0, i1, th, margin):
             dn = dxx * nx[i] + dyy * ny[i]
             if dn > 0.0 and _applies(k, dxx, dyy, margin):
                 r[m] = s[i] / (dn * _lever(k, dxx, dyy))
-                w[m] = wt[i - i0]
+                w[m] = e[i] * g
                 m += 1
         if m == 0:
             continue
@@ -100,71 +100,80 @@ def _init_scales(x, y, nx, ny, s, wt, i0, i1, th, margin):
 
 
 @njit(cache=True, error_model="numpy")
-def fit(x, y, nx, ny, s, t, i0, i1, T, tau_us, th, margin, c, max_iter, max_step):
+def fit(x, y, nx, ny, s, e, i0, i1, g, th, margin, c, max_iter, max_step):
     """Fit ``th`` (in/out, float64[5]; NaN scales are initialised) to events ``i0..i1`` (speed
-    s > 0, unit normal (nx, ny), time t < T). Returns (ok, inlier weight, applicable weight)
-    with the decayed weights of the events (1 at T); ok is False when a system is singular or
-    a value is not finite."""
-    n = i1 - i0
-    wt = np.empty(n)
-    for i in range(i0, i1):
-        wt[i - i0] = math.exp(-(T - t[i]) / tau_us)
-    _init_scales(x, y, nx, ny, s, wt, i0, i1, th, margin)
+    s > 0, unit normal (nx, ny)) with decay weights ``e g``: ``e = exp((t - t_ref) / tau)`` is
+    kept per event (computed once), ``g = exp(-(T - t_ref) / tau)`` per fit, so an event at the
+    fit time T weighs 1. Returns (ok, inlier weight, applicable weight) with these weights; ok
+    is False when a system is singular or a value is not finite."""
+    _init_scales(x, y, nx, ny, s, e, g, i0, i1, th, margin)
     A = np.zeros((NP, NP))
     b = np.zeros(NP)
-    J = np.zeros(NP)
+    C = np.zeros((3, 4))  # per plane: sum w J0 Ja, w J1 Ja, w Ja Ja, w r Ja (J is 0 elsewhere)
     inl = 0.0
     tot = 0.0
     for _ in range(max_iter):
-        A[:] = 0.0
-        b[:] = 0.0
+        C[:] = 0.0
+        a00 = a01 = a11 = b0 = b1 = 0.0
         inl = 0.0
         tot = 0.0
         xf, yf = th[0], th[1]
+        has_road = not math.isnan(th[2])
+        a0 = th[2] if has_road else 0.0
+        al = 0.0 if math.isnan(th[3]) else th[3]
+        ar = 0.0 if math.isnan(th[4]) else th[4]
+        # branch-free body (selects, zero weights): plane choices are data-dependent and
+        # mispredicted branches cost more than the arithmetic
         for i in range(i0, i1):
             dxx = x[i] - xf
             dyy = y[i] - yf
             dn = dxx * nx[i] + dyy * ny[i]
-            if dn <= 0.0:
-                continue
-            best = -1
-            be = np.inf
-            pred = 0.0
-            for k in range(3):
-                a = th[2 + k]
-                if math.isnan(a) or not _applies(k, dxx, dyy, margin):
-                    continue
-                pk = a * dn * _lever(k, dxx, dyy)
-                e = abs(s[i] - pk) / s[i]
-                if e < be:
-                    be, best, pred = e, k, pk
-            if best < 0:
-                continue
-            tot += wt[i - i0]
-            u = be / c
-            if u >= 1.0:
-                continue
-            w = wt[i - i0] * (1.0 - u * u) ** 2 / (s[i] * s[i])
-            inl += wt[i - i0]
-            a = th[2 + best]
-            lev = _lever(best, dxx, dyy)
-            for q in range(NP):
-                J[q] = 0.0
-            if best == 0:
-                J[0] = -a * nx[i] * dyy
-                J[1] = -a * (ny[i] * dyy + dn)
-            elif best == 1:
-                J[0] = a * (nx[i] * dxx + dn)
-                J[1] = a * ny[i] * dxx
-            else:
-                J[0] = -a * (nx[i] * dxx + dn)
-                J[1] = -a * ny[i] * dxx
-            J[2 + best] = dn * lev
-            r = s[i] - pred
-            for p in range(NP):
-                b[p] += w * J[p] * r
-                for q in range(NP):
-                    A[p, q] += w * J[p] * J[q]
+            si = s[i]
+            road_ok = has_road and dyy > margin
+            left = dxx < 0.0
+            adx = abs(dxx)
+            a_s = al if left else ar
+            side_ok = adx > margin and not math.isnan(th[3] if left else th[4])
+            pr = a0 * dn * dyy
+            ps = a_s * dn * adx
+            er = abs(si - pr) if road_ok else np.inf
+            es = abs(si - ps) if side_ok else np.inf
+            use_side = es < er  # road wins ties
+            re = es if use_side else er
+            pred = ps if use_side else pr
+            valid = dn > 0.0 and re < np.inf
+            u = re / (si * c) if valid else 1.0
+            wti = e[i] * g
+            tot += wti if valid else 0.0
+            inlier = u < 1.0
+            inl += wti if inlier else 0.0
+            v = 1.0 - u * u
+            w = wti * v * v / (si * si) if inlier else 0.0
+            sg = 1.0 if left else -1.0
+            j0 = sg * a_s * (nx[i] * dxx + dn) if use_side else -a0 * nx[i] * dyy
+            j1 = sg * a_s * ny[i] * dxx if use_side else -a0 * (ny[i] * dyy + dn)
+            ja = dn * adx if use_side else dn * dyy
+            wr = w * (si - pred)
+            wj0 = w * j0
+            wj1 = w * j1
+            a00 += wj0 * j0
+            a01 += wj0 * j1
+            a11 += wj1 * j1
+            b0 += wr * j0
+            b1 += wr * j1
+            k = (1 if left else 2) if use_side else 0
+            C[k, 0] += wj0 * ja
+            C[k, 1] += wj1 * ja
+            C[k, 2] += w * ja * ja
+            C[k, 3] += wr * ja
+        A[:] = 0.0
+        A[0, 0], A[0, 1], A[1, 0], A[1, 1] = a00, a01, a01, a11
+        b[0], b[1] = b0, b1
+        for k in range(3):
+            A[0, 2 + k] = A[2 + k, 0] = C[k, 0]
+            A[1, 2 + k] = A[2 + k, 1] = C[k, 1]
+            A[2 + k, 2 + k] = C[k, 2]
+            b[2 + k] = C[k, 3]
         tr = 0.0
         for p in range(NP):
             tr += A[p, p]
@@ -188,6 +197,6 @@ def fit(x, y, nx, ny, s, t, i0, i1, T, tau_us, th, margin, c, max_iter, max_step
         for p in range(NP):
             if not math.isfinite(th[p]) and not (p >= 2 and math.isnan(th[p])):
                 return False, inl, tot
-        if step < 1e-3:
+        if step < 0.05:  # px: a warm-started fit moves less than this after 1-2 iterations
             break
     return True, inl, tot

@@ -8,7 +8,7 @@ import numpy as np
 from evchain.core.filter import Context
 from evchain.core.packets import FlowPacket, Geometry
 from evchain.filters.foe_fit import FoeFit
-from evchain.filters.foe_map import FoeMap
+from evchain.filters.foe_map import FOE_DTYPE, FoeMap
 from tests.naive.foe_fit import planar_flow
 
 A = (1 / 22.8, 1 / 40.0, 1 / 25.0)
@@ -80,3 +80,40 @@ def test_no_flow_no_estimate():
                        vy=np.zeros(0, np.float32))
     out = run([empty])
     assert len(out.series["foe"]) == 0
+
+
+def _split(pk, n_packets):
+    """The same flow events re-cut into ``n_packets`` packets (the buffer's growth and compaction
+    happen at different places); the first one carries one vote near the FOE."""
+    one = FlowPacket.concat(pk)
+    t0, t1 = pk[0].t_start, pk[-1].t_end
+    votes = np.zeros(1, FOE_DTYPE)
+    votes[0] = (0, 163.0, 115.0, 1.0, 1.0)
+    out = []
+    for i in range(n_packets):
+        a, b = t0 + i * (t1 - t0) // n_packets, t0 + (i + 1) * (t1 - t0) // n_packets
+        m = (one.t >= a) & (one.t < b)
+        out.append(FlowPacket(geometry=one.geometry, t_start=a, t_end=b, t=one.t[m], x=one.x[m],
+                              y=one.y[m], p=one.p[m], vx=one.vx[m], vy=one.vy[m],
+                              series={"foe": votes if i == 0 else votes[:0]}))
+    return out
+
+
+def test_packet_cuts_do_not_change_the_fits():
+    # 2 s (2.5 windows of 4 tau) with every 10th event at zero flow: the ring buffer drops,
+    # compacts and grows; packets of 0-30000 events (some empty) must give the same fits
+    pk = packets((159.5, 119.5), G, n=60000, duration_us=2_000_000, n_packets=20, noise=0.2)
+    pk = [p.replace(vx=np.where(np.arange(len(p)) % 10 == 0, 0, p.vx).astype(np.float32))
+          .replace(vy=np.where(np.arange(len(p)) % 10 == 0, 0, p.vy).astype(np.float32))
+          for p in pk]
+    series = []
+    for n in (2, 7, 200, 1000):
+        f = FoeFit()
+        f.setup(FoeFit.Params(), Context())
+        series.append(np.concatenate([f.process(p).series["foe"] for p in _split(pk, n)]))
+    assert len(series[0]) == 200 and np.isfinite(series[0]["x"]).all()
+    assert abs(series[0]["x"][-1] - 159.5) < 0.5 and abs(series[0]["y"][-1] - 119.5) < 0.5
+    for s in series[1:]:
+        np.testing.assert_allclose(s["x"], series[0]["x"], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(s["y"], series[0]["y"], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(s["support"], series[0]["support"], rtol=1e-9)

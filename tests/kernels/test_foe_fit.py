@@ -13,7 +13,8 @@ A = (1 / 22.8, 1 / 40.0, 1 / 25.0)  # road K = f h / V = 22.8 s px; facades
 def _run(x, y, nx, ny, s, th0, t=None, T=1e6, tau=2e5, margin=10.0, c=0.5, iters=12):
     t = np.full(len(x), T - 1.0) if t is None else t
     th = np.array(th0, np.float64)
-    ok, inl, tot = k.fit(x, y, nx, ny, s, t, 0, len(x), T, tau, th, margin, c, iters, 3.0)
+    e, g = np.exp((t - t[0]) / tau) if len(t) else t, np.exp(-(T - (t[0] if len(t) else 0)) / tau)
+    ok, inl, tot = k.fit(x, y, nx, ny, s, e, 0, len(x), g, th, margin, c, iters, 3.0)
     return ok, th, inl, tot
 
 
@@ -81,3 +82,33 @@ def test_solve_matches_numpy():
         assert k.solve(M.copy(), b)
         np.testing.assert_allclose(b, want, rtol=1e-10, atol=1e-12)
     assert not k.solve(np.zeros((5, 5)), np.ones(5))
+
+
+def test_matches_naive_on_hard_inputs():
+    # events at the FOE, exactly on the margin, with dn = 0, road/facade ties (equal predicted
+    # speeds), on one line, and every plane scale NaN or set: the branch-free plane choice
+    # must pick what the plain version picks
+    rng = np.random.default_rng(6)
+    foe = (159.5, 119.5)
+    x, y, nx, ny, s = naive.planar_flow(2000, foe, A, rng, noise=0.1, outliers=0.2)
+    k_ = 400
+    x[:k_:4], y[:k_:4] = foe  # at the FOE
+    y[1:k_:4] = foe[1] + 10.0  # on the road's margin
+    x[2:k_:4] = foe[0] - 10.0  # on the left facade's margin
+    d = np.abs(x[3:k_:4] - foe[0])
+    y[3:k_:4] = foe[1] + d  # dy = |dx|: road and facade predictions tie when a0 = a1 = a2
+    nx[:50], ny[:50] = -ny[:50], nx[:50]  # some normals turned by 90 deg
+    t = np.sort(rng.uniform(0, 1e6, len(x)))
+    # distinct times: with all weights equal the initial weighted median sits exactly on a half
+    # and the kernel's and numpy's summation orders may pick neighbouring values
+    line = (np.linspace(10, 300, 200), np.full(200, 200.0), np.zeros(200), np.ones(200),
+            np.full(200, 3.0))
+    for th0 in [(foe[0], foe[1], 0.03, 0.03, 0.03), (foe[0], foe[1], np.nan, np.nan, np.nan),
+                (foe[0] + 3, foe[1] - 2, np.nan, 0.03, np.nan)]:
+        for ev, tt in [((x, y, nx, ny, s), t), (line, np.linspace(0, 9e5, 200))]:
+            for iters in (1, 4):
+                ok, th, inl, tot = _run(*ev, th0, t=tt, iters=iters)
+                ok2, th2, inl2, tot2 = naive.fit(*ev, tt, 1e6, 2e5, th0, 10.0, 0.5, iters, 3.0)
+                assert ok == ok2
+                np.testing.assert_allclose(th, th2, rtol=1e-6, atol=1e-6)
+                np.testing.assert_allclose([inl, tot], [inl2, tot2], rtol=1e-9)

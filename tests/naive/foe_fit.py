@@ -72,7 +72,7 @@ def fit(x, y, nx, ny, s, t, T, tau_us, th, margin, c, max_iter, max_step):
         th = th + d
         if not np.isfinite(th[:2]).all() or np.isinf(th[2:]).any():
             return False, th, inl, tot
-        if step < 1e-3:
+        if step < 0.05:  # px, as the kernel
             break
     return True, th, inl, tot
 
