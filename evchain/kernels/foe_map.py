@@ -125,12 +125,8 @@ def materialize(diffR, constR, diffC, constC, lo, hi, clo, chi, x0, y0, whole, o
     (-inf, inf when A is empty). One pass, row by row: the per-column prefix sums advance one
     row at a time (entries outside a column's rows of A never matter)."""
     ny, nx = out.shape
-    ccum = np.empty(nx, np.float64)
+    ccum = np.cumsum(constC)      # sequential, the same sums as a loop
     cacc = np.zeros(nx, np.float64)
-    cc = 0.0
-    for c in range(nx):
-        cc += constC[c]
-        ccum[c] = cc
     best = -np.inf
     worst = np.inf
     rc = 0.0
@@ -250,11 +246,7 @@ def refresh(diffR, constR, diffC, constC, lo, hi, x0, fst, rst, out, refine_frac
     _row_prefixes(diffR, lo, hi, x0, need, out)
     keys = out.view(np.int64)
     cacc = np.zeros(nx, np.float64)
-    ccum = np.empty(nx, np.float64)
-    cc = 0.0
-    for c in range(nx):
-        cc += constC[c]
-        ccum[c] = cc
+    ccum = np.cumsum(constC)
     best = -np.inf
     worst = np.inf
     rc = 0.0
