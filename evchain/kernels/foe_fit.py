@@ -99,6 +99,81 @@ def _init_scales(x, y, nx, ny, s, e, g, i0, i1, th, margin):
                 break
 
 
+@njit(cache=True, error_model="numpy", fastmath={"reassoc", "contract"})
+def _sums(x, y, nx, ny, s, e, i0, i1, g, th, margin, c):
+    """One pass of the Gauss-Newton normal equations at ``th``: the 19 sums
+    (a00, a01, a11, b0, b1, inlier weight, applicable weight, then per plane road / left /
+    right: w J0 Ja, w J1 Ja, w Ja Ja, w r Ja). Branch-free (selects, one accumulator per sum,
+    reassociated) so that LLVM vectorises it; the sums' order differs from a plain loop only
+    in rounding."""
+    xf, yf = th[0], th[1]
+    has_road = not math.isnan(th[2])
+    has_l = not math.isnan(th[3])
+    has_r = not math.isnan(th[4])
+    a0 = th[2] if has_road else 0.0
+    al = th[3] if has_l else 0.0
+    ar = th[4] if has_r else 0.0
+    a00 = a01 = a11 = b0 = b1 = inl = tot = 0.0
+    r0 = r1 = r2 = r3 = l0 = l1 = l2 = l3 = q0 = q1 = q2 = q3 = 0.0
+    for i in range(i0, i1):
+        dxx = x[i] - xf
+        dyy = y[i] - yf
+        dn = dxx * nx[i] + dyy * ny[i]
+        si = s[i]
+        road_ok = has_road and dyy > margin
+        left = dxx < 0.0
+        adx = abs(dxx)
+        a_s = al if left else ar
+        side_ok = adx > margin and (has_l if left else has_r)
+        pr = a0 * dn * dyy
+        ps = a_s * dn * adx
+        er = abs(si - pr) if road_ok else np.inf
+        es = abs(si - ps) if side_ok else np.inf
+        use_side = es < er  # road wins ties
+        re = es if use_side else er
+        pred = ps if use_side else pr
+        valid = dn > 0.0 and re < np.inf
+        u = re / (si * c) if valid else 1.0
+        wti = e[i] * g
+        tot += wti if valid else 0.0
+        inlier = u < 1.0
+        inl += wti if inlier else 0.0
+        v = 1.0 - u * u
+        w = wti * v * v / (si * si) if inlier else 0.0
+        sg = 1.0 if left else -1.0
+        j0 = sg * a_s * (nx[i] * dxx + dn) if use_side else -a0 * nx[i] * dyy
+        j1 = sg * a_s * ny[i] * dxx if use_side else -a0 * (ny[i] * dyy + dn)
+        ja = dn * adx if use_side else dn * dyy
+        wr = w * (si - pred)
+        wj0 = w * j0
+        wj1 = w * j1
+        a00 += wj0 * j0
+        a01 += wj0 * j1
+        a11 += wj1 * j1
+        b0 += wr * j0
+        b1 += wr * j1
+        c0 = wj0 * ja
+        c1 = wj1 * ja
+        c2 = w * ja * ja
+        c3 = wr * ja
+        mr = 0.0 if use_side else 1.0
+        ml = 1.0 if use_side and left else 0.0
+        mq = 1.0 if use_side and not left else 0.0
+        r0 += mr * c0
+        r1 += mr * c1
+        r2 += mr * c2
+        r3 += mr * c3
+        l0 += ml * c0
+        l1 += ml * c1
+        l2 += ml * c2
+        l3 += ml * c3
+        q0 += mq * c0
+        q1 += mq * c1
+        q2 += mq * c2
+        q3 += mq * c3
+    return (a00, a01, a11, b0, b1, inl, tot, r0, r1, r2, r3, l0, l1, l2, l3, q0, q1, q2, q3)
+
+
 @njit(cache=True, error_model="numpy")
 def fit(x, y, nx, ny, s, e, i0, i1, g, th, margin, c, max_iter, max_step):
     """Fit ``th`` (in/out, float64[5]; NaN scales are initialised) to events ``i0..i1`` (speed
@@ -109,71 +184,19 @@ def fit(x, y, nx, ny, s, e, i0, i1, g, th, margin, c, max_iter, max_step):
     _init_scales(x, y, nx, ny, s, e, g, i0, i1, th, margin)
     A = np.zeros((NP, NP))
     b = np.zeros(NP)
-    C = np.zeros((3, 4))  # per plane: sum w J0 Ja, w J1 Ja, w Ja Ja, w r Ja (J is 0 elsewhere)
     inl = 0.0
     tot = 0.0
     for _ in range(max_iter):
-        C[:] = 0.0
-        a00 = a01 = a11 = b0 = b1 = 0.0
-        inl = 0.0
-        tot = 0.0
-        xf, yf = th[0], th[1]
-        has_road = not math.isnan(th[2])
-        a0 = th[2] if has_road else 0.0
-        al = 0.0 if math.isnan(th[3]) else th[3]
-        ar = 0.0 if math.isnan(th[4]) else th[4]
-        # branch-free body (selects, zero weights): plane choices are data-dependent and
-        # mispredicted branches cost more than the arithmetic
-        for i in range(i0, i1):
-            dxx = x[i] - xf
-            dyy = y[i] - yf
-            dn = dxx * nx[i] + dyy * ny[i]
-            si = s[i]
-            road_ok = has_road and dyy > margin
-            left = dxx < 0.0
-            adx = abs(dxx)
-            a_s = al if left else ar
-            side_ok = adx > margin and not math.isnan(th[3] if left else th[4])
-            pr = a0 * dn * dyy
-            ps = a_s * dn * adx
-            er = abs(si - pr) if road_ok else np.inf
-            es = abs(si - ps) if side_ok else np.inf
-            use_side = es < er  # road wins ties
-            re = es if use_side else er
-            pred = ps if use_side else pr
-            valid = dn > 0.0 and re < np.inf
-            u = re / (si * c) if valid else 1.0
-            wti = e[i] * g
-            tot += wti if valid else 0.0
-            inlier = u < 1.0
-            inl += wti if inlier else 0.0
-            v = 1.0 - u * u
-            w = wti * v * v / (si * si) if inlier else 0.0
-            sg = 1.0 if left else -1.0
-            j0 = sg * a_s * (nx[i] * dxx + dn) if use_side else -a0 * nx[i] * dyy
-            j1 = sg * a_s * ny[i] * dxx if use_side else -a0 * (ny[i] * dyy + dn)
-            ja = dn * adx if use_side else dn * dyy
-            wr = w * (si - pred)
-            wj0 = w * j0
-            wj1 = w * j1
-            a00 += wj0 * j0
-            a01 += wj0 * j1
-            a11 += wj1 * j1
-            b0 += wr * j0
-            b1 += wr * j1
-            k = (1 if left else 2) if use_side else 0
-            C[k, 0] += wj0 * ja
-            C[k, 1] += wj1 * ja
-            C[k, 2] += w * ja * ja
-            C[k, 3] += wr * ja
+        sm = _sums(x, y, nx, ny, s, e, i0, i1, g, th, margin, c)
+        inl, tot = sm[5], sm[6]
         A[:] = 0.0
-        A[0, 0], A[0, 1], A[1, 0], A[1, 1] = a00, a01, a01, a11
-        b[0], b[1] = b0, b1
-        for k in range(3):
-            A[0, 2 + k] = A[2 + k, 0] = C[k, 0]
-            A[1, 2 + k] = A[2 + k, 1] = C[k, 1]
-            A[2 + k, 2 + k] = C[k, 2]
-            b[2 + k] = C[k, 3]
+        A[0, 0], A[0, 1], A[1, 0], A[1, 1] = sm[0], sm[1], sm[1], sm[2]
+        b[0], b[1] = sm[3], sm[4]
+        for k in range(3):  # per plane: w J0 Ja, w J1 Ja, w Ja Ja, w r Ja (J is 0 elsewhere)
+            A[0, 2 + k] = A[2 + k, 0] = sm[7 + 4 * k]
+            A[1, 2 + k] = A[2 + k, 1] = sm[8 + 4 * k]
+            A[2 + k, 2 + k] = sm[9 + 4 * k]
+            b[2 + k] = sm[10 + 4 * k]
         tr = 0.0
         for p in range(NP):
             tr += A[p, p]

@@ -112,3 +112,43 @@ def test_matches_naive_on_hard_inputs():
                 assert ok == ok2
                 np.testing.assert_allclose(th, th2, rtol=1e-6, atol=1e-6)
                 np.testing.assert_allclose([inl, tot], [inl2, tot2], rtol=1e-9)
+
+
+def _sums_as_system(sm):
+    A = np.zeros((5, 5))
+    A[0, 0], A[0, 1], A[1, 0], A[1, 1] = sm[0], sm[1], sm[1], sm[2]
+    b = np.zeros(5)
+    b[:2] = sm[3], sm[4]
+    for p in range(3):
+        A[0, 2 + p] = A[2 + p, 0] = sm[7 + 4 * p]
+        A[1, 2 + p] = A[2 + p, 1] = sm[8 + 4 * p]
+        A[2 + p, 2 + p] = sm[9 + 4 * p]
+        b[2 + p] = sm[10 + 4 * p]
+    return A, b, sm[5], sm[6]
+
+
+def test_one_pass_matches_naive_normal_equations():
+    # the vectorised pass (reassociated sums) against the plain J^T W J, J^T W r on random
+    # input and on the hard events of test_matches_naive_on_hard_inputs; NaN and set scales
+    rng = np.random.default_rng(7)
+    foe = (159.5, 119.5)
+    x, y, nx, ny, s = naive.planar_flow(3000, foe, A, rng, noise=0.2, outliers=0.2)
+    x[:100:4], y[:100:4] = foe
+    y[1:100:4] = foe[1] + 10.0
+    x[2:100:4] = foe[0] - 10.0
+    y[3:100:4] = foe[1] + np.abs(x[3:100:4] - foe[0])
+    e = np.exp(rng.uniform(-3, 0, len(x)))
+    g = 0.7
+    for th in [(foe[0], foe[1], 0.03, 0.03, 0.03), (foe[0] + 3, foe[1] - 2, np.nan, 0.03, 0.05),
+               (foe[0], foe[1], 0.04, np.nan, np.nan), (foe[0], foe[1], np.nan, np.nan, np.nan)]:
+        th = np.array(th)
+        for i0, i1 in [(0, len(x)), (5, 5), (17, 1000)]:
+            A_, b_, inl, tot = _sums_as_system(k._sums(x, y, nx, ny, s, e, i0, i1, g, th, 10.0,
+                                                       0.5))
+            sl = slice(i0, i1)
+            A2, b2, inl2, tot2 = naive.normal_equations(x[sl], y[sl], nx[sl], ny[sl], s[sl],
+                                                        e[sl] * g, th, 10.0, 0.5)
+            assert np.isfinite(A_).all() and np.isfinite(b_).all()
+            np.testing.assert_allclose(A_, A2, rtol=1e-10, atol=1e-12 * (1 + abs(A2).max()))
+            np.testing.assert_allclose(b_, b2, rtol=1e-10, atol=1e-12 * (1 + abs(b2).max()))
+            np.testing.assert_allclose([inl, tot], [inl2, tot2], rtol=1e-12, atol=1e-300)

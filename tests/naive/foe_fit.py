@@ -5,19 +5,20 @@ from __future__ import annotations
 import numpy as np
 
 
+def _geometry(x, y, nx, ny, th, margin):
+    dxx, dyy = x - th[0], y - th[1]
+    dn = dxx * nx + dyy * ny
+    lev = np.stack([dyy, -dxx, dxx], 1)  # the planes' factors d: road, left, right
+    app = (lev > margin) & (dn > 0)[:, None]
+    return dxx, dyy, dn, lev, app
+
+
 def fit(x, y, nx, ny, s, t, T, tau_us, th, margin, c, max_iter, max_step):
     """Same contract as ``evchain.kernels.foe_fit.fit`` on all given events (th is copied)."""
     th = np.array(th, np.float64)
     wt = np.exp(-(T - t) / tau_us)
 
-    def geometry(th):
-        dxx, dyy = x - th[0], y - th[1]
-        dn = dxx * nx + dyy * ny
-        lev = np.stack([dyy, -dxx, dxx], 1)
-        app = (lev > margin) & (dn > 0)[:, None]
-        return dxx, dyy, dn, lev, app
-
-    dxx, dyy, dn, lev, app = geometry(th)
+    dxx, dyy, dn, lev, app = _geometry(x, y, nx, ny, th, margin)
     for k in range(3):
         if np.isnan(th[2 + k]) and app[:, k].any():
             r = s[app[:, k]] / (dn * lev[:, k])[app[:, k]]
@@ -26,32 +27,7 @@ def fit(x, y, nx, ny, s, t, T, tau_us, th, margin, c, max_iter, max_step):
             th[2 + k] = r[o][np.argmax(np.cumsum(w[o]) >= 0.5 * w.sum())]
     inl = tot = 0.0
     for _ in range(max_iter):
-        dxx, dyy, dn, lev, app = geometry(th)
-        app &= ~np.isnan(th[2:])[None, :]
-        pred = np.where(app, th[2:][None, :] * dn[:, None] * lev, np.nan)
-        e = np.where(app, np.abs(s[:, None] - pred) / s[:, None], np.inf)
-        k = np.argmin(e, 1)
-        idx = np.arange(len(s))
-        be = e[idx, k]
-        use = np.isfinite(be)
-        tot = wt[use].sum()
-        inlier = use & (be / c < 1)
-        inl = wt[inlier].sum()
-        u = be / c
-        w = np.where(inlier, wt * (1 - u * u) ** 2 / s ** 2, 0.0)
-        a = th[2 + k]
-        J = np.zeros((len(s), 5))
-        m0, m1, m2 = inlier & (k == 0), inlier & (k == 1), inlier & (k == 2)
-        J[m0, 0] = (-a * nx * dyy)[m0]
-        J[m0, 1] = (-a * (ny * dyy + dn))[m0]
-        J[m1, 0] = (a * (nx * dxx + dn))[m1]
-        J[m1, 1] = (a * ny * dxx)[m1]
-        J[m2, 0] = (-a * (nx * dxx + dn))[m2]
-        J[m2, 1] = (-a * ny * dxx)[m2]
-        J[inlier, 2 + k[inlier]] = (dn * lev[idx, k])[inlier]
-        r = np.where(inlier, s - pred[idx, k], 0.0)
-        A = (J * w[:, None]).T @ J
-        b = (J * w[:, None]).T @ r
+        A, b, inl, tot = normal_equations(x, y, nx, ny, s, wt, th, margin, c)
         tr = np.trace(A)
         if not tr > 0:
             return False, th, inl, tot
@@ -75,6 +51,38 @@ def fit(x, y, nx, ny, s, t, T, tau_us, th, margin, c, max_iter, max_step):
         if step < 0.05:  # px, as the kernel
             break
     return True, th, inl, tot
+
+
+def normal_equations(x, y, nx, ny, s, wt, th, margin, c):
+    """One Gauss-Newton pass at ``th`` with decay weights ``wt``: (J^T W J, J^T W r, inlier
+    weight, applicable weight); the kernel's ``_sums`` holds the same numbers."""
+    dxx, dyy, dn, lev, app = _geometry(x, y, nx, ny, th, margin)
+    app &= ~np.isnan(th[2:])[None, :]
+    pred = np.where(app, th[2:][None, :] * dn[:, None] * lev, np.nan)
+    e = np.where(app, np.abs(s[:, None] - pred) / s[:, None], np.inf)
+    k = np.argmin(e, 1)
+    idx = np.arange(len(s))
+    be = e[idx, k]
+    use = np.isfinite(be)
+    tot = wt[use].sum()
+    inlier = use & (be / c < 1)
+    inl = wt[inlier].sum()
+    u = be / c
+    w = np.where(inlier, wt * (1 - u * u) ** 2 / s ** 2, 0.0)
+    a = th[2 + k]
+    J = np.zeros((len(s), 5))
+    m0, m1, m2 = inlier & (k == 0), inlier & (k == 1), inlier & (k == 2)
+    J[m0, 0] = (-a * nx * dyy)[m0]
+    J[m0, 1] = (-a * (ny * dyy + dn))[m0]
+    J[m1, 0] = (a * (nx * dxx + dn))[m1]
+    J[m1, 1] = (a * ny * dxx)[m1]
+    J[m2, 0] = (-a * (nx * dxx + dn))[m2]
+    J[m2, 1] = (-a * ny * dxx)[m2]
+    J[inlier, 2 + k[inlier]] = (dn * lev[idx, k])[inlier]
+    r = np.where(inlier, s - pred[idx, k], 0.0)
+    A = (J * w[:, None]).T @ J
+    b = (J * w[:, None]).T @ r
+    return A, b, inl, tot
 
 
 def planar_flow(n, foe, a, rng, width=320, height=240, noise=0.0, outliers=0.0):
