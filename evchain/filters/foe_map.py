@@ -122,7 +122,10 @@ class FoeMap(Filter):
         self._geometry = geometry
         cg, radius = cell_geometry(geometry, p.cell_px, p.region_radius_px)
         x0, y0, lo, hi, clo, chi = region_cells(cg, radius)
-        self._x0, self._y0, self._lo, self._hi, self._clo, self._chi = x0, y0, lo, hi, clo, chi
+        self._bounds_r, self._bounds_c = np.stack([lo, hi]), np.stack([clo, chi])
+        self._x0, self._y0 = x0, y0
+        self._lo, self._hi = self._bounds_r
+        self._clo, self._chi = self._bounds_c
         ny, nx = len(lo), len(clo)
         self._diffR = np.zeros((ny, nx + 1), np.float64)
         self._constR = np.zeros(ny + 1, np.float64)
@@ -132,18 +135,18 @@ class FoeMap(Filter):
         self._rst = np.zeros((ny, 5), np.float64)
         self._rst[:, 0] = -np.inf
         if radius is None:
-            self._disc = ((cg.width - 1) / 2.0, (cg.height - 1) / 2.0,
-                          0.5 * math.hypot(cg.width, cg.height))
+            disc = ((cg.width - 1) / 2.0, (cg.height - 1) / 2.0,
+                    0.5 * math.hypot(cg.width, cg.height))
         else:
-            self._disc = (float(cg.cx), float(cg.cy), float(radius))
+            disc = (float(cg.cx), float(cg.cy), float(radius))
         gate_on = p.max_angle_deg is not None
         cos_gate = math.cos(math.radians(p.max_angle_deg)) if gate_on else -1.0
+        consts = np.array([p.tau_ms * 1000.0, p.min_speed_pxs, cos_gate, gate_on,
+                           p.estimate_every_us, p.refine_fraction, p.min_support,
+                           p.speed_weight_pxs or 0.0, *disc, x0, y0], np.float64)
         # the kernel's arguments that do not change from packet to packet
-        self._state = (*self._maps(), self._mbuf, self._rst, self._fst, self._ist)
-        self._consts = (p.tau_ms * 1000.0, float(p.min_speed_pxs), cos_gate, gate_on,
-                        int(p.estimate_every_us), float(p.refine_fraction),
-                        float(p.min_support), float(p.speed_weight_pxs or 0.0))
-        self._args = (*self._state, *self._consts)
+        self._args = (self._diffR, self._constR, self._diffC, self._constC, self._bounds_r,
+                      self._bounds_c, self._mbuf, self._rst, self._fst, self._ist, consts)
         self._period = int(p.estimate_every_us)
         from evchain.kernels import foe_map as k
 
@@ -173,8 +176,7 @@ class FoeMap(Filter):
         else:
             x, y = to_cells(packet.x, cell), to_cells(packet.y, cell)
         n = self._kernel(x, y, packet.t, packet.vx, packet.vy, *self._args, int(packet.t_end),
-                         *self._disc, out["t"], out["x"], out["y"], out["support"],
-                         out["total"])
+                         out)
         if n < n_max:
             out = out[:n]
         if cell != 1:

@@ -340,14 +340,35 @@ def read_estimate(m, x0, y0, best, worst, refine_fraction, lo, hi, rowmax):
 
 
 @njit(cache=True, error_model="numpy")
-def process(x, y, t, vx, vy, diffR, constR, diffC, constC, lo, hi, clo, chi, x0, y0, mbuf,
-            rst, fst, ist, tau_us, min_speed_pxs, cos_gate, gate_on, period_us, refine_fraction,
-            min_support, speed_w0, t_end, ccx, ccy, crad, out_t, out_x, out_y, out_sup, out_tot):
-    """Vote with every flow event of a packet; read estimates at multiples of ``period_us``.
+def process(x, y, t, vx, vy, diffR, constR, diffC, constC, bounds_r, bounds_c, mbuf, rst, fst,
+            ist, cst, t_end, out):
+    """Vote with every flow event of a packet; read estimates at multiples of ``period_us``
+    into the structured array ``out`` (fields t, x, y, support, total).
 
     A read at time T sees exactly the events with t < T. Reads happen before the first event at
     or after T, and at the end for every T < ``t_end``. Returns the number of estimates written.
+    ``bounds_r`` holds ``lo`` and ``hi``, ``bounds_c`` ``clo`` and ``chi``; ``cst`` the constants
+    tau_us, min_speed_pxs, cos(gate angle), gate on (1/0), period_us, refine_fraction,
+    min_support, speed weight s0, region A's centre x, y and radius, x0, y0 (few arguments:
+    each costs ~0.15 us per call in numba's dispatcher).
     """
+    lo = bounds_r[0]
+    hi = bounds_r[1]
+    clo = bounds_c[0]
+    chi = bounds_c[1]
+    tau_us = cst[0]
+    min_speed_pxs = cst[1]
+    cos_gate = cst[2]
+    gate_on = cst[3] != 0.0
+    period_us = np.int64(cst[4])
+    refine_fraction = cst[5]
+    min_support = cst[6]
+    speed_w0 = cst[7]
+    ccx = cst[8]
+    ccy = cst[9]
+    crad = cst[10]
+    x0 = np.int64(cst[11])
+    y0 = np.int64(cst[12])
     n_out = 0
     n = t.shape[0]
     min_speed2 = min_speed_pxs * min_speed_pxs
@@ -383,12 +404,12 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, lo, hi, clo, chi, x0,
             if ist[2] == 1:
                 scale = math.exp(-(T - t_ref) / tau_us)
                 sup = fst[3] * scale
-                if sup >= min_support and n_out < out_t.shape[0]:
-                    out_t[n_out] = T
-                    out_x[n_out] = fst[1]
-                    out_y[n_out] = fst[2]
-                    out_sup[n_out] = sup
-                    out_tot[n_out] = total * scale
+                if sup >= min_support and n_out < out.shape[0]:
+                    out[n_out].t = T
+                    out[n_out].x = fst[1]
+                    out[n_out].y = fst[2]
+                    out[n_out].support = sup
+                    out[n_out].total = total * scale
                     n_out += 1
             t_read = T + period_us
         if i >= n:
