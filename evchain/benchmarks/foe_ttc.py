@@ -9,6 +9,8 @@ emulator output to TTC on the reference scene.
 * ``foe-map-reference-lk`` / ``-plane`` (and ``-cell2``): CPU-time flow events/s of ``foe_map``
   alone on the flow of the reference drive (flow computed once and cached); errors = FOE mean
   |dx| (extra: |dy|, stds) after 1 s.
+* ``foe-map-pipeline-lk`` / ``-plane``: the same with ``foe_map`` as configured in
+  pipelines/reference-*.yaml (tau 100 ms, an estimate every 10 ms).
 * ``ttc-synthetic``: flow events/s of ``ttc`` on an approach (tau = 3 s - t) with the true FOE in
   the ``foe`` series; error = median relative TTC error. The field is random points with exact
   flow and no moving edges, so tau comes from the flow's magnitude (``baseline_px`` 0).
@@ -45,16 +47,17 @@ def _run(filters, packets):
     return out
 
 
-def _foe_map_stage(packets, cell_px: int):
-    """A fresh ``foe_map`` (defaults, ``cell_px``) over ``packets``, and the list that collects
-    its ``foe`` series entries (cleared at every call)."""
+def _foe_map_stage(packets, cell_px: int, params=None):
+    """A fresh ``foe_map`` (``params``, else defaults with ``cell_px``) over ``packets``, and the
+    list that collects its ``foe`` series entries (cleared at every call)."""
     from evchain.filters.foe_map import FoeMap
 
     series: list[np.ndarray] = []
+    params = FoeMap.Params(cell_px=cell_px) if params is None else params
 
     def stage():
         f = FoeMap()
-        f.setup(FoeMap.Params(cell_px=cell_px), Context())
+        f.setup(params, Context())
         series.clear()
         for p in packets:
             series.append(f.process(p).series["foe"])
@@ -116,23 +119,36 @@ def reference_flow(flow: str, start_m: float, duration_s: float):
     return packets, ctx
 
 
-def foe_reference_rows(flow: str, quick: bool, cell_px: int = 1) -> list[BenchRow]:
-    """``foe_map`` alone (defaults) on the flow of the reference drive's last 5 s (``quick``:
-    1 s); error = mean |dx|, |dy| against the true FOE after a 1 s warm-up (the scorer's)."""
+def foe_reference_rows(flow: str, quick: bool, cell_px: int = 1,
+                       pipeline: bool = False) -> list[BenchRow]:
+    """``foe_map`` alone (defaults, or as in pipelines/reference-*.yaml with ``pipeline``) on
+    the flow of the reference drive's last 5 s (``quick``: 1 s); error = mean |dx|, |dy|
+    against the true FOE after a 1 s warm-up (the scorer's)."""
+    from evchain.core.config import load_pipeline
+    from evchain.core.registry import make_registry
+    from evchain.filters.foe_map import FoeMap
+
     start_m, dur = (220.0, 1.0) if quick else (180.0, 5.0)
     packets, ctx = reference_flow(flow, start_m, dur)
     n = sum(len(p) for p in packets)
-    stage, series = _foe_map_stage(packets, cell_px)
+    name = "lk" if flow == "lk_flow" else "plane"
+    params = FoeMap.Params(cell_px=cell_px)
+    if pipeline:
+        spec = load_pipeline(PIPELINES / f"reference-{name}.yaml", make_registry())
+        params = spec.stage("foe_map").params
+    stage, series = _foe_map_stage(packets, cell_px, params)
 
     cpu = best_cpu_time(stage, repeat=3, warmup=True)
     s = np.concatenate(series)
     s = s[s["t"] >= packets[0].t_start + (1_000_000 if not quick else 200_000)]
     xt, yt = ctx.truth.foe(s["t"].astype(np.float64))
     adx, ady = np.abs(s["x"] - xt), np.abs(s["y"] - yt)
-    name = ("lk" if flow == "lk_flow" else "plane") + ("" if cell_px == 1 else f"-cell{cell_px}")
-    return [BenchRow(f"foe-map-reference-{name}", "foe_map", n / cpu, "flow ev/s (CPU)",
+    name += "" if cell_px == 1 else f"-cell{cell_px}"
+    row = f"foe-map-pipeline-{name}" if pipeline else f"foe-map-reference-{name}"
+    return [BenchRow(row, "foe_map", n / cpu, "flow ev/s (CPU)",
                      float(adx.mean()), "foe_dx_mean_px", None,
                      {"events": n, "stretch": f"{start_m:g} m + {dur:g} s", "cell_px": cell_px,
+                      "params": params.model_dump(),
                       "foe_dx_mean_px": float(adx.mean()), "foe_dx_std_px": float(adx.std()),
                       "foe_dy_mean_px": float(ady.mean()), "foe_dy_std_px": float(ady.std())})]
 
@@ -322,6 +338,9 @@ WORKLOADS = {
     "foe-map-reference-plane": lambda quick: foe_reference_rows("plane_flow", quick),
     "foe-map-reference-lk-cell2": lambda quick: foe_reference_rows("lk_flow", quick, 2),
     "foe-map-reference-plane-cell2": lambda quick: foe_reference_rows("plane_flow", quick, 2),
+    "foe-map-pipeline-lk": lambda quick: foe_reference_rows("lk_flow", quick, pipeline=True),
+    "foe-map-pipeline-plane": lambda quick: foe_reference_rows("plane_flow", quick,
+                                                               pipeline=True),
     "foe-fit-reference-lk": lambda quick: foe_fit_reference_rows("lk_flow", quick),
     "foe-fit-reference-plane": lambda quick: foe_fit_reference_rows("plane_flow", quick),
     "ttc-synthetic": ttc_rows,

@@ -122,7 +122,10 @@ class FoeMap(Filter):
         self._geometry = geometry
         cg, radius = cell_geometry(geometry, p.cell_px, p.region_radius_px)
         x0, y0, lo, hi, clo, chi = region_cells(cg, radius)
-        self._x0, self._y0, self._lo, self._hi, self._clo, self._chi = x0, y0, lo, hi, clo, chi
+        self._bounds_r, self._bounds_c = np.stack([lo, hi]), np.stack([clo, chi])
+        self._x0, self._y0 = x0, y0
+        self._lo, self._hi = self._bounds_r
+        self._clo, self._chi = self._bounds_c
         ny, nx = len(lo), len(clo)
         self._diffR = np.zeros((ny, nx + 1), np.float64)
         self._constR = np.zeros(ny + 1, np.float64)
@@ -132,17 +135,22 @@ class FoeMap(Filter):
         self._rst = np.zeros((ny, 5), np.float64)
         self._rst[:, 0] = -np.inf
         if radius is None:
-            self._disc = ((cg.width - 1) / 2.0, (cg.height - 1) / 2.0,
-                          0.5 * math.hypot(cg.width, cg.height))
+            disc = ((cg.width - 1) / 2.0, (cg.height - 1) / 2.0,
+                    0.5 * math.hypot(cg.width, cg.height))
         else:
-            self._disc = (float(cg.cx), float(cg.cy), float(radius))
+            disc = (float(cg.cx), float(cg.cy), float(radius))
         gate_on = p.max_angle_deg is not None
         cos_gate = math.cos(math.radians(p.max_angle_deg)) if gate_on else -1.0
+        consts = np.array([p.tau_ms * 1000.0, p.min_speed_pxs, cos_gate, gate_on,
+                           p.estimate_every_us, p.refine_fraction, p.min_support,
+                           p.speed_weight_pxs or 0.0, *disc, x0, y0], np.float64)
         # the kernel's arguments that do not change from packet to packet
-        self._state = (*self._maps(), self._mbuf, self._rst, self._fst, self._ist)
-        self._consts = (p.tau_ms * 1000.0, float(p.min_speed_pxs), cos_gate, gate_on,
-                        int(p.estimate_every_us), float(p.refine_fraction),
-                        float(p.min_support), float(p.speed_weight_pxs or 0.0))
+        self._args = (self._diffR, self._constR, self._diffC, self._constC, self._bounds_r,
+                      self._bounds_c, self._mbuf, self._rst, self._fst, self._ist, consts)
+        self._period = int(p.estimate_every_us)
+        from evchain.kernels import foe_map as k
+
+        self._kernel = k.process
 
     def _maps(self):
         return (self._diffR, self._constR, self._diffC, self._constC, self._lo, self._hi,
@@ -151,31 +159,29 @@ class FoeMap(Filter):
     def process(self, packet: FlowPacket) -> FlowPacket:
         if not isinstance(packet, FlowPacket):
             raise DataError(f"foe_map needs a FlowPacket, got {type(packet).__name__}")
-        from evchain.kernels import foe_map as k
-
-        p = self.params
         if self._geometry is None:
             self._allocate(packet.geometry)
         elif packet.geometry is not self._geometry and packet.geometry != self._geometry:
             raise DataError(f"foe_map: sensor geometry changed from {self._geometry} to "
                             f"{packet.geometry}")
-        period = int(p.estimate_every_us)
+        period = self._period
         if not self._started:
             self._ist[1] = -(-packet.t_start // period) * period
             self._started = True
         n_max = max(0, -(-(packet.t_end - int(self._ist[1])) // period))
         out = np.empty(n_max, dtype=_FOE)  # the kernel writes its fields
-        if p.cell_px == 1:
+        cell = self.params.cell_px
+        if cell == 1:
             x, y = packet.x, packet.y
         else:
-            x, y = to_cells(packet.x, p.cell_px), to_cells(packet.y, p.cell_px)
-        n = k.process(x, y, packet.t, packet.vx, packet.vy, *self._state, *self._consts,
-                      int(packet.t_end), *self._disc, out["t"], out["x"], out["y"],
-                      out["support"], out["total"])
-        out = out[:n]
-        if p.cell_px != 1:
-            out["x"] = from_cells(out["x"], p.cell_px)
-            out["y"] = from_cells(out["y"], p.cell_px)
+            x, y = to_cells(packet.x, cell), to_cells(packet.y, cell)
+        n = self._kernel(x, y, packet.t, packet.vx, packet.vy, *self._args, int(packet.t_end),
+                         out)
+        if n < n_max:
+            out = out[:n]
+        if cell != 1:
+            out["x"] = from_cells(out["x"], cell)
+            out["y"] = from_cells(out["y"], cell)
         return packet.with_series("foe", out)
 
     def map_now(self, t_us: int) -> np.ndarray:

@@ -283,11 +283,32 @@ def refresh(diffR, constR, diffC, constC, lo, hi, x0, fst, rst, out, refine_frac
     return best, worst
 
 
+@njit(cache=True, error_model="numpy", fastmath={"reassoc", "nsz"})
+def _row_sums(m, r, a, b, thr, weighted):
+    """Row r of ``m``, cells a..b - 1: the sums of the weights w and of w * column index, where
+    w = (v - thr) for cells v >= thr (``weighted``) or 1 for them. Reassociated (vectorised):
+    the sums differ from a left-to-right loop by rounding only."""
+    sw = 0.0
+    sc = 0.0
+    if weighted:
+        for c in range(a, b):
+            wt = max(m[r, c] - thr, 0.0)
+            sw += wt
+            sc += wt * np.float64(c)
+    else:
+        for c in range(a, b):
+            wt = 1.0 if m[r, c] >= thr else 0.0
+            sw += wt
+            sc += wt * np.float64(c)
+    return sw, sc
+
+
 @njit(cache=True, error_model="numpy")
 def read_estimate(m, x0, y0, best, worst, refine_fraction, lo, hi, rowmax):
     """(x, y) of a dense map ``m`` (NaN outside A; row r holds A's columns ``lo[r]..hi[r]``,
     its maximum is ``rowmax[r]``) with maximum ``best`` and minimum ``worst``: centroid of the
-    maximal set, refined. Rows whose maximum is below the threshold are skipped.
+    maximal set, refined. Rows whose maximum is below the threshold are skipped; the others are
+    summed row by row (vectorised, :func:`_row_sums`).
 
     With ``refine_fraction`` f > 0 the estimate is the centroid of the cells within
     f * (max - min) of the max, weighted by their height above that threshold; with f = 0 the
@@ -307,58 +328,90 @@ def read_estimate(m, x0, y0, best, worst, refine_fraction, lo, hi, rowmax):
     for r in range(ny):
         if not rowmax[r] >= thr:
             continue
-        for c in range(lo[r] - x0, hi[r] - x0 + 1):
-            v = m[r, c]
-            if v >= thr:
-                wt = v - thr if weighted else 1.0
-                sx += wt * (x0 + c)
-                sy += wt * (y0 + r)
-                sw += wt
+        a = np.uint64(lo[r] - x0)
+        b = np.uint64(hi[r] - x0 + 1)
+        rw, rc = _row_sums(m, r, a, b, thr, weighted)
+        sw += rw
+        sx += rc
+        sy += rw * np.float64(y0 + r)
     if sw <= 0.0:
         return np.nan, np.nan
-    return sx / sw, sy / sw
+    return x0 + sx / sw, sy / sw
 
 
 @njit(cache=True, error_model="numpy")
-def process(x, y, t, vx, vy, diffR, constR, diffC, constC, lo, hi, clo, chi, x0, y0, mbuf,
-            rst, fst, ist, tau_us, min_speed_pxs, cos_gate, gate_on, period_us, refine_fraction,
-            min_support, speed_w0, t_end, ccx, ccy, crad, out_t, out_x, out_y, out_sup, out_tot):
-    """Vote with every flow event of a packet; read estimates at multiples of ``period_us``.
+def process(x, y, t, vx, vy, diffR, constR, diffC, constC, bounds_r, bounds_c, mbuf, rst, fst,
+            ist, cst, t_end, out):
+    """Vote with every flow event of a packet; read estimates at multiples of ``period_us``
+    into the structured array ``out`` (fields t, x, y, support, total).
 
     A read at time T sees exactly the events with t < T. Reads happen before the first event at
     or after T, and at the end for every T < ``t_end``. Returns the number of estimates written.
+    ``bounds_r`` holds ``lo`` and ``hi``, ``bounds_c`` ``clo`` and ``chi``; ``cst`` the constants
+    tau_us, min_speed_pxs, cos(gate angle), gate on (1/0), period_us, refine_fraction,
+    min_support, speed weight s0, region A's centre x, y and radius, x0, y0 (few arguments:
+    each costs ~0.15 us per call in numba's dispatcher).
     """
+    lo = bounds_r[0]
+    hi = bounds_r[1]
+    clo = bounds_c[0]
+    chi = bounds_c[1]
+    tau_us = cst[0]
+    min_speed_pxs = cst[1]
+    cos_gate = cst[2]
+    gate_on = cst[3] != 0.0
+    period_us = np.int64(cst[4])
+    refine_fraction = cst[5]
+    min_support = cst[6]
+    speed_w0 = cst[7]
+    ccx = cst[8]
+    ccy = cst[9]
+    crad = cst[10]
+    x0 = np.int64(cst[11])
+    y0 = np.int64(cst[12])
     n_out = 0
     n = t.shape[0]
     min_speed2 = min_speed_pxs * min_speed_pxs
+    # the state updated per event lives in locals (stores into the maps could alias the state
+    # arrays, so LLVM would reload and store these every event); written back at the end and
+    # before a read
+    t_ref = ist[0]
+    t_read = ist[1]
+    dirty = ist[3]
+    whole = fst[0]
+    total = fst[4]
+    wpart = fst[5]
     i = 0
     while True:
         t_next = t[i] if i < n else t_end
         # reads due before this event (or before the end of the slice)
-        while ist[1] < t_next or (i < n and ist[1] == t_next):
-            T = ist[1]
-            if ist[3] == 1:
+        while t_read < t_next or (i < n and t_read == t_next):
+            T = t_read
+            if dirty == 1:
+                fst[0] = whole
+                fst[4] = total
+                fst[5] = wpart
                 best, worst = refresh(diffR, constR, diffC, constC, lo, hi, x0, fst, rst, mbuf,
                                       refine_fraction)
                 ex, ey = read_estimate(mbuf, x0, y0, best, worst, refine_fraction, lo, hi,
                                        rst[:, 0])
-                ist[3] = 0
+                dirty = 0
                 if best > 0.0 and ex == ex:
                     fst[1] = ex
                     fst[2] = ey
                     fst[3] = best
                     ist[2] = 1
             if ist[2] == 1:
-                scale = math.exp(-(T - ist[0]) / tau_us)
+                scale = math.exp(-(T - t_ref) / tau_us)
                 sup = fst[3] * scale
-                if sup >= min_support and n_out < out_t.shape[0]:
-                    out_t[n_out] = T
-                    out_x[n_out] = fst[1]
-                    out_y[n_out] = fst[2]
-                    out_sup[n_out] = sup
-                    out_tot[n_out] = fst[4] * scale
+                if sup >= min_support and n_out < out.shape[0]:
+                    out[n_out].t = T
+                    out[n_out].x = fst[1]
+                    out[n_out].y = fst[2]
+                    out[n_out].support = sup
+                    out[n_out].total = total * scale
                     n_out += 1
-            ist[1] = T + period_us
+            t_read = T + period_us
         if i >= n:
             break
         fvx = np.float64(vx[i])
@@ -377,7 +430,7 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, lo, hi, clo, chi, x0,
                     ok = cg >= cos_gate
             if ok:
                 ti = t[i]
-                e = (ti - ist[0]) / tau_us
+                e = (ti - t_ref) / tau_us
                 if e > RENORM_EXPONENT:
                     s = math.exp(-e)
                     # element loops: array expressions here put refcount operations into
@@ -392,13 +445,13 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, lo, hi, clo, chi, x0,
                             diffC[a, b] *= s
                     for a in range(constC.shape[0]):
                         constC[a] *= s
-                    fst[0] *= s
+                    whole *= s
                     fst[3] *= s
-                    fst[4] *= s
-                    fst[5] *= s
+                    total *= s
+                    wpart *= s
                     for a in range(rst.shape[0]):
                         rst[a, 4] = 0.0
-                    ist[0] = ti
+                    t_ref = ti
                     e = 0.0
                 w = math.exp(e)
                 if speed_w0 > 0.0:  # tight constraints (slow normal flow) weigh more
@@ -411,9 +464,9 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, lo, hi, clo, chi, x0,
                 cv = ccx * fvx + ccy * fvy
                 margin = (crad + 2.0) * speed
                 if cv + margin < pv:          # every cell of A in the half-plane
-                    fst[0] += w
+                    whole += w
                 elif cv - margin <= pv:       # otherwise no cell of A is in the half-plane
-                    fst[5] += w
+                    wpart += w
                     dxl = -fvy / speed
                     dyl = fvx / speed
                     ox = px - ccx
@@ -507,7 +560,13 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, lo, hi, clo, chi, x0,
                         if r < nrow and _cond(px, py, fvx, fvy, float(lo[r]), float(y0 + r)):
                             constR[first] += w
                             constR[nrow] -= w
-                fst[4] += w
-                ist[3] = 1
+                total += w
+                dirty = 1
         i += 1
+    ist[0] = t_ref
+    ist[1] = t_read
+    ist[3] = dirty
+    fst[0] = whole
+    fst[4] = total
+    fst[5] = wpart
     return n_out
