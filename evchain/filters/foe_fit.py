@@ -43,8 +43,10 @@ class FoeFit(Filter):
         tolerance: float = Field(0.5, gt=0, description="Tukey constant on the relative "
                                  "speed residual |s - predicted| / s")
         max_iter: int = Field(4, ge=1, description="Gauss-Newton iterations per fit")
-        max_deviation_px: float = Field(20.0, gt=0, description="fall back to the voting "
-                                        "estimate when the fit is farther from it than this")
+        max_deviation_px: float = Field(40.0, gt=0, description="fall back to the voting "
+                                        "estimate when the fit is farther from it than this "
+                                        "(wider than the votes' own error, which reaches "
+                                        "20-35 px on the reference drive)")
         min_inliers: float = Field(50.0, ge=0, description="fall back when the decayed "
                                    "inlier weight is below this")
 

@@ -8,10 +8,15 @@ right of it (``g = a2 (x - x_foe)``). Unknowns ``th = (x_foe, y_foe, a0, a1, a2)
 
 A fit is iteratively reweighted Gauss-Newton: every event within ``margin`` px of a plane's
 vanishing line is left out of that plane; each remaining event is assigned to the plane that
-predicts its speed best (relative residual ``e = |s - pred| / s``) and weighs
-``w_t (1 - (e/c)^2)^2 / s^2`` (Tukey on the relative residual, decay ``w_t`` by age); converging
-events (``(p - foe).n <= 0``) are left out. A plane's scale without a value starts as the
-weighted median of ``s / ((p - foe).n d)`` of its events.
+predicts its speed best and weighs ``w_t (1 - (e/c)^2)^2 / pred^2`` (Tukey on the residual
+relative to the predicted speed, ``e = |s - pred| / pred``, decay ``w_t`` by age): the flow's
+error grows with the true speed, of which ``pred`` is the model's estimate; dividing by the
+measured ``s`` instead favours speeds measured too slow. Converging events (``(p - foe).n <=
+0``) and events without a positive prediction are left out. A plane's scale without a value
+starts as the weighted median of ``s / ((p - foe).n d)`` of its events; for the facades only
+of events above the FOE's row, where a level camera sees no road (below it the road's events,
+far more numerous, would set the facades' scales several times too large, a wrong local
+minimum the fit does not leave).
 """
 
 from __future__ import annotations
@@ -80,7 +85,7 @@ def _init_scales(x, y, nx, ny, s, e, g, i0, i1, th, margin):
             dxx = x[i] - th[0]
             dyy = y[i] - th[1]
             dn = dxx * nx[i] + dyy * ny[i]
-            if dn > 0.0 and _applies(k, dxx, dyy, margin):
+            if dn > 0.0 and _applies(k, dxx, dyy, margin) and (k == 0 or dyy < -margin):
                 r[m] = s[i] / (dn * _lever(k, dxx, dyy))
                 w[m] = e[i] * g
                 m += 1
@@ -132,14 +137,14 @@ def _sums(x, y, nx, ny, s, e, i0, i1, g, th, margin, c):
         use_side = es < er  # road wins ties
         re = es if use_side else er
         pred = ps if use_side else pr
-        valid = dn > 0.0 and re < np.inf
-        u = re / (si * c) if valid else 1.0
+        valid = dn > 0.0 and re < np.inf and pred > 0.0
+        u = re / (pred * c) if valid else 1.0
         wti = e[i] * g
         tot += wti if valid else 0.0
         inlier = u < 1.0
         inl += wti if inlier else 0.0
         v = 1.0 - u * u
-        w = wti * v * v / (si * si) if inlier else 0.0
+        w = wti * v * v / (pred * pred) if inlier else 0.0
         sg = 1.0 if left else -1.0
         j0 = sg * a_s * (nx[i] * dxx + dn) if use_side else -a0 * nx[i] * dyy
         j1 = sg * a_s * ny[i] * dxx if use_side else -a0 * (ny[i] * dyy + dn)

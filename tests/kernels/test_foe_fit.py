@@ -152,3 +152,33 @@ def test_one_pass_matches_naive_normal_equations():
             np.testing.assert_allclose(A_, A2, rtol=1e-10, atol=1e-12 * (1 + abs(A2).max()))
             np.testing.assert_allclose(b_, b2, rtol=1e-10, atol=1e-12 * (1 + abs(b2).max()))
             np.testing.assert_allclose([inl, tot], [inl2, tot2], rtol=1e-12, atol=1e-300)
+
+
+def test_facade_scales_start_from_events_above_the_foe():
+    """Road events dominate below the horizon and also lie beside the FOE: started from them,
+    the facades' scales came out several times too large (a wrong local minimum the fit kept on
+    the reference drive). Only events above the FOE's row start the facades."""
+    foe, a = (159.5, 119.5), (1 / 22.8, 1 / 250.0, 1 / 180.0)  # far facades, as on the drive
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        x, y, nx, ny, s = naive.planar_flow(40000, foe, a, rng, noise=0.1)
+        keep = y > foe[1] - 40  # mostly road: little of the facades above the FOE
+        x, y, nx, ny, s = x[keep], y[keep], nx[keep], ny[keep], s[keep]
+        for x0 in (foe[0] - 8, foe[0] + 8):
+            ok, th, _, _ = _run(x, y, nx, ny, s, (x0, foe[1], np.nan, np.nan, np.nan))
+            assert ok
+            np.testing.assert_allclose(th[2:] / np.array(a), 1.0, atol=0.05)
+            assert abs(th[0] - foe[0]) < 0.1 and abs(th[1] - foe[1]) < 0.1
+
+
+def test_scales_unbiased_under_relative_speed_noise():
+    """Weights and residuals relative to the predicted speed: 30 % relative noise leaves the
+    facades' scales within 1.5 % (relative to the measured speed they came out 4-9 % high)."""
+    foe = (159.5, 119.5)
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        x, y, nx, ny, s = naive.planar_flow(20000, foe, A, rng, noise=0.3)
+        ok, th, _, _ = _run(x, y, nx, ny, s, (*foe, np.nan, np.nan, np.nan))
+        assert ok
+        np.testing.assert_allclose(th[3:] / np.array(A[1:]), 1.0, atol=0.015)
+        assert abs(th[0] - foe[0]) < 0.1 and abs(th[1] - foe[1]) < 0.1

@@ -20,9 +20,10 @@ def fit(x, y, nx, ny, s, t, T, tau_us, th, margin, c, max_iter, max_step):
 
     dxx, dyy, dn, lev, app = _geometry(x, y, nx, ny, th, margin)
     for k in range(3):
-        if np.isnan(th[2 + k]) and app[:, k].any():
-            r = s[app[:, k]] / (dn * lev[:, k])[app[:, k]]
-            w = wt[app[:, k]]
+        ini = app[:, k] & ((dyy < -margin) if k else True)  # facades: above the FOE's row
+        if np.isnan(th[2 + k]) and ini.any():
+            r = s[ini] / (dn * lev[:, k])[ini]
+            w = wt[ini]
             o = np.argsort(r, kind="quicksort")
             th[2 + k] = r[o][np.argmax(np.cumsum(w[o]) >= 0.5 * w.sum())]
     inl = tot = 0.0
@@ -59,16 +60,16 @@ def normal_equations(x, y, nx, ny, s, wt, th, margin, c):
     dxx, dyy, dn, lev, app = _geometry(x, y, nx, ny, th, margin)
     app &= ~np.isnan(th[2:])[None, :]
     pred = np.where(app, th[2:][None, :] * dn[:, None] * lev, np.nan)
-    e = np.where(app, np.abs(s[:, None] - pred) / s[:, None], np.inf)
-    k = np.argmin(e, 1)
+    res = np.where(app, np.abs(s[:, None] - pred), np.inf)
+    k = np.argmin(res, 1)  # the plane predicting the speed best (road wins ties)
     idx = np.arange(len(s))
-    be = e[idx, k]
-    use = np.isfinite(be)
+    pk = pred[idx, k]
+    use = np.isfinite(res[idx, k]) & (pk > 0)
+    u = np.where(use, res[idx, k] / np.where(use, pk, 1.0) / c, np.inf)
     tot = wt[use].sum()
-    inlier = use & (be / c < 1)
+    inlier = use & (u < 1)
     inl = wt[inlier].sum()
-    u = be / c
-    w = np.where(inlier, wt * (1 - u * u) ** 2 / s ** 2, 0.0)
+    w = np.where(inlier, wt * (1 - u * u) ** 2 / np.where(inlier, pk, 1.0) ** 2, 0.0)
     a = th[2 + k]
     J = np.zeros((len(s), 5))
     m0, m1, m2 = inlier & (k == 0), inlier & (k == 1), inlier & (k == 2)
