@@ -225,8 +225,7 @@ def _with_boxes(sc, boxes, mats):
     sc.boxes = np.array(boxes, np.float64).reshape(-1, 6)
     sc.box_mat = np.array(mats, np.int64)
     sc.box_par = np.array([par[m] for m in mats], np.float64).reshape(-1, 4)
-    nb = len(sc.boxes)
-    sc._order, sc._minz, sc._bbox = np.zeros(nb, np.int64), np.zeros(nb), np.zeros((nb, 4))
+    sc._own = sc._scratch()
     return sc
 
 
