@@ -700,7 +700,7 @@ def level_work(ntex):
 
 @njit(**_J)
 def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground, light,
-               tex, tex_inv, tex_off, vis, minz, bbox, xbs, pcol, fw, iw, bmax, lv_inv,
+               lit, tex, tex_inv, tex_off, vis, minz, bbox, xbs, pcol, fw, iw, bmax, lv_inv,
                lv_off, lv_mask, acc, out):
     """Render image row j into out[j]; return the row's largest squared image speed.
 
@@ -711,7 +711,8 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
     test (blocks of 16 samples whose farthest current hit is nearer are skipped whole). The
     result equals testing every box for every sample.
 
-    pcol: pixel column of every sample; fw, iw, bmax: scratch (:func:`row_work`); acc: [W]."""
+    lit: :func:`face_light`; pcol: pixel column of every sample; fw, iw, bmax: scratch
+    (:func:`row_work`); acc: [W]."""
     w = out.shape[1]
     n = w * k
     inv_k2 = 1.0 / (k * k)
@@ -734,7 +735,6 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
     kd = iw[0]
     hid = iw[1]
     fc = iw[2]
-    lit = face_light(light)
     xh0 = rot[0, 0]
     xh1 = rot[1, 0]
     sky0 = light[5]
@@ -890,10 +890,11 @@ def render(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground
     fw, iw, bmax = row_work(w * k)
     lv_inv, lv_off, lv_mask = level_work(tex_inv.shape[0])
     acc = np.empty(w)
+    lit = face_light(light)
     vmax2 = 0.0
     for j in range(out.shape[0]):
         m2 = render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
-                        ground, light, tex, tex_inv, tex_off, vis, minz, bbox, xbs, pcol, fw,
+                        ground, light, lit, tex, tex_inv, tex_off, vis, minz, bbox, xbs, pcol, fw,
                         iw, bmax, lv_inv, lv_off, lv_mask, acc, out)
         if m2 > vmax2:
             vmax2 = m2
@@ -912,10 +913,11 @@ def render_rows(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, g
     fw, iw, bmax = row_work(w * k)
     lv_inv, lv_off, lv_mask = level_work(tex_inv.shape[0])
     acc = np.empty(w)
+    lit = face_light(light)
     vmax2 = 0.0
     for j in range(j0, out.shape[0], jstep):
         m2 = render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
-                        ground, light, tex, tex_inv, tex_off, vis, minz, bbox, xbs, pcol, fw,
+                        ground, light, lit, tex, tex_inv, tex_off, vis, minz, bbox, xbs, pcol, fw,
                         iw, bmax, lv_inv, lv_off, lv_mask, acc, out)
         if m2 > vmax2:
             vmax2 = m2
