@@ -662,8 +662,7 @@ def box_pass(kd, tb, hid, fc, dxs, dys, ox, oy, oz, dz, pcol, box_mat, box_par, 
 @njit(**_J)
 def row_vmax2(xbs, yb, tb, f, vc, wc, m2):
     """Largest squared motion-field magnitude (px/s)^2 over the samples (xbs[c], yb) of a row
-    with depths tb[c]; m2: scratch [n]. (Two loops: the first, without the reduction, is
-    vectorised.)"""
+    with depths tb[c]; m2: scratch [n]. (Two loops, both vectorised.)"""
     v0 = vc[0]
     v1 = vc[1]
     v2 = vc[2]
@@ -676,12 +675,16 @@ def row_vmax2(xbs, yb, tb, f, vc, wc, m2):
         rho = 1.0 / tb[c]
         u = (-v0 + xb * v2) * rho + w0 * xb * yb - w1 * (1.0 + xb * xb) + w2 * yb
         v = (-v1 + yb * v2) * rho + w0 * (1.0 + yb * yb) - w1 * xb * yb - w2 * xb
-        m2[c] = u * u + v * v
-    m = 0.0
+        q = u * u + v * v
+        m2[c] = q if q == q else 0.0      # NaN (a zero depth) is skipped
+    # the largest of these non-negative doubles is the largest of their bit patterns as
+    # int64: an integer maximum, which compiles to vector code (a float one does not)
+    bits = m2.view(np.int64)
+    mb = np.int64(0)
     for c in range(n):
-        if m2[c] > m:
-            m = m2[c]
-    return m * f * f
+        mb = max(mb, bits[c])
+    bits[0] = mb           # back to float through the scratch
+    return m2[0] * f * f
 
 
 @njit(**_J)
