@@ -36,8 +36,9 @@ class SceneSource(Filter):
         max_frames_per_packet: int = Field(64, ge=1, le=100_000,
                                            description="bound on memory per packet")
         # threads != 1 also renders packets ahead in a background thread (_render_ahead)
-        threads: int = Field(1, ge=0, le=1024,
-                             description="render threads (rows in parallel); 0: all cores")
+        threads: int = Field(
+            1, ge=0, le=1024, description="render threads (frames ahead at a steady step, "
+            "else rows in parallel; same frames); 0: all cores")
 
         @model_validator(mode="after")
         def _check_dt(self):
@@ -125,19 +126,23 @@ class SceneSource(Filter):
         p = self.params
         geom = self.context.geometry
         end = self.duration_us
-        t = 0
+        t = 0           # time of the next frame
         t_start = 0
         dts: list[int] = []
+
+        def step(vmax: float) -> int:
+            dts.append(self.next_dt_us(vmax))
+            return dts[-1]
+
+        seq = self.scene.frames(0, end, step)
         while t_start < end:
             boundary = min(t_start - t_start % p.packet_us + p.packet_us, end)
             frames, times = [], []
             while t < boundary and len(frames) < p.max_frames_per_packet:
-                frame, vmax = self.scene.render(t * 1e-6)
-                frames.append(frame.copy())
+                _, frame, _ = next(seq)          # the frame at t (a new array)
+                frames.append(frame)
                 times.append(t)
-                dt = self.next_dt_us(vmax)
-                dts.append(dt)
-                t += dt
+                t += dts[-1]
             t_end = boundary if t >= boundary else t
             stack = (np.stack(frames) if frames
                      else np.zeros((0, geom.height, geom.width), np.float32))

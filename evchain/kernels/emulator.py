@@ -410,7 +410,7 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
     return u, -1, ERR_NONE, 0
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)    # renders of the scene source's threads go on meanwhile
 def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractory_us,
             cap, l0, n_on, n_off, c_on, c_off, r_on, r_off, e_ref, hi, lo, last_t,
             lcache, j_base, noise_off, noise_y, noise_x, noise_t, noise_p, cap_hint):

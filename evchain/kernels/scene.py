@@ -662,8 +662,7 @@ def box_pass(kd, tb, hid, fc, dxs, dys, ox, oy, oz, dz, pcol, box_mat, box_par, 
 @njit(**_J)
 def row_vmax2(xbs, yb, tb, f, vc, wc, m2):
     """Largest squared motion-field magnitude (px/s)^2 over the samples (xbs[c], yb) of a row
-    with depths tb[c]; m2: scratch [n]. (Two loops: the first, without the reduction, is
-    vectorised.)"""
+    with depths tb[c]; m2: scratch [n]. (Two loops, both vectorised.)"""
     v0 = vc[0]
     v1 = vc[1]
     v2 = vc[2]
@@ -676,12 +675,16 @@ def row_vmax2(xbs, yb, tb, f, vc, wc, m2):
         rho = 1.0 / tb[c]
         u = (-v0 + xb * v2) * rho + w0 * xb * yb - w1 * (1.0 + xb * xb) + w2 * yb
         v = (-v1 + yb * v2) * rho + w0 * (1.0 + yb * yb) - w1 * xb * yb - w2 * xb
-        m2[c] = u * u + v * v
-    m = 0.0
+        q = u * u + v * v
+        m2[c] = q if q == q else 0.0      # NaN (a zero depth) is skipped
+    # the largest of these non-negative doubles is the largest of their bit patterns as
+    # int64: an integer maximum, which compiles to vector code (a float one does not)
+    bits = m2.view(np.int64)
+    mb = np.int64(0)
     for c in range(n):
-        if m2[c] > m:
-            m = m2[c]
-    return m * f * f
+        mb = max(mb, bits[c])
+    bits[0] = mb           # back to float through the scratch
+    return m2[0] * f * f
 
 
 @njit(**_J)
@@ -700,7 +703,7 @@ def level_work(ntex):
 
 @njit(**_J)
 def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground, light,
-               tex, tex_inv, tex_off, vis, minz, bbox, xbs, pcol, fw, iw, bmax, lv_inv,
+               lit, tex, tex_inv, tex_off, vis, minz, bbox, xbs, pcol, fw, iw, bmax, lv_inv,
                lv_off, lv_mask, acc, out):
     """Render image row j into out[j]; return the row's largest squared image speed.
 
@@ -711,7 +714,8 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
     test (blocks of 16 samples whose farthest current hit is nearer are skipped whole). The
     result equals testing every box for every sample.
 
-    pcol: pixel column of every sample; fw, iw, bmax: scratch (:func:`row_work`); acc: [W]."""
+    lit: :func:`face_light`; pcol: pixel column of every sample; fw, iw, bmax: scratch
+    (:func:`row_work`); acc: [W]."""
     w = out.shape[1]
     n = w * k
     inv_k2 = 1.0 / (k * k)
@@ -734,7 +738,6 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
     kd = iw[0]
     hid = iw[1]
     fc = iw[2]
-    lit = face_light(light)
     xh0 = rot[0, 0]
     xh1 = rot[1, 0]
     sky0 = light[5]
@@ -890,10 +893,11 @@ def render(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground
     fw, iw, bmax = row_work(w * k)
     lv_inv, lv_off, lv_mask = level_work(tex_inv.shape[0])
     acc = np.empty(w)
+    lit = face_light(light)
     vmax2 = 0.0
     for j in range(out.shape[0]):
         m2 = render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
-                        ground, light, tex, tex_inv, tex_off, vis, minz, bbox, xbs, pcol, fw,
+                        ground, light, lit, tex, tex_inv, tex_off, vis, minz, bbox, xbs, pcol, fw,
                         iw, bmax, lv_inv, lv_off, lv_mask, acc, out)
         if m2 > vmax2:
             vmax2 = m2
@@ -912,10 +916,11 @@ def render_rows(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, g
     fw, iw, bmax = row_work(w * k)
     lv_inv, lv_off, lv_mask = level_work(tex_inv.shape[0])
     acc = np.empty(w)
+    lit = face_light(light)
     vmax2 = 0.0
     for j in range(j0, out.shape[0], jstep):
         m2 = render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
-                        ground, light, tex, tex_inv, tex_off, vis, minz, bbox, xbs, pcol, fw,
+                        ground, light, lit, tex, tex_inv, tex_off, vis, minz, bbox, xbs, pcol, fw,
                         iw, bmax, lv_inv, lv_off, lv_mask, acc, out)
         if m2 > vmax2:
             vmax2 = m2

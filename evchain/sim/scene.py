@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import math
 import os
+from collections import deque
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -40,14 +42,7 @@ class Scene:
         #: the latest time the route supports (the drive may stop earlier)
         self.max_time_s = ((self.world.route_m - cfg.start_m) / cfg.speed_mps
                            if cfg.speed_mps > 0 else self.duration_s)
-        nb = len(self.boxes)
-        self._order = np.zeros(nb, np.int64)
-        self._minz = np.zeros(nb, np.float64)
-        self._bbox = np.zeros((nb, 4), np.float64)
-        self._pos = np.zeros(3)
-        self._rot = np.zeros((3, 3))
-        self._vc = np.zeros(3)
-        self._wc = np.zeros(3)
+        self._own = self._scratch()     # for render()
         self._pool: ThreadPoolExecutor | None = None
 
     @classmethod
@@ -69,32 +64,100 @@ class Scene:
         camera_state(float(t_s), self.segs, self.traj, pos, rot, vc, wc)
         return pos, rot, vc, wc
 
+    def _frame_args(self, t_s: float, out: np.ndarray, scratch: tuple) -> tuple:
+        """Kernel arguments of the frame at t_s (camera state and visible boxes written into
+        ``scratch`` = pos, rot, vc, wc, order, minz, bbox)."""
+        from evchain.kernels.scene import camera_state, frame_boxes
+
+        cam = self.camera
+        pos, rot, vc, wc, order, minz, bbox = scratch
+        camera_state(float(t_s), self.segs, self.traj, pos, rot, vc, wc)
+        if rot[2, 0] != 0.0:     # the row renderer relies on it; camera_state ensures it
+            raise RuntimeError("scene camera must not roll")
+        nvis = frame_boxes(self.boxes, pos, rot, cam.f, cam.cx, cam.cy, cam.width,
+                           cam.height, order, minz, bbox)
+        return (pos, rot, vc, wc, cam.f, cam.cx, cam.cy, cam.supersample, self.boxes,
+                self.box_mat, self.box_par, self.segs, self.ground, self.light, self.tex,
+                self.tex_inv, self.tex_off, order[:nvis], minz, bbox, out)
+
+    def _scratch(self) -> tuple:
+        nb = len(self.boxes)
+        return (np.zeros(3), np.zeros((3, 3)), np.zeros(3), np.zeros(3), np.zeros(nb, np.int64),
+                np.zeros(nb), np.zeros((nb, 4)))
+
+    def _pool_of(self, nt: int) -> ThreadPoolExecutor:
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(nt, thread_name_prefix="scene-render")
+        return self._pool
+
     def render(self, t_s: float, out: np.ndarray | None = None) -> tuple[np.ndarray, float]:
         """Frame (float32 [H, W], linear intensity) at time t_s and the largest image speed
         (px/s) of any sample at that time (drives the adaptive time step)."""
-        from evchain.kernels.scene import camera_state, frame_boxes, render, render_rows
+        from evchain.kernels.scene import render, render_rows
 
         cam = self.camera
         if out is None:
             out = np.empty((cam.height, cam.width), np.float32)
-        camera_state(float(t_s), self.segs, self.traj, self._pos, self._rot, self._vc, self._wc)
-        if self._rot[2, 0] != 0.0:     # the row renderer relies on it; camera_state ensures it
-            raise RuntimeError("scene camera must not roll")
-        nvis = frame_boxes(self.boxes, self._pos, self._rot, cam.f, cam.cx, cam.cy, cam.width,
-                           cam.height, self._order, self._minz, self._bbox)
-        args = (self._pos, self._rot, self._vc, self._wc, cam.f, cam.cx, cam.cy,
-                cam.supersample, self.boxes, self.box_mat, self.box_par, self.segs,
-                self.ground, self.light, self.tex, self.tex_inv, self.tex_off,
-                self._order[:nvis], self._minz, self._bbox, out)
-        nt = self.threads or (os.cpu_count() or 1)
+        args = self._frame_args(t_s, out, self._own)
+        nt = self._nthreads()
         if nt == 1:
             vmax = render(*args)
         else:      # interleaved rows on nt threads (the kernel releases the GIL)
-            if self._pool is None:
-                self._pool = ThreadPoolExecutor(nt - 1, thread_name_prefix="scene-render")
-            jobs = [self._pool.submit(render_rows, *args, j, nt) for j in range(1, nt)]
+            pool = self._pool_of(nt)
+            jobs = [pool.submit(render_rows, *args, j, nt) for j in range(1, nt)]
             vmax = max([render_rows(*args, 0, nt)] + [job.result() for job in jobs])
         return out, float(vmax)
+
+    def _render_alone(self, t_s: float) -> tuple[np.ndarray, float]:
+        """:meth:`render` on the calling thread only, with scratch of its own (thread-safe)."""
+        from evchain.kernels.scene import render
+
+        cam = self.camera
+        out = np.empty((cam.height, cam.width), np.float32)
+        return out, float(render(*self._frame_args(t_s, out, self._scratch())))
+
+    def _nthreads(self) -> int:
+        return self.threads or (os.cpu_count() or 1)
+
+    def frames(self, t_us: int, end_us: int, next_dt_us: Callable[[float], int]
+               ) -> Iterator[tuple[int, np.ndarray, float]]:
+        """(t, frame, vmax) for t = t_us, then t + next_dt_us(vmax), ... while t < end_us
+        (times in integer µs; each frame a new array; next_dt_us is called before its frame
+        is yielded).
+
+        With more than one thread, frames whose time is already known render whole, one per
+        thread, without a barrier between frames: when a frame's step equals the step before
+        it, the next frames are started at that same step ahead of time (speculatively) and
+        kept if the step is confirmed, dropped otherwise. After a changed step the next frame
+        renders with its rows spread over the threads. Same frames and times as one thread."""
+        nt = self._nthreads()
+        if nt == 1:
+            while t_us < end_us:
+                frame, vmax = self.render(t_us * 1e-6)
+                dt = next_dt_us(vmax)
+                yield t_us, frame, vmax
+                t_us += dt
+            return
+        pool = self._pool_of(nt)
+        ahead: deque = deque()      # (t, future) at consecutive predicted times
+        dt_last = None
+        while t_us < end_us:
+            if ahead and ahead[0][0] == t_us:
+                frame, vmax = ahead.popleft()[1].result()
+            else:
+                ahead.clear()      # mispredicted (still running jobs finish unused)
+                frame, vmax = self.render(t_us * 1e-6)
+            dt = next_dt_us(vmax)
+            if dt == dt_last:      # steady step: keep nt frames under way
+                t_next = ahead[-1][0] if ahead else t_us
+                while len(ahead) < nt and t_next + dt < end_us:
+                    t_next += dt
+                    ahead.append((t_next, pool.submit(self._render_alone, t_next * 1e-6)))
+            else:
+                ahead.clear()
+            dt_last = dt
+            yield t_us, frame, vmax
+            t_us += dt
 
     def world_to_camera(self, points: np.ndarray, t_s: float) -> np.ndarray:
         """Camera-frame coordinates [n, 3] of world points [n, 3] at time t_s."""

@@ -254,3 +254,17 @@ def flow_fd(xs, ys, t_s, scene, h=1e-6):
     b, _ = project(pts, t_s - h, scene)
     v = (a - b) / (2 * h)
     return v[:, 0], v[:, 1]
+
+
+def row_speed2_max(xbs, yb, tb, f, vc, wc):
+    """Largest squared motion-field speed (px/s)^2 over samples (xbs, yb) at depths tb;
+    samples whose speed is NaN (zero depth) are skipped, 0 if none is left."""
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        rho = 1.0 / tb
+        u = ((-vc[0] + xbs * vc[2]) * rho + wc[0] * xbs * yb - wc[1] * (1.0 + xbs * xbs)
+             + wc[2] * yb)
+        v = ((-vc[1] + yb * vc[2]) * rho + wc[0] * (1.0 + yb * yb) - wc[1] * xbs * yb
+             - wc[2] * xbs)
+        m2 = u * u + v * v
+    m2 = m2[~np.isnan(m2)]
+    return (max(0.0, float(m2.max())) if m2.size else 0.0) * f * f

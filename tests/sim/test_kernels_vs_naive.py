@@ -225,8 +225,7 @@ def _with_boxes(sc, boxes, mats):
     sc.boxes = np.array(boxes, np.float64).reshape(-1, 6)
     sc.box_mat = np.array(mats, np.int64)
     sc.box_par = np.array([par[m] for m in mats], np.float64).reshape(-1, 4)
-    nb = len(sc.boxes)
-    sc._order, sc._minz, sc._bbox = np.zeros(nb, np.int64), np.zeros(nb), np.zeros((nb, 4))
+    sc._own = sc._scratch()
     return sc
 
 
@@ -260,3 +259,30 @@ def test_render_hard_geometry_vs_naive(k):
         frame, vmax = sc.render(0.0)
         assert np.isfinite(frame).all() and np.isfinite(vmax)
         np.testing.assert_allclose(frame, N.render(sc, 0.0), rtol=2e-6, atol=2e-6)
+
+
+def test_row_speed_maximum_vs_naive():
+    """row_vmax2 (an integer maximum over the bit patterns) = the float maximum, exactly, on
+    random rows and on rows with sky (inf depth), zero depths (NaN or inf speed), one sample,
+    no rotation and only NaN."""
+    rng = np.random.default_rng(3)
+    for trial in range(60):
+        n = int(rng.integers(1, 700))
+        xbs = rng.uniform(-0.6, 0.6, n)
+        yb = float(rng.uniform(-0.4, 0.4))
+        tb = rng.uniform(0.5, 200.0, n)
+        vc = rng.normal(0, 10, 3)
+        wc = rng.normal(0, 0.5, 3) if trial % 2 else np.zeros(3)
+        if trial % 3 == 0:
+            tb[rng.random(n) < 0.3] = np.inf
+        if trial % 5 == 0:
+            tb[rng.random(n) < 0.1] = 0.0
+        if trial % 7 == 0:        # forward motion at the FOE: 0 / 0 speed with zero depth
+            xbs[:] = 0.0
+            yb = 0.0
+            vc[:2] = 0.0
+            wc[:] = 0.0
+            tb[:] = 0.0
+        got = K.row_vmax2(xbs, yb, tb, 300.0, vc, wc, np.empty(n))
+        want = N.row_speed2_max(xbs, yb, tb, 300.0, vc, wc)
+        assert got == want, (trial, got, want)

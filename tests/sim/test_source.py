@@ -156,3 +156,33 @@ def test_scene_preview_pipeline_runs(tmp_path):
     files = list((tmp_path / "preview").glob("*.png"))
     assert {f.name.split("_t")[0] for f in files} == {"high-rise", "high-rise-orange",
                                                       "open-field", "curves"}
+
+
+@pytest.mark.parametrize("threads", [2, 3])
+def test_speculative_frames_match_one_thread(threads):
+    """Scene.frames with threads renders frames ahead at the last step and drops them when the
+    step changes: same times and bit-identical frames as one thread, for steps that stay, change
+    once, alternate, and run past the end."""
+    steps = [400, 400, 400, 400, 900, 900, 400, 900, 400, 400, 400, 250, 250, 250, 250, 250]
+
+    def run(n):
+        sc = Scene.from_params(threads=n, width=40, height=30, start_m=250.0, duration_s=0.5)
+        alone = sc._render_alone
+        ahead = []
+        sc._render_alone = lambda t_s: ahead.append(t_s) or alone(t_s)   # frames started ahead
+        calls = []
+
+        def step(vmax):
+            assert vmax > 0
+            calls.append(steps[len(calls) % len(steps)])
+            return calls[-1]
+
+        return list(sc.frames(1000, 9000, step)), calls, ahead
+
+    one, calls1, _ = run(1)
+    many, calls, ahead = run(threads)
+    assert len(ahead) > 5 and calls == calls1 and len(one) == len(many) == len(calls) > len(steps)
+    assert [t for t, _, _ in one] == list(np.cumsum([1000] + calls[:-1]))
+    for (ta, fa, va), (tb, fb, vb) in zip(one, many, strict=True):
+        assert ta == tb and va == vb
+        np.testing.assert_array_equal(fa, fb)
