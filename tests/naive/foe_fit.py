@@ -110,3 +110,21 @@ def planar_flow(n, foe, a, rng, width=320, height=240, noise=0.0, outliers=0.0):
     s[bad] = rng.uniform(1, 200, bad.sum())
     keep = s > 1e-3
     return x[keep], y[keep], nx[keep], ny[keep], s[keep]
+
+
+def obstacle_flow(n, foe, a0, box, rng, noise=0.0):
+    """``n`` normal-flow events on a surface facing the camera that stands on the road at row
+    ``foot`` below the FOE (one depth: 1/tau = a0 foot), in columns |dx| < ``half_width`` and
+    rows ``lo`` < dy < ``foot`` (``box = (foot, half_width, lo)``); 80 % of the edges
+    horizontal (a car's bumper, sills and shadow), the rest vertical. Returns x, y, nx, ny, s."""
+    foot, hw, lo = box
+    x = np.floor(foe[0] + rng.uniform(-hw, hw, n)) + 0.5
+    y = np.floor(foe[1] + rng.uniform(lo, foot, n)) + 0.5
+    ang = np.where(rng.random(n) < 0.8, np.pi / 2, 0.0) + rng.normal(0, 0.1, n)
+    nx, ny = np.cos(ang), np.sin(ang)
+    dn = (x - foe[0]) * nx + (y - foe[1]) * ny
+    flip = dn < 0
+    nx[flip], ny[flip], dn[flip] = -nx[flip], -ny[flip], -dn[flip]
+    s = a0 * foot * dn * (1 + noise * rng.standard_normal(n))
+    keep = s > 1e-3
+    return x[keep], y[keep], nx[keep], ny[keep], s[keep]
