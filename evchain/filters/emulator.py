@@ -115,7 +115,7 @@ class Emulator(Filter):
         # all per-pixel state touched on events lives in one 128-byte row per pixel (array
         # of structs, rows aligned to 128 bytes): an event visit touches one pair of adjacent
         # cache lines instead of one line per array
-        buf = np.zeros(npix * ROW + ROW)
+        buf = np.empty(npix * ROW + ROW)           # init_state writes every slot used
         off = (-buf.ctypes.data % (ROW * 8)) // 8
         aos = buf[off:off + npix * ROW].reshape(npix, ROW)
         counts = aos.view(np.int64)
@@ -190,7 +190,10 @@ class Emulator(Filter):
         self._run(frames, t, seen_new, last_j + 1, packet)
         # keep the last three frames for the next packet
         if n >= 3:
-            self._held = frames[-3:].copy()
+            # into the same buffer each time (a fresh copy costs page faults)
+            if self._held.shape[0] != 3:
+                self._held = np.empty((3, *g.shape), np.float32)
+            np.copyto(self._held, frames[-3:])
             self._held_t = t[-3:].copy()
         else:
             self._held = np.concatenate([self._held, frames])[-3:]

@@ -105,12 +105,13 @@ def init_state(frame, eps, tol, con_in, coff_in, l0, n_on, n_off, c_on, c_off, r
     return ERR_NONE, 0, 0
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def slope3(d1, d2, h1, h2):
     """Limited three-point slope at a node between secants d1 (width h1) and d2 (width h2).
 
     Exact for quadratics; zero at extrema; clipped to 3*min(|d1|, |d2|) (Fritsch-Carlson), so
-    the cubic Hermite pieces on both sides stay monotone.
+    the cubic Hermite pieces on both sides stay monotone. (numpy error model, as in
+    ``_interval``: no zero-divisor test per division; h1 + h2 > 0 as frame times increase.)
     """
     if d1 * d2 <= 0.0:
         return 0.0
@@ -274,7 +275,7 @@ def _times(u0, u1, cubic, t0, dt, refractory_us, ui, utf, up_, piece, last_t):
     return w
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, eps, tol,
               k_hi, k_lo, refractory_us, cap, l0, n_on, n_off, c_on, c_off, r_on, r_off, e_ref,
               hi, lo, last_t, lcache, jg, first, cand, g0, gm, gp, ui, utf, up_, piece, u):
@@ -288,7 +289,8 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
     by ``_times``, which also applies the refractory period.
 
     Returns ``(u, resume, err, err_pixel)``: ``resume`` is -1 when done, else the pixel to
-    restart from after growing the buffers.
+    restart from after growing the buffers. (numpy error model: every divisor here is a frame
+    interval > 0, so the python model's zero test per division only cost time, ~2 %.)
     """
     npix = hi.shape[0]
     cap_u = ui.shape[0]
