@@ -104,18 +104,18 @@ class Emulator(Filter):
                             f"{frames.shape}")
         c_on, c_off, eps = self.natural_parameters()
         sigma = self.params.mismatch_sigma
-        ron = np.full((h, w), 1.0)
-        roff = np.full((h, w), 1.0)
+        con = np.broadcast_to(np.float64(c_on), (h, w))
+        coff = np.broadcast_to(np.float64(c_off), (h, w))
         if sigma > 0:
-            ron = np.maximum(1.0 + sigma * self._rng_mismatch.standard_normal((h, w)),
-                             MISMATCH_FLOOR)
-            roff = np.maximum(1.0 + sigma * self._rng_mismatch.standard_normal((h, w)),
-                              MISMATCH_FLOOR)
+            con = c_on * np.maximum(1.0 + sigma * self._rng_mismatch.standard_normal((h, w)),
+                                    MISMATCH_FLOOR)
+            coff = c_off * np.maximum(1.0 + sigma * self._rng_mismatch.standard_normal((h, w)),
+                                      MISMATCH_FLOOR)
         npix = h * w
         # all per-pixel state touched on events lives in one 128-byte row per pixel (array
         # of structs, rows aligned to 128 bytes): an event visit touches one pair of adjacent
         # cache lines instead of one line per array
-        buf = np.zeros(npix * ROW + ROW)
+        buf = np.empty(npix * ROW + ROW)           # init_state writes every slot used
         off = (-buf.ctypes.data % (ROW * 8)) // 8
         aos = buf[off:off + npix * ROW].reshape(npix, ROW)
         counts = aos.view(np.int64)
@@ -127,19 +127,18 @@ class Emulator(Filter):
         }
         # log cache: (interval, L of its frames j-1, j, j+1), see kernels/emulator.py
         self._lcache = aos[:, 9:13]
-        self._lcache[:, 0] = K.NO_CACHE
-        st["c_on"][:] = (c_on * ron).ravel()
-        st["c_off"][:] = (c_off * roff).ravel()
         first = np.ascontiguousarray(frames[0], dtype=np.float32)
         s2 = {k: v.reshape(h, w) for k, v in st.items()}
-        err, y, x = K.init_state(first, eps, self.params.tie_tolerance, s2["l0"], s2["n_on"],
-                                 s2["n_off"], s2["c_on"], s2["c_off"], s2["r_on"], s2["r_off"],
-                                 s2["e_ref"], s2["hi"], s2["lo"], s2["last_t"])
+        err, y, x = K.init_state(first, eps, self.params.tie_tolerance, con, coff, s2["l0"],
+                                 s2["n_on"], s2["n_off"], s2["c_on"], s2["c_off"], s2["r_on"],
+                                 s2["r_off"], s2["e_ref"], s2["hi"], s2["lo"], s2["last_t"],
+                                 self._lcache)
         self._raise_pixel(err, packet, 0, y, x)
         self._geometry = g
         self._state = st
         self._eps = eps
         self._held = np.zeros((0, h, w), np.float32)
+        self._scratch = K.new_scratch(npix, 4096)
 
     @property
     def thresholds(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -191,7 +190,10 @@ class Emulator(Filter):
         self._run(frames, t, seen_new, last_j + 1, packet)
         # keep the last three frames for the next packet
         if n >= 3:
-            self._held = frames[-3:].copy()
+            # into the same buffer each time (a fresh copy costs page faults)
+            if self._held.shape[0] != 3:
+                self._held = np.empty((3, *g.shape), np.float32)
+            np.copyto(self._held, frames[-3:])
             self._held_t = t[-3:].copy()
         else:
             self._held = np.concatenate([self._held, frames])[-3:]
@@ -221,19 +223,25 @@ class Emulator(Filter):
         cap = -1 if p.max_events_per_interval is None else p.max_events_per_interval
         cubic = p.interpolation == "cubic"
         total = nh + len(t)
-        x, y, tt, tf, pol, n, err, ef, ey, ex = K.emulate(
+        keep_tf = self.float_times is not None
+        if self._carry is None:
+            e16 = np.zeros(0, np.uint16)
+            carry = (e16, e16, np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.int8))
+        else:
+            cx, cy, ct, cp, ctf = self._carry
+            carry = (cx, cy, ct, ctf, cp)
+        x, y, tt, tf, pol, n, err, ef, ey, ex, self._scratch = K.emulate(
             self._held, frames, times, j0, j1, total, cubic, self._eps, p.tie_tolerance,
             float(p.refractory_us), cap, st["l0"], st["n_on"], st["n_off"], st["c_on"],
             st["c_off"], st["r_on"], st["r_off"], st["e_ref"], st["hi"], st["lo"],
-            st["last_t"], self._lcache, base, *nf, self._cap_hint)
-        self._cap_hint = max(4096, int(n * 1.25))
+            st["last_t"], self._lcache, base, *nf, self._cap_hint, carry, keep_tf,
+            self._scratch)
         if err:
             self._raise_pixel(err, packet, ef - nh, ey, ex)
+        self._cap_hint = max(4096, int((n - len(carry[0])) * 1.25))
         self._next_j = j_stop
-        ev = (x[:n], y[:n], tt[:n], pol[:n], tf[:n])
-        if self._carry is not None:
-            ev = tuple(np.concatenate([a, b]) for a, b in zip(self._carry, ev, strict=True))
-        self._carry = ev
+        # the kernel put the held events first: no concatenation here
+        self._carry = (x[:n], y[:n], tt[:n], pol[:n], tf[:n] if keep_tf else tf)
 
     def _noise(self, times, j0, j1):
         """Background noise events of intervals j0..j1-1 (kernel arrays)."""

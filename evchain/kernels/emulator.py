@@ -64,11 +64,18 @@ def gate_factors(tol):
 
 
 @njit(cache=True)
-def init_state(frame, eps, tol, l0, n_on, n_off, c_on, c_off, r_on, r_off, e_ref, hi, lo,
-               last_t):
-    """Initialise every pixel's reference from ``frame``; returns (err, y, x)."""
+def init_state(frame, eps, tol, con_in, coff_in, l0, n_on, n_off, c_on, c_off, r_on, r_off,
+               e_ref, hi, lo, last_t, lcache):
+    """Initialise every pixel's state from ``frame`` and the thresholds ``con_in``/``coff_in``
+    (``[H, W]``, may be broadcast), in one pass; ``lcache`` is ``[H*W, 4]``. Returns
+    (err, y, x)."""
     h, w = frame.shape
     k_hi, k_lo = gate_factors(tol)
+    # exp of the thresholds only where they change (all pixels share them without mismatch)
+    con = np.nan
+    coff = np.nan
+    ron = 1.0
+    roff = 1.0
     for y in range(h):
         for x in range(w):
             v = frame[y, x]
@@ -80,8 +87,17 @@ def init_state(frame, eps, tol, l0, n_on, n_off, c_on, c_off, r_on, r_off, e_ref
             n_on[y, x] = 0
             n_off[y, x] = 0
             last_t[y, x] = -1e300
-            r_on[y, x] = np.exp(c_on[y, x])
-            r_off[y, x] = np.exp(-c_off[y, x])
+            if con_in[y, x] != con:
+                con = con_in[y, x]
+                ron = np.exp(con)
+            if coff_in[y, x] != coff:
+                coff = coff_in[y, x]
+                roff = np.exp(-coff)
+            c_on[y, x] = con
+            c_off[y, x] = coff
+            lcache[y * w + x, 0] = NO_CACHE
+            r_on[y, x] = ron
+            r_off[y, x] = roff
             e_ref[y, x] = np.float64(v) + eps
             a, b = gates(e_ref[y, x], r_on[y, x], r_off[y, x], eps, k_hi, k_lo)
             hi[y, x] = a
@@ -89,12 +105,13 @@ def init_state(frame, eps, tol, l0, n_on, n_off, c_on, c_off, r_on, r_off, e_ref
     return ERR_NONE, 0, 0
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def slope3(d1, d2, h1, h2):
     """Limited three-point slope at a node between secants d1 (width h1) and d2 (width h2).
 
     Exact for quadratics; zero at extrema; clipped to 3*min(|d1|, |d2|) (Fritsch-Carlson), so
-    the cubic Hermite pieces on both sides stay monotone.
+    the cubic Hermite pieces on both sides stay monotone. (numpy error model, as in
+    ``_interval``: no zero-divisor test per division; h1 + h2 > 0 as frame times increase.)
     """
     if d1 * d2 <= 0.0:
         return 0.0
@@ -258,7 +275,7 @@ def _times(u0, u1, cubic, t0, dt, refractory_us, ui, utf, up_, piece, last_t):
     return w
 
 
-@njit(cache=True)
+@njit(cache=True, error_model="numpy")
 def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, eps, tol,
               k_hi, k_lo, refractory_us, cap, l0, n_on, n_off, c_on, c_off, r_on, r_off, e_ref,
               hi, lo, last_t, lcache, jg, first, cand, g0, gm, gp, ui, utf, up_, piece, u):
@@ -272,7 +289,8 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
     by ``_times``, which also applies the refractory period.
 
     Returns ``(u, resume, err, err_pixel)``: ``resume`` is -1 when done, else the pixel to
-    restart from after growing the buffers.
+    restart from after growing the buffers. (numpy error model: every divisor here is a frame
+    interval > 0, so the python model's zero test per division only cost time, ~2 %.)
     """
     npix = hi.shape[0]
     cap_u = ui.shape[0]
@@ -410,10 +428,22 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
     return u, -1, ERR_NONE, 0
 
 
+@njit(cache=True)
+def new_scratch(npix, ucap):
+    """Work arrays of ``emulate`` for ``npix`` pixels and ``ucap`` events per interval: (cand,
+    g0, gm, gp, ui, utf, up_, ub, piece, perm, buckets). The filter keeps them between calls
+    (fresh memory costs a page fault per 4 KiB, ~2.7 µs each on the benchmark machine)."""
+    return (np.empty(npix, np.int64), np.empty(npix, np.float32), np.empty(npix, np.float32),
+            np.empty(npix, np.float32), np.empty(ucap, np.int64), np.empty(ucap, np.float64),
+            np.empty(ucap, np.int8), np.empty(ucap, np.int64), np.empty((6, ucap)),
+            np.empty(ucap, np.int64), np.zeros(1, np.int64))
+
+
 @njit(cache=True, nogil=True)    # renders of the scene source's threads go on meanwhile
 def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractory_us,
             cap, l0, n_on, n_off, c_on, c_off, r_on, r_off, e_ref, hi, lo, last_t,
-            lcache, j_base, noise_off, noise_y, noise_x, noise_t, noise_p, cap_hint):
+            lcache, j_base, noise_off, noise_y, noise_x, noise_t, noise_p, cap_hint, carry,
+            keep_tf, scratch):
     """Emit the events of frame intervals ``j_first .. j_last - 1`` (indices into the frame list
     ``held`` + ``cur`` whose times are ``times``; interval j runs from frame j to frame j + 1).
 
@@ -424,32 +454,30 @@ def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractor
     secant slope). Noise events of interval ``j_first + k`` are
     ``noise_*[noise_off[k]:noise_off[k+1]]`` (times float µs). Events of each interval are
     ordered by rounded time (stable counting sort over the generation order: row, column, then
-    time order at one pixel; noise last). Returns
-    ``(x, y, t, tf, p, n, err, err_frame, err_y, err_x)``; ``t = floor(tf + 0.5)``.
+    time order at one pixel; noise last). The output starts with the events ``carry`` = (x, y,
+    t, tf, p) held from the previous call; float times are kept only if ``keep_tf`` (else
+    ``tf`` is empty). ``scratch`` is ``new_scratch``'s tuple, returned grown if needed. Returns
+    ``(x, y, t, tf, p, n, err, err_frame, err_y, err_x, scratch)``; ``t = floor(tf + 0.5)``.
     """
     nh = held.shape[0]
     w = held.shape[2] if nh > 0 else cur.shape[2]
     k_hi, k_lo = gate_factors(tol)
-    cap_n = max(cap_hint, 16)
+    cx, cy, ct, ctf, cp = carry
+    nc0 = cx.shape[0]
+    cap_n = max(cap_hint, nc0 + 16)
     ox = np.empty(cap_n, np.uint16)
     oy = np.empty(cap_n, np.uint16)
     ot = np.empty(cap_n, np.int64)
-    otf = np.empty(cap_n, np.float64)
+    otf = np.empty(cap_n if keep_tf else 0, np.float64)
     op = np.empty(cap_n, np.int8)
-    ucap = max(cap_n // max(j_last - j_first, 1), 1024)
-    ui = np.empty(ucap, np.int64)
-    utf = np.empty(ucap, np.float64)
-    up_ = np.empty(ucap, np.int8)
-    ub = np.empty(ucap, np.int64)
-    piece = np.empty((6, ucap))
-    buckets = np.zeros(1, np.int64)
-    perm = np.empty(ucap, np.int64)
-    npix = l0.shape[0]
-    cand = np.empty(npix, np.int64)
-    g0 = np.empty(npix, np.float32)
-    gm = np.empty(npix, np.float32)
-    gp = np.empty(npix, np.float32)
-    n = 0
+    ox[:nc0] = cx
+    oy[:nc0] = cy
+    ot[:nc0] = ct
+    op[:nc0] = cp
+    if keep_tf:
+        otf[:nc0] = ctf
+    cand, g0, gm, gp, ui, utf, up_, ub, piece, perm, buckets = scratch
+    n = nc0
     for j in range(j_first, j_last):
         f0 = (held[j] if j < nh else cur[j - nh]).ravel()
         f1 = (held[j + 1] if j + 1 < nh else cur[j + 1 - nh]).ravel()
@@ -477,7 +505,8 @@ def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractor
                 e_ref, hi, lo, last_t, lcache, j_base + j, resume, cand, g0, gm, gp, ui, utf,
                 up_, piece, u)
             if err != ERR_NONE:
-                return ox, oy, ot, otf, op, n, err, j + 1, ep // w, ep % w
+                return (ox, oy, ot, otf, op, n, err, j + 1, ep // w, ep % w,
+                        (cand, g0, gm, gp, ui, utf, up_, ub, piece, perm, buckets))
             if resume >= 0 or u + nnoise > ui.shape[0]:
                 ui = _grow(ui, u + nnoise + 1)
                 utf = _grow(utf, u + nnoise + 1)
@@ -502,7 +531,8 @@ def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractor
             ox = _grow(ox, n + u)
             oy = _grow(oy, n + u)
             ot = _grow(ot, n + u)
-            otf = _grow(otf, n + u)
+            if keep_tf:
+                otf = _grow(otf, n + u)
             op = _grow(op, n + u)
         if nb <= 4 * u + 4096:
             if buckets.shape[0] < nb + 1:
@@ -528,7 +558,9 @@ def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractor
             ox[pos] = ui[q] - yy * w
             oy[pos] = yy
             ot[pos] = ub[q] + it0
-            otf[pos] = utf[q]
+            if keep_tf:
+                otf[pos] = utf[q]
             op[pos] = up_[q]
         n += u
-    return ox, oy, ot, otf, op, n, ERR_NONE, 0, 0, 0
+    return (ox, oy, ot, otf, op, n, ERR_NONE, 0, 0, 0,
+            (cand, g0, gm, gp, ui, utf, up_, ub, piece, perm, buckets))
