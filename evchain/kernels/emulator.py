@@ -28,7 +28,10 @@ events and float times do not depend on these shortcuts.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from llvmlite import ir
+from numba import njit, types
+from numba.core import cgutils
+from numba.extending import intrinsic
 
 ERR_NONE = 0
 ERR_NONFINITE = 1
@@ -41,6 +44,8 @@ CHUNK = 64
 NO_CACHE = -10.0
 #: minus the smallest normal float32: the OFF gate when no OFF level is reachable
 LO_NONE = -1.1754944e-38
+#: pixels ahead of the scan whose frame values are prefetched (4 KiB)
+PREFETCH_AHEAD = 1024
 #: bound on the cubic crossing solve's error, in fractions of the frame interval
 SOLVE_TOL = 1e-13
 #: Newton steps run over all crossings of an interval together before the checked step
@@ -176,6 +181,23 @@ def solve_crossing(level, la, lb, m0, m1, cubic):
     return s
 
 
+@intrinsic
+def _prefetch(typingctx, arr, idx):
+    """Hint the CPU to load the cache line of ``arr[idx]`` (``llvm.prefetch``, read, keep in
+    all levels); ``idx`` must be in bounds. No effect on results."""
+    def codegen(context, builder, signature, args):
+        ary = context.make_array(signature.args[0])(context, builder, args[0])
+        i8p = ir.IntType(8).as_pointer()
+        i32 = ir.IntType(32)
+        fn = cgutils.get_or_insert_function(
+            builder.module, ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32]),
+            "llvm.prefetch.p0i8")
+        ptr = builder.bitcast(builder.gep(ary.data, [args[1]]), i8p)
+        builder.call(fn, [ptr, ir.Constant(i32, 0), ir.Constant(i32, 3), ir.Constant(i32, 1)])
+        return context.get_dummy_value()
+    return types.void(arr, idx), codegen
+
+
 @njit(cache=True)
 def _grow(arr, n):
     out = np.empty(max(2 * arr.shape[0], n), arr.dtype)
@@ -304,6 +326,11 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
     bad = -1
     for c0 in range(c_start, npix, CHUNK):
         c1 = min(c0 + CHUNK, npix)
+        # the frame comes from memory: ask for it ahead of the compares (one hint per 64-byte
+        # line; 31 -> 23.5 us per 320x240 frame in isolation)
+        if c0 + (PREFETCH_AHEAD + CHUNK) <= npix:
+            for q in range(0, CHUNK, 16):
+                _prefetch(f1, c0 + PREFETCH_AHEAD + q)
         if c1 - c0 == CHUNK and _chunk_clear(f1[c0:c1], hi[c0:c1], lo[c0:c1]):
             continue
         for i in range(max(c0, first), c1):
