@@ -16,7 +16,8 @@ rounding in a running sum. The float32 gates are only a conservative prefilter (
 margin of 1e-6 below/above the exact intensity thresholds): a pixel with ``lo < I1 < hi`` cannot
 fire, which costs two float32 compares and no logarithm per pixel and frame.
 
-Per interval (``_interval``): pass 1 scans chunks of ``CHUNK`` pixels with a branch-free,
+Per interval (``_interval``): pass 1 scans chunks of ``CHUNK`` pixels (the frame prefetched
+``PREFETCH_AHEAD`` pixels ahead) with a branch-free,
 vectorised count and lists the candidates (pixels outside their gates) in pixel order; pass 2
 gathers their values of the other frames (independent loads, so cache misses overlap); pass 3
 runs the exact rule per candidate. ``lcache`` keeps, per pixel, the logs of the last interval
