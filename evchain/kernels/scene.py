@@ -691,8 +691,9 @@ def row_vmax2(xbs, yb, tb, f, vc, wc, m2):
 def row_work(n):
     """Scratch arrays of one sample row of n samples: float64 [6, n], int32 [3, n] (small
     enough to stay in the L1 cache with the rest) and the per-block depth bound of blocks of 16
-    samples."""
-    return np.empty((6, n)), np.empty((3, n), np.int32), np.empty(n // 16 + 1)
+    samples; the last pair is r0, r1 of the row whose directions the scratch holds (NaN: none)."""
+    return (np.empty((6, n)), np.empty((3, n), np.int32), np.empty(n // 16 + 1),
+            np.full(2, np.nan))
 
 
 @njit(**_J)
@@ -703,8 +704,8 @@ def level_work(ntex):
 
 @njit(**_J)
 def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground, light,
-               lit, tex, tex_inv, tex_off, vis, minz, bbox, xbs, pcol, fw, iw, bmax, lv_inv,
-               lv_off, lv_mask, acc, out):
+               lit, tex, tex_inv, tex_off, vis, minz, bbox, xbs, pcol, fw, iw, bmax, rprev,
+               lv_inv, lv_off, lv_mask, acc, out):
     """Render image row j into out[j]; return the row's largest squared image speed.
 
     Per sample row: the ground hit is one division (no roll: every ray of a row has the same
@@ -714,8 +715,8 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
     test (blocks of 16 samples whose farthest current hit is nearer are skipped whole). The
     result equals testing every box for every sample.
 
-    lit: :func:`face_light`; pcol: pixel column of every sample; fw, iw, bmax: scratch
-    (:func:`row_work`); acc: [W]."""
+    lit: :func:`face_light`; pcol: pixel column of every sample; fw, iw, bmax, rprev: scratch
+    (:func:`row_work`, kept between the rows of one frame); acc: [W]."""
     w = out.shape[1]
     n = w * k
     inv_k2 = 1.0 / (k * k)
@@ -755,13 +756,22 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
         for c in range(n):
             tb[c] = tg
             kd[c] = kind0          # hid and fc are read only where kd == 2
-            xb = xbs[c]
-            dx = xh0 * xb + r0
-            dy = xh1 * xb + r1
-            dxs[c] = dx
-            dys[c] = dy
-            ixs[c] = 1.0 / dx
-            iys[c] = 1.0 / dy
+        # the horizontal directions depend on the row only through r0, r1, which are the same
+        # in every row when the camera does not pitch: recomputed (two divisions per sample)
+        # only when r0 or r1 differs from the row before, bit pattern and sign of zero included
+        if not (r0 == rprev[0] and r1 == rprev[1]
+                and math.copysign(1.0, r0) == math.copysign(1.0, rprev[0])
+                and math.copysign(1.0, r1) == math.copysign(1.0, rprev[1])):
+            for c in range(n):
+                xb = xbs[c]
+                dx = xh0 * xb + r0
+                dy = xh1 * xb + r1
+                dxs[c] = dx
+                dys[c] = dy
+                ixs[c] = 1.0 / dx
+                iys[c] = 1.0 / dy
+            rprev[0] = r0
+            rprev[1] = r1
         for q in range(nblk):
             bmax[q] = tg
         iz = 1.0 / dz
@@ -846,9 +856,8 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
             ground_levels(tg * fscale * d2 / (-dz), tex_inv, tex_off, lv_inv, lv_off, lv_mask)
         for c in range(n):
             if kd[c] == 0:
-                xb = xbs[c]
-                ddx = xh0 * xb + r0
-                ddy = xh1 * xb + r1
+                ddx = dxs[c]
+                ddy = dys[c]
                 e = dz / math.sqrt(ddx * ddx + ddy * ddy + dz * dz)
                 if e < 0.0:
                     e = 0.0
@@ -890,7 +899,7 @@ def render(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground
     w = out.shape[1]
     xbs = sample_columns(w, k, cx, f)
     pcol = pixel_columns(w, k)
-    fw, iw, bmax = row_work(w * k)
+    fw, iw, bmax, rprev = row_work(w * k)
     lv_inv, lv_off, lv_mask = level_work(tex_inv.shape[0])
     acc = np.empty(w)
     lit = face_light(light)
@@ -898,7 +907,7 @@ def render(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground
     for j in range(out.shape[0]):
         m2 = render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
                         ground, light, lit, tex, tex_inv, tex_off, vis, minz, bbox, xbs, pcol, fw,
-                        iw, bmax, lv_inv, lv_off, lv_mask, acc, out)
+                        iw, bmax, rprev, lv_inv, lv_off, lv_mask, acc, out)
         if m2 > vmax2:
             vmax2 = m2
     return math.sqrt(vmax2)
@@ -913,7 +922,7 @@ def render_rows(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, g
     w = out.shape[1]
     xbs = sample_columns(w, k, cx, f)
     pcol = pixel_columns(w, k)
-    fw, iw, bmax = row_work(w * k)
+    fw, iw, bmax, rprev = row_work(w * k)
     lv_inv, lv_off, lv_mask = level_work(tex_inv.shape[0])
     acc = np.empty(w)
     lit = face_light(light)
@@ -921,7 +930,7 @@ def render_rows(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, g
     for j in range(j0, out.shape[0], jstep):
         m2 = render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
                         ground, light, lit, tex, tex_inv, tex_off, vis, minz, bbox, xbs, pcol, fw,
-                        iw, bmax, lv_inv, lv_off, lv_mask, acc, out)
+                        iw, bmax, rprev, lv_inv, lv_off, lv_mask, acc, out)
         if m2 > vmax2:
             vmax2 = m2
     return math.sqrt(vmax2)
