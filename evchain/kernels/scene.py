@@ -660,21 +660,39 @@ def box_pass(kd, tb, hid, fc, dxs, dys, ox, oy, oz, dz, pcol, box_mat, box_par, 
 
 
 @njit(**_J)
-def row_vmax2(xbs, yb, tb, f, vc, wc, m2):
-    """Largest squared motion-field magnitude (px/s)^2 over the samples (xbs[c], yb) of a row
-    with depths tb[c]; m2: scratch [n]. (Two loops, both vectorised.)"""
-    v0 = vc[0]
-    v1 = vc[1]
-    v2 = vc[2]
-    w0 = wc[0]
-    w1 = wc[1]
-    w2 = wc[2]
+def flow_terms(xbs, vc, wc):
+    """Per-column terms of the motion field for the sample columns xbs (one frame): rows
+    -v0 + xb v2, w0 xb, w1 (1 + xb^2), w1 xb, w2 xb, as :func:`row_vmax2` uses them."""
     n = xbs.shape[0]
+    tm = np.empty((5, n))
     for c in range(n):
         xb = xbs[c]
+        tm[0, c] = -vc[0] + xb * vc[2]
+        tm[1, c] = wc[0] * xb
+        tm[2, c] = wc[1] * (1.0 + xb * xb)
+        tm[3, c] = wc[1] * xb
+        tm[4, c] = wc[2] * xb
+    return tm
+
+
+@njit(**_J)
+def row_vmax2(tm, yb, tb, f, vc, wc, m2):
+    """Largest squared motion-field magnitude (px/s)^2 over the samples of a row at yb with
+    depths tb[c] (the columns' terms tm from :func:`flow_terms`: the same operations as
+    :func:`flow_at`, in its order); m2: scratch [n]. (Two loops, both vectorised.)"""
+    a0 = tm[0]
+    a1 = tm[1]
+    a2 = tm[2]
+    a3 = tm[3]
+    a4 = tm[4]
+    w2y = wc[2] * yb
+    dv = -vc[1] + yb * vc[2]
+    ev = wc[0] * (1.0 + yb * yb)
+    n = tb.shape[0]
+    for c in range(n):
         rho = 1.0 / tb[c]
-        u = (-v0 + xb * v2) * rho + w0 * xb * yb - w1 * (1.0 + xb * xb) + w2 * yb
-        v = (-v1 + yb * v2) * rho + w0 * (1.0 + yb * yb) - w1 * xb * yb - w2 * xb
+        u = a0[c] * rho + a1[c] * yb - a2[c] + w2y
+        v = dv * rho + ev - a3[c] * yb - a4[c]
         q = u * u + v * v
         m2[c] = q if q == q else 0.0      # NaN (a zero depth) is skipped
     # the largest of these non-negative doubles is the largest of their bit patterns as
@@ -704,7 +722,7 @@ def level_work(ntex):
 
 @njit(**_J)
 def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground, light,
-               lit, tex, tex_inv, tex_off, vis, minz, bbox, xbs, pcol, fw, iw, bmax, rprev,
+               lit, tex, tex_inv, tex_off, vis, minz, bbox, xbs, tm, pcol, fw, iw, bmax, rprev,
                lv_inv, lv_off, lv_mask, acc, out):
     """Render image row j into out[j]; return the row's largest squared image speed.
 
@@ -715,8 +733,9 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
     test (blocks of 16 samples whose farthest current hit is nearer are skipped whole). The
     result equals testing every box for every sample.
 
-    lit: :func:`face_light`; pcol: pixel column of every sample; fw, iw, bmax, rprev: scratch
-    (:func:`row_work`, kept between the rows of one frame); acc: [W]."""
+    lit: :func:`face_light`; tm: :func:`flow_terms`; pcol: pixel column of every sample;
+    fw, iw, bmax, rprev: scratch (:func:`row_work`, kept between the rows of one frame);
+    acc: [W]."""
     w = out.shape[1]
     n = w * k
     inv_k2 = 1.0 / (k * k)
@@ -846,7 +865,7 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
                         if tb[c] > m:
                             m = tb[c]
                     bmax[blk] = m
-        m2 = row_vmax2(xbs, yb, tb, f, vc, wc, m2s)
+        m2 = row_vmax2(tm, yb, tb, f, vc, wc, m2s)
         if m2 > vmax2:
             vmax2 = m2
         # shading in separate simple passes over the row (one huge inlined loop body compiles
@@ -898,6 +917,7 @@ def render(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground
     vis: visible boxes nearest first, minz their depth bounds (:func:`frame_boxes`)."""
     w = out.shape[1]
     xbs = sample_columns(w, k, cx, f)
+    tm = flow_terms(xbs, vc, wc)
     pcol = pixel_columns(w, k)
     fw, iw, bmax, rprev = row_work(w * k)
     lv_inv, lv_off, lv_mask = level_work(tex_inv.shape[0])
@@ -906,8 +926,8 @@ def render(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground
     vmax2 = 0.0
     for j in range(out.shape[0]):
         m2 = render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
-                        ground, light, lit, tex, tex_inv, tex_off, vis, minz, bbox, xbs, pcol, fw,
-                        iw, bmax, rprev, lv_inv, lv_off, lv_mask, acc, out)
+                        ground, light, lit, tex, tex_inv, tex_off, vis, minz, bbox, xbs, tm, pcol,
+                        fw, iw, bmax, rprev, lv_inv, lv_off, lv_mask, acc, out)
         if m2 > vmax2:
             vmax2 = m2
     return math.sqrt(vmax2)
@@ -921,6 +941,7 @@ def render_rows(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, g
     the row range as arguments of :func:`render` made the one-thread render ~10 % slower.)"""
     w = out.shape[1]
     xbs = sample_columns(w, k, cx, f)
+    tm = flow_terms(xbs, vc, wc)
     pcol = pixel_columns(w, k)
     fw, iw, bmax, rprev = row_work(w * k)
     lv_inv, lv_off, lv_mask = level_work(tex_inv.shape[0])
@@ -929,8 +950,8 @@ def render_rows(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, g
     vmax2 = 0.0
     for j in range(j0, out.shape[0], jstep):
         m2 = render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
-                        ground, light, lit, tex, tex_inv, tex_off, vis, minz, bbox, xbs, pcol, fw,
-                        iw, bmax, rprev, lv_inv, lv_off, lv_mask, acc, out)
+                        ground, light, lit, tex, tex_inv, tex_off, vis, minz, bbox, xbs, tm, pcol,
+                        fw, iw, bmax, rprev, lv_inv, lv_off, lv_mask, acc, out)
         if m2 > vmax2:
             vmax2 = m2
     return math.sqrt(vmax2)
