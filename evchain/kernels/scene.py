@@ -660,21 +660,39 @@ def box_pass(kd, tb, hid, fc, dxs, dys, ox, oy, oz, dz, pcol, box_mat, box_par, 
 
 
 @njit(**_J)
-def row_vmax2(xbs, yb, tb, f, vc, wc, m2):
-    """Largest squared motion-field magnitude (px/s)^2 over the samples (xbs[c], yb) of a row
-    with depths tb[c]; m2: scratch [n]. (Two loops, both vectorised.)"""
-    v0 = vc[0]
-    v1 = vc[1]
-    v2 = vc[2]
-    w0 = wc[0]
-    w1 = wc[1]
-    w2 = wc[2]
+def flow_terms(xbs, vc, wc):
+    """Per-column terms of the motion field for the sample columns xbs (one frame): rows
+    -v0 + xb v2, w0 xb, w1 (1 + xb^2), w1 xb, w2 xb, as :func:`row_vmax2` uses them."""
     n = xbs.shape[0]
+    tm = np.empty((5, n))
     for c in range(n):
         xb = xbs[c]
+        tm[0, c] = -vc[0] + xb * vc[2]
+        tm[1, c] = wc[0] * xb
+        tm[2, c] = wc[1] * (1.0 + xb * xb)
+        tm[3, c] = wc[1] * xb
+        tm[4, c] = wc[2] * xb
+    return tm
+
+
+@njit(**_J)
+def row_vmax2(tm, yb, tb, f, vc, wc, m2):
+    """Largest squared motion-field magnitude (px/s)^2 over the samples of a row at yb with
+    depths tb[c] (the columns' terms tm from :func:`flow_terms`: the same operations as
+    :func:`flow_at`, in its order); m2: scratch [n]. (Two loops, both vectorised.)"""
+    a0 = tm[0]
+    a1 = tm[1]
+    a2 = tm[2]
+    a3 = tm[3]
+    a4 = tm[4]
+    w2y = wc[2] * yb
+    dv = -vc[1] + yb * vc[2]
+    ev = wc[0] * (1.0 + yb * yb)
+    n = tb.shape[0]
+    for c in range(n):
         rho = 1.0 / tb[c]
-        u = (-v0 + xb * v2) * rho + w0 * xb * yb - w1 * (1.0 + xb * xb) + w2 * yb
-        v = (-v1 + yb * v2) * rho + w0 * (1.0 + yb * yb) - w1 * xb * yb - w2 * xb
+        u = a0[c] * rho + a1[c] * yb - a2[c] + w2y
+        v = dv * rho + ev - a3[c] * yb - a4[c]
         q = u * u + v * v
         m2[c] = q if q == q else 0.0      # NaN (a zero depth) is skipped
     # the largest of these non-negative doubles is the largest of their bit patterns as
@@ -691,8 +709,9 @@ def row_vmax2(xbs, yb, tb, f, vc, wc, m2):
 def row_work(n):
     """Scratch arrays of one sample row of n samples: float64 [6, n], int32 [3, n] (small
     enough to stay in the L1 cache with the rest) and the per-block depth bound of blocks of 16
-    samples."""
-    return np.empty((6, n)), np.empty((3, n), np.int32), np.empty(n // 16 + 1)
+    samples; the last pair is r0, r1 of the row whose directions the scratch holds (NaN: none)."""
+    return (np.empty((6, n)), np.empty((3, n), np.int32), np.empty(n // 16 + 1),
+            np.full(2, np.nan))
 
 
 @njit(**_J)
@@ -703,8 +722,8 @@ def level_work(ntex):
 
 @njit(**_J)
 def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground, light,
-               lit, tex, tex_inv, tex_off, vis, minz, bbox, xbs, pcol, fw, iw, bmax, lv_inv,
-               lv_off, lv_mask, acc, out):
+               lit, tex, tex_inv, tex_off, vis, minz, bbox, xbs, tm, pcol, fw, iw, bmax, rprev,
+               lv_inv, lv_off, lv_mask, acc, out):
     """Render image row j into out[j]; return the row's largest squared image speed.
 
     Per sample row: the ground hit is one division (no roll: every ray of a row has the same
@@ -714,8 +733,9 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
     test (blocks of 16 samples whose farthest current hit is nearer are skipped whole). The
     result equals testing every box for every sample.
 
-    lit: :func:`face_light`; pcol: pixel column of every sample; fw, iw, bmax: scratch
-    (:func:`row_work`); acc: [W]."""
+    lit: :func:`face_light`; tm: :func:`flow_terms`; pcol: pixel column of every sample;
+    fw, iw, bmax, rprev: scratch (:func:`row_work`, kept between the rows of one frame);
+    acc: [W]."""
     w = out.shape[1]
     n = w * k
     inv_k2 = 1.0 / (k * k)
@@ -755,13 +775,22 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
         for c in range(n):
             tb[c] = tg
             kd[c] = kind0          # hid and fc are read only where kd == 2
-            xb = xbs[c]
-            dx = xh0 * xb + r0
-            dy = xh1 * xb + r1
-            dxs[c] = dx
-            dys[c] = dy
-            ixs[c] = 1.0 / dx
-            iys[c] = 1.0 / dy
+        # the horizontal directions depend on the row only through r0, r1, which are the same
+        # in every row when the camera does not pitch: recomputed (two divisions per sample)
+        # only when r0 or r1 differs from the row before, bit pattern and sign of zero included
+        if not (r0 == rprev[0] and r1 == rprev[1]
+                and math.copysign(1.0, r0) == math.copysign(1.0, rprev[0])
+                and math.copysign(1.0, r1) == math.copysign(1.0, rprev[1])):
+            for c in range(n):
+                xb = xbs[c]
+                dx = xh0 * xb + r0
+                dy = xh1 * xb + r1
+                dxs[c] = dx
+                dys[c] = dy
+                ixs[c] = 1.0 / dx
+                iys[c] = 1.0 / dy
+            rprev[0] = r0
+            rprev[1] = r1
         for q in range(nblk):
             bmax[q] = tg
         iz = 1.0 / dz
@@ -836,7 +865,7 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
                         if tb[c] > m:
                             m = tb[c]
                     bmax[blk] = m
-        m2 = row_vmax2(xbs, yb, tb, f, vc, wc, m2s)
+        m2 = row_vmax2(tm, yb, tb, f, vc, wc, m2s)
         if m2 > vmax2:
             vmax2 = m2
         # shading in separate simple passes over the row (one huge inlined loop body compiles
@@ -846,9 +875,8 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
             ground_levels(tg * fscale * d2 / (-dz), tex_inv, tex_off, lv_inv, lv_off, lv_mask)
         for c in range(n):
             if kd[c] == 0:
-                xb = xbs[c]
-                ddx = xh0 * xb + r0
-                ddy = xh1 * xb + r1
+                ddx = dxs[c]
+                ddy = dys[c]
                 e = dz / math.sqrt(ddx * ddx + ddy * ddy + dz * dz)
                 if e < 0.0:
                     e = 0.0
@@ -889,16 +917,17 @@ def render(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground
     vis: visible boxes nearest first, minz their depth bounds (:func:`frame_boxes`)."""
     w = out.shape[1]
     xbs = sample_columns(w, k, cx, f)
+    tm = flow_terms(xbs, vc, wc)
     pcol = pixel_columns(w, k)
-    fw, iw, bmax = row_work(w * k)
+    fw, iw, bmax, rprev = row_work(w * k)
     lv_inv, lv_off, lv_mask = level_work(tex_inv.shape[0])
     acc = np.empty(w)
     lit = face_light(light)
     vmax2 = 0.0
     for j in range(out.shape[0]):
         m2 = render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
-                        ground, light, lit, tex, tex_inv, tex_off, vis, minz, bbox, xbs, pcol, fw,
-                        iw, bmax, lv_inv, lv_off, lv_mask, acc, out)
+                        ground, light, lit, tex, tex_inv, tex_off, vis, minz, bbox, xbs, tm, pcol,
+                        fw, iw, bmax, rprev, lv_inv, lv_off, lv_mask, acc, out)
         if m2 > vmax2:
             vmax2 = m2
     return math.sqrt(vmax2)
@@ -912,16 +941,17 @@ def render_rows(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, g
     the row range as arguments of :func:`render` made the one-thread render ~10 % slower.)"""
     w = out.shape[1]
     xbs = sample_columns(w, k, cx, f)
+    tm = flow_terms(xbs, vc, wc)
     pcol = pixel_columns(w, k)
-    fw, iw, bmax = row_work(w * k)
+    fw, iw, bmax, rprev = row_work(w * k)
     lv_inv, lv_off, lv_mask = level_work(tex_inv.shape[0])
     acc = np.empty(w)
     lit = face_light(light)
     vmax2 = 0.0
     for j in range(j0, out.shape[0], jstep):
         m2 = render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
-                        ground, light, lit, tex, tex_inv, tex_off, vis, minz, bbox, xbs, pcol, fw,
-                        iw, bmax, lv_inv, lv_off, lv_mask, acc, out)
+                        ground, light, lit, tex, tex_inv, tex_off, vis, minz, bbox, xbs, tm, pcol,
+                        fw, iw, bmax, rprev, lv_inv, lv_off, lv_mask, acc, out)
         if m2 > vmax2:
             vmax2 = m2
     return math.sqrt(vmax2)

@@ -283,6 +283,22 @@ def test_row_speed_maximum_vs_naive():
             vc[:2] = 0.0
             wc[:] = 0.0
             tb[:] = 0.0
-        got = K.row_vmax2(xbs, yb, tb, 300.0, vc, wc, np.empty(n))
+        got = K.row_vmax2(K.flow_terms(xbs, vc, wc), yb, tb, 300.0, vc, wc, np.empty(n))
         want = N.row_speed2_max(xbs, yb, tb, 300.0, vc, wc)
         assert got == want, (trial, got, want)
+
+
+@pytest.mark.parametrize("name", ["high-rise", "pitch", "curves"])
+def test_rows_reusing_directions_equal_rows_alone(name):
+    """The renderer reuses the previous row's ray directions when r0, r1 are unchanged (no
+    pitch): every row rendered alone (fresh scratch, directions computed) gives the same bits."""
+    sc = Scene.from_params(width=40, height=30, supersample=2, **SCENES[name])
+    for t in (0.0, 0.9):
+        whole, _ = sc.render(t)
+        alone = np.empty_like(whole)
+        vmax = 0.0
+        for j in range(whole.shape[0]):
+            args = sc._frame_args(t, alone, sc._scratch())
+            vmax = max(vmax, K.render_rows(*args, j, whole.shape[0]))
+        np.testing.assert_array_equal(alone, whole)
+        assert vmax == sc.render(t)[1]
