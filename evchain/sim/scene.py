@@ -145,16 +145,17 @@ class Scene:
             if ahead and ahead[0][0] == t_us:
                 frame, vmax = ahead.popleft()[1].result()
             else:
-                ahead.clear()      # mispredicted (still running jobs finish unused)
+                _drop(ahead)       # mispredicted
                 frame, vmax = self.render(t_us * 1e-6)
             dt = next_dt_us(vmax)
-            if dt == dt_last:      # steady step: keep nt frames under way
+            if dt == dt_last:      # steady step: keep 2 nt frames queued, so that no thread
+                # waits while the caller works on a frame (emulator, writer)
                 t_next = ahead[-1][0] if ahead else t_us
-                while len(ahead) < nt and t_next + dt < end_us:
+                while len(ahead) < 2 * nt and t_next + dt < end_us:
                     t_next += dt
                     ahead.append((t_next, pool.submit(self._render_alone, t_next * 1e-6)))
             else:
-                ahead.clear()
+                _drop(ahead)
             dt_last = dt
             yield t_us, frame, vmax
             t_us += dt
@@ -167,3 +168,11 @@ class Scene:
     def project(self, points: np.ndarray, t_s: float) -> np.ndarray:
         """Pixel coordinates [n, 2] of world points at time t_s (pinhole)."""
         return self.camera.project(self.world_to_camera(points, t_s))
+
+
+def _drop(ahead: deque) -> None:
+    """Forget frames rendered ahead at a step that did not hold; those not started yet are
+    cancelled (running ones finish unused)."""
+    for _, job in ahead:
+        job.cancel()
+    ahead.clear()
