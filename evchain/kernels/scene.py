@@ -910,35 +910,10 @@ def pixel_columns(w, k):
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
-def render(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground, light,
-           tex, tex_inv, tex_off, vis, minz, bbox, out):
-    """Render one frame into out [H, W] (float32, linear intensity, k x k supersampling
-    averaged) and return the maximum motion-field magnitude (px/s) over all samples.
-    vis: visible boxes nearest first, minz their depth bounds (:func:`frame_boxes`)."""
-    w = out.shape[1]
-    xbs = sample_columns(w, k, cx, f)
-    tm = flow_terms(xbs, vc, wc)
-    pcol = pixel_columns(w, k)
-    fw, iw, bmax, rprev = row_work(w * k)
-    lv_inv, lv_off, lv_mask = level_work(tex_inv.shape[0])
-    acc = np.empty(w)
-    lit = face_light(light)
-    vmax2 = 0.0
-    for j in range(out.shape[0]):
-        m2 = render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
-                        ground, light, lit, tex, tex_inv, tex_off, vis, minz, bbox, xbs, tm, pcol,
-                        fw, iw, bmax, rprev, lv_inv, lv_off, lv_mask, acc, out)
-        if m2 > vmax2:
-            vmax2 = m2
-    return math.sqrt(vmax2)
-
-
-@njit(cache=True, error_model="numpy", nogil=True)
 def render_rows(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground, light,
                 tex, tex_inv, tex_off, vis, minz, bbox, out, j0, jstep):
     """:func:`render` of the rows j0, j0 + jstep, ... only (the maximum speed over their
-    samples): threads render interleaved rows of one frame (same result). (A separate kernel:
-    the row range as arguments of :func:`render` made the one-thread render ~10 % slower.)"""
+    samples): threads render interleaved rows of one frame (same result)."""
     w = out.shape[1]
     xbs = sample_columns(w, k, cx, f)
     tm = flow_terms(xbs, vc, wc)
@@ -955,6 +930,16 @@ def render_rows(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, g
         if m2 > vmax2:
             vmax2 = m2
     return math.sqrt(vmax2)
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def render(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground, light,
+           tex, tex_inv, tex_off, vis, minz, bbox, out):
+    """Render one frame into out [H, W] (float32, linear intensity, k x k supersampling
+    averaged) and return the maximum motion-field magnitude (px/s) over all samples.
+    vis: visible boxes nearest first, minz their depth bounds (:func:`frame_boxes`)."""
+    return render_rows(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground,
+                       light, tex, tex_inv, tex_off, vis, minz, bbox, out, 0, 1)
 
 
 # ----------------------------------------------------------------------------- ground truth
