@@ -40,8 +40,10 @@ class FoeFit(Filter):
         margin_px: float = Field(10.0, ge=0, description="events closer than this to a "
                                  "plane's vanishing line (the FOE's row or column) are left "
                                  "out of that plane")
-        tolerance: float = Field(0.5, gt=0, description="Tukey constant on the relative "
-                                 "speed residual |s - predicted| / s")
+        tolerance: float = Field(0.25, gt=0, description="Tukey constant on the relative "
+                                 "speed residual |s - predicted| / predicted (0.5 until "
+                                 "session 6: an obstacle's lower rows then fit the road and "
+                                 "pull the FOE up as it fills the view)")
         max_iter: int = Field(4, ge=1, description="Gauss-Newton iterations per fit")
         max_deviation_px: float = Field(40.0, gt=0, description="fall back to the voting "
                                         "estimate when the fit is farther from it than this "
