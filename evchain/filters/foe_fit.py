@@ -24,7 +24,8 @@ class FoeFit(Filter):
     ``3 tau_ms`` (weights decaying with ``tau_ms``, Tukey on the relative speed residual), from
     the previous fit, else from the latest ``foe_map`` estimate. When the fit fails (singular,
     fewer than ``min_inliers`` decayed inliers, or farther than ``max_deviation_px`` from the
-    voting estimate) the voting estimate is emitted and the next fit starts from it again.
+    voting estimate while a fit started from the votes explains more of the flow: a larger
+    decayed inlier weight) the voting estimate is emitted and the next fit starts from it again.
     The ``foe_map`` entries move to series ``foe_votes``; series ``foe`` gets one entry per
     fit (t, x, y, support = decayed inlier weight, total = decayed weight of modelled events).
     """
@@ -45,10 +46,12 @@ class FoeFit(Filter):
                                  "session 6: an obstacle's lower rows then fit the road and "
                                  "pull the FOE up as it fills the view)")
         max_iter: int = Field(4, ge=1, description="Gauss-Newton iterations per fit")
-        max_deviation_px: float = Field(40.0, gt=0, description="fall back to the voting "
-                                        "estimate when the fit is farther from it than this "
-                                        "(wider than the votes' own error, which reaches "
-                                        "20-35 px on the reference drive)")
+        max_deviation_px: float = Field(40.0, gt=0, description="a fit farther than this "
+                                        "from the voting estimate is checked against a fit "
+                                        "started from the votes and falls back to them if "
+                                        "that one has the larger inlier weight (the votes err "
+                                        "by 20-35 px on the reference drive, 30-50 px at "
+                                        "15 m/s; a plain distance gate until session 6)")
         min_inliers: float = Field(50.0, ge=0, description="fall back when the decayed "
                                    "inlier weight is below this")
 
@@ -127,17 +130,31 @@ class FoeFit(Filter):
     def _fit(self, k, buf, t, T, tau_us):
         p = self.params
         _, vx, vy = self._vote
-        if math.isnan(self._th[0]):
+        warm = not math.isnan(self._th[0])
+        if not warm:
             self._th[:] = (vx, vy, np.nan, np.nan, np.nan)
         lo, hi = self._lo, self._hi
         i0 = lo + int(np.searchsorted(t[lo:hi], T - int(3 * tau_us)))
         i1 = lo + int(np.searchsorted(t[lo:hi], T))
-        th = self._th.copy()
         g = math.exp(-(T - self._tref) / tau_us)
-        ok, inl, tot = k.fit(buf["x"], buf["y"], buf["nx"], buf["ny"], buf["s"], buf["e"], i0,
-                             i1, g, th, p.margin_px, p.tolerance, p.max_iter, 3.0)
-        if (ok and inl >= p.min_inliers
-                and math.hypot(th[0] - vx, th[1] - vy) <= p.max_deviation_px):
+
+        def run(th):
+            ok, inl, tot = k.fit(buf["x"], buf["y"], buf["nx"], buf["ny"], buf["s"], buf["e"],
+                                 i0, i1, g, th, p.margin_px, p.tolerance, p.max_iter, 3.0)
+            return ok and inl >= p.min_inliers, inl, tot
+
+        th = self._th.copy()
+        ok, inl, tot = run(th)
+        if ok and math.hypot(th[0] - vx, th[1] - vy) > p.max_deviation_px and warm:
+            # Far from the votes: the votes may be the wrong ones (at 15 m/s they err by 30-50 px
+            # for seconds). Refit from them; keep the warm fit unless the votes' fit explains
+            # more of the flow (larger decayed inlier weight) or the warm fit is the only one.
+            tv = np.array([vx, vy, np.nan, np.nan, np.nan])
+            okv, inlv, _ = run(tv)
+            ok = not okv or inl >= inlv
+        elif ok:
+            ok = math.hypot(th[0] - vx, th[1] - vy) <= p.max_deviation_px
+        if ok:
             self._th = th
             return th[0], th[1], inl, tot
         self._th[:] = np.nan
