@@ -63,6 +63,7 @@ class FoeFit(Filter):
         self._next: int | None = None
         self._th = np.full(5, np.nan)
         self._vote: tuple[int, float, float] | None = None
+        self._won = -math.inf  # time a far fit last beat a fit started from the votes
 
     def process(self, packet: FlowPacket) -> FlowPacket:
         if not isinstance(packet, FlowPacket):
@@ -145,17 +146,26 @@ class FoeFit(Filter):
 
         th = self._th.copy()
         ok, inl, tot = run(th)
-        if ok and math.hypot(th[0] - vx, th[1] - vy) > p.max_deviation_px and warm:
+        far = math.hypot(th[0] - vx, th[1] - vy) > p.max_deviation_px
+        if ok and far and warm:
             # Far from the votes: the votes may be the wrong ones (at 15 m/s they err by 30-50 px
             # for seconds). Refit from them; keep the warm fit unless the votes' fit explains
             # more of the flow (larger decayed inlier weight) or the warm fit is the only one.
-            tv = np.array([vx, vy, np.nan, np.nan, np.nan])
-            okv, inlv, _ = run(tv)
-            ok = not okv or inl >= inlv
+            # A warm fit that won stays unchallenged for tau (the window's weights change by
+            # 1/e), which keeps the extra fits to a few per cent while the votes are off.
+            if T - self._won >= tau_us:
+                tv = np.array([vx, vy, np.nan, np.nan, np.nan])
+                okv, inlv, _ = run(tv)
+                ok = not okv or inl >= inlv
+                if ok:
+                    self._won = T
         elif ok:
-            ok = math.hypot(th[0] - vx, th[1] - vy) <= p.max_deviation_px
+            ok = not far
+        if not far:
+            self._won = -math.inf
         if ok:
             self._th = th
             return th[0], th[1], inl, tot
         self._th[:] = np.nan
+        self._won = -math.inf
         return vx, vy, inl, tot
