@@ -15,7 +15,7 @@ DEFAULTS = dict(search_distance=2, window_us=80_000, refractory_us=150_000,
                 gradient="savitzky_golay", mode="calibrated", eig_threshold=1.0, eig_ratio=0.1,
                 speed_control=True, speed_control_mix=1e-3, max_speed_factor=2.0,
                 max_speed_pxs=1e5, refit_tolerance=0.25, centre_check_px=0.5,
-                fifo_depth=8)
+                fifo_depth=8, max_window_us=0, slow_px=2.0)
 
 
 def run_kernel(x, y, t, p, width, height, state=None, **kw):
@@ -30,7 +30,7 @@ def run_kernel(x, y, t, p, width, height, state=None, **kw):
                     GRADIENTS[q["gradient"]], q["mode"] == "faithful", q["eig_threshold"],
                     q["eig_ratio"], q["speed_control"], q["speed_control_mix"],
                     q["max_speed_factor"], q["max_speed_pxs"], q["refit_tolerance"],
-                    q["centre_check_px"], idx, vx, vy)
+                    q["centre_check_px"], q["max_window_us"], q["slow_px"], idx, vx, vy)
     return idx[:m], vx[:m], vy[:m]
 
 
