@@ -333,7 +333,7 @@ def _faithful(N, d, S, R, gradient, stencil_norm, sg_norm, thr):
     return (sxy * syt - sy2 * sxt) / qq, (sxy * sxt - sx2 * syt) / qq
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _gather_calibrated(last, second, fifo, k, xe, ye, te, tmin, w_inv, R, S, d, F, V, LI, LJ,
                        PU, PW, FV, keep):
     """Calibrated gather of the neighbourhood (incl. the stencil margin) of the event at
@@ -380,15 +380,14 @@ def _gather_calibrated(last, second, fifo, k, xe, ye, te, tmin, w_inv, R, S, d, 
     return m_list
 
 
-@njit(cache=True)
-def _estimate_calibrated(last, second, fifo, k, xe, ye, te, window_us, R, S, d, gradient,
-                         min_active, eig_ratio, refit_tolerance, centre_check_px, max_speed_pxs,
-                         F, V, LI, LJ, PU, PW, FV, keep, GX, GY):
-    """Calibrated flow of one event from the timestamps of age < ``window_us``: gather, fit
-    (Savitzky-Golay plane or finite differences), centre check, speed ceiling. Returns
-    (vx, vy, ok); ok False when there is no usable estimate."""
-    w_inv = 1.0 / window_us
-    w_inv_s = 1e6 / window_us
+@njit(cache=True, inline="always")
+def _estimate_calibrated(last, second, fifo, k, xe, ye, te, window_us, w_inv, w_inv_s, R, S, d,
+                         gradient, min_active, eig_ratio, refit_tolerance, centre_check_px,
+                         max_speed_pxs, F, V, LI, LJ, PU, PW, FV, keep, GX, GY):
+    """Calibrated flow of one event from the timestamps of age < ``window_us`` (``w_inv`` =
+    1 / window_us, ``w_inv_s`` = 1e6 / window_us): gather, fit (Savitzky-Golay plane or finite
+    differences), centre check, speed ceiling. Returns (vx, vy, ok); ok False when there is no
+    usable estimate."""
     m_list = _gather_calibrated(last, second, fifo, k, xe, ye, te, te - (window_us - 1), w_inv,
                                 R, S, d, F, V, LI, LJ, PU, PW, FV, keep)
     if m_list < min_active:
@@ -407,6 +406,18 @@ def _estimate_calibrated(last, second, fifo, k, xe, ye, te, window_us, R, S, d, 
     if not np.isfinite(v) or v == 0.0 or v > max_speed_pxs:
         return 0.0, 0.0, False
     return vx, vy, True
+
+
+@njit(cache=True)
+def _reestimate(last, second, fifo, k, xe, ye, te, window_us, R, S, d, gradient, min_active,
+                eig_ratio, refit_tolerance, centre_check_px, max_speed_pxs, F, V, LI, LJ, PU, PW,
+                FV, keep, GX, GY):
+    """:func:`_estimate_calibrated` with another window (not inlined: the main loop keeps one
+    copy of the estimate, for speed)."""
+    return _estimate_calibrated(last, second, fifo, k, xe, ye, te, window_us, 1.0 / window_us,
+                                1e6 / window_us, R, S, d, gradient, min_active, eig_ratio,
+                                refit_tolerance, centre_check_px, max_speed_pxs, F, V, LI, LJ,
+                                PU, PW, FV, keep, GX, GY)
 
 
 #: calibrated speed-adaptive window: estimates per event at most (the first with ``window_us``)
@@ -446,6 +457,8 @@ def lk_flow_run(x, y, t, p, last, second, fifo, speed_state, r, window_us, refra
     GY = np.zeros(S * S, np.float64)
     FV = np.zeros(S * S, np.float64)
     keep = np.zeros(S * S, np.bool_)
+    w_inv = 1.0 / window_us
+    w_inv_s = 1e6 / window_us
     adaptive = not faithful and max_window_us > window_us
     if faithful:
         wlim = window_us          # jAER keeps timestamps with age <= window
@@ -527,7 +540,8 @@ def lk_flow_run(x, y, t, p, last, second, fifo, speed_state, r, window_us, refra
                 continue
         else:
             vx, vy, ok = _estimate_calibrated(
-                last, second, fifo, k, xe, ye, te, window_us, R, S, d, gradient, min_active,
+                last, second, fifo, k, xe, ye, te, window_us, w_inv, w_inv_s, R, S, d,
+                gradient, min_active,
                 eig_ratio, refit_tolerance, centre_check_px, max_speed_pxs, F, V, LI, LJ, PU,
                 PW, FV, keep, GX, GY)
             if adaptive:
@@ -544,7 +558,7 @@ def lk_flow_run(x, y, t, p, last, second, fifo, speed_state, r, window_us, refra
                         nxt = max_window_us
                     if nxt <= win:
                         break
-                    wx, wy, wok = _estimate_calibrated(
+                    wx, wy, wok = _reestimate(
                         last, second, fifo, k, xe, ye, te, nxt, R, S, d, gradient, min_active,
                         eig_ratio, refit_tolerance, centre_check_px, max_speed_pxs, F, V, LI,
                         LJ, PU, PW, FV, keep, GX, GY)
