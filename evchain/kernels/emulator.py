@@ -18,14 +18,16 @@ fire, which costs two float32 compares and no logarithm per pixel and frame.
 
 Per interval (``_interval``): pass 1 scans chunks of ``CHUNK`` pixels (the frame prefetched
 ``PREFETCH_AHEAD`` pixels ahead) with a branch-free,
-vectorised count and lists the candidates (pixels outside their gates) in pixel order; pass 2
+vectorised bit mask of the pixels outside their gates and lists these candidates from the set
+bits, in pixel order; pass 2
 gathers their values of the other frames (independent loads, so cache misses overlap); pass 3
 runs the exact rule per candidate. ``lcache`` keeps, per pixel, the logs of the last interval
 it was examined in and (cubic) its end slope, so a pixel active in consecutive intervals
 computes one new logarithm instead of four and one limited slope instead of two (the next
 interval's start slope has the same operands, hence the same bits). The scan also prefetches
-the look-ahead frame (cubic), whose values the gather reads for every candidate. Every value is computed by the same float64 operations as before, so
-events and float times do not depend on these shortcuts.
+the look-ahead frame (cubic), whose values the gather reads for every candidate. Every value
+is computed by the same float64 operations as before, so events and float times do not depend
+on these shortcuts.
 """
 
 from __future__ import annotations
@@ -215,17 +217,30 @@ def _logi(fr, i, eps):
 
 
 @njit(cache=True)
-def _chunk_clear(f, hi, lo):
-    """Whether no pixel of a chunk (views of CHUNK pixels) may fire: lo < I < hi everywhere.
+def _chunk_mask(f, hi, lo):
+    """Bit q set where pixel q of a chunk (views of CHUNK = 64 pixels) may fire: not
+    lo < I < hi (NaN fails both compares, so a chunk holding one is examined and reported).
 
-    Branch-free count with a fixed trip count over views (non-negative indices), so that it
-    vectorises; NaN fails both compares, so a chunk holding one is examined (and reported).
+    Branch-free with a fixed trip count over views (non-negative indices), so that it
+    vectorises (compares into masks, ~60 instructions per chunk); the candidates are then
+    read off the set bits (``_cttz``) without a test per pixel.
     """
-    k = 0
+    m = np.uint64(0)
     for q in range(CHUNK):
         v = f[q]
-        k += not ((v < hi[q]) & (v > lo[q]))
-    return k == 0
+        m |= np.uint64(not ((v < hi[q]) & (v > lo[q]))) << np.uint64(q)
+    return m
+
+
+@intrinsic
+def _cttz(typingctx, x):
+    """Index of the lowest set bit of a non-zero uint64 (``llvm.cttz``: one tzcnt)."""
+    def codegen(context, builder, signature, args):
+        i64 = ir.IntType(64)
+        fn = cgutils.get_or_insert_function(
+            builder.module, ir.FunctionType(i64, [i64, ir.IntType(1)]), "llvm.cttz.i64")
+        return builder.call(fn, [args[0], ir.Constant(ir.IntType(1), 1)])
+    return types.uint64(types.uint64), codegen
 
 
 @njit(cache=True, error_model="numpy")
@@ -337,17 +352,33 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
             for q in range(0, CHUNK, 16):
                 _prefetch(f1, c0 + PREFETCH_AHEAD + q)
                 _prefetch(fp, c0 + PREFETCH_AHEAD + q)
-        if c1 - c0 == CHUNK and _chunk_clear(f1[c0:c1], hi[c0:c1], lo[c0:c1]):
-            continue
-        for i in range(max(c0, first), c1):
-            v1 = f1[i]
-            if v1 < hi[i] and v1 > lo[i]:
+        if c1 - c0 == CHUNK:
+            m = _chunk_mask(f1[c0:c1], hi[c0:c1], lo[c0:c1])
+            if m == 0:
                 continue
-            if not np.isfinite(v1) or v1 < 0:
-                bad = i
-                break
-            cand[nc] = i
-            nc += 1
+            if c0 < first:
+                m &= ~((np.uint64(1) << np.uint64(first - c0)) - np.uint64(1))
+            # the candidates from the set bits, in pixel order (the old scalar re-scan of the
+            # chunk, a branch per pixel, was ~13 % of the bar's time)
+            while m != 0:
+                i = c0 + np.int64(_cttz(m))
+                m &= m - np.uint64(1)
+                v1 = f1[i]
+                if not np.isfinite(v1) or v1 < 0:
+                    bad = i
+                    break
+                cand[nc] = i
+                nc += 1
+        else:
+            for i in range(max(c0, first), c1):
+                v1 = f1[i]
+                if v1 < hi[i] and v1 > lo[i]:
+                    continue
+                if not np.isfinite(v1) or v1 < 0:
+                    bad = i
+                    break
+                cand[nc] = i
+                nc += 1
         if bad >= 0:
             break
     # pass 2: gather the candidates' other frame values and touch their state rows; these
