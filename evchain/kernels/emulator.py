@@ -248,8 +248,10 @@ def _newton_lockstep(u0, u1, lev, pa, pb, p0, p1, sv):
     """``sv[q]``: ``NEWTON_LOCKSTEP`` plain Newton steps on crossing q's cubic from the linear
     solution, for q in u0 .. u1-1. One loop over separate 1-D rows that writes only ``sv``:
     numba's loop over rows of the 2-D ``piece``, updating ``sv`` in place once per step, did
-    not vectorise; this one does (vdivpd), with the same operations per value."""
-    for q in range(u0, u1):
+    not vectorise; this one does (vdivpd), with the same operations per value. The index is
+    unsigned: numba then emits no wraparound test per load (a negative index counting from
+    the end), which kept the loop scalar once inlined into ``_times`` (bar 1.07x)."""
+    for q in range(np.uint64(u0), np.uint64(u1)):
         la = pa[q]
         lb = pb[q]
         s = (lev[q] - la) / (lb - la)
