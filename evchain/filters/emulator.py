@@ -125,7 +125,8 @@ class Emulator(Filter):
             "n_on": counts[:, 7], "n_off": counts[:, 8],
             "hi": np.zeros(npix, np.float32), "lo": np.zeros(npix, np.float32),
         }
-        # log cache: (interval, L of its frames j-1, j, j+1), see kernels/emulator.py
+        # log cache: (interval j, slope at frame j+1, L of frames j+1, j+2), see
+        # kernels/emulator.py
         self._lcache = aos[:, 9:13]
         first = np.ascontiguousarray(frames[0], dtype=np.float32)
         s2 = {k: v.reshape(h, w) for k, v in st.items()}

@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import EventPacket, FlowPacket
@@ -71,7 +71,26 @@ class LKFlow(Filter):
             "faithful: jAER's numbers (uncalibrated magnitudes); calibrated: px/s"))
         fifo_depth: int = Field(8, ge=1, le=256, description=(
             "timestamps kept per pixel and polarity; must exceed the events a pixel fires "
-            "within window_us, or counts saturate"))
+            "within window_us (max_window_us when set), or counts saturate"))
+        max_window_us: int = Field(0, ge=0, le=100_000_000, description=(
+            "calibrated mode: speed-adaptive window, off at 0. An event whose estimate with "
+            "window_us fails or says the edge crosses fewer than slow_px px within the window "
+            "is estimated again with min(max_window_us, slow_px / speed) (max_window_us after a "
+            "failure; at most 3 estimates); a longer window's estimate is kept only if the edge "
+            "is slow enough to need it, µs"))
+        slow_px: float = Field(2.0, gt=0.0, le=100.0, description=(
+            "calibrated mode with max_window_us: the distance, px, an edge must cross within "
+            "its window to be resolved"))
+
+        @model_validator(mode="after")
+        def _adaptive_window(self):
+            if self.max_window_us and self.max_window_us <= self.window_us:
+                raise ValueError(f"max_window_us ({self.max_window_us}) must exceed window_us "
+                                 f"({self.window_us}), or be 0 (off)")
+            if self.max_window_us and self.mode == "faithful":
+                raise ValueError("max_window_us (speed-adaptive window) is calibrated mode "
+                                 "only")
+            return self
 
     def reset(self) -> None:
         from evchain.filters.flow_scorer import DENSITY_BIN_US, DensityCounter
@@ -108,7 +127,7 @@ class LKFlow(Filter):
                                 GRADIENTS[q.gradient], q.mode == "faithful", q.eig_threshold,
                                 q.eig_ratio, q.speed_control, q.speed_control_mix,
                                 q.max_speed_factor, q.max_speed_pxs, q.refit_tolerance,
-                                q.centre_check_px, idx, vx, vy)
+                                q.centre_check_px, q.max_window_us, q.slow_px, idx, vx, vy)
         else:
             n_out = 0
         from evchain.filters.flow_scorer import DENSITY_SERIES

@@ -27,7 +27,10 @@ class PlaneFlow(Filter):
     polarity, and events within ``border_px`` of the border, get no flow. With ``centre_check``
     (default) an estimate is dropped when the event itself is more than ``th2_s`` off the
     fitted plane (the plane then describes older structure: the main source of flow pointing
-    the wrong way on the reference scene). Degenerate fits
+    the wrong way on the reference scene). With ``max_window_us`` > ``window_us`` the window
+    adapts to slow edges: a fit whose edge moved less than ``window_px`` within the window (or,
+    with ``refit_failed``, no fit) is redone with the window in which it moves ``window_px``,
+    up to ``max_window_us``, the centre check's limit scaled with the window. Degenerate fits
     (collinear or too few points, flat surfaces) are skipped, never NaN. Appends the series
     ``flow_density`` (t, n_in, n_out per 100 ms bin).
     """
@@ -62,6 +65,19 @@ class PlaneFlow(Filter):
         min_spread_px: float = Field(
             0.0, ge=0, description="neighbours must spread at least this (std. dev., px) across "
                                    "their principal direction: rejects single-edge-line sets")
+        refractory_updates: bool = Field(
+            True, description="an event within refractory_us still updates the surface (jAER); "
+                              "false: it is dropped (the surface keeps each burst's onset)")
+        max_window_us: int = Field(
+            0, ge=0, description="speed-adaptive window: refit slow edges with a window up to "
+                                 "this long (0 or <= window_us: off; not for original)")
+        window_px: float = Field(
+            2.0, gt=0, description="adaptive window: refit when the edge moved less than this "
+                                   "(px) within the window, with the window in which it moves "
+                                   "this far")
+        refit_failed: bool = Field(
+            True, description="adaptive window: also refit with max_window_us when the fit "
+                              "with window_us gives no estimate")
 
     def reset(self) -> None:
         from evchain.kernels.plane_flow import VARIANTS, new_state
@@ -93,7 +109,8 @@ class PlaneFlow(Filter):
                                   self._variant, r, prm.window_us, prm.refractory_us, margin,
                                   prm.min_points, prm.th1, prm.th2_s, prm.max_speed_pxs,
                                   prm.max_iterations, prm.min_spread_px, prm.centre_check,
-                                  idx, vx, vy)
+                                  idx, vx, vy, prm.max_window_us, prm.window_px,
+                                  prm.refit_failed, prm.refractory_updates)
         idx = idx[:k]
         out = FlowPacket.from_events(packet, idx, vx[:k], vy[:k])
         self._end = packet.t_end

@@ -333,13 +333,112 @@ def _faithful(N, d, S, R, gradient, stencil_norm, sg_norm, thr):
     return (sxy * syt - sy2 * sxt) / qq, (sxy * sxt - sx2 * syt) / qq
 
 
+@njit(cache=True, inline="always")
+def _gather_calibrated(last, second, fifo, k, xe, ye, te, tmin, w_inv, R, S, d, F, V, LI, LJ,
+                       PU, PW, FV, keep):
+    """Calibrated gather of the neighbourhood (incl. the stencil margin) of the event at
+    (``xe``, ``ye``, ``te``), polarity ``k``, over the timestamps >= ``tmin``: ``F`` = 1 - age of
+    the oldest such timestamp x ``w_inv``, ``V`` = 1 where the pixel has one, else both 0; lists
+    the active pixels of the (2r+1)^2 neighbourhood in ``LI``, ``LJ``, ``PU``, ``PW``, ``FV``
+    (``keep`` True). Returns their number."""
+    has2 = second.shape[1] > 0
+    deep = fifo.shape[3]
+    m_list = 0
+    for j in range(S):
+        yy = ye - R + j
+        jm = j < d or j >= S - d
+        for i in range(S):
+            if jm and (i < d or i >= S - d):
+                continue  # corner of the stencil margin: never read
+            xx = xe - R + i
+            ts = last[k, yy, xx]
+            if ts >= tmin:
+                oldest = ts
+                if has2:
+                    ts = second[k, yy, xx]
+                    if ts >= tmin:
+                        oldest = ts
+                        for jj in range(deep):
+                            ts = fifo[k, yy, xx, jj]
+                            if ts < tmin:
+                                break
+                            oldest = ts
+                fv = 1.0 - (te - oldest) * w_inv
+                F[i, j] = fv
+                V[i, j] = 1.0
+                if i >= d and i < S - d and not jm:
+                    LI[m_list] = i
+                    LJ[m_list] = j
+                    PU[m_list] = float(i - R)
+                    PW[m_list] = float(j - R)
+                    FV[m_list] = fv
+                    keep[m_list] = True
+                    m_list += 1
+            else:
+                F[i, j] = 0.0
+                V[i, j] = 0.0
+    return m_list
+
+
+@njit(cache=True, inline="always")
+def _estimate_calibrated(last, second, fifo, k, xe, ye, te, window_us, w_inv, w_inv_s, R, S, d,
+                         gradient, min_active, eig_ratio, refit_tolerance, centre_check_px,
+                         max_speed_pxs, F, V, LI, LJ, PU, PW, FV, keep, GX, GY):
+    """Calibrated flow of one event from the timestamps of age < ``window_us`` (``w_inv`` =
+    1 / window_us, ``w_inv_s`` = 1e6 / window_us): gather, fit (Savitzky-Golay plane or finite
+    differences), centre check, speed ceiling. Returns (vx, vy, ok); ok False when there is no
+    usable estimate."""
+    m_list = _gather_calibrated(last, second, fifo, k, xe, ye, te, te - (window_us - 1), w_inv,
+                                R, S, d, F, V, LI, LJ, PU, PW, FV, keep)
+    if m_list < min_active:
+        return 0.0, 0.0, False
+    if gradient == SAVITZKY_GOLAY:
+        vx, vy, ok = _calibrated_sg(PU, PW, FV, keep, m_list, w_inv_s, refit_tolerance)
+    else:
+        vx, vy, ok = _calibrated_fd(LI, LJ, m_list, F, V, gradient, w_inv_s, eig_ratio,
+                                    refit_tolerance, GX, GY, keep)
+    if not ok:
+        return 0.0, 0.0, False
+    if centre_check_px > 0.0 and _centre_offset_points(
+            PU, PW, FV, m_list, vx, vy, w_inv_s) > centre_check_px:
+        return 0.0, 0.0, False
+    v = np.sqrt(vx * vx + vy * vy)
+    if not np.isfinite(v) or v == 0.0 or v > max_speed_pxs:
+        return 0.0, 0.0, False
+    return vx, vy, True
+
+
+@njit(cache=True)
+def _reestimate(last, second, fifo, k, xe, ye, te, window_us, R, S, d, gradient, min_active,
+                eig_ratio, refit_tolerance, centre_check_px, max_speed_pxs, F, V, LI, LJ, PU, PW,
+                FV, keep, GX, GY):
+    """:func:`_estimate_calibrated` with another window (not inlined: the main loop keeps one
+    copy of the estimate, for speed)."""
+    return _estimate_calibrated(last, second, fifo, k, xe, ye, te, window_us, 1.0 / window_us,
+                                1e6 / window_us, R, S, d, gradient, min_active, eig_ratio,
+                                refit_tolerance, centre_check_px, max_speed_pxs, F, V, LI, LJ,
+                                PU, PW, FV, keep, GX, GY)
+
+
+#: calibrated speed-adaptive window: estimates per event at most (the first with ``window_us``)
+MAX_PASSES = 3
+
+
 @njit(cache=True)
 def lk_flow_run(x, y, t, p, last, second, fifo, speed_state, r, window_us, refractory_us, gradient,
                 faithful, eig_threshold, eig_ratio, speed_control, mix, max_factor,
-                max_speed_pxs, refit_tolerance, centre_check_px, out_idx, out_vx, out_vy):
+                max_speed_pxs, refit_tolerance, centre_check_px, max_window_us, slow_px,
+                out_idx, out_vx, out_vy):
     """Process events in order; write flow of emitted events into ``out_*``; return their count.
 
-    ``out_*`` must have room for ``len(t)`` entries.
+    ``out_*`` must have room for ``len(t)`` entries. ``max_window_us`` > ``window_us``
+    (calibrated mode only; else ignored) turns on the speed-adaptive window: an event whose
+    estimate with ``window_us`` fails, or says that the edge crosses fewer than ``slow_px`` px
+    within the window, is estimated again with the window the estimate asks for,
+    min(``max_window_us``, ``slow_px`` / speed) (``max_window_us`` after a failure), at most
+    :data:`MAX_PASSES` estimates in all; an estimate from a longer window is kept only if it is
+    slow enough to need it (the edge crosses fewer than ``slow_px`` px within the previous
+    window), and the last such estimate is the event's flow.
     """
     _, height, width = last.shape
     has2 = second.shape[1] > 0
@@ -360,10 +459,14 @@ def lk_flow_run(x, y, t, p, last, second, fifo, speed_state, r, window_us, refra
     keep = np.zeros(S * S, np.bool_)
     w_inv = 1.0 / window_us
     w_inv_s = 1e6 / window_us
+    adaptive = not faithful and max_window_us > window_us
     if faithful:
         wlim = window_us          # jAER keeps timestamps with age <= window
+    elif adaptive:
+        wlim = max_window_us - 1  # the memory must hold the longest window
     else:
         wlim = window_us - 1      # calibrated: age < window (weight > 0)
+    slow_us = slow_px * 1e6       # px µs/s: speed x window below which the edge is too slow
     # Savitzky-Golay (faithful): sum of i^2 over the full (2r+1)^2 window
     sg_norm = (2 * r + 1) * r * (r + 1) * (2 * r + 1) / 3.0
     stencil_norm = 1.0
@@ -404,51 +507,29 @@ def lk_flow_run(x, y, t, p, last, second, fifo, speed_state, r, window_us, refra
             continue
         if te - prev < refractory_us:
             continue
-        # counts (and weights) of the neighbourhood incl. the stencil margin
-        tmin = te - wlim
-        m_list = 0
-        for j in range(S):
-            yy = ye - R + j
-            jm = j < d or j >= S - d
-            for i in range(S):
-                if jm and (i < d or i >= S - d):
-                    continue  # corner of the stencil margin: never read
-                xx = xe - R + i
-                ts = last[k, yy, xx]
-                if ts >= tmin:
-                    n = 1
-                    oldest = ts
-                    if has2:
-                        ts = second[k, yy, xx]
-                        if ts >= tmin:
-                            n = 2
-                            oldest = ts
-                            for jj in range(deep):
-                                ts = fifo[k, yy, xx, jj]
-                                if ts < tmin:
-                                    break
-                                n += 1
-                                oldest = ts
-                    if faithful:
-                        N[i, j] = n
-                    else:
-                        fv = 1.0 - (te - oldest) * w_inv
-                        F[i, j] = fv
-                        V[i, j] = 1.0
-                        if i >= d and i < S - d and not jm:
-                            LI[m_list] = i
-                            LJ[m_list] = j
-                            PU[m_list] = float(i - R)
-                            PW[m_list] = float(j - R)
-                            FV[m_list] = fv
-                            keep[m_list] = True
-                            m_list += 1
-                elif faithful:
-                    N[i, j] = 0
-                else:
-                    F[i, j] = 0.0
-                    V[i, j] = 0.0
         if faithful:
+            # counts of the neighbourhood incl. the stencil margin
+            tmin = te - wlim
+            for j in range(S):
+                yy = ye - R + j
+                jm = j < d or j >= S - d
+                for i in range(S):
+                    if jm and (i < d or i >= S - d):
+                        continue  # corner of the stencil margin: never read
+                    xx = xe - R + i
+                    ts = last[k, yy, xx]
+                    n = 0
+                    if ts >= tmin:
+                        n = 1
+                        if has2:
+                            ts = second[k, yy, xx]
+                            if ts >= tmin:
+                                n = 2
+                                for jj in range(deep):
+                                    if fifo[k, yy, xx, jj] < tmin:
+                                        break
+                                    n += 1
+                    N[i, j] = n
             vx, vy = _faithful(N, d, S, R, gradient, stencil_norm, sg_norm, eig_threshold)
             v = np.sqrt(vx * vx + vy * vy)
             if speed_control:
@@ -458,22 +539,40 @@ def lk_flow_run(x, y, t, p, last, second, fifo, speed_state, r, window_us, refra
             if v == 0.0 or not np.isfinite(v):
                 continue
         else:
-            if m_list < min_active:
-                continue
-            if gradient == SAVITZKY_GOLAY:
-                vx, vy, ok = _calibrated_sg(PU, PW, FV, keep, m_list, w_inv_s, refit_tolerance)
-            else:
-                vx, vy, ok = _calibrated_fd(LI, LJ, m_list, F, V, gradient, w_inv_s, eig_ratio,
-                                            refit_tolerance, GX, GY, keep)
+            vx, vy, ok = _estimate_calibrated(
+                last, second, fifo, k, xe, ye, te, window_us, w_inv, w_inv_s, R, S, d,
+                gradient, min_active,
+                eig_ratio, refit_tolerance, centre_check_px, max_speed_pxs, F, V, LI, LJ, PU,
+                PW, FV, keep, GX, GY)
+            if adaptive:
+                win = window_us
+                for _ in range(MAX_PASSES - 1):
+                    if ok:
+                        v = np.sqrt(vx * vx + vy * vy)
+                        if v * win >= slow_us:
+                            break  # the edge crosses slow_px within the window: resolved
+                        want = slow_us / v
+                        nxt = max_window_us if want >= max_window_us else np.int64(
+                            np.ceil(want))
+                    else:
+                        nxt = max_window_us
+                    if nxt <= win:
+                        break
+                    wx, wy, wok = _reestimate(
+                        last, second, fifo, k, xe, ye, te, nxt, R, S, d, gradient, min_active,
+                        eig_ratio, refit_tolerance, centre_check_px, max_speed_pxs, F, V, LI,
+                        LJ, PU, PW, FV, keep, GX, GY)
+                    # kept only if slow enough to need the longer window
+                    if not wok or np.sqrt(wx * wx + wy * wy) * win >= slow_us:
+                        break
+                    vx = wx
+                    vy = wy
+                    ok = True
+                    win = nxt
             if not ok:
                 continue
-            if centre_check_px > 0.0 and _centre_offset_points(
-                    PU, PW, FV, m_list, vx, vy, w_inv_s) > centre_check_px:
-                continue
-            v = np.sqrt(vx * vx + vy * vy)
-            if not np.isfinite(v) or v == 0.0 or v > max_speed_pxs:
-                continue
             if speed_control:
+                v = np.sqrt(vx * vx + vy * vy)
                 if speed_state[1] == 0.0:
                     speed_state[0] = v
                     speed_state[1] = 1.0

@@ -365,10 +365,246 @@ def sg_gradient_masks(wt, rowmask, colmask, size, coef, pairs):
     return True, gx * (1e-6 / SG_SCALE) / nx, gy * (1e-6 / SG_SCALE) / ny
 
 
+@njit(cache=True, inline="always")
+def estimate(ts, pi, xi, yi, ti, variant, r, window_us, min_points, th1, th2, max_iter,
+             spread2, centre_check, tabulated, coef, pairs, popcount, bitsum,
+             X, Y, T, use, wt, wv, rowmask, colmask):
+    """One event's fit with neighbours at most ``window_us`` old; (ok, a, b).
+
+    (a, b): the gradient (dt/dx, dt/dy) in s/px, except for ``original`` (variant 3): its
+    velocity (vx, vy) in px/s. Not ok: too few points, spread, degenerate fit, centre check.
+    The event is inside the border margin and, for SG, the whole stencil inside the image
+    (checked by the caller). The work arrays come from :func:`plane_flow_kernel`.
+    """
+    height = ts.shape[1]
+    width = ts.shape[2]
+    size = 2 * r + 1
+    cap = size * size
+    n = 0
+    st = 0.0
+    sx = 0
+    sy = 0
+    sxx = 0
+    syy = 0
+    sxy = 0
+    if tabulated:  # SG: the window's times and validity masks per row and column
+        for dy in range(-r, r + 1):
+            row = ts[pi, yi + dy]
+            k0 = (dy + r) * size + r
+            rm = 0
+            for dx in range(-r, r + 1):
+                age = ti - row[xi + dx]
+                # invalid times stay in wt: the tables give them weight 0
+                wt[k0 + dx] = -age
+                ok = np.int64(age <= window_us)  # branch-free: validity is unpredictable
+                st -= age * ok
+                rm |= ok << (dx + r)
+            rowmask[dy + r] = rm
+            n += popcount[rm]
+            sx += bitsum[rm]
+            sy += dy * popcount[rm]
+        for c in range(size):
+            cm = 0
+            for line in range(size):
+                cm |= ((rowmask[line] >> c) & 1) << line
+            colmask[c] = cm
+        if spread2 > 0.0:
+            for k in range(cap):
+                if (rowmask[k // size] >> (k % size)) & 1:
+                    dx = k % size - r
+                    dy = k // size - r
+                    sxx += dx * dx
+                    syy += dy * dy
+                    sxy += dx * dy
+    elif variant == 4:  # SG, wide window: only the window's times and validity
+        for dy in range(-r, r + 1):
+            row = ts[pi, yi + dy]
+            k0 = (dy + r) * size + r
+            for dx in range(-r, r + 1):
+                age = ti - row[xi + dx]
+                ok = 1 if age <= window_us else 0
+                wv[k0 + dx] = ok
+                wt[k0 + dx] = -age * ok
+                st -= age * ok
+                n += ok
+                sx += dx * ok
+                sy += dy * ok
+        if spread2 > 0.0:
+            for k in range(cap):
+                if wv[k] > 0.0:
+                    dx = k % size - r
+                    dy = k // size - r
+                    sxx += dx * dx
+                    syy += dy * dy
+                    sxy += dx * dy
+    else:  # the valid neighbours as points (the event itself included), branch-free
+        for dy in range(-r, r + 1):
+            yy = yi + dy
+            if yy < 0 or yy >= height:
+                continue
+            row = ts[pi, yy]
+            for dx in range(-r, r + 1):
+                xx = xi + dx
+                if xx < 0 or xx >= width:
+                    continue
+                age = ti - row[xx]
+                ok = 1 if age <= window_us else 0
+                X[n] = dx
+                Y[n] = dy
+                T[n] = -age * 1e-6
+                use[n] = True
+                n += ok
+                sx += dx * ok
+                sy += dy * ok
+                sxx += dx * dx * ok
+                syy += dy * dy * ok
+                sxy += dx * dy * ok
+    if n < min_points or n < 3:
+        return False, 0.0, 0.0
+    if spread2 > 0.0:
+        cxx = (sxx - sx * sx / n) / n
+        cyy = (syy - sy * sy / n) / n
+        cxy = (sxy - sx * sy / n) / n
+        half = 0.5 * (cxx + cyy)
+        lam = half - math.sqrt(max(0.25 * (cxx - cyy) ** 2 + cxy * cxy, 0.0))
+        if lam < spread2:
+            return False, 0.0, 0.0
+    if variant == 4:
+        if tabulated:
+            ok, gx, gy = sg_gradient_masks(wt, rowmask, colmask, size, coef, pairs)
+        else:
+            ok, gx, gy = sg_gradient(wt, wv, size)
+        if not ok:
+            return False, 0.0, 0.0
+        # the plane with these slopes through the points' centroid, at the event
+        c = (st * 1e-6 - gx * sx - gy * sy) / n
+        if centre_check and abs(c) > th2:
+            return False, 0.0, 0.0
+        return True, gx, gy
+    if variant == 0:
+        ok, gx, gy, c = fit_explicit(X, Y, T, use, n)
+        if not ok or (centre_check and abs(c) > th2):
+            return False, 0.0, 0.0
+        return True, gx, gy
+    if variant == 1:
+        ok, gx, gy, c = iterate_explicit(X, Y, T, use, n, th1, th2, max_iter)
+        if not ok or (centre_check and abs(c) > th2):
+            return False, 0.0, 0.0
+        return True, gx, gy
+    ok, nx, ny, nt, d = iterate_homogeneous(X, Y, T, use, n, th1, th2, max_iter)
+    if not ok or nt <= 0.0 or (centre_check and abs(d) > th2):
+        return False, 0.0, 0.0
+    if variant == 3:
+        if nx == 0.0 or ny == 0.0:
+            return False, 0.0, 0.0
+        return True, -nt / nx, -nt / ny
+    return True, -nx / nt, -ny / nt
+
+
+#: refits of the adaptive window at most (the window only grows, so this bounds the work)
+MAX_REFITS = 4
+
+
+@njit(cache=True)
+def plane_flow_adaptive_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, margin,
+                               min_points, th1, th2, max_speed, max_iter, min_spread,
+                               centre_check,
+                               out_idx, out_vx, out_vy, max_window_us, window_px,
+                               refit_failed, refractory_updates):
+    """:func:`plane_flow_kernel` with the speed-adaptive window (see there): the same loop
+    with the fit in :func:`estimate`, which the refits call again. Kept apart so that the fixed
+    window's loop stays as it was (same speed, same results)."""
+    height = ts.shape[1]
+    width = ts.shape[2]
+    size = 2 * r + 1
+    cap = size * size
+    X = np.empty(cap, np.float64)
+    Y = np.empty(cap, np.float64)
+    T = np.empty(cap, np.float64)
+    use = np.empty(cap, np.bool_)
+    wt = np.empty(cap, np.float64)
+    wv = np.empty(cap, np.float64)
+    rowmask = np.zeros(size, np.int64)
+    colmask = np.zeros(size, np.int64)
+    tabulated = variant == 4 and size <= SG_TABLE_MAX_SIZE
+    if tabulated:
+        coef, pairs = sg_tables(size)
+    else:
+        coef, pairs = sg_tables(1)
+    # per line mask: number of valid pixels and the sum of their offsets from the centre
+    popcount = np.zeros(coef.shape[0], np.int64)
+    bitsum = np.zeros(coef.shape[0], np.int64)
+    for m in range(coef.shape[0]):
+        for b in range(size):
+            if (m >> b) & 1:
+                popcount[m] += 1
+                bitsum[m] += b - r
+    g_min2 = 1.0 / (max_speed * max_speed)
+    spread2 = min_spread * min_spread
+    k_us = window_px * 1e6  # W (µs) = k_us |g| (s/px): the window in which the edge moves k px
+    n_out = 0
+    for i in range(len(x)):
+        xi = np.int64(x[i])
+        yi = np.int64(y[i])
+        ti = t[i]
+        pi = 1 if p[i] > 0 else 0
+        prev = ts[pi, yi, xi]
+        if prev != NO_EVENT and ti - prev < refractory_us:
+            if refractory_updates:
+                ts[pi, yi, xi] = ti
+            continue
+        ts[pi, yi, xi] = ti
+        if xi < margin or yi < margin or xi >= width - margin or yi >= height - margin:
+            continue
+        full = xi >= r and yi >= r and xi + r < width and yi + r < height
+        if variant == 4 and not full:
+            continue  # SG needs the whole stencil (border_px < r)
+        ok, gx, gy = estimate(ts, pi, xi, yi, ti, variant, r, window_us, min_points, th1, th2,
+                              max_iter, spread2, centre_check, tabulated, coef, pairs,
+                              popcount, bitsum, X, Y, T, use, wt, wv, rowmask, colmask)
+        w = window_us
+        for _ in range(MAX_REFITS):
+            if ok:
+                want = k_us * math.sqrt(gx * gx + gy * gy)
+                if want <= w:
+                    break  # the edge moved at least window_px within the window
+                w_new = max_window_us if want >= max_window_us else np.int64(want)
+            elif refit_failed and w == window_us:
+                w_new = max_window_us
+            else:
+                break
+            if w_new <= w:
+                break
+            w = w_new
+            ok, gx, gy = estimate(ts, pi, xi, yi, ti, variant, r, w, min_points, th1,
+                                  th2 * w / window_us, max_iter, spread2, centre_check,
+                                  tabulated, coef, pairs, popcount, bitsum, X, Y, T, use,
+                                  wt, wv, rowmask, colmask)
+        if not ok:
+            continue
+        if variant == 3:
+            if gx * gx + gy * gy > max_speed * max_speed:
+                continue
+            out_idx[n_out] = i
+            out_vx[n_out] = gx
+            out_vy[n_out] = gy
+            n_out += 1
+            continue
+        g2 = gx * gx + gy * gy
+        if g2 < g_min2 or g2 == 0.0:
+            continue
+        out_idx[n_out] = i
+        out_vx[n_out] = gx / g2
+        out_vy[n_out] = gy / g2
+        n_out += 1
+    return n_out
+
+
 @njit(cache=True)
 def plane_flow_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, margin,
                       min_points, th1, th2, max_speed, max_iter, min_spread, centre_check,
-                      out_idx, out_vx, out_vy):
+                      out_idx, out_vx, out_vy, max_window_us=0, window_px=2.0,
+                      refit_failed=True, refractory_updates=True):
     """Process events in order, updating ``ts`` in place; returns the number of flow events.
 
     ``min_spread`` (px): the neighbours' positions must spread at least this much (standard
@@ -376,7 +612,26 @@ def plane_flow_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, marg
     estimate when the event itself lies farther than ``th2`` (s) from the final plane (the plane
     then describes other, older structure). ``out_idx`` (int64),
     ``out_vx``, ``out_vy`` (float64) need room for ``len(x)`` entries.
+
+    Speed-adaptive window (on when ``max_window_us > window_us``; not for ``original``): when
+    the fit with ``window_us`` says the edge moved less than ``window_px`` px within the window
+    (or, with ``refit_failed``, gives no estimate), refit with the window in which it would
+    move ``window_px`` px, W = window_px |g|, at most ``max_window_us`` (the longest when there
+    is no estimate); repeat while the window grows (at most :data:`MAX_REFITS` refits). A
+    refit's centre check limit is ``th2 W / window_us`` (the same fraction of the time per
+    pixel). The last fit is the result; a failed refit gives no flow. Runs
+    :func:`plane_flow_adaptive_kernel`.
+
+    ``refractory_updates`` (jAER: true): an event within ``refractory_us`` still updates the
+    surface; false: it is dropped entirely (the thesis's description), so the surface holds the
+    onset of each pixel's burst and the refractory period counts from the last onset.
     """
+    if max_window_us > window_us and variant != 3:
+        return plane_flow_adaptive_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us,
+                                          margin, min_points, th1, th2, max_speed, max_iter,
+                                          min_spread, centre_check, out_idx, out_vx, out_vy,
+                                          max_window_us, window_px, refit_failed,
+                                          refractory_updates)
     height = ts.shape[1]
     width = ts.shape[2]
     size = 2 * r + 1
@@ -411,9 +666,11 @@ def plane_flow_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, marg
         ti = t[i]
         pi = 1 if p[i] > 0 else 0
         prev = ts[pi, yi, xi]
-        ts[pi, yi, xi] = ti
         if prev != NO_EVENT and ti - prev < refractory_us:
+            if refractory_updates:
+                ts[pi, yi, xi] = ti
             continue
+        ts[pi, yi, xi] = ti
         if xi < margin or yi < margin or xi >= width - margin or yi >= height - margin:
             continue
         full = xi >= r and yi >= r and xi + r < width and yi + r < height

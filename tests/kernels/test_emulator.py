@@ -231,3 +231,43 @@ def test_batched_times_match_bisection():
             if not cubic or abs(slope) > 1e-3 * abs(lb[q] - la[q]):
                 worst = max(worst, abs(utf[q] - ref))
         assert worst < 1e-9
+
+
+def test_chunk_mask_and_bits_match_scalar_test():
+    # the scan's candidate mask (vectorised compares) and its set bits read off by cttz
+    # against the scalar gate test: random values, values equal to the gates, NaN, inf,
+    # negative values, LO_NONE gates, all-clear and all-set chunks
+    from numba import njit
+
+    from evchain.kernels.emulator import CHUNK, LO_NONE, _chunk_mask, _cttz
+
+    @njit
+    def bits(m):
+        out = []
+        while m != 0:
+            out.append(np.int64(_cttz(m)))
+            m &= m - np.uint64(1)
+        return out
+
+    rng = np.random.default_rng(4)
+    for trial in range(300):
+        hi = rng.uniform(0.5, 1.0, CHUNK).astype(np.float32)
+        lo = rng.uniform(0.0, 0.5, CHUNK).astype(np.float32)
+        lo[rng.random(CHUNK) < 0.1] = np.float32(LO_NONE)
+        f = rng.uniform(-0.1, 1.1, CHUNK).astype(np.float32)
+        if trial % 3 == 0:
+            f = 0.5 * (hi + lo)                                  # all clear
+        if trial % 7 == 0:
+            f = hi + 1                                           # all set
+        k = rng.integers(0, CHUNK, 6)
+        f[k[0]] = hi[k[0]]
+        f[k[1]] = lo[k[1]]
+        if trial % 2:
+            f[k[2]] = np.nan
+            f[k[3]] = np.inf
+            f[k[4]] = -np.inf
+            f[k[5]] = 0.0
+        ref = [q for q in range(CHUNK) if not (f[q] < hi[q] and f[q] > lo[q])]
+        m = _chunk_mask(f, hi, lo)
+        assert (m == 0) == (not ref)
+        assert list(bits(np.uint64(m))) == ref

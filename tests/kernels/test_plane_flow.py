@@ -21,7 +21,8 @@ from tests.naive.plane_flow import plane_flow_naive
 
 DEFAULTS = dict(variant="single", r=2, window_us=80_000, refractory_us=0, margin=None,
                 min_points=3, th1=1e-5, th2=0.01, max_speed=1e4, max_iter=10,
-                min_spread=0.0, centre_check=False)
+                min_spread=0.0, centre_check=False, max_window_us=0, window_px=2.0,
+                refit_failed=True, refractory_updates=True)
 FITTING = ("single", "iterative", "robust", "savitzky_golay")
 
 
@@ -35,7 +36,9 @@ def run_kernel(x, y, t, p, width, height, **kw):
                           np.asarray(t, np.int64), np.asarray(p, np.int8), ts,
                           VARIANTS[q["variant"]], q["r"], q["window_us"], q["refractory_us"],
                           margin, q["min_points"], q["th1"], q["th2"], q["max_speed"],
-                          q["max_iter"], q["min_spread"], q["centre_check"], idx, vx, vy)
+                          q["max_iter"], q["min_spread"], q["centre_check"], idx, vx, vy,
+                          q["max_window_us"], q["window_px"], q["refit_failed"],
+                          q["refractory_updates"])
     return idx[:k], vx[:k], vy[:k]
 
 
@@ -44,7 +47,8 @@ def run_naive(x, y, t, p, width, height, **kw):
     return plane_flow_naive(x, y, t, p, width, height, q["variant"], q["r"], q["window_us"],
                             q["refractory_us"], q["margin"], q["min_points"], q["th1"], q["th2"],
                             q["max_speed"], q["max_iter"], q["min_spread"],
-                            q["centre_check"])
+                            q["centre_check"], q["max_window_us"], q["window_px"],
+                            q["refit_failed"], q["refractory_updates"])
 
 
 def assert_same(ev, width, height, **kw):
@@ -319,6 +323,28 @@ def test_refractory_updates_memory_but_skips_flow():
     assert list(idx) == [2, 3]
 
 
+def test_refractory_without_update_keeps_the_onset():
+    """refractory_updates false (the thesis's description): a refractory event neither gets
+    flow nor updates the surface, and the period counts from the last event that did."""
+    # L-shaped history, then the centre fires at 3, 4 and 4.6 ms
+    x = [4, 5, 5, 5, 5]
+    y = [5, 4, 5, 5, 5]
+    t = [1000, 2000, 3000, 4000, 4600]
+    kw = dict(r=1, refractory_us=1500, max_speed=1e6)
+    idx, _, _ = run_kernel(x, y, t, np.ones(5), 11, 11, **kw)
+    assert list(idx) == [2]  # jAER: 4.6 ms is 0.6 ms after the (refractory) 4 ms event
+    idx, _, _ = run_kernel(x, y, t, np.ones(5), 11, 11, refractory_updates=False, **kw)
+    assert list(idx) == [2, 4]  # 4.6 ms is 1.6 ms after the onset at 3 ms
+    ref = run_naive(x, y, t, np.ones(5), 11, 11, refractory_updates=False, **kw)
+    assert list(ref[0]) == [2, 4]
+    # the surface kept 3 ms at the centre: a neighbour's fit sees it, not 4 ms
+    g = Geometry(24, 20)
+    ev = random_events(1500, g, 0, 150_000, seed=13)
+    for variant in VARIANTS:
+        assert_same(ev, g.width, g.height, variant=variant, refractory_us=20_000,
+                    refractory_updates=False, th2=0.02, centre_check=True)
+
+
 @pytest.mark.parametrize("size", [3, 5, 7])
 def test_sg_mask_tables_match_pairwise_slopes(size):
     """The tabulated Savitzky-Golay slopes equal the pairwise sums for random validity masks."""
@@ -336,3 +362,77 @@ def test_sg_mask_tables_match_pairwise_slopes(size):
         got = sg_gradient_masks(wt, rowmask, colmask, size, coef, pairs)
         assert got[0] == ref[0]
         np.testing.assert_allclose(got[1:], ref[1:], rtol=1e-12, atol=1e-18)
+
+
+# ------------------------------------------------------------------ speed-adaptive window
+
+
+@pytest.mark.parametrize("variant", list(VARIANTS))
+@pytest.mark.parametrize("refit_failed", [False, True])
+def test_adaptive_window_random_stream_matches_reference(variant, refit_failed):
+    g = Geometry(24, 20)
+    ev = random_events(1500, g, 0, 400_000, seed=12)
+    kw = dict(variant=variant, refractory_us=3000, window_us=20_000, max_window_us=150_000,
+              window_px=2.5, refit_failed=refit_failed, centre_check=True, th2=0.01)
+    got = assert_same(ev, g.width, g.height, **kw)
+    assert len(got[0]) > 20
+    if variant != "original":  # the refits change the result (the comparison is not vacuous)
+        off = run_kernel(ev.x, ev.y, ev.t, ev.p, g.width, g.height, **{**kw, "max_window_us": 0})
+        assert not np.array_equal(off[0], got[0])
+
+
+@settings(max_examples=12, deadline=None)
+@given(seed=st.integers(0, 10_000), variant=st.sampled_from(list(VARIANTS)),
+       r=st.integers(1, 3), window_us=st.integers(5_000, 100_000),
+       max_window_us=st.integers(0, 400_000), window_px=st.sampled_from([0.5, 2.0, 3.0, 6.0]),
+       refit_failed=st.booleans(), refractory_us=st.integers(0, 40_000),
+       refractory_updates=st.booleans(), th2=st.sampled_from([1e-3, 1e-2, 5e-2]),
+       centre_check=st.booleans())
+def test_adaptive_window_random_parameters_match_reference(seed, variant, r, window_us,
+                                                           max_window_us, window_px,
+                                                           refit_failed, refractory_us,
+                                                           refractory_updates, th2,
+                                                           centre_check):
+    g = Geometry(16, 14)
+    ev = random_events(500, g, 0, 300_000, seed=seed)
+    assert_same(ev, g.width, g.height, variant=variant, r=r, window_us=window_us,
+                max_window_us=max_window_us, window_px=window_px, refit_failed=refit_failed,
+                refractory_us=refractory_us, refractory_updates=refractory_updates, th2=th2,
+                max_speed=200.0, centre_check=centre_check)
+
+
+@pytest.mark.parametrize("variant", FITTING)
+@pytest.mark.parametrize("ang", ANGLES)
+def test_adaptive_window_slow_edge(variant, ang):
+    """A 5 px/s edge (incl. edges along an axis) with an 80 ms window moves 0.4 px within it:
+    the fixed window gives (almost) no flow; the adaptive one (up to 1 s, 2 px) gives the
+    velocity on most events, same as the reference."""
+    g = Geometry(40, 32)
+    speed = 5.0
+    vx, vy = speed * np.cos(np.radians(ang)), speed * np.sin(np.radians(ang))
+    ev = moving_edge_events(vx, vy, g, duration_us=int(40 / speed * 1e6))
+    kw = dict(variant=variant, window_us=80_000, th2=0.2 / speed, max_speed=1e5,
+              centre_check=True)
+    fixed = run_kernel(ev.x, ev.y, ev.t, ev.p, g.width, g.height, **kw)
+    kw.update(max_window_us=1_000_000, window_px=2.0)
+    idx, ex, ey = assert_same(ev, g.width, g.height, **kw)
+    assert len(fixed[0]) < 0.1 * len(ev)
+    assert len(idx) >= 0.7 * len(ev), (len(idx), len(ev))
+    err = np.hypot(ex - vx, ey - vy) / speed
+    assert err.max() < 0.03, (variant, ang, err.max())
+
+
+@pytest.mark.parametrize("variant", list(VARIANTS))
+def test_adaptive_window_leaves_fast_edges_and_off_unchanged(variant):
+    """An edge moving more than window_px within window_us is never refitted; max_window_us
+    <= window_us is off: both bit-identical to the fixed window."""
+    g = Geometry(40, 32)
+    ev = moving_edge_events(100.0, 30.0, g, duration_us=400_000)
+    kw = dict(variant=variant, window_us=40_000, refit_failed=False)
+    ref = run_kernel(ev.x, ev.y, ev.t, ev.p, g.width, g.height, **kw)
+    assert len(ref[0]) > 0 or variant == "original"
+    for extra in (dict(max_window_us=400_000, window_px=2.0), dict(max_window_us=40_000),
+                  dict(max_window_us=10_000, refit_failed=True)):
+        got = run_kernel(ev.x, ev.y, ev.t, ev.p, g.width, g.height, **{**kw, **extra})
+        for a, b in zip(ref, got, strict=True):
+            np.testing.assert_array_equal(a, b)

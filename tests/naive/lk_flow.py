@@ -19,8 +19,14 @@ def lk_flow_naive(x, y, t, p, width, height, *, search_distance=2, window_us=80_
                   refractory_us=150_000, gradient="savitzky_golay", mode="calibrated",
                   eig_threshold=1.0, eig_ratio=0.1, speed_control=True, speed_control_mix=1e-3,
                   max_speed_factor=2.0, max_speed_pxs=1e5, refit_tolerance=0.25,
-                  centre_check_px=0.5, fifo_depth=8):
-    """Return (index, vx, vy) lists of the emitted events."""
+                  centre_check_px=0.5, fifo_depth=8, max_window_us=0, slow_px=2.0):
+    """Return (index, vx, vy) lists of the emitted events.
+
+    Speed-adaptive window (calibrated, ``max_window_us`` > ``window_us``): estimate with
+    ``window_us``; while the estimate fails or its edge crosses fewer than ``slow_px`` px within
+    the window, estimate again with min(max_window_us, slow_px / speed) (max_window_us after a
+    failure), 3 estimates at most; a new estimate replaces the previous one only if it
+    succeeded and its edge crosses fewer than ``slow_px`` px within the previous window."""
     r = search_distance
     d = MARGIN[gradient]
     margin = r + d
@@ -30,13 +36,31 @@ def lk_flow_naive(x, y, t, p, width, height, *, search_distance=2, window_us=80_
     avg_init = False
     out_i, out_vx, out_vy = [], [], []
 
-    def in_window(age):
-        return age <= window_us if faithful else age < window_us
+    def in_window(age, win):
+        return age <= win if faithful else age < win
 
-    def count(xx, yy, k, now):
+    def count(xx, yy, k, now, win=window_us):
         q = fifo.get((xx, yy, k), ())
-        ages = [now - ts for ts in q if in_window(now - ts)]
-        return len(ages), (1.0 - max(ages) / window_us) if ages else 0.0
+        ages = [now - ts for ts in q if in_window(now - ts, win)]
+        return len(ages), (1.0 - max(ages) / win) if ages else 0.0
+
+    def estimate(xe, ye, k, te, win):
+        """Calibrated flow (vx, vy) of the event with window ``win``, or None."""
+        N, F = {}, {}
+        for dy in range(-margin, margin + 1):
+            for dx in range(-margin, margin + 1):
+                N[dx, dy], F[dx, dy] = count(xe + dx, ye + dy, k, te, win)
+        res = _calibrated(N, F, hood, gradient, win, eig_ratio, refit_tolerance)
+        if res is None:
+            return None
+        if centre_check_px > 0 and _centre_offset(N, F, hood, *res, win) > centre_check_px:
+            return None
+        v = math.hypot(*res)
+        if not math.isfinite(v) or v == 0 or v > max_speed_pxs:
+            return None
+        return res
+
+    hood = [(dx, dy) for dy in range(-r, r + 1) for dx in range(-r, r + 1)]
 
     for e in range(len(t)):
         xe, ye, te = int(x[e]), int(y[e]), int(t[e])
@@ -51,12 +75,11 @@ def lk_flow_naive(x, y, t, p, width, height, *, search_distance=2, window_us=80_
             continue
         if prev is not None and te - prev < refractory_us:
             continue
-        N, F = {}, {}
-        for dy in range(-margin, margin + 1):
-            for dx in range(-margin, margin + 1):
-                N[dx, dy], F[dx, dy] = count(xe + dx, ye + dy, k, te)
-        hood = [(dx, dy) for dy in range(-r, r + 1) for dx in range(-r, r + 1)]
         if faithful:
+            N = {}
+            for dy in range(-margin, margin + 1):
+                for dx in range(-margin, margin + 1):
+                    N[dx, dy] = count(xe + dx, ye + dy, k, te)[0]
             vx, vy = _faithful(N, hood, r, gradient, eig_threshold)
             v = math.hypot(vx, vy)
             if speed_control:
@@ -66,16 +89,26 @@ def lk_flow_naive(x, y, t, p, width, height, *, search_distance=2, window_us=80_
             if v == 0:
                 continue
         else:
-            res = _calibrated(N, F, hood, gradient, window_us, eig_ratio, refit_tolerance)
+            res = estimate(xe, ye, k, te, window_us)
+            win = window_us
+            for _ in range(2 if max_window_us > window_us else 0):
+                if res is None:
+                    nxt = max_window_us
+                else:
+                    s = math.hypot(*res)
+                    if s * win >= slow_px * 1e6:
+                        break
+                    nxt = min(max_window_us, math.ceil(slow_px * 1e6 / s))
+                if nxt <= win:
+                    break
+                res2 = estimate(xe, ye, k, te, nxt)
+                if res2 is None or math.hypot(*res2) * win >= slow_px * 1e6:
+                    break
+                res, win = res2, nxt
             if res is None:
                 continue
             vx, vy = res
-            if centre_check_px > 0 and _centre_offset(N, F, hood, vx, vy,
-                                                      window_us) > centre_check_px:
-                continue
             v = math.hypot(vx, vy)
-            if not math.isfinite(v) or v == 0 or v > max_speed_pxs:
-                continue
             if speed_control:
                 if not avg_init:
                     avg, avg_init = v, True

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 VARIANTS = ("single", "iterative", "robust", "original", "savitzky_golay")
@@ -81,83 +83,122 @@ def _sg(win, valid):
     return sx / nx, sy / ny
 
 
+def _estimate(ts, xi, yi, ti, pi, width, height, variant, r, window_us, min_points, th1,
+              th2, max_iter, min_spread, centre_check):
+    """One event's fit: (a, b) = gradient (s/px), or (vx, vy) for ``original``; None if none."""
+    pts = []
+    for yy in range(yi - r, yi + r + 1):
+        for xx in range(xi - r, xi + r + 1):
+            tt = ts.get((pi, xx, yy))
+            if tt is not None and ti - tt <= window_us:
+                pts.append((xx - xi, yy - yi, (tt - ti) * 1e-6))
+    if len(pts) < max(min_points, 3):
+        return None
+    if min_spread > 0:
+        P = np.array([q[:2] for q in pts], float)
+        cov = np.cov(P.T, bias=True)
+        if np.linalg.eigvalsh(cov)[0] < min_spread ** 2:
+            return None
+    if variant == "savitzky_golay":
+        win = np.zeros((2 * r + 1, 2 * r + 1))
+        valid = np.zeros_like(win, bool)
+        for (dx, dy, dt) in pts:
+            win[dy + r, dx + r] = ti + round(dt * 1e6)
+            valid[dy + r, dx + r] = True
+        g = _sg(win, valid)
+        if g is None:
+            return None
+        gx, gy = g
+        P = np.asarray(pts, float)
+        c = np.mean(P[:, 2] - gx * P[:, 0] - gy * P[:, 1])
+        if centre_check and abs(c) > th2:
+            return None
+        return gx, gy
+    if variant in ("single", "iterative"):
+        if variant == "single":
+            sol = _explicit(pts)
+        else:
+            sol = _iterate(pts, _explicit, lambda s, q: q[2] - (s[0] * q[0] + s[1] * q[1]
+                                                                + s[2]),
+                           lambda s: np.asarray(s), th1, th2, max_iter)
+        if sol is None or (centre_check and abs(sol[2]) > th2):
+            return None
+        return sol[0], sol[1]
+    sol = _iterate(pts, _homogeneous, lambda s, q: s[0] @ np.asarray(q) - s[1],
+                   lambda s: s[0], th1, th2, max_iter)
+    if sol is None:
+        return None
+    n = sol[0]
+    if n[2] <= 0 or (centre_check and abs(sol[1]) > th2):
+        return None
+    if variant == "original":
+        if n[0] == 0 or n[1] == 0:
+            return None
+        return -n[2] / n[0], -n[2] / n[1]
+    return -n[0] / n[2], -n[1] / n[2]
+
+
 def plane_flow_naive(x, y, t, p, width, height, variant="single", r=2, window_us=80_000,
                      refractory_us=0, margin=None, min_points=3, th1=1e-5, th2=0.01,
                      max_speed=1000.0, max_iter=10, min_spread=0.0,
-                     centre_check=False):
-    """Returns (index, vx, vy) lists of the events that got flow."""
+                     centre_check=False, max_window_us=0, window_px=2.0, refit_failed=True,
+                     refractory_updates=True):
+    """Returns (index, vx, vy) lists of the events that got flow.
+
+    Adaptive window (``max_window_us`` > ``window_us``, not ``original``): while the fit says
+    the edge moved less than ``window_px`` px within the window w (|g| window_px > w), refit with
+    w = min(window_px |g|, max_window_us) if that is longer; with ``refit_failed`` a failed first
+    fit is redone once with ``max_window_us``. Refits check the centre against th2 w / window_us.
+    The last fit counts. ``refractory_updates`` false: refractory events do not touch the
+    surface either.
+    """
     margin = r if margin is None else margin
     ts = {}
     idx, vxs, vys = [], [], []
     for i in range(len(x)):
         xi, yi, ti, pi = int(x[i]), int(y[i]), int(t[i]), 1 if p[i] > 0 else 0
         prev = ts.get((pi, xi, yi))
-        ts[(pi, xi, yi)] = ti
         if prev is not None and ti - prev < refractory_us:
+            if refractory_updates:  # jAER: the memory still updates
+                ts[(pi, xi, yi)] = ti
             continue
+        ts[(pi, xi, yi)] = ti
         if xi < margin or yi < margin or xi >= width - margin or yi >= height - margin:
             continue
-        pts = []
-        for yy in range(yi - r, yi + r + 1):
-            for xx in range(xi - r, xi + r + 1):
-                tt = ts.get((pi, xx, yy))
-                if tt is not None and ti - tt <= window_us:
-                    pts.append((xx - xi, yy - yi, (tt - ti) * 1e-6))
-        if len(pts) < max(min_points, 3):
+        if variant == "savitzky_golay" and not (xi - r >= 0 and yi - r >= 0
+                                                and xi + r < width and yi + r < height):
             continue
-        if min_spread > 0:
-            P = np.array([q[:2] for q in pts], float)
-            cov = np.cov(P.T, bias=True)
-            if np.linalg.eigvalsh(cov)[0] < min_spread ** 2:
+        args = (ts, xi, yi, ti, pi, width, height, variant, r)
+        rest = (min_points, th1)
+        tail = (max_iter, min_spread, centre_check)
+        est = _estimate(*args, window_us, *rest, th2, *tail)
+        if max_window_us > window_us and variant != "original":
+            w = window_us
+            for _ in range(4):
+                if est is not None:
+                    want = window_px * 1e6 * math.sqrt(est[0] * est[0] + est[1] * est[1])
+                    if want <= w:
+                        break
+                    w_new = max_window_us if want >= max_window_us else int(want)
+                elif refit_failed and w == window_us:
+                    w_new = max_window_us
+                else:
+                    break
+                if w_new <= w:
+                    break
+                w = w_new
+                est = _estimate(*args, w, *rest, th2 * w / window_us, *tail)
+        if est is None:
+            continue
+        if variant == "original":
+            vx, vy = est
+            if vx * vx + vy * vy > max_speed ** 2:
                 continue
-        if variant == "savitzky_golay":
-            inside = (xi - r >= 0 and yi - r >= 0 and xi + r < width and yi + r < height)
-            if not inside:
-                continue
-            win = np.zeros((2 * r + 1, 2 * r + 1))
-            valid = np.zeros_like(win, bool)
-            for (dx, dy, dt) in pts:
-                win[dy + r, dx + r] = ti + round(dt * 1e6)
-                valid[dy + r, dx + r] = True
-            g = _sg(win, valid)
-            if g is None:
-                continue
-            gx, gy = g
-            P = np.asarray(pts, float)
-            c = np.mean(P[:, 2] - gx * P[:, 0] - gy * P[:, 1])
-            if centre_check and abs(c) > th2:
-                continue
-        elif variant in ("single", "iterative"):
-            if variant == "single":
-                sol = _explicit(pts)
-            else:
-                sol = _iterate(pts, _explicit, lambda s, q: q[2] - (s[0] * q[0] + s[1] * q[1]
-                                                                    + s[2]),
-                               lambda s: np.asarray(s), th1, th2, max_iter)
-            if sol is None:
-                continue
-            gx, gy = sol[0], sol[1]
-            if centre_check and abs(sol[2]) > th2:
-                continue
-        else:
-            sol = _iterate(pts, _homogeneous, lambda s, q: s[0] @ np.asarray(q) - s[1],
-                           lambda s: s[0], th1, th2, max_iter)
-            if sol is None:
-                continue
-            n = sol[0]
-            if n[2] <= 0 or (centre_check and abs(sol[1]) > th2):
-                continue
-            if variant == "original":
-                if n[0] == 0 or n[1] == 0:
-                    continue
-                vx, vy = -n[2] / n[0], -n[2] / n[1]
-                if vx * vx + vy * vy > max_speed ** 2:
-                    continue
-                idx.append(i)
-                vxs.append(vx)
-                vys.append(vy)
-                continue
-            gx, gy = -n[0] / n[2], -n[1] / n[2]
+            idx.append(i)
+            vxs.append(vx)
+            vys.append(vy)
+            continue
+        gx, gy = est
         g2 = gx * gx + gy * gy
         if g2 == 0 or g2 < (1.0 / max_speed) ** 2:
             continue
