@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import EventPacket, FlowPacket
@@ -28,8 +28,8 @@ class PlaneFlow(Filter):
     (default) an estimate is dropped when the event itself is more than ``th2_s`` off the
     fitted plane (the plane then describes older structure: the main source of flow pointing
     the wrong way on the reference scene). With ``max_window_us`` > ``window_us`` the window
-    adapts to slow edges: a fit whose edge moved less than ``window_px`` within the window (or,
-    with ``refit_failed``, no fit) is redone with the window in which it moves ``window_px``,
+    adapts to slow edges: a fit whose edge moved less than ``slow_px`` within the window (or,
+    with ``refit_failed``, no fit) is redone with the window in which it moves ``slow_px``,
     up to ``max_window_us``, the centre check's limit scaled with the window. Degenerate fits
     (collinear or too few points, flat surfaces) are skipped, never NaN. Appends the series
     ``flow_density`` (t, n_in, n_out per 100 ms bin).
@@ -70,14 +70,25 @@ class PlaneFlow(Filter):
                               "false: it is dropped (the surface keeps each burst's onset)")
         max_window_us: int = Field(
             0, ge=0, description="speed-adaptive window: refit slow edges with a window up to "
-                                 "this long (0 or <= window_us: off; not for original)")
-        window_px: float = Field(
+                                 "this long, µs (0: off; else longer than window_us; not for "
+                                 "original)")
+        slow_px: float = Field(
             2.0, gt=0, description="adaptive window: refit when the edge moved less than this "
                                    "(px) within the window, with the window in which it moves "
                                    "this far")
         refit_failed: bool = Field(
             True, description="adaptive window: also refit with max_window_us when the fit "
                               "with window_us gives no estimate")
+
+        @model_validator(mode="after")
+        def _adaptive_window(self):
+            if self.max_window_us and self.max_window_us <= self.window_us:
+                raise ValueError(f"max_window_us ({self.max_window_us}) must exceed window_us "
+                                 f"({self.window_us}), or be 0 (off)")
+            if self.max_window_us and self.variant == "original":
+                raise ValueError("max_window_us (speed-adaptive window) does not apply to "
+                                 "variant original (it fits velocities, not a time plane)")
+            return self
 
     def reset(self) -> None:
         from evchain.kernels.plane_flow import VARIANTS, new_state
@@ -109,7 +120,7 @@ class PlaneFlow(Filter):
                                   self._variant, r, prm.window_us, prm.refractory_us, margin,
                                   prm.min_points, prm.th1, prm.th2_s, prm.max_speed_pxs,
                                   prm.max_iterations, prm.min_spread_px, prm.centre_check,
-                                  idx, vx, vy, prm.max_window_us, prm.window_px,
+                                  idx, vx, vy, prm.max_window_us, prm.slow_px,
                                   prm.refit_failed, prm.refractory_updates)
         idx = idx[:k]
         out = FlowPacket.from_events(packet, idx, vx[:k], vy[:k])

@@ -509,7 +509,7 @@ MAX_REFITS = 4
 def plane_flow_adaptive_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, margin,
                                min_points, th1, th2, max_speed, max_iter, min_spread,
                                centre_check,
-                               out_idx, out_vx, out_vy, max_window_us, window_px,
+                               out_idx, out_vx, out_vy, max_window_us, slow_px,
                                refit_failed, refractory_updates):
     """:func:`plane_flow_kernel` with the speed-adaptive window (see there): the same loop
     with the fit in :func:`estimate`, which the refits call again. Kept apart so that the fixed
@@ -541,7 +541,7 @@ def plane_flow_adaptive_kernel(x, y, t, p, ts, variant, r, window_us, refractory
                 bitsum[m] += b - r
     g_min2 = 1.0 / (max_speed * max_speed)
     spread2 = min_spread * min_spread
-    k_us = window_px * 1e6  # W (µs) = k_us |g| (s/px): the window in which the edge moves k px
+    k_us = slow_px * 1e6  # W (µs) = k_us |g| (s/px): the window in which the edge moves k px
     n_out = 0
     for i in range(len(x)):
         xi = np.int64(x[i])
@@ -567,7 +567,7 @@ def plane_flow_adaptive_kernel(x, y, t, p, ts, variant, r, window_us, refractory
             if ok:
                 want = k_us * math.sqrt(gx * gx + gy * gy)
                 if want <= w:
-                    break  # the edge moved at least window_px within the window
+                    break  # the edge moved at least slow_px within the window
                 w_new = max_window_us if want >= max_window_us else np.int64(want)
             elif refit_failed and w == window_us:
                 w_new = max_window_us
@@ -603,7 +603,7 @@ def plane_flow_adaptive_kernel(x, y, t, p, ts, variant, r, window_us, refractory
 @njit(cache=True)
 def plane_flow_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, margin,
                       min_points, th1, th2, max_speed, max_iter, min_spread, centre_check,
-                      out_idx, out_vx, out_vy, max_window_us=0, window_px=2.0,
+                      out_idx, out_vx, out_vy, max_window_us=0, slow_px=2.0,
                       refit_failed=True, refractory_updates=True):
     """Process events in order, updating ``ts`` in place; returns the number of flow events.
 
@@ -614,9 +614,9 @@ def plane_flow_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, marg
     ``out_vx``, ``out_vy`` (float64) need room for ``len(x)`` entries.
 
     Speed-adaptive window (on when ``max_window_us > window_us``; not for ``original``): when
-    the fit with ``window_us`` says the edge moved less than ``window_px`` px within the window
+    the fit with ``window_us`` says the edge moved less than ``slow_px`` px within the window
     (or, with ``refit_failed``, gives no estimate), refit with the window in which it would
-    move ``window_px`` px, W = window_px |g|, at most ``max_window_us`` (the longest when there
+    move ``slow_px`` px, W = slow_px |g|, at most ``max_window_us`` (the longest when there
     is no estimate); repeat while the window grows (at most :data:`MAX_REFITS` refits). A
     refit's centre check limit is ``th2 W / window_us`` (the same fraction of the time per
     pixel). The last fit is the result; a failed refit gives no flow. Runs
@@ -630,7 +630,7 @@ def plane_flow_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, marg
         return plane_flow_adaptive_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us,
                                           margin, min_points, th1, th2, max_speed, max_iter,
                                           min_spread, centre_check, out_idx, out_vx, out_vy,
-                                          max_window_us, window_px, refit_failed,
+                                          max_window_us, slow_px, refit_failed,
                                           refractory_updates)
     height = ts.shape[1]
     width = ts.shape[2]

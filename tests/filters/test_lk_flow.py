@@ -224,3 +224,13 @@ def test_centre_check_removes_flow_from_an_older_crossing_edge():
     on = run(ev, gradient="central")
     assert bad_share(off) > 0.05
     assert bad_share(on) < 0.01 and len(on) > 0.8 * len(off)
+
+
+@pytest.mark.parametrize("bad, says", [
+    (dict(max_window_us=80_000), "must exceed window_us"),
+    (dict(max_window_us=400_000, mode="faithful"), "calibrated mode only"),
+])
+def test_adaptive_window_bad_settings_are_refused(bad, says):
+    with pytest.raises(ValueError, match=says):
+        LKFlow.Params(**bad)
+    LKFlow.Params(max_window_us=400_000)  # a valid setting passes

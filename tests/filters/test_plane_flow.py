@@ -107,3 +107,13 @@ def test_dvsflow16_square(variant):
     assert m["aae_deg"] < 3.0
     # the median event is exact: 20 px/s along the edge normal
     assert np.median(np.hypot(vx, vy)) == pytest.approx(20.0, rel=1e-3)
+
+
+@pytest.mark.parametrize("bad, says", [
+    (dict(max_window_us=80_000), "must exceed window_us"),
+    (dict(max_window_us=400_000, variant="original"), "does not apply to variant original"),
+])
+def test_adaptive_window_bad_settings_are_refused(bad, says):
+    with pytest.raises(ValueError, match=says):
+        PlaneFlow.Params(**bad)
+    PlaneFlow.Params(max_window_us=400_000)  # a valid setting passes

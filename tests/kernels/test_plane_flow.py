@@ -21,7 +21,7 @@ from tests.naive.plane_flow import plane_flow_naive
 
 DEFAULTS = dict(variant="single", r=2, window_us=80_000, refractory_us=0, margin=None,
                 min_points=3, th1=1e-5, th2=0.01, max_speed=1e4, max_iter=10,
-                min_spread=0.0, centre_check=False, max_window_us=0, window_px=2.0,
+                min_spread=0.0, centre_check=False, max_window_us=0, slow_px=2.0,
                 refit_failed=True, refractory_updates=True)
 FITTING = ("single", "iterative", "robust", "savitzky_golay")
 
@@ -37,7 +37,7 @@ def run_kernel(x, y, t, p, width, height, **kw):
                           VARIANTS[q["variant"]], q["r"], q["window_us"], q["refractory_us"],
                           margin, q["min_points"], q["th1"], q["th2"], q["max_speed"],
                           q["max_iter"], q["min_spread"], q["centre_check"], idx, vx, vy,
-                          q["max_window_us"], q["window_px"], q["refit_failed"],
+                          q["max_window_us"], q["slow_px"], q["refit_failed"],
                           q["refractory_updates"])
     return idx[:k], vx[:k], vy[:k]
 
@@ -47,7 +47,7 @@ def run_naive(x, y, t, p, width, height, **kw):
     return plane_flow_naive(x, y, t, p, width, height, q["variant"], q["r"], q["window_us"],
                             q["refractory_us"], q["margin"], q["min_points"], q["th1"], q["th2"],
                             q["max_speed"], q["max_iter"], q["min_spread"],
-                            q["centre_check"], q["max_window_us"], q["window_px"],
+                            q["centre_check"], q["max_window_us"], q["slow_px"],
                             q["refit_failed"], q["refractory_updates"])
 
 
@@ -373,7 +373,7 @@ def test_adaptive_window_random_stream_matches_reference(variant, refit_failed):
     g = Geometry(24, 20)
     ev = random_events(1500, g, 0, 400_000, seed=12)
     kw = dict(variant=variant, refractory_us=3000, window_us=20_000, max_window_us=150_000,
-              window_px=2.5, refit_failed=refit_failed, centre_check=True, th2=0.01)
+              slow_px=2.5, refit_failed=refit_failed, centre_check=True, th2=0.01)
     got = assert_same(ev, g.width, g.height, **kw)
     assert len(got[0]) > 20
     if variant != "original":  # the refits change the result (the comparison is not vacuous)
@@ -384,19 +384,19 @@ def test_adaptive_window_random_stream_matches_reference(variant, refit_failed):
 @settings(max_examples=12, deadline=None)
 @given(seed=st.integers(0, 10_000), variant=st.sampled_from(list(VARIANTS)),
        r=st.integers(1, 3), window_us=st.integers(5_000, 100_000),
-       max_window_us=st.integers(0, 400_000), window_px=st.sampled_from([0.5, 2.0, 3.0, 6.0]),
+       max_window_us=st.integers(0, 400_000), slow_px=st.sampled_from([0.5, 2.0, 3.0, 6.0]),
        refit_failed=st.booleans(), refractory_us=st.integers(0, 40_000),
        refractory_updates=st.booleans(), th2=st.sampled_from([1e-3, 1e-2, 5e-2]),
        centre_check=st.booleans())
 def test_adaptive_window_random_parameters_match_reference(seed, variant, r, window_us,
-                                                           max_window_us, window_px,
+                                                           max_window_us, slow_px,
                                                            refit_failed, refractory_us,
                                                            refractory_updates, th2,
                                                            centre_check):
     g = Geometry(16, 14)
     ev = random_events(500, g, 0, 300_000, seed=seed)
     assert_same(ev, g.width, g.height, variant=variant, r=r, window_us=window_us,
-                max_window_us=max_window_us, window_px=window_px, refit_failed=refit_failed,
+                max_window_us=max_window_us, slow_px=slow_px, refit_failed=refit_failed,
                 refractory_us=refractory_us, refractory_updates=refractory_updates, th2=th2,
                 max_speed=200.0, centre_check=centre_check)
 
@@ -414,7 +414,7 @@ def test_adaptive_window_slow_edge(variant, ang):
     kw = dict(variant=variant, window_us=80_000, th2=0.2 / speed, max_speed=1e5,
               centre_check=True)
     fixed = run_kernel(ev.x, ev.y, ev.t, ev.p, g.width, g.height, **kw)
-    kw.update(max_window_us=1_000_000, window_px=2.0)
+    kw.update(max_window_us=1_000_000, slow_px=2.0)
     idx, ex, ey = assert_same(ev, g.width, g.height, **kw)
     assert len(fixed[0]) < 0.1 * len(ev)
     assert len(idx) >= 0.7 * len(ev), (len(idx), len(ev))
@@ -424,14 +424,14 @@ def test_adaptive_window_slow_edge(variant, ang):
 
 @pytest.mark.parametrize("variant", list(VARIANTS))
 def test_adaptive_window_leaves_fast_edges_and_off_unchanged(variant):
-    """An edge moving more than window_px within window_us is never refitted; max_window_us
+    """An edge moving more than slow_px within window_us is never refitted; max_window_us
     <= window_us is off: both bit-identical to the fixed window."""
     g = Geometry(40, 32)
     ev = moving_edge_events(100.0, 30.0, g, duration_us=400_000)
     kw = dict(variant=variant, window_us=40_000, refit_failed=False)
     ref = run_kernel(ev.x, ev.y, ev.t, ev.p, g.width, g.height, **kw)
     assert len(ref[0]) > 0 or variant == "original"
-    for extra in (dict(max_window_us=400_000, window_px=2.0), dict(max_window_us=40_000),
+    for extra in (dict(max_window_us=400_000, slow_px=2.0), dict(max_window_us=40_000),
                   dict(max_window_us=10_000, refit_failed=True)):
         got = run_kernel(ev.x, ev.y, ev.t, ev.p, g.width, g.height, **{**kw, **extra})
         for a, b in zip(ref, got, strict=True):

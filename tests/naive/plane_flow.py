@@ -141,13 +141,13 @@ def _estimate(ts, xi, yi, ti, pi, width, height, variant, r, window_us, min_poin
 def plane_flow_naive(x, y, t, p, width, height, variant="single", r=2, window_us=80_000,
                      refractory_us=0, margin=None, min_points=3, th1=1e-5, th2=0.01,
                      max_speed=1000.0, max_iter=10, min_spread=0.0,
-                     centre_check=False, max_window_us=0, window_px=2.0, refit_failed=True,
+                     centre_check=False, max_window_us=0, slow_px=2.0, refit_failed=True,
                      refractory_updates=True):
     """Returns (index, vx, vy) lists of the events that got flow.
 
     Adaptive window (``max_window_us`` > ``window_us``, not ``original``): while the fit says
-    the edge moved less than ``window_px`` px within the window w (|g| window_px > w), refit with
-    w = min(window_px |g|, max_window_us) if that is longer; with ``refit_failed`` a failed first
+    the edge moved less than ``slow_px`` px within the window w (|g| slow_px > w), refit with
+    w = min(slow_px |g|, max_window_us) if that is longer; with ``refit_failed`` a failed first
     fit is redone once with ``max_window_us``. Refits check the centre against th2 w / window_us.
     The last fit counts. ``refractory_updates`` false: refractory events do not touch the
     surface either.
@@ -176,7 +176,7 @@ def plane_flow_naive(x, y, t, p, width, height, variant="single", r=2, window_us
             w = window_us
             for _ in range(4):
                 if est is not None:
-                    want = window_px * 1e6 * math.sqrt(est[0] * est[0] + est[1] * est[1])
+                    want = slow_px * 1e6 * math.sqrt(est[0] * est[0] + est[1] * est[1])
                     if want <= w:
                         break
                     w_new = max_window_us if want >= max_window_us else int(want)
