@@ -244,42 +244,68 @@ def _cttz(typingctx, x):
 
 
 @njit(cache=True, error_model="numpy")
-def _newton_lockstep(u0, u1, lev, pa, pb, p0, p1, sv):
-    """``sv[q]``: ``NEWTON_LOCKSTEP`` plain Newton steps on crossing q's cubic from the linear
-    solution, for q in u0 .. u1-1. One loop over separate 1-D rows that writes only ``sv``:
-    numba's loop over rows of the 2-D ``piece``, updating ``sv`` in place once per step, did
-    not vectorise; this one does (vdivpd), with the same operations per value. The index is
-    unsigned: numba then emits no wraparound test per load (a negative index counting from
-    the end), which kept the loop scalar once inlined into ``_times`` (bar 1.07x)."""
+def _fractions(u0, u1, cubic, lev, pa, pb, p0, p1, sv):
+    """``sv[q]``: the fraction of the interval where crossing q (u0 <= q < u1) occurs, or -1
+    where the cubic needs the safeguarded solver.
+
+    Linear: the clipped linear solution. Cubic: ``NEWTON_LOCKSTEP`` plain Newton steps from
+    the linear solution, then one step with the error bound of ``solve_crossing``; -1 when it
+    fails the bound or leaves (0, 1). Levels outside [la, lb] clip to 0 or 1 as in
+    ``solve_crossing``. Branch-free over separate 1-D rows, writing only ``sv``, with an
+    unsigned index (numba then emits no wraparound test per load), so that it vectorises
+    (vdivpd) with the same operations per value as the scalar code: no crossing waits on
+    another's divisions. (Session 6: loops over rows of the 2-D ``piece`` updating a row in
+    place did not vectorise; session 7: the checked step moved here from a scalar loop.)
+    """
+    if not cubic:
+        for q in range(np.uint64(u0), np.uint64(u1)):
+            la = pa[q]
+            lb = pb[q]
+            s0 = (lev[q] - la) / (lb - la)
+            r = 1.0 if s0 >= 1.0 else s0
+            sv[q] = 0.0 if (lb == la) | (s0 <= 0.0) else r
+        return
     for q in range(np.uint64(u0), np.uint64(u1)):
         la = pa[q]
         lb = pb[q]
-        s = (lev[q] - la) / (lb - la)
+        s0 = (lev[q] - la) / (lb - la)
         d = lb - la
         m0 = p0[q]
         m1 = p1[q]
         c2 = 3.0 * d - 2.0 * m0 - m1
         c3 = m0 + m1 - 2.0 * d
         g = la - lev[q]
+        s = s0
         for _ in range(NEWTON_LOCKSTEP):
             f = g + s * (m0 + s * (c2 + s * c3))
             df = m0 + s * (2.0 * c2 + 3.0 * c3 * s)
             s = s - f / df
-        sv[q] = s
+        # the checked step
+        f = g + s * (m0 + s * (c2 + s * c3))
+        df = m0 + s * (2.0 * c2 + 3.0 * c3 * s)
+        st = f / df
+        sn = s - st
+        ast = abs(st)
+        ddf = 2.0 * c2 + 6.0 * c3 * s
+        bound = (abs(ddf) + 2.0 * abs(c3) * ast) * ast * ast
+        ok = (sn > 0.0) & (sn < 1.0) & (bound < 2.0 * SOLVE_TOL * abs(df))
+        r = sn if ok else -1.0
+        r = 1.0 if s0 >= 1.0 else r
+        sv[q] = 0.0 if (lb == la) | (s0 <= 0.0) else r
 
 
 @njit(cache=True, error_model="numpy")
 def _times(u0, u1, cubic, t0, dt, refractory_us, ui, utf, up_, piece, last_t):
-    """Times of the crossings ``u0 .. u1 - 1`` (``piece`` rows: level, la, lb, m0, m1; row 5
-    is scratch), then the refractory period; returns the new end of the event list.
+    """Times of the crossings ``u0 .. u1 - 1`` (``piece`` rows: level, la, lb, m0, m1, the
+    pixel's ``last_t`` when listed; row 5 is scratch), then the refractory period; returns the
+    new end of the event list.
 
-    Cubic: ``NEWTON_LOCKSTEP`` plain Newton steps from the linear solution run over all
-    crossings together (independent, branch-free, so they vectorise instead of waiting on one
-    division after another), then one step per crossing with the error bound of
-    ``solve_crossing``; a crossing that fails it (or leaves the interval) is solved again by
-    ``solve_crossing``. Events of one pixel are consecutive and in time order, so the
-    refractory test runs in list order. (numpy error model: a division by zero gives inf or
-    NaN, which the checked step rejects, instead of raising.)
+    The fractions come from ``_fractions`` (all crossings together); the few the cubic's
+    checked step rejects are solved again by ``solve_crossing``. Events of one pixel are
+    consecutive and in time order, so the refractory test runs in list order, against the
+    pixel's ``last_t`` copied into the list by the rule (its row is in the cache there, not
+    here) or the previous accepted event of the same pixel. (numpy error model: a division by
+    zero gives inf or NaN, which the checked step rejects, instead of raising.)
     """
     lev = piece[0]
     pa = piece[1]
@@ -287,39 +313,23 @@ def _times(u0, u1, cubic, t0, dt, refractory_us, ui, utf, up_, piece, last_t):
     p0 = piece[3]
     p1 = piece[4]
     sv = piece[5]
-    if cubic:
-        _newton_lockstep(u0, u1, lev, pa, pb, p0, p1, sv)
+    plast = piece[6]
+    _fractions(u0, u1, cubic, lev, pa, pb, p0, p1, sv)
     w = u0
+    prev = -1
+    last = 0.0
     for q in range(u0, u1):
-        la = pa[q]
-        lb = pb[q]
-        s = (lev[q] - la) / (lb - la)          # as in solve_crossing
-        if lb == la or s <= 0.0:
-            s = 0.0
-        elif s >= 1.0:
-            s = 1.0
-        elif cubic:
-            s = sv[q]
-            d = lb - la
-            m0 = p0[q]
-            m1 = p1[q]
-            c2 = 3.0 * d - 2.0 * m0 - m1
-            c3 = m0 + m1 - 2.0 * d
-            f = (la - lev[q]) + s * (m0 + s * (c2 + s * c3))
-            df = m0 + s * (2.0 * c2 + 3.0 * c3 * s)
-            st = f / df
-            sn = s - st
-            ast = abs(st)
-            ddf = 2.0 * c2 + 6.0 * c3 * s
-            bound = (abs(ddf) + 2.0 * abs(c3) * ast) * ast * ast
-            if 0.0 < sn < 1.0 and bound < 2.0 * SOLVE_TOL * abs(df):
-                s = sn
-            else:
-                s = solve_crossing(lev[q], la, lb, m0, m1, True)
+        s = sv[q]
+        if s < 0.0:
+            s = solve_crossing(lev[q], pa[q], pb[q], p0[q], p1[q], True)
         tf = t0 + s * dt
         i = ui[q]
-        if tf - last_t[i] < refractory_us:
+        if i != prev:
+            prev = i
+            last = plast[q]
+        if tf - last < refractory_us:
             continue
+        last = tf
         last_t[i] = tf
         ui[w] = i
         utf[w] = tf
@@ -339,8 +349,8 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
     [cubic], L of frames jg+1, jg+2 [cubic]) of the last interval jg in which the pixel was
     examined.
 
-    Crossings are listed first (``piece`` rows: level, la, lb, m0, m1) and timed together
-    by ``_times``, which also applies the refractory period.
+    Crossings are listed first (``piece`` rows: level, la, lb, m0, m1; row 6 the pixel's
+    ``last_t``) and timed together by ``_times``, which also applies the refractory period.
 
     Returns ``(u, resume, err, err_pixel)``: ``resume`` is -1 when done, else the pixel to
     restart from after growing the buffers. (numpy error model: every divisor here is a frame
@@ -498,6 +508,7 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
             piece[2, uu] = lb
             piece[3, uu] = m0
             piece[4, uu] = m1
+            piece[6, uu] = last_t[i]
             uu += 1
         u = uu
         n_on[i] = k_on
@@ -518,7 +529,7 @@ def new_scratch(npix, ucap):
     (fresh memory costs a page fault per 4 KiB, ~2.7 µs each on the benchmark machine)."""
     return (np.empty(npix, np.int64), np.empty(npix, np.float32), np.empty(npix, np.float32),
             np.empty(npix, np.float32), np.empty(ucap, np.int64), np.empty(ucap, np.float64),
-            np.empty(ucap, np.int8), np.empty(ucap, np.int64), np.empty((6, ucap)),
+            np.empty(ucap, np.int8), np.empty(ucap, np.int64), np.empty((7, ucap)),
             np.empty(ucap, np.int64), np.zeros(1, np.int64))
 
 
@@ -595,7 +606,7 @@ def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractor
                 utf = _grow(utf, u + nnoise + 1)
                 up_ = _grow(up_, u + nnoise + 1)
                 ub = _grow(ub, u + nnoise + 1)
-                grown = np.empty((6, ui.shape[0]))
+                grown = np.empty((piece.shape[0], ui.shape[0]))
                 grown[:, :piece.shape[1]] = piece
                 piece = grown
         for q in range(noise_off[k], noise_off[k + 1]):

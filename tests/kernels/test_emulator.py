@@ -214,8 +214,9 @@ def test_batched_times_match_bisection():
     rng = np.random.default_rng(5)
     lev, la, lb, m0, m1 = _pieces(rng, 4000)
     n = len(lev)
-    piece = np.empty((6, n))
+    piece = np.empty((7, n))
     piece[:5] = lev, la, lb, m0, m1
+    piece[6] = -1e300                     # the pixels' last_t, as the rule lists it
     for cubic in (True, False):
         ui = np.arange(n, dtype=np.int64)
         utf = np.empty(n)
