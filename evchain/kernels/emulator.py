@@ -55,6 +55,9 @@ PREFETCH_AHEAD = 1024
 SOLVE_TOL = 1e-13
 #: Newton steps run over all crossings of an interval together before the checked step
 NEWTON_LOCKSTEP = 2
+#: columns of a pixel's state row (``rows``: float64 [H*W, 16]; ``irows``: its int64 view):
+#: l0, c_on, c_off, r_on, r_off, e_ref, last_t, n_on, n_off (int64), the log cache (4 columns)
+S_L0, S_CON, S_COFF, S_RON, S_ROFF, S_EREF, S_LAST, S_NON, S_NOFF, S_LC = range(10)
 
 
 @njit(cache=True)
@@ -295,7 +298,7 @@ def _fractions(u0, u1, cubic, lev, pa, pb, p0, p1, sv):
 
 
 @njit(cache=True, error_model="numpy")
-def _times(u0, u1, cubic, t0, dt, refractory_us, ui, utf, up_, piece, last_t):
+def _times(u0, u1, cubic, t0, dt, refractory_us, ui, utf, up_, piece, rows):
     """Times of the crossings ``u0 .. u1 - 1`` (``piece`` rows: level, la, lb, m0, m1, the
     pixel's ``last_t`` when listed; row 5 is scratch), then the refractory period; returns the
     new end of the event list.
@@ -330,7 +333,7 @@ def _times(u0, u1, cubic, t0, dt, refractory_us, ui, utf, up_, piece, last_t):
         if tf - last < refractory_us:
             continue
         last = tf
-        last_t[i] = tf
+        rows[np.uint64(i), S_LAST] = tf
         ui[w] = i
         utf[w] = tf
         up_[w] = up_[q]
@@ -340,14 +343,17 @@ def _times(u0, u1, cubic, t0, dt, refractory_us, ui, utf, up_, piece, last_t):
 
 @njit(cache=True, error_model="numpy")
 def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, eps, tol,
-              k_hi, k_lo, refractory_us, cap, l0, n_on, n_off, c_on, c_off, r_on, r_off, e_ref,
-              hi, lo, last_t, lcache, jg, first, cand, g0, gm, gp, ui, utf, up_, piece, u):
+              k_hi, k_lo, refractory_us, cap, rows, irows, hi, lo, jg, first, cand, g0, gm, gp, ui,
+              utf, up_, piece, u):
     """Events of one frame interval for pixels ``first ..``, appended to ``ui`` (flat pixel
     index), ``utf``, ``up_`` from position ``u``. A pixel's state is committed only when all
     its events fit, so on a full buffer the call stops before that pixel. ``jg`` is the global
-    index of the interval (its first frame); ``lcache`` rows are (jg, slope at frame jg+1
-    [cubic], L of frames jg+1, jg+2 [cubic]) of the last interval jg in which the pixel was
-    examined.
+    index of the interval (its first frame); the log cache (row columns ``S_LC`` ..
+    ``S_LC + 3``) holds (jg, slope at frame jg+1 [cubic], L of frames jg+1, jg+2 [cubic]) of
+    the last interval jg in which the pixel was examined. The state is read through the 2-D
+    ``rows`` with an unsigned row index: one address computation per pixel for all fields
+    (strided 1-D views per field cost one multiply, a wraparound test and, with so many
+    arrays, stack reloads of their pointers and strides per access).
 
     Crossings are listed first (``piece`` rows: level, la, lb, m0, m1; row 6 the pixel's
     ``last_t``) and timed together by ``_times``, which also applies the refractory period.
@@ -410,38 +416,40 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
     touch = 0.0
     for k in range(nc):
         i = cand[k]
+        r = np.uint64(i)
         g0[k] = f0[i]
         gm[k] = fm[i]
         gp[k] = fp[i]
-        touch += l0[i] + lcache[i, 0]
+        touch += rows[r, S_L0] + rows[r, S_LC]
     if touch == 1e308:
         g0[0] = 0.0                      # never: keeps the loads
     # pass 3: the candidates' events
     for k in range(nc):
         i = cand[k]
+        r = np.uint64(i)                 # unsigned: no wraparound test per state access
         # logs of this pixel from the previous interval (frames jg-1 .. jg+1 when cubic,
         # jg-1 .. jg when linear): the same float64 values, computed once
-        cached = lcache[i, 0] == jm
+        cached = rows[r, S_LC] == jm
         if cached and cubic:
-            lb = lcache[i, 3]
+            lb = rows[r, S_LC + 3]
         else:
             lb = _logi(f1, i, eps)
-        con = c_on[i]
-        coff = c_off[i]
-        k_on = n_on[i]
-        k_off = n_off[i]
-        base = l0[i]
+        con = rows[r, S_CON]
+        coff = rows[r, S_COFF]
+        k_on = irows[r, S_NON]
+        k_off = irows[r, S_NOFF]
+        base = rows[r, S_L0]
         lev = base + ((k_on + 1) * con - k_off * coff)
         if lb < lev - tol:
             lev = base + (k_on * con - (k_off + 1) * coff)
             if lb > lev + tol:
                 # prefilter false alarm: refresh the gates exactly
                 e = np.exp(base + (k_on * con - k_off * coff))
-                e_ref[i] = e
-                hi[i], lo[i] = gates(e, r_on[i], r_off[i], eps, k_hi, k_lo)
+                rows[r, S_EREF] = e
+                hi[i], lo[i] = gates(e, rows[r, S_RON], rows[r, S_ROFF], eps, k_hi, k_lo)
                 continue
         if cached:
-            la = lcache[i, 2]
+            la = rows[r, S_LC + 2]
         else:
             la = _logi(g0, k, eps)
         m0 = lb - la
@@ -455,7 +463,7 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
                     # the slope at frame jg the previous interval computed as its end slope:
                     # the same operands (hprev here = its dt, dt here = its hnext), so the
                     # same bits
-                    da = lcache[i, 1]
+                    da = rows[r, S_LC + 1]
                 else:
                     lm = _logi(gm, k, eps)
                     if np.isfinite(lm):
@@ -464,20 +472,20 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
                 lp = _logi(gp, k, eps)
                 if np.isfinite(lp):
                     db = slope3(sec, (lp - lb) / hnext, dt, hnext)
-                lcache[i, 0] = jg
-                lcache[i, 1] = db
-                lcache[i, 2] = lb
-                lcache[i, 3] = lp
+                rows[r, S_LC] = jg
+                rows[r, S_LC + 1] = db
+                rows[r, S_LC + 2] = lb
+                rows[r, S_LC + 3] = lp
             else:
-                lcache[i, 0] = NO_CACHE
+                rows[r, S_LC] = NO_CACHE
             m0 = da * dt
             m1 = db * dt
         else:
-            lcache[i, 0] = jg
-            lcache[i, 2] = lb
-        e = e_ref[i]
-        ron = r_on[i]
-        roff = r_off[i]
+            rows[r, S_LC] = jg
+            rows[r, S_LC + 2] = lb
+        e = rows[r, S_EREF]
+        ron = rows[r, S_RON]
+        roff = rows[r, S_ROFF]
         uu = u
         count = 0
         while cap < 0 or count < cap:
@@ -500,7 +508,7 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
             if uu >= cap_u:
                 # pixel i not committed
                 return _times(u_in, u, cubic, t0, dt, refractory_us, ui, utf, up_,
-                              piece, last_t), i, ERR_NONE, 0
+                              piece, rows), i, ERR_NONE, 0
             ui[uu] = i
             up_[uu] = pol
             piece[0, uu] = lev
@@ -508,14 +516,14 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
             piece[2, uu] = lb
             piece[3, uu] = m0
             piece[4, uu] = m1
-            piece[6, uu] = last_t[i]
+            piece[6, uu] = rows[r, S_LAST]
             uu += 1
         u = uu
-        n_on[i] = k_on
-        n_off[i] = k_off
-        e_ref[i] = e
+        irows[r, S_NON] = k_on
+        irows[r, S_NOFF] = k_off
+        rows[r, S_EREF] = e
         hi[i], lo[i] = gates(e, ron, roff, eps, k_hi, k_lo)
-    u = _times(u_in, u, cubic, t0, dt, refractory_us, ui, utf, up_, piece, last_t)
+    u = _times(u_in, u, cubic, t0, dt, refractory_us, ui, utf, up_, piece, rows)
     if bad >= 0:
         v1 = f1[bad]
         return u, -1, (ERR_NONFINITE if not np.isfinite(v1) else ERR_NEGATIVE), bad
@@ -535,17 +543,17 @@ def new_scratch(npix, ucap):
 
 @njit(cache=True, nogil=True)    # renders of the scene source's threads go on meanwhile
 def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractory_us,
-            cap, l0, n_on, n_off, c_on, c_off, r_on, r_off, e_ref, hi, lo, last_t,
-            lcache, j_base, noise_off, noise_y, noise_x, noise_t, noise_p, cap_hint, carry,
-            keep_tf, scratch):
+            cap, rows, irows, hi, lo, j_base, noise_off, noise_y, noise_x, noise_t, noise_p,
+            cap_hint, carry, keep_tf, scratch):
     """Emit the events of frame intervals ``j_first .. j_last - 1`` (indices into the frame list
     ``held`` + ``cur`` whose times are ``times``; interval j runs from frame j to frame j + 1).
 
-    All ``[H, W]`` state arrays are passed flattened (1-D views); ``lcache`` is ``[H*W, 4]``
-    float64 (log values reused between consecutive intervals; column 0 = ``NO_CACHE``
-    initially) and ``j_base`` the global index of frame 0 of ``held``. ``total`` is the number of
-    frames known (look-ahead for the cubic; a missing neighbour falls back to the interval's
-    secant slope). Noise events of interval ``j_first + k`` are
+    The per-pixel state is ``rows`` (float64 ``[H*W, 16]``, columns ``S_*``; ``irows`` is its
+    int64 view for the counts) and the flat float32 gates ``hi``, ``lo``; the log cache
+    (columns ``S_LC`` ..; log values reused between consecutive intervals; ``NO_CACHE``
+    initially) is part of the row. ``j_base`` is the global index of frame 0 of ``held``.
+    ``total`` is the number of frames known (look-ahead for the cubic; a missing neighbour
+    falls back to the interval's secant slope). Noise events of interval ``j_first + k`` are
     ``noise_*[noise_off[k]:noise_off[k+1]]`` (times float µs). Events of each interval are
     ordered by rounded time (stable counting sort over the generation order: row, column, then
     time order at one pixel; noise last). The output starts with the events ``carry`` = (x, y,
@@ -595,8 +603,8 @@ def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractor
         while resume >= 0:
             u, resume, err, ep = _interval(
                 f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, eps, tol,
-                k_hi, k_lo, refractory_us, cap, l0, n_on, n_off, c_on, c_off, r_on, r_off,
-                e_ref, hi, lo, last_t, lcache, j_base + j, resume, cand, g0, gm, gp, ui, utf,
+                k_hi, k_lo, refractory_us, cap, rows, irows, hi, lo, j_base + j, resume, cand,
+                g0, gm, gp, ui, utf,
                 up_, piece, u)
             if err != ERR_NONE:
                 return (ox, oy, ot, otf, op, n, err, j + 1, ep // w, ep % w,
