@@ -318,10 +318,10 @@ def _times(u0, u1, cubic, t0, dt, refractory_us, ui, utf, up_, piece, rows):
     sv = piece[5]
     plast = piece[6]
     _fractions(u0, u1, cubic, lev, pa, pb, p0, p1, sv)
-    w = u0
+    w = np.uint64(u0)                      # unsigned indices: no wraparound tests
     prev = -1
     last = 0.0
-    for q in range(u0, u1):
+    for q in range(np.uint64(u0), np.uint64(u1)):
         s = sv[q]
         if s < 0.0:
             s = solve_crossing(lev[q], pa[q], pb[q], p0[q], p1[q], True)
@@ -337,8 +337,8 @@ def _times(u0, u1, cubic, t0, dt, refractory_us, ui, utf, up_, piece, rows):
         ui[w] = i
         utf[w] = tf
         up_[w] = up_[q]
-        w += 1
-    return w
+        w += np.uint64(1)
+    return np.int64(w)
 
 
 @njit(cache=True, error_model="numpy")
@@ -414,12 +414,11 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
     # loads are independent, so their cache misses overlap (one pass per interval instead of
     # one miss after another inside the event loop)
     touch = 0.0
-    for k in range(nc):
-        i = cand[k]
-        r = np.uint64(i)
-        g0[k] = f0[i]
-        gm[k] = fm[i]
-        gp[k] = fp[i]
+    for k in range(np.uint64(nc)):
+        r = np.uint64(cand[k])
+        g0[k] = f0[r]
+        gm[k] = fm[r]
+        gp[k] = fp[r]
         touch += rows[r, S_L0] + rows[r, S_LC]
     if touch == 1e308:
         g0[0] = 0.0                      # never: keeps the loads
@@ -446,7 +445,7 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
                 # prefilter false alarm: refresh the gates exactly
                 e = np.exp(base + (k_on * con - k_off * coff))
                 rows[r, S_EREF] = e
-                hi[i], lo[i] = gates(e, rows[r, S_RON], rows[r, S_ROFF], eps, k_hi, k_lo)
+                hi[r], lo[r] = gates(e, rows[r, S_RON], rows[r, S_ROFF], eps, k_hi, k_lo)
                 continue
         if cached:
             la = rows[r, S_LC + 2]
@@ -509,20 +508,21 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
                 # pixel i not committed
                 return _times(u_in, u, cubic, t0, dt, refractory_us, ui, utf, up_,
                               piece, rows), i, ERR_NONE, 0
-            ui[uu] = i
-            up_[uu] = pol
-            piece[0, uu] = lev
-            piece[1, uu] = la
-            piece[2, uu] = lb
-            piece[3, uu] = m0
-            piece[4, uu] = m1
-            piece[6, uu] = rows[r, S_LAST]
+            v = np.uint64(uu)
+            ui[v] = i
+            up_[v] = pol
+            piece[0, v] = lev
+            piece[1, v] = la
+            piece[2, v] = lb
+            piece[3, v] = m0
+            piece[4, v] = m1
+            piece[6, v] = rows[r, S_LAST]
             uu += 1
         u = uu
         irows[r, S_NON] = k_on
         irows[r, S_NOFF] = k_off
         rows[r, S_EREF] = e
-        hi[i], lo[i] = gates(e, ron, roff, eps, k_hi, k_lo)
+        hi[r], lo[r] = gates(e, ron, roff, eps, k_hi, k_lo)
     u = _times(u_in, u, cubic, t0, dt, refractory_us, ui, utf, up_, piece, rows)
     if bad >= 0:
         v1 = f1[bad]
@@ -653,9 +653,9 @@ def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractor
                 buckets[b] += 1
         else:
             perm = np.argsort(ub[:u], kind="mergesort")
-        for r in range(u):
-            q = perm[r]
-            pos = n + r
+        for r in range(np.uint64(u)):        # unsigned indices: no wraparound tests
+            q = np.uint64(perm[r])
+            pos = np.uint64(n) + r
             yy = ui[q] // w
             ox[pos] = ui[q] - yy * w
             oy[pos] = yy
