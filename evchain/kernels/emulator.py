@@ -4,7 +4,9 @@ Per pixel state (all ``[H, W]``): ``l0`` (float64 log level of the first frame),
 ``n_off`` (int64 counts of reference moves), ``c_on``, ``c_off`` (float64 thresholds in natural
 log units), ``last_t`` (float64 µs of the last emitted event, for the refractory period),
 ``e_ref`` (float64 exp of the reference, kept by multiplication), ``r_on = exp(c_on)``,
-``r_off = exp(-c_off)`` and the float32 intensity gates ``hi``/``lo``. The reference level is always
+``r_off = exp(-c_off)`` and the float32 intensity gates ``hi``/``lo``; all but the gates are
+columns ``S_*`` of one 128-byte row per pixel, which ``emulate`` reads as the 2-D ``rows``
+(``irows``: its int64 view for the counts). The reference level is always
 recomputed from the integer state, ``L_ref = l0 + (n_on*c_on - n_off*c_off)``, so it never
 drifts.
 
