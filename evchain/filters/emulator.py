@@ -120,14 +120,17 @@ class Emulator(Filter):
         aos = buf[off:off + npix * ROW].reshape(npix, ROW)
         counts = aos.view(np.int64)
         st = {
-            "l0": aos[:, 0], "c_on": aos[:, 1], "c_off": aos[:, 2], "r_on": aos[:, 3],
-            "r_off": aos[:, 4], "e_ref": aos[:, 5], "last_t": aos[:, 6],
-            "n_on": counts[:, 7], "n_off": counts[:, 8],
+            "l0": aos[:, K.S_L0], "c_on": aos[:, K.S_CON], "c_off": aos[:, K.S_COFF],
+            "r_on": aos[:, K.S_RON], "r_off": aos[:, K.S_ROFF], "e_ref": aos[:, K.S_EREF],
+            "last_t": aos[:, K.S_LAST], "n_on": counts[:, K.S_NON], "n_off": counts[:, K.S_NOFF],
             "hi": np.zeros(npix, np.float32), "lo": np.zeros(npix, np.float32),
         }
         # log cache: (interval j, slope at frame j+1, L of frames j+1, j+2), see
         # kernels/emulator.py
-        self._lcache = aos[:, 9:13]
+        self._lcache = aos[:, K.S_LC:K.S_LC + 4]
+        # the kernel reads the rows whole (one 2-D array: one address computation per pixel
+        # for all fields, instead of one per strided view)
+        self._rows, self._irows = aos, counts
         first = np.ascontiguousarray(frames[0], dtype=np.float32)
         s2 = {k: v.reshape(h, w) for k, v in st.items()}
         err, y, x = K.init_state(first, eps, self.params.tie_tolerance, con, coff, s2["l0"],
@@ -233,10 +236,8 @@ class Emulator(Filter):
             carry = (cx, cy, ct, ctf, cp)
         x, y, tt, tf, pol, n, err, ef, ey, ex, self._scratch = K.emulate(
             self._held, frames, times, j0, j1, total, cubic, self._eps, p.tie_tolerance,
-            float(p.refractory_us), cap, st["l0"], st["n_on"], st["n_off"], st["c_on"],
-            st["c_off"], st["r_on"], st["r_off"], st["e_ref"], st["hi"], st["lo"],
-            st["last_t"], self._lcache, base, *nf, self._cap_hint, carry, keep_tf,
-            self._scratch)
+            float(p.refractory_us), cap, self._rows, self._irows, st["hi"], st["lo"], base,
+            *nf, self._cap_hint, carry, keep_tf, self._scratch)
         if err:
             self._raise_pixel(err, packet, ef - nh, ey, ex)
         self._cap_hint = max(4096, int((n - len(carry[0])) * 1.25))

@@ -4,7 +4,9 @@ Per pixel state (all ``[H, W]``): ``l0`` (float64 log level of the first frame),
 ``n_off`` (int64 counts of reference moves), ``c_on``, ``c_off`` (float64 thresholds in natural
 log units), ``last_t`` (float64 µs of the last emitted event, for the refractory period),
 ``e_ref`` (float64 exp of the reference, kept by multiplication), ``r_on = exp(c_on)``,
-``r_off = exp(-c_off)`` and the float32 intensity gates ``hi``/``lo``. The reference level is always
+``r_off = exp(-c_off)`` and the float32 intensity gates ``hi``/``lo``; all but the gates are
+columns ``S_*`` of one 128-byte row per pixel, which ``emulate`` reads as the 2-D ``rows``
+(``irows``: its int64 view for the counts). The reference level is always
 recomputed from the integer state, ``L_ref = l0 + (n_on*c_on - n_off*c_off)``, so it never
 drifts.
 
@@ -55,6 +57,9 @@ PREFETCH_AHEAD = 1024
 SOLVE_TOL = 1e-13
 #: Newton steps run over all crossings of an interval together before the checked step
 NEWTON_LOCKSTEP = 2
+#: columns of a pixel's state row (``rows``: float64 [H*W, 16]; ``irows``: its int64 view):
+#: l0, c_on, c_off, r_on, r_off, e_ref, last_t, n_on, n_off (int64), the log cache (4 columns)
+S_L0, S_CON, S_COFF, S_RON, S_ROFF, S_EREF, S_LAST, S_NON, S_NOFF, S_LC = range(10)
 
 
 @njit(cache=True)
@@ -244,42 +249,68 @@ def _cttz(typingctx, x):
 
 
 @njit(cache=True, error_model="numpy")
-def _newton_lockstep(u0, u1, lev, pa, pb, p0, p1, sv):
-    """``sv[q]``: ``NEWTON_LOCKSTEP`` plain Newton steps on crossing q's cubic from the linear
-    solution, for q in u0 .. u1-1. One loop over separate 1-D rows that writes only ``sv``:
-    numba's loop over rows of the 2-D ``piece``, updating ``sv`` in place once per step, did
-    not vectorise; this one does (vdivpd), with the same operations per value. The index is
-    unsigned: numba then emits no wraparound test per load (a negative index counting from
-    the end), which kept the loop scalar once inlined into ``_times`` (bar 1.07x)."""
+def _fractions(u0, u1, cubic, lev, pa, pb, p0, p1, sv):
+    """``sv[q]``: the fraction of the interval where crossing q (u0 <= q < u1) occurs, or -1
+    where the cubic needs the safeguarded solver.
+
+    Linear: the clipped linear solution. Cubic: ``NEWTON_LOCKSTEP`` plain Newton steps from
+    the linear solution, then one step with the error bound of ``solve_crossing``; -1 when it
+    fails the bound or leaves (0, 1). Levels outside [la, lb] clip to 0 or 1 as in
+    ``solve_crossing``. Branch-free over separate 1-D rows, writing only ``sv``, with an
+    unsigned index (numba then emits no wraparound test per load), so that it vectorises
+    (vdivpd) with the same operations per value as the scalar code: no crossing waits on
+    another's divisions. (Session 6: loops over rows of the 2-D ``piece`` updating a row in
+    place did not vectorise; session 7: the checked step moved here from a scalar loop.)
+    """
+    if not cubic:
+        for q in range(np.uint64(u0), np.uint64(u1)):
+            la = pa[q]
+            lb = pb[q]
+            s0 = (lev[q] - la) / (lb - la)
+            r = 1.0 if s0 >= 1.0 else s0
+            sv[q] = 0.0 if (lb == la) | (s0 <= 0.0) else r
+        return
     for q in range(np.uint64(u0), np.uint64(u1)):
         la = pa[q]
         lb = pb[q]
-        s = (lev[q] - la) / (lb - la)
+        s0 = (lev[q] - la) / (lb - la)
         d = lb - la
         m0 = p0[q]
         m1 = p1[q]
         c2 = 3.0 * d - 2.0 * m0 - m1
         c3 = m0 + m1 - 2.0 * d
         g = la - lev[q]
+        s = s0
         for _ in range(NEWTON_LOCKSTEP):
             f = g + s * (m0 + s * (c2 + s * c3))
             df = m0 + s * (2.0 * c2 + 3.0 * c3 * s)
             s = s - f / df
-        sv[q] = s
+        # the checked step
+        f = g + s * (m0 + s * (c2 + s * c3))
+        df = m0 + s * (2.0 * c2 + 3.0 * c3 * s)
+        st = f / df
+        sn = s - st
+        ast = abs(st)
+        ddf = 2.0 * c2 + 6.0 * c3 * s
+        bound = (abs(ddf) + 2.0 * abs(c3) * ast) * ast * ast
+        ok = (sn > 0.0) & (sn < 1.0) & (bound < 2.0 * SOLVE_TOL * abs(df))
+        r = sn if ok else -1.0
+        r = 1.0 if s0 >= 1.0 else r
+        sv[q] = 0.0 if (lb == la) | (s0 <= 0.0) else r
 
 
 @njit(cache=True, error_model="numpy")
-def _times(u0, u1, cubic, t0, dt, refractory_us, ui, utf, up_, piece, last_t):
-    """Times of the crossings ``u0 .. u1 - 1`` (``piece`` rows: level, la, lb, m0, m1; row 5
-    is scratch), then the refractory period; returns the new end of the event list.
+def _times(u0, u1, cubic, t0, dt, refractory_us, ui, utf, up_, piece, rows):
+    """Times of the crossings ``u0 .. u1 - 1`` (``piece`` rows: level, la, lb, m0, m1, the
+    pixel's ``last_t`` when listed; row 5 is scratch), then the refractory period; returns the
+    new end of the event list.
 
-    Cubic: ``NEWTON_LOCKSTEP`` plain Newton steps from the linear solution run over all
-    crossings together (independent, branch-free, so they vectorise instead of waiting on one
-    division after another), then one step per crossing with the error bound of
-    ``solve_crossing``; a crossing that fails it (or leaves the interval) is solved again by
-    ``solve_crossing``. Events of one pixel are consecutive and in time order, so the
-    refractory test runs in list order. (numpy error model: a division by zero gives inf or
-    NaN, which the checked step rejects, instead of raising.)
+    The fractions come from ``_fractions`` (all crossings together); the few the cubic's
+    checked step rejects are solved again by ``solve_crossing``. Events of one pixel are
+    consecutive and in time order, so the refractory test runs in list order, against the
+    pixel's ``last_t`` copied into the list by the rule (its row is in the cache there, not
+    here) or the previous accepted event of the same pixel. (numpy error model: a division by
+    zero gives inf or NaN, which the checked step rejects, instead of raising.)
     """
     lev = piece[0]
     pa = piece[1]
@@ -287,60 +318,47 @@ def _times(u0, u1, cubic, t0, dt, refractory_us, ui, utf, up_, piece, last_t):
     p0 = piece[3]
     p1 = piece[4]
     sv = piece[5]
-    if cubic:
-        _newton_lockstep(u0, u1, lev, pa, pb, p0, p1, sv)
-    w = u0
-    for q in range(u0, u1):
-        la = pa[q]
-        lb = pb[q]
-        s = (lev[q] - la) / (lb - la)          # as in solve_crossing
-        if lb == la or s <= 0.0:
-            s = 0.0
-        elif s >= 1.0:
-            s = 1.0
-        elif cubic:
-            s = sv[q]
-            d = lb - la
-            m0 = p0[q]
-            m1 = p1[q]
-            c2 = 3.0 * d - 2.0 * m0 - m1
-            c3 = m0 + m1 - 2.0 * d
-            f = (la - lev[q]) + s * (m0 + s * (c2 + s * c3))
-            df = m0 + s * (2.0 * c2 + 3.0 * c3 * s)
-            st = f / df
-            sn = s - st
-            ast = abs(st)
-            ddf = 2.0 * c2 + 6.0 * c3 * s
-            bound = (abs(ddf) + 2.0 * abs(c3) * ast) * ast * ast
-            if 0.0 < sn < 1.0 and bound < 2.0 * SOLVE_TOL * abs(df):
-                s = sn
-            else:
-                s = solve_crossing(lev[q], la, lb, m0, m1, True)
+    plast = piece[6]
+    _fractions(u0, u1, cubic, lev, pa, pb, p0, p1, sv)
+    w = np.uint64(u0)                      # unsigned indices: no wraparound tests
+    prev = -1
+    last = 0.0
+    for q in range(np.uint64(u0), np.uint64(u1)):
+        s = sv[q]
+        if s < 0.0:
+            s = solve_crossing(lev[q], pa[q], pb[q], p0[q], p1[q], True)
         tf = t0 + s * dt
         i = ui[q]
-        if tf - last_t[i] < refractory_us:
+        if i != prev:
+            prev = i
+            last = plast[q]
+        if tf - last < refractory_us:
             continue
-        last_t[i] = tf
+        last = tf
+        rows[np.uint64(i), S_LAST] = tf
         ui[w] = i
         utf[w] = tf
         up_[w] = up_[q]
-        w += 1
-    return w
+        w += np.uint64(1)
+    return np.int64(w)
 
 
 @njit(cache=True, error_model="numpy")
 def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, eps, tol,
-              k_hi, k_lo, refractory_us, cap, l0, n_on, n_off, c_on, c_off, r_on, r_off, e_ref,
-              hi, lo, last_t, lcache, jg, first, cand, g0, gm, gp, ui, utf, up_, piece, u):
+              k_hi, k_lo, refractory_us, cap, rows, irows, hi, lo, jg, first, cand, g0, gm, gp, ui,
+              utf, up_, piece, u):
     """Events of one frame interval for pixels ``first ..``, appended to ``ui`` (flat pixel
     index), ``utf``, ``up_`` from position ``u``. A pixel's state is committed only when all
     its events fit, so on a full buffer the call stops before that pixel. ``jg`` is the global
-    index of the interval (its first frame); ``lcache`` rows are (jg, slope at frame jg+1
-    [cubic], L of frames jg+1, jg+2 [cubic]) of the last interval jg in which the pixel was
-    examined.
+    index of the interval (its first frame); the log cache (row columns ``S_LC`` ..
+    ``S_LC + 3``) holds (jg, slope at frame jg+1 [cubic], L of frames jg+1, jg+2 [cubic]) of
+    the last interval jg in which the pixel was examined. The state is read through the 2-D
+    ``rows`` with an unsigned row index: one address computation per pixel for all fields
+    (strided 1-D views per field cost one multiply, a wraparound test and, with so many
+    arrays, stack reloads of their pointers and strides per access).
 
-    Crossings are listed first (``piece`` rows: level, la, lb, m0, m1) and timed together
-    by ``_times``, which also applies the refractory period.
+    Crossings are listed first (``piece`` rows: level, la, lb, m0, m1; row 6 the pixel's
+    ``last_t``) and timed together by ``_times``, which also applies the refractory period.
 
     Returns ``(u, resume, err, err_pixel)``: ``resume`` is -1 when done, else the pixel to
     restart from after growing the buffers. (numpy error model: every divisor here is a frame
@@ -398,40 +416,41 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
     # loads are independent, so their cache misses overlap (one pass per interval instead of
     # one miss after another inside the event loop)
     touch = 0.0
-    for k in range(nc):
-        i = cand[k]
-        g0[k] = f0[i]
-        gm[k] = fm[i]
-        gp[k] = fp[i]
-        touch += l0[i] + lcache[i, 0]
+    for k in range(np.uint64(nc)):
+        r = np.uint64(cand[k])
+        g0[k] = f0[r]
+        gm[k] = fm[r]
+        gp[k] = fp[r]
+        touch += rows[r, S_L0] + rows[r, S_LC]
     if touch == 1e308:
         g0[0] = 0.0                      # never: keeps the loads
     # pass 3: the candidates' events
     for k in range(nc):
         i = cand[k]
+        r = np.uint64(i)                 # unsigned: no wraparound test per state access
         # logs of this pixel from the previous interval (frames jg-1 .. jg+1 when cubic,
         # jg-1 .. jg when linear): the same float64 values, computed once
-        cached = lcache[i, 0] == jm
+        cached = rows[r, S_LC] == jm
         if cached and cubic:
-            lb = lcache[i, 3]
+            lb = rows[r, S_LC + 3]
         else:
             lb = _logi(f1, i, eps)
-        con = c_on[i]
-        coff = c_off[i]
-        k_on = n_on[i]
-        k_off = n_off[i]
-        base = l0[i]
+        con = rows[r, S_CON]
+        coff = rows[r, S_COFF]
+        k_on = irows[r, S_NON]
+        k_off = irows[r, S_NOFF]
+        base = rows[r, S_L0]
         lev = base + ((k_on + 1) * con - k_off * coff)
         if lb < lev - tol:
             lev = base + (k_on * con - (k_off + 1) * coff)
             if lb > lev + tol:
                 # prefilter false alarm: refresh the gates exactly
                 e = np.exp(base + (k_on * con - k_off * coff))
-                e_ref[i] = e
-                hi[i], lo[i] = gates(e, r_on[i], r_off[i], eps, k_hi, k_lo)
+                rows[r, S_EREF] = e
+                hi[r], lo[r] = gates(e, rows[r, S_RON], rows[r, S_ROFF], eps, k_hi, k_lo)
                 continue
         if cached:
-            la = lcache[i, 2]
+            la = rows[r, S_LC + 2]
         else:
             la = _logi(g0, k, eps)
         m0 = lb - la
@@ -445,7 +464,7 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
                     # the slope at frame jg the previous interval computed as its end slope:
                     # the same operands (hprev here = its dt, dt here = its hnext), so the
                     # same bits
-                    da = lcache[i, 1]
+                    da = rows[r, S_LC + 1]
                 else:
                     lm = _logi(gm, k, eps)
                     if np.isfinite(lm):
@@ -454,20 +473,20 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
                 lp = _logi(gp, k, eps)
                 if np.isfinite(lp):
                     db = slope3(sec, (lp - lb) / hnext, dt, hnext)
-                lcache[i, 0] = jg
-                lcache[i, 1] = db
-                lcache[i, 2] = lb
-                lcache[i, 3] = lp
+                rows[r, S_LC] = jg
+                rows[r, S_LC + 1] = db
+                rows[r, S_LC + 2] = lb
+                rows[r, S_LC + 3] = lp
             else:
-                lcache[i, 0] = NO_CACHE
+                rows[r, S_LC] = NO_CACHE
             m0 = da * dt
             m1 = db * dt
         else:
-            lcache[i, 0] = jg
-            lcache[i, 2] = lb
-        e = e_ref[i]
-        ron = r_on[i]
-        roff = r_off[i]
+            rows[r, S_LC] = jg
+            rows[r, S_LC + 2] = lb
+        e = rows[r, S_EREF]
+        ron = rows[r, S_RON]
+        roff = rows[r, S_ROFF]
         uu = u
         count = 0
         while cap < 0 or count < cap:
@@ -490,21 +509,23 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
             if uu >= cap_u:
                 # pixel i not committed
                 return _times(u_in, u, cubic, t0, dt, refractory_us, ui, utf, up_,
-                              piece, last_t), i, ERR_NONE, 0
-            ui[uu] = i
-            up_[uu] = pol
-            piece[0, uu] = lev
-            piece[1, uu] = la
-            piece[2, uu] = lb
-            piece[3, uu] = m0
-            piece[4, uu] = m1
+                              piece, rows), i, ERR_NONE, 0
+            v = np.uint64(uu)
+            ui[v] = i
+            up_[v] = pol
+            piece[0, v] = lev
+            piece[1, v] = la
+            piece[2, v] = lb
+            piece[3, v] = m0
+            piece[4, v] = m1
+            piece[6, v] = rows[r, S_LAST]
             uu += 1
         u = uu
-        n_on[i] = k_on
-        n_off[i] = k_off
-        e_ref[i] = e
-        hi[i], lo[i] = gates(e, ron, roff, eps, k_hi, k_lo)
-    u = _times(u_in, u, cubic, t0, dt, refractory_us, ui, utf, up_, piece, last_t)
+        irows[r, S_NON] = k_on
+        irows[r, S_NOFF] = k_off
+        rows[r, S_EREF] = e
+        hi[r], lo[r] = gates(e, ron, roff, eps, k_hi, k_lo)
+    u = _times(u_in, u, cubic, t0, dt, refractory_us, ui, utf, up_, piece, rows)
     if bad >= 0:
         v1 = f1[bad]
         return u, -1, (ERR_NONFINITE if not np.isfinite(v1) else ERR_NEGATIVE), bad
@@ -518,23 +539,23 @@ def new_scratch(npix, ucap):
     (fresh memory costs a page fault per 4 KiB, ~2.7 µs each on the benchmark machine)."""
     return (np.empty(npix, np.int64), np.empty(npix, np.float32), np.empty(npix, np.float32),
             np.empty(npix, np.float32), np.empty(ucap, np.int64), np.empty(ucap, np.float64),
-            np.empty(ucap, np.int8), np.empty(ucap, np.int64), np.empty((6, ucap)),
+            np.empty(ucap, np.int8), np.empty(ucap, np.int64), np.empty((7, ucap)),
             np.empty(ucap, np.int64), np.zeros(1, np.int64))
 
 
 @njit(cache=True, nogil=True)    # renders of the scene source's threads go on meanwhile
 def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractory_us,
-            cap, l0, n_on, n_off, c_on, c_off, r_on, r_off, e_ref, hi, lo, last_t,
-            lcache, j_base, noise_off, noise_y, noise_x, noise_t, noise_p, cap_hint, carry,
-            keep_tf, scratch):
+            cap, rows, irows, hi, lo, j_base, noise_off, noise_y, noise_x, noise_t, noise_p,
+            cap_hint, carry, keep_tf, scratch):
     """Emit the events of frame intervals ``j_first .. j_last - 1`` (indices into the frame list
     ``held`` + ``cur`` whose times are ``times``; interval j runs from frame j to frame j + 1).
 
-    All ``[H, W]`` state arrays are passed flattened (1-D views); ``lcache`` is ``[H*W, 4]``
-    float64 (log values reused between consecutive intervals; column 0 = ``NO_CACHE``
-    initially) and ``j_base`` the global index of frame 0 of ``held``. ``total`` is the number of
-    frames known (look-ahead for the cubic; a missing neighbour falls back to the interval's
-    secant slope). Noise events of interval ``j_first + k`` are
+    The per-pixel state is ``rows`` (float64 ``[H*W, 16]``, columns ``S_*``; ``irows`` is its
+    int64 view for the counts) and the flat float32 gates ``hi``, ``lo``; the log cache
+    (columns ``S_LC`` ..; log values reused between consecutive intervals; ``NO_CACHE``
+    initially) is part of the row. ``j_base`` is the global index of frame 0 of ``held``.
+    ``total`` is the number of frames known (look-ahead for the cubic; a missing neighbour
+    falls back to the interval's secant slope). Noise events of interval ``j_first + k`` are
     ``noise_*[noise_off[k]:noise_off[k+1]]`` (times float µs). Events of each interval are
     ordered by rounded time (stable counting sort over the generation order: row, column, then
     time order at one pixel; noise last). The output starts with the events ``carry`` = (x, y,
@@ -584,8 +605,8 @@ def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractor
         while resume >= 0:
             u, resume, err, ep = _interval(
                 f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, eps, tol,
-                k_hi, k_lo, refractory_us, cap, l0, n_on, n_off, c_on, c_off, r_on, r_off,
-                e_ref, hi, lo, last_t, lcache, j_base + j, resume, cand, g0, gm, gp, ui, utf,
+                k_hi, k_lo, refractory_us, cap, rows, irows, hi, lo, j_base + j, resume, cand,
+                g0, gm, gp, ui, utf,
                 up_, piece, u)
             if err != ERR_NONE:
                 return (ox, oy, ot, otf, op, n, err, j + 1, ep // w, ep % w,
@@ -595,7 +616,7 @@ def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractor
                 utf = _grow(utf, u + nnoise + 1)
                 up_ = _grow(up_, u + nnoise + 1)
                 ub = _grow(ub, u + nnoise + 1)
-                grown = np.empty((6, ui.shape[0]))
+                grown = np.empty((piece.shape[0], ui.shape[0]))
                 grown[:, :piece.shape[1]] = piece
                 piece = grown
         for q in range(noise_off[k], noise_off[k + 1]):
@@ -634,9 +655,9 @@ def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractor
                 buckets[b] += 1
         else:
             perm = np.argsort(ub[:u], kind="mergesort")
-        for r in range(u):
-            q = perm[r]
-            pos = n + r
+        for r in range(np.uint64(u)):        # unsigned indices: no wraparound tests
+            q = np.uint64(perm[r])
+            pos = np.uint64(n) + r
             yy = ui[q] // w
             ox[pos] = ui[q] - yy * w
             oy[pos] = yy

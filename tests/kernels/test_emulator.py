@@ -208,20 +208,23 @@ def test_many_crossings_in_one_interval_match_naive(interpolation):
 
 def test_batched_times_match_bisection():
     # _times (lockstep Newton over all crossings, checked step, fallback) against bisection
-    from evchain.kernels.emulator import _times
+    from evchain.kernels.emulator import S_LAST, _times
     from tests.naive.emulator import _hermite, _solve
 
     rng = np.random.default_rng(5)
     lev, la, lb, m0, m1 = _pieces(rng, 4000)
     n = len(lev)
-    piece = np.empty((6, n))
+    piece = np.empty((7, n))
     piece[:5] = lev, la, lb, m0, m1
+    piece[6] = -1e300                     # the pixels' last_t, as the rule lists it
     for cubic in (True, False):
         ui = np.arange(n, dtype=np.int64)
         utf = np.empty(n)
         up_ = np.ones(n, np.int8)
-        last_t = np.full(n, -1e300)
-        assert _times(0, n, cubic, 0.0, 1.0, 0.0, ui, utf, up_, piece.copy(), last_t) == n
+        rows = np.zeros((n, 16))              # the pixels' state rows (only last_t used)
+        rows[:, S_LAST] = -1e300
+        assert _times(0, n, cubic, 0.0, 1.0, 0.0, ui, utf, up_, piece.copy(), rows) == n
+        assert np.array_equal(rows[:, S_LAST], utf)
         worst = 0.0
         for q in range(n):
             ref = _solve(lev[q], la[q], lb[q], m0[q], m1[q], cubic)
