@@ -39,6 +39,9 @@ from numba import njit, types
 from numba.extending import intrinsic
 
 RENORM_EXPONENT = 40.0
+#: the disc around A that decides which votes cover all of A, none or part, and which rows
+#: (columns) a boundary crosses: A's radius plus this (A's cells lie inside A's radius)
+MARGIN_PX = 0.5
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -52,11 +55,7 @@ def _first_out(a, b, yy, px, py, vx, vy, slope):
     """Row yy, cells a..b, vx > 0 (the half-plane is qx < bound): the first cell outside,
     clipped to [a, b + 1]. Computed directly; fixed up with the exact test of the brute force
     only when the boundary lies within 1e-9 of a cell centre."""
-    bound = px + (py - yy) * slope
-    if bound > b + 1.0:
-        return b + 1
-    if bound < a - 1.0:
-        return a
+    bound = min(max(px + (py - yy) * slope, a - 0.5), b + 1.5)
     k = int(math.ceil(bound))
     if abs(bound - math.floor(bound + 0.5)) < 1e-9 * (1.0 + abs(bound)):
         while k <= b and _cond(px, py, vx, vy, float(k), yy):
@@ -70,11 +69,7 @@ def _first_out(a, b, yy, px, py, vx, vy, slope):
 def _first_in(a, b, yy, px, py, vx, vy, slope):
     """Row yy, cells a..b, vx < 0 (the half-plane is qx > bound): the first cell inside,
     clipped to [a, b + 1]."""
-    bound = px + (py - yy) * slope
-    if bound < a - 1.0:
-        return a
-    if bound > b + 1.0:
-        return b + 1
+    bound = min(max(px + (py - yy) * slope, a - 1.5), b + 0.5)
     k = int(math.floor(bound)) + 1
     if abs(bound - math.floor(bound + 0.5)) < 1e-9 * (1.0 + abs(bound)):
         while k - 1 >= a and _cond(px, py, vx, vy, float(k - 1), yy):
@@ -87,11 +82,7 @@ def _first_in(a, b, yy, px, py, vx, vy, slope):
 @njit(cache=True, error_model="numpy", inline="always")
 def _first_out_t(a, b, xx, px, py, vx, vy, slope):
     """Column xx, rows a..b, vy > 0 (qy < bound): the first row outside, in [a, b + 1]."""
-    bound = py + (px - xx) * slope
-    if bound > b + 1.0:
-        return b + 1
-    if bound < a - 1.0:
-        return a
+    bound = min(max(py + (px - xx) * slope, a - 0.5), b + 1.5)
     k = int(math.ceil(bound))
     if abs(bound - math.floor(bound + 0.5)) < 1e-9 * (1.0 + abs(bound)):
         while k <= b and _cond(px, py, vx, vy, xx, float(k)):
@@ -104,11 +95,7 @@ def _first_out_t(a, b, xx, px, py, vx, vy, slope):
 @njit(cache=True, error_model="numpy", inline="always")
 def _first_in_t(a, b, xx, px, py, vx, vy, slope):
     """Column xx, rows a..b, vy < 0 (qy > bound): the first row inside, in [a, b + 1]."""
-    bound = py + (px - xx) * slope
-    if bound < a - 1.0:
-        return a
-    if bound > b + 1.0:
-        return b + 1
+    bound = min(max(py + (px - xx) * slope, a - 1.5), b + 0.5)
     k = int(math.floor(bound)) + 1
     if abs(bound - math.floor(bound + 0.5)) < 1e-9 * (1.0 + abs(bound)):
         while k - 1 >= a and _cond(px, py, vx, vy, xx, float(k - 1)):
@@ -366,7 +353,8 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, bounds_r, bounds_c, m
     speed_w0 = cst[7]
     ccx = cst[8]
     ccy = cst[9]
-    crad = cst[10]
+    rr = cst[10] + MARGIN_PX
+    rr2 = rr * rr
     x0 = np.int64(cst[11])
     y0 = np.int64(cst[12])
     n_out = 0
@@ -381,6 +369,8 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, bounds_r, bounds_c, m
     whole = fst[0]
     total = fst[4]
     wpart = fst[5]
+    t_w = t_ref - 1  # w_t = the weight of a vote at time t_w
+    w_t = math.exp((t_w - t_ref) / tau_us)
     i = 0
     while True:
         t_next = t[i] if i < n else t_end
@@ -430,57 +420,56 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, bounds_r, bounds_c, m
                     ok = cg >= cos_gate
             if ok:
                 ti = t[i]
-                e = (ti - t_ref) / tau_us
-                if e > RENORM_EXPONENT:
-                    s = math.exp(-e)
-                    # element loops: array expressions here put refcount operations into
-                    # every iteration of the event loop (measured: 6x slower overall)
-                    for a in range(diffR.shape[0]):
-                        for b in range(diffR.shape[1]):
-                            diffR[a, b] *= s
-                    for a in range(constR.shape[0]):
-                        constR[a] *= s
-                    for a in range(diffC.shape[0]):
-                        for b in range(diffC.shape[1]):
-                            diffC[a, b] *= s
-                    for a in range(constC.shape[0]):
-                        constC[a] *= s
-                    whole *= s
-                    fst[3] *= s
-                    total *= s
-                    wpart *= s
-                    for a in range(rst.shape[0]):
-                        rst[a, 4] = 0.0
-                    t_ref = ti
-                    e = 0.0
-                w = math.exp(e)
+                if ti != t_w:  # most flow events share their time with the one before: same w
+                    e = (ti - t_ref) / tau_us
+                    if e > RENORM_EXPONENT:
+                        s = math.exp(-e)
+                        # element loops: array expressions here put refcount operations into
+                        # every iteration of the event loop (measured: 6x slower overall)
+                        for a in range(diffR.shape[0]):
+                            for b in range(diffR.shape[1]):
+                                diffR[a, b] *= s
+                        for a in range(constR.shape[0]):
+                            constR[a] *= s
+                        for a in range(diffC.shape[0]):
+                            for b in range(diffC.shape[1]):
+                                diffC[a, b] *= s
+                        for a in range(constC.shape[0]):
+                            constC[a] *= s
+                        whole *= s
+                        fst[3] *= s
+                        total *= s
+                        wpart *= s
+                        for a in range(rst.shape[0]):
+                            rst[a, 4] = 0.0
+                        t_ref = ti
+                        e = 0.0
+                    w_t = math.exp(e)
+                    t_w = ti
+                w = w_t
                 if speed_w0 > 0.0:  # tight constraints (slow normal flow) weigh more
                     w *= speed_w0 / (speed_w0 + math.sqrt(s2))
                 # vote: all of A (O(1)), none of it, or the rows (columns) the boundary crosses
                 # plus two caps. Written out here: calls passing many arrays per event cost
                 # refcount traffic that is slower than the work itself.
-                speed = math.sqrt(fvx * fvx + fvy * fvy)
-                pv = px * fvx + py * fvy
-                cv = ccx * fvx + ccy * fvy
-                margin = (crad + 2.0) * speed
-                if cv + margin < pv:          # every cell of A in the half-plane
+                speed = math.sqrt(s2)
+                dn = (px * fvx + py * fvy) - (ccx * fvx + ccy * fvy)  # distance from c * speed
+                margin = rr * speed
+                if dn > margin:               # every cell of A in the half-plane
                     whole += w
-                elif cv - margin <= pv:       # otherwise no cell of A is in the half-plane
+                elif dn >= -margin:           # otherwise no cell of A is in the half-plane
                     wpart += w
-                    dxl = -fvy / speed
-                    dyl = fvx / speed
-                    ox = px - ccx
-                    oy = py - ccy
-                    bb = ox * dxl + oy * dyl
-                    rr = crad + 2.0
-                    disc = bb * bb - (ox * ox + oy * oy - rr * rr)
-                    sq = math.sqrt(disc) if disc > 0.0 else 0.0
+                    # the chord of the line {q : q.v = p.v} through the disc (c, rr): centre
+                    # c + dn v / |v|^2, half-extent sqrt(rr^2 |v|^2 - dn^2) / |v|^2 along it
+                    inv = 1.0 / s2
+                    disc = rr2 * s2 - dn * dn
+                    sq = math.sqrt(disc) * inv if disc > 0.0 else 0.0
                     if abs(fvx) >= abs(fvy):
                         ncol = clo.shape[0]
-                        xa = px + (-bb - sq) * dxl
-                        xb = px + (-bb + sq) * dxl
-                        k0 = max(int(math.floor(min(xa, xb))) - 1 - x0, 0)
-                        k1 = min(int(math.ceil(max(xa, xb))) + 1 - x0, ncol - 1)
+                        xm = ccx + dn * fvx * inv
+                        hx = sq * abs(fvy)
+                        k0 = max(int(math.floor(xm - hx)) - x0, 0)
+                        k1 = min(int(math.ceil(xm + hx)) - x0, ncol - 1)
                         if disc <= 0.0 or k0 > k1:
                             k0 = ncol
                             k1 = ncol - 1
@@ -520,10 +509,10 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, bounds_r, bounds_c, m
                             constC[ncol] -= w
                     else:
                         nrow = lo.shape[0]
-                        ya = py + (-bb - sq) * dyl
-                        yb = py + (-bb + sq) * dyl
-                        k0 = max(int(math.floor(min(ya, yb))) - 1 - y0, 0)
-                        k1 = min(int(math.ceil(max(ya, yb))) + 1 - y0, nrow - 1)
+                        ym = ccy + dn * fvy * inv
+                        hy = sq * abs(fvx)
+                        k0 = max(int(math.floor(ym - hy)) - y0, 0)
+                        k1 = min(int(math.ceil(ym + hy)) - y0, nrow - 1)
                         if disc <= 0.0 or k0 > k1:
                             k0 = nrow
                             k1 = nrow - 1
