@@ -42,6 +42,9 @@ RENORM_EXPONENT = 40.0
 #: the disc around A that decides which votes cover all of A, none or part, and which rows
 #: (columns) a boundary crosses: A's radius plus this (A's cells lie inside A's radius)
 MARGIN_PX = 0.5
+#: a row bound (|bound| < 1e6 px) this close to a cell centre, 0.5 - NEAR, is checked with the
+#: exact test of the brute force (its rounding error is < 1e-9 px)
+NEAR = 0.5 - 1e-9
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -56,8 +59,9 @@ def _first_out(a, b, yy, px, py, vx, vy, slope):
     clipped to [a, b + 1]. Computed directly; fixed up with the exact test of the brute force
     only when the boundary lies within 1e-9 of a cell centre."""
     bound = min(max(px + (py - yy) * slope, a - 0.5), b + 1.5)
-    k = int(math.ceil(bound))
-    if abs(bound - math.floor(bound + 0.5)) < 1e-9 * (1.0 + abs(bound)):
+    kf = math.ceil(bound)
+    k = int(kf)
+    if abs(kf - bound - 0.5) > NEAR:
         while k <= b and _cond(px, py, vx, vy, float(k), yy):
             k += 1
         while k > a and not _cond(px, py, vx, vy, float(k - 1), yy):
@@ -70,8 +74,9 @@ def _first_in(a, b, yy, px, py, vx, vy, slope):
     """Row yy, cells a..b, vx < 0 (the half-plane is qx > bound): the first cell inside,
     clipped to [a, b + 1]."""
     bound = min(max(px + (py - yy) * slope, a - 1.5), b + 0.5)
-    k = int(math.floor(bound)) + 1
-    if abs(bound - math.floor(bound + 0.5)) < 1e-9 * (1.0 + abs(bound)):
+    kf = math.floor(bound)
+    k = int(kf) + 1
+    if abs(bound - kf - 0.5) > NEAR:
         while k - 1 >= a and _cond(px, py, vx, vy, float(k - 1), yy):
             k -= 1
         while k <= b and not _cond(px, py, vx, vy, float(k), yy):
@@ -83,8 +88,9 @@ def _first_in(a, b, yy, px, py, vx, vy, slope):
 def _first_out_t(a, b, xx, px, py, vx, vy, slope):
     """Column xx, rows a..b, vy > 0 (qy < bound): the first row outside, in [a, b + 1]."""
     bound = min(max(py + (px - xx) * slope, a - 0.5), b + 1.5)
-    k = int(math.ceil(bound))
-    if abs(bound - math.floor(bound + 0.5)) < 1e-9 * (1.0 + abs(bound)):
+    kf = math.ceil(bound)
+    k = int(kf)
+    if abs(kf - bound - 0.5) > NEAR:
         while k <= b and _cond(px, py, vx, vy, xx, float(k)):
             k += 1
         while k > a and not _cond(px, py, vx, vy, xx, float(k - 1)):
@@ -96,8 +102,9 @@ def _first_out_t(a, b, xx, px, py, vx, vy, slope):
 def _first_in_t(a, b, xx, px, py, vx, vy, slope):
     """Column xx, rows a..b, vy < 0 (qy > bound): the first row inside, in [a, b + 1]."""
     bound = min(max(py + (px - xx) * slope, a - 1.5), b + 0.5)
-    k = int(math.floor(bound)) + 1
-    if abs(bound - math.floor(bound + 0.5)) < 1e-9 * (1.0 + abs(bound)):
+    kf = math.floor(bound)
+    k = int(kf) + 1
+    if abs(bound - kf - 0.5) > NEAR:
         while k - 1 >= a and _cond(px, py, vx, vy, xx, float(k - 1)):
             k -= 1
         while k <= b and not _cond(px, py, vx, vy, xx, float(k)):
