@@ -54,62 +54,47 @@ def _cond(px, py, vx, vy, qx, qy):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _first_out(a, b, yy, px, py, vx, vy, slope):
-    """Row yy, cells a..b, vx > 0 (the half-plane is qx < bound): the first cell outside,
-    clipped to [a, b + 1]. Computed directly; fixed up with the exact test of the brute force
-    only when the boundary lies within 1e-9 of a cell centre."""
-    bound = min(max(px + (py - yy) * slope, a - 0.5), b + 1.5)
-    kf = math.ceil(bound)
-    k = int(kf)
-    if abs(kf - bound - 0.5) > NEAR:
-        while k <= b and _cond(px, py, vx, vy, float(k), yy):
-            k += 1
-        while k > a and not _cond(px, py, vx, vy, float(k - 1), yy):
-            k -= 1
-    return max(a, min(k, b + 1))
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _first_in(a, b, yy, px, py, vx, vy, slope):
-    """Row yy, cells a..b, vx < 0 (the half-plane is qx > bound): the first cell inside,
-    clipped to [a, b + 1]."""
-    bound = min(max(px + (py - yy) * slope, a - 1.5), b + 0.5)
+def _first(a, b, yy, px, py, vx, vy, slope):
+    """Row yy, cells a..b, vx != 0: the first cell where the half-plane indicator changes, in
+    [a, b + 1]: the first cell outside for vx > 0 (the half-plane is qx < bound), the first
+    inside for vx < 0 (qx > bound). Computed directly; fixed up with the exact test of the
+    brute force only when the boundary lies within 1e-9 px of a cell centre (a bound beyond
+    a - 0.5 or b + 0.5 gives a or b + 1 whatever its rounding)."""
+    bound = min(max(px + (py - yy) * slope, a - 0.5), b + 0.5)
     kf = math.floor(bound)
     k = int(kf) + 1
     if abs(bound - kf - 0.5) > NEAR:
-        while k - 1 >= a and _cond(px, py, vx, vy, float(k - 1), yy):
-            k -= 1
-        while k <= b and not _cond(px, py, vx, vy, float(k), yy):
-            k += 1
-    return max(a, min(k, b + 1))
+        if vx > 0.0:
+            while k <= b and _cond(px, py, vx, vy, float(k), yy):
+                k += 1
+            while k > a and not _cond(px, py, vx, vy, float(k - 1), yy):
+                k -= 1
+        else:
+            while k - 1 >= a and _cond(px, py, vx, vy, float(k - 1), yy):
+                k -= 1
+            while k <= b and not _cond(px, py, vx, vy, float(k), yy):
+                k += 1
+    return k
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _first_out_t(a, b, xx, px, py, vx, vy, slope):
-    """Column xx, rows a..b, vy > 0 (qy < bound): the first row outside, in [a, b + 1]."""
-    bound = min(max(py + (px - xx) * slope, a - 0.5), b + 1.5)
-    kf = math.ceil(bound)
-    k = int(kf)
-    if abs(kf - bound - 0.5) > NEAR:
-        while k <= b and _cond(px, py, vx, vy, xx, float(k)):
-            k += 1
-        while k > a and not _cond(px, py, vx, vy, xx, float(k - 1)):
-            k -= 1
-    return max(a, min(k, b + 1))
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _first_in_t(a, b, xx, px, py, vx, vy, slope):
-    """Column xx, rows a..b, vy < 0 (qy > bound): the first row inside, in [a, b + 1]."""
-    bound = min(max(py + (px - xx) * slope, a - 1.5), b + 0.5)
+def _first_t(a, b, xx, px, py, vx, vy, slope):
+    """:func:`_first` transposed: column xx, rows a..b, vy != 0."""
+    bound = min(max(py + (px - xx) * slope, a - 0.5), b + 0.5)
     kf = math.floor(bound)
     k = int(kf) + 1
     if abs(bound - kf - 0.5) > NEAR:
-        while k - 1 >= a and _cond(px, py, vx, vy, xx, float(k - 1)):
-            k -= 1
-        while k <= b and not _cond(px, py, vx, vy, xx, float(k)):
-            k += 1
-    return max(a, min(k, b + 1))
+        if vy > 0.0:
+            while k <= b and _cond(px, py, vx, vy, xx, float(k)):
+                k += 1
+            while k > a and not _cond(px, py, vx, vy, xx, float(k - 1)):
+                k -= 1
+        else:
+            while k - 1 >= a and _cond(px, py, vx, vy, xx, float(k - 1)):
+                k -= 1
+            while k <= b and not _cond(px, py, vx, vy, xx, float(k)):
+                k += 1
+    return k
 
 
 @njit(cache=True, error_model="numpy")
@@ -484,36 +469,39 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, bounds_r, bounds_c, m
                             for c in range(k0, k1 + 1):
                                 if chi[c] >= clo[c] and (px - (x0 + c)) * fvx > 0.0:
                                     diffC[clo[c] - y0, c] += w
-                        elif fvy > 0.0:
-                            sl = fvx / fvy
-                            if k1 >= k0:
-                                constC[k0] += w
-                                constC[k1 + 1] -= w
-                            for c in range(k0, k1 + 1):
-                                if chi[c] >= clo[c]:
-                                    k = _first_out_t(clo[c], chi[c],
-                                                     float(x0 + c), px, py, fvx, fvy, sl)
-                                    diffC[k - y0, c] -= w
                         else:
+                            # vy > 0: +w to the columns' rows before the boundary (constC), -w
+                            # from it on; vy < 0: +w from it on. One path for both (selects,
+                            # not branches: the sign is random); adding 0.0 changes nothing
                             sl = fvx / fvy
+                            cw = w if fvy > 0.0 else 0.0
+                            sw = -w if fvy > 0.0 else w
+                            if k1 >= k0:
+                                constC[k0] += cw
+                                constC[k1 + 1] -= cw
                             for c in range(k0, k1 + 1):
                                 if chi[c] >= clo[c]:
-                                    k = _first_in_t(clo[c], chi[c],
-                                                    float(x0 + c), px, py, fvx, fvy, sl)
-                                    diffC[k - y0, c] += w
+                                    k = _first_t(clo[c], chi[c], float(x0 + c), px, py, fvx, fvy,
+                                                 sl)
+                                    diffC[k - y0, c] += sw
+                        # the columns before and after: wholly on one side; test one cell each
                         c = min(k0, ncol) - 1
                         while c >= 0 and chi[c] < clo[c]:
                             c -= 1
-                        if c >= 0 and _cond(px, py, fvx, fvy, float(x0 + c), float(clo[c])):
-                            constC[0] += w
-                            constC[min(k0, ncol)] -= w
+                        cc = max(c, 0)
+                        cw = w if (c >= 0) & _cond(px, py, fvx, fvy, float(x0 + cc),
+                                                  float(clo[cc])) else 0.0
+                        constC[0] += cw
+                        constC[min(k0, ncol)] -= cw
                         c = k1 + 1 if k1 >= k0 else ncol
                         first = c
                         while c < ncol and chi[c] < clo[c]:
                             c += 1
-                        if c < ncol and _cond(px, py, fvx, fvy, float(x0 + c), float(clo[c])):
-                            constC[first] += w
-                            constC[ncol] -= w
+                        cc = min(c, ncol - 1)
+                        cw = w if (c < ncol) & _cond(px, py, fvx, fvy, float(x0 + cc),
+                                                    float(clo[cc])) else 0.0
+                        constC[first] += cw
+                        constC[ncol] -= cw
                     else:
                         nrow = lo.shape[0]
                         ym = ccy + dn * fvy * inv
@@ -527,35 +515,34 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, bounds_r, bounds_c, m
                             for r in range(k0, k1 + 1):
                                 if hi[r] >= lo[r] and (py - (y0 + r)) * fvy > 0.0:
                                     diffR[r, lo[r] - x0] += w
-                        elif fvx > 0.0:
-                            sl = fvy / fvx
-                            if k1 >= k0:
-                                constR[k0] += w
-                                constR[k1 + 1] -= w
-                            for r in range(k0, k1 + 1):
-                                if hi[r] >= lo[r]:
-                                    k = _first_out(lo[r], hi[r],
-                                                   float(y0 + r), px, py, fvx, fvy, sl)
-                                    diffR[r, k - x0] -= w
                         else:
                             sl = fvy / fvx
+                            cw = w if fvx > 0.0 else 0.0
+                            sw = -w if fvx > 0.0 else w
+                            if k1 >= k0:
+                                constR[k0] += cw
+                                constR[k1 + 1] -= cw
                             for r in range(k0, k1 + 1):
                                 if hi[r] >= lo[r]:
-                                    k = _first_in(lo[r], hi[r], float(y0 + r), px, py, fvx, fvy, sl)
-                                    diffR[r, k - x0] += w
+                                    k = _first(lo[r], hi[r], float(y0 + r), px, py, fvx, fvy, sl)
+                                    diffR[r, k - x0] += sw
                         r = min(k0, nrow) - 1
                         while r >= 0 and hi[r] < lo[r]:
                             r -= 1
-                        if r >= 0 and _cond(px, py, fvx, fvy, float(lo[r]), float(y0 + r)):
-                            constR[0] += w
-                            constR[min(k0, nrow)] -= w
+                        rc = max(r, 0)
+                        cw = w if (r >= 0) & _cond(px, py, fvx, fvy, float(lo[rc]),
+                                                  float(y0 + rc)) else 0.0
+                        constR[0] += cw
+                        constR[min(k0, nrow)] -= cw
                         r = k1 + 1 if k1 >= k0 else nrow
                         first = r
                         while r < nrow and hi[r] < lo[r]:
                             r += 1
-                        if r < nrow and _cond(px, py, fvx, fvy, float(lo[r]), float(y0 + r)):
-                            constR[first] += w
-                            constR[nrow] -= w
+                        rc = min(r, nrow - 1)
+                        cw = w if (r < nrow) & _cond(px, py, fvx, fvy, float(lo[rc]),
+                                                    float(y0 + rc)) else 0.0
+                        constR[first] += cw
+                        constR[nrow] -= cw
                 total += w
                 dirty = 1
         i += 1
