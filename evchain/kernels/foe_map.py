@@ -5,7 +5,7 @@ The map covers region A, given per map row ``r`` (image row ``y0 + r``) as the c
 (absolute image coordinates; ``hi < lo`` means empty). A vote's boundary line crosses few rows or
 few columns: a flatter line is written into per-row difference arrays ``diffR[r, x - x0]``, a
 steeper one into per-column difference arrays ``diffC[y - y0, c]`` (stored row-major, so a read
-is one contiguous pass). Only the rows (columns) the line crosses inside A (widened by 2 px) get
+is one contiguous pass). Only the rows (columns) the line crosses inside A (widened by 0.5 px) get
 a write, one each: an interval either starts at the row's first cell (then the whole row gets +w
 through ``constR``, a difference array over rows, and -w goes where the interval ends) or ends
 at its last cell (then only its start is written: prefix sums stop at the last cell). The rows
