@@ -22,11 +22,14 @@ State arrays (allocated by the filter):
 * ``ist`` int64: ``[0]`` t_ref (µs), ``[1]`` next read time (µs), ``[2]`` 1 once an estimate
   exists, ``[3]`` 1 when votes arrived since the last read;
 * ``fst`` float64: ``[0]`` whole (votes covering all of A), ``[1]`` last x, ``[2]`` last y,
-  ``[3]`` last max (map units), ``[4]`` total weight of accepted votes (map units), ``[5]``
-  total weight of the votes that cover part of A (map units);
-* ``rst`` float64 [rows, 5]: per map row its max and min when last computed, ``fst[0]`` and
-  ``fst[5]`` then, and 1 if valid (reads recompute only the rows that can matter, see
-  :func:`refresh`; a renormalisation invalidates all).
+  ``[3]`` last max (map units), ``[4]`` total weight of accepted votes (map units);
+* ``rowv`` float64 [3, rows + 1]: ``constR`` and two difference arrays over rows for the
+  reads' bounds: the weight of the votes that covered a whole row (the caps) and of the votes
+  that may have reached part of it (the rows a boundary crosses; a column-wise vote: all);
+  reset at a renormalisation;
+* ``rst`` float64 [rows, 6]: per map row its max and min when last computed, ``fst[0]``, the
+  touching weight then, 1 if valid, and the whole-row weight then (reads recompute only the
+  rows that can matter, see :func:`refresh`; a renormalisation invalidates all).
 """
 
 from __future__ import annotations
@@ -175,24 +178,34 @@ def _from_bits(typingctx, k):
 
 
 @njit(cache=True, error_model="numpy")
-def refresh(diffR, constR, diffC, constC, lo, hi, x0, fst, rst, out, refine_fraction):
+def refresh(diffR, rowv, diffC, constC, lo, hi, x0, fst, rst, out, refine_fraction):
     """Bring up to date the rows of the dense map ``out`` (map units) that this read needs;
     returns the (max, min) over A (-inf, inf when A is empty) and sets ``rst[:, 0]`` to each
     needed row's maximum (rows left out stay below the read's threshold).
 
     ``rst[r]`` holds row r's maximum and minimum when it was last computed, the ``whole`` votes
-    and the partial votes' total weight (``fst[5]``) at that time, and 1 if valid (0 forces a
-    recomputation). Votes only add, so since then every cell of the row rose by exactly the
-    ``whole`` difference plus at most the partial weight difference: bounds on the row's
+    and the row's whole-row and touching weights (prefix sums of ``rowv[1]``, of ``rowv[1]``
+    plus ``rowv[2]``) at that time, and 1 if valid (0 forces a recomputation). Votes only add,
+    so since then every cell of the row rose by at least the ``whole`` plus the whole-row
+    difference and at most the ``whole`` plus the touching difference: bounds on the row's
     maximum and minimum now. Only rows that can hold the maximum, the minimum or a cell above
     the lowest possible threshold are recomputed (the same prefix sums in the same order as
     :func:`materialize`, so the same values bit for bit); the pass over ``diffC`` stops at the
     last of them.
     """
     ny, nx = out.shape
+    constR = rowv[0]
     whole = fst[0]
-    wpart = fst[5]
     eps = 1e-12 * fst[4]
+    full = np.empty(ny)    # per row: the partial votes' weight that covered all of it
+    touch = np.empty(ny)   # and that reached any of its cells
+    fa = 0.0
+    ta = 0.0
+    for r in range(ny):
+        fa += rowv[1, r]
+        ta += rowv[2, r]
+        full[r] = fa
+        touch[r] = fa + ta
     lbest = -np.inf    # the maximum is at least this
     uworst = np.inf    # the minimum is at most this
     lworst = np.inf    # and at least this
@@ -204,9 +217,11 @@ def refresh(diffR, constR, diffC, constC, lo, hi, x0, fst, rst, out, refine_frac
             every = True
             break
         up = whole - rst[r, 2]
-        lbest = max(lbest, rst[r, 0] + up - eps)
-        uworst = min(uworst, rst[r, 1] + up + (wpart - rst[r, 3]) + eps)
-        lworst = min(lworst, rst[r, 1] + up - eps)
+        lup = up + (full[r] - rst[r, 5])
+        hup = up + (touch[r] - rst[r, 3])
+        lbest = max(lbest, rst[r, 0] + lup - eps)
+        uworst = min(uworst, rst[r, 1] + hup + eps)
+        lworst = min(lworst, rst[r, 1] + lup - eps)
     if refine_fraction > 0.0:
         lthr = lbest - refine_fraction * (lbest - lworst)
     else:
@@ -218,8 +233,8 @@ def refresh(diffR, constR, diffC, constC, lo, hi, x0, fst, rst, out, refine_frac
         if hi[r] < lo[r]:
             continue
         up = whole - rst[r, 2]
-        if (every or rst[r, 0] + up + (wpart - rst[r, 3]) + eps >= lthr
-                or rst[r, 1] + up - eps <= uworst):
+        if (every or rst[r, 0] + up + (touch[r] - rst[r, 3]) + eps >= lthr
+                or rst[r, 1] + up + (full[r] - rst[r, 5]) - eps <= uworst):
             need[r] = True
             last = r
     _row_prefixes(diffR, lo, hi, x0, need, out)
@@ -255,8 +270,9 @@ def refresh(diffR, constR, diffC, constC, lo, hi, x0, fst, rst, out, refine_frac
             rst[r, 0] = rbest
             rst[r, 1] = rworst
             rst[r, 2] = whole
-            rst[r, 3] = wpart
+            rst[r, 3] = touch[r]
             rst[r, 4] = 1.0
+            rst[r, 5] = full[r]
             best = max(best, rbest)
             worst = min(worst, rworst)
     return best, worst
@@ -319,18 +335,20 @@ def read_estimate(m, x0, y0, best, worst, refine_fraction, lo, hi, rowmax):
 
 
 @njit(cache=True, error_model="numpy")
-def process(x, y, t, vx, vy, diffR, constR, diffC, constC, bounds_r, bounds_c, mbuf, rst, fst,
+def process(x, y, t, vx, vy, diffR, rowv, diffC, constC, bounds_r, bounds_c, mbuf, rst, fst,
             ist, cst, t_end, out):
     """Vote with every flow event of a packet; read estimates at multiples of ``period_us``
     into the structured array ``out`` (fields t, x, y, support, total).
 
     A read at time T sees exactly the events with t < T. Reads happen before the first event at
     or after T, and at the end for every T < ``t_end``. Returns the number of estimates written.
-    ``bounds_r`` holds ``lo`` and ``hi``, ``bounds_c`` ``clo`` and ``chi``; ``cst`` the constants
+    ``rowv`` holds ``constR`` and the row bounds' difference arrays (see the module docstring),
+    ``bounds_r`` ``lo`` and ``hi``, ``bounds_c`` ``clo`` and ``chi``; ``cst`` the constants
     tau_us, min_speed_pxs, cos(gate angle), gate on (1/0), period_us, refine_fraction,
     min_support, speed weight s0, region A's centre x, y and radius, x0, y0 (few arguments:
     each costs ~0.15 us per call in numba's dispatcher).
     """
+    constR = rowv[0]
     lo = bounds_r[0]
     hi = bounds_r[1]
     clo = bounds_c[0]
@@ -360,7 +378,6 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, bounds_r, bounds_c, m
     dirty = ist[3]
     whole = fst[0]
     total = fst[4]
-    wpart = fst[5]
     t_w = t_ref - 1  # w_t = the weight of a vote at time t_w
     w_t = math.exp((t_w - t_ref) / tau_us)
     i = 0
@@ -372,8 +389,7 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, bounds_r, bounds_c, m
             if dirty == 1:
                 fst[0] = whole
                 fst[4] = total
-                fst[5] = wpart
-                best, worst = refresh(diffR, constR, diffC, constC, lo, hi, x0, fst, rst, mbuf,
+                best, worst = refresh(diffR, rowv, diffC, constC, lo, hi, x0, fst, rst, mbuf,
                                       refine_fraction)
                 ex, ey = read_estimate(mbuf, x0, y0, best, worst, refine_fraction, lo, hi,
                                        rst[:, 0])
@@ -431,9 +447,11 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, bounds_r, bounds_c, m
                         whole *= s
                         fst[3] *= s
                         total *= s
-                        wpart *= s
                         for a in range(rst.shape[0]):
                             rst[a, 4] = 0.0
+                        for a in range(rowv.shape[1]):
+                            rowv[1, a] = 0.0
+                            rowv[2, a] = 0.0
                         t_ref = ti
                         e = 0.0
                     w_t = math.exp(e)
@@ -450,7 +468,6 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, bounds_r, bounds_c, m
                 if dn > margin:               # every cell of A in the half-plane
                     whole += w
                 elif dn >= -margin:           # otherwise no cell of A is in the half-plane
-                    wpart += w
                     # the chord of the line {q : q.v = p.v} through the disc (c, rr): centre
                     # c + dn v / |v|^2, half-extent sqrt(rr^2 |v|^2 - dn^2) / |v|^2 along it
                     inv = 1.0 / s2
@@ -458,6 +475,8 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, bounds_r, bounds_c, m
                     sq = math.sqrt(disc) * inv if disc > 0.0 else 0.0
                     if abs(fvx) >= abs(fvy):
                         ncol = clo.shape[0]
+                        rowv[2, 0] += w           # may reach every row
+                        rowv[2, lo.shape[0]] -= w
                         xm = ccx + dn * fvx * inv
                         hx = sq * abs(fvy)
                         k0 = max(int(math.floor(xm - hx)) - x0, 0)
@@ -511,6 +530,9 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, bounds_r, bounds_c, m
                         if disc <= 0.0 or k0 > k1:
                             k0 = nrow
                             k1 = nrow - 1
+                        if k1 >= k0:                # the rows crossed
+                            rowv[2, k0] += w
+                            rowv[2, k1 + 1] -= w
                         if fvx == 0.0:
                             for r in range(k0, k1 + 1):
                                 if hi[r] >= lo[r] and (py - (y0 + r)) * fvy > 0.0:
@@ -534,6 +556,8 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, bounds_r, bounds_c, m
                                                   float(y0 + rc)) else 0.0
                         constR[0] += cw
                         constR[min(k0, nrow)] -= cw
+                        rowv[1, 0] += cw
+                        rowv[1, min(k0, nrow)] -= cw
                         r = k1 + 1 if k1 >= k0 else nrow
                         first = r
                         while r < nrow and hi[r] < lo[r]:
@@ -543,6 +567,8 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, bounds_r, bounds_c, m
                                                     float(y0 + rc)) else 0.0
                         constR[first] += cw
                         constR[nrow] -= cw
+                        rowv[1, first] += cw
+                        rowv[1, nrow] -= cw
                 total += w
                 dirty = 1
         i += 1
@@ -551,5 +577,4 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, bounds_r, bounds_c, m
     ist[3] = dirty
     fst[0] = whole
     fst[4] = total
-    fst[5] = wpart
     return n_out

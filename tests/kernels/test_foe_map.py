@@ -181,10 +181,11 @@ def test_refresh_equals_materialize_with_negative_values(radius):
     rowmax = np.empty(ny)
     best, worst = k.materialize(diffR, constR, diffC, constC, lo, hi, clo, chi, x0, y0, -0.5,
                                 want, rowmax)
-    fst = np.array([-0.5, 0, 0, 0, 1.0, 0.0])
-    rst = np.zeros((ny, 5))
+    fst = np.array([-0.5, 0, 0, 0, 1.0])
+    rst = np.zeros((ny, 6))
     got = np.full((ny, nx), np.nan)
-    b2, w2 = k.refresh(diffR, constR, diffC, constC, lo, hi, x0, fst, rst, got, 0.05)
+    rowv = np.stack([constR, np.zeros(ny + 1), np.zeros(ny + 1)])
+    b2, w2 = k.refresh(diffR, rowv, diffC, constC, lo, hi, x0, fst, rst, got, 0.05)
     assert worst < 0 < best
     assert (b2, w2) == (best, worst)
     inside = ~np.isnan(want)
