@@ -114,7 +114,7 @@ class FoeMap(Filter):
     def reset(self) -> None:
         self._geometry: Geometry | None = None
         self._ist = np.zeros(4, np.int64)
-        self._fst = np.zeros(6, np.float64)
+        self._fst = np.zeros(5, np.float64)
         self._started = False
 
     def _allocate(self, geometry: Geometry) -> None:
@@ -128,11 +128,12 @@ class FoeMap(Filter):
         self._clo, self._chi = self._bounds_c
         ny, nx = len(lo), len(clo)
         self._diffR = np.zeros((ny, nx + 1), np.float64)
-        self._constR = np.zeros(ny + 1, np.float64)
+        self._rowv = np.zeros((3, ny + 1), np.float64)  # constR and the reads' row bounds
+        self._constR = self._rowv[0]
         self._diffC = np.zeros((ny + 1, nx), np.float64)
         self._constC = np.zeros(nx + 1, np.float64)
         self._mbuf = np.empty((ny, nx), np.float64)
-        self._rst = np.zeros((ny, 5), np.float64)
+        self._rst = np.zeros((ny, 6), np.float64)
         self._rst[:, 0] = -np.inf
         if radius is None:
             disc = ((cg.width - 1) / 2.0, (cg.height - 1) / 2.0,
@@ -145,7 +146,7 @@ class FoeMap(Filter):
                            p.estimate_every_us, p.refine_fraction, p.min_support,
                            p.speed_weight_pxs or 0.0, *disc, x0, y0], np.float64)
         # the kernel's arguments that do not change from packet to packet
-        self._args = (self._diffR, self._constR, self._diffC, self._constC, self._bounds_r,
+        self._args = (self._diffR, self._rowv, self._diffC, self._constC, self._bounds_r,
                       self._bounds_c, self._mbuf, self._rst, self._fst, self._ist, consts)
         self._period = int(p.estimate_every_us)
         from evchain.kernels import foe_map as k

@@ -5,7 +5,7 @@ The map covers region A, given per map row ``r`` (image row ``y0 + r``) as the c
 (absolute image coordinates; ``hi < lo`` means empty). A vote's boundary line crosses few rows or
 few columns: a flatter line is written into per-row difference arrays ``diffR[r, x - x0]``, a
 steeper one into per-column difference arrays ``diffC[y - y0, c]`` (stored row-major, so a read
-is one contiguous pass). Only the rows (columns) the line crosses inside A (widened by 2 px) get
+is one contiguous pass). Only the rows (columns) the line crosses inside A (widened by 0.5 px) get
 a write, one each: an interval either starts at the row's first cell (then the whole row gets +w
 through ``constR``, a difference array over rows, and -w goes where the interval ends) or ends
 at its last cell (then only its start is written: prefix sums stop at the last cell). The rows
@@ -22,11 +22,14 @@ State arrays (allocated by the filter):
 * ``ist`` int64: ``[0]`` t_ref (µs), ``[1]`` next read time (µs), ``[2]`` 1 once an estimate
   exists, ``[3]`` 1 when votes arrived since the last read;
 * ``fst`` float64: ``[0]`` whole (votes covering all of A), ``[1]`` last x, ``[2]`` last y,
-  ``[3]`` last max (map units), ``[4]`` total weight of accepted votes (map units), ``[5]``
-  total weight of the votes that cover part of A (map units);
-* ``rst`` float64 [rows, 5]: per map row its max and min when last computed, ``fst[0]`` and
-  ``fst[5]`` then, and 1 if valid (reads recompute only the rows that can matter, see
-  :func:`refresh`; a renormalisation invalidates all).
+  ``[3]`` last max (map units), ``[4]`` total weight of accepted votes (map units);
+* ``rowv`` float64 [3, rows + 1]: ``constR`` and two difference arrays over rows for the
+  reads' bounds: the weight of the votes that covered a whole row (the caps) and of the votes
+  that may have reached part of it (the rows a boundary crosses; a column-wise vote: all);
+  reset at a renormalisation;
+* ``rst`` float64 [rows, 6]: per map row its max and min when last computed, ``fst[0]``, the
+  touching weight then, 1 if valid, and the whole-row weight then (reads recompute only the
+  rows that can matter, see :func:`refresh`; a renormalisation invalidates all).
 """
 
 from __future__ import annotations
@@ -39,6 +42,12 @@ from numba import njit, types
 from numba.extending import intrinsic
 
 RENORM_EXPONENT = 40.0
+#: the disc around A that decides which votes cover all of A, none or part, and which rows
+#: (columns) a boundary crosses: A's radius plus this (A's cells lie inside A's radius)
+MARGIN_PX = 0.5
+#: a row bound (|bound| < 1e6 px) this close to a cell centre, 0.5 - NEAR, is checked with the
+#: exact test of the brute force (its rounding error is < 1e-9 px)
+NEAR = 0.5 - 1e-9
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -48,74 +57,47 @@ def _cond(px, py, vx, vy, qx, qy):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _first_out(a, b, yy, px, py, vx, vy, slope):
-    """Row yy, cells a..b, vx > 0 (the half-plane is qx < bound): the first cell outside,
-    clipped to [a, b + 1]. Computed directly; fixed up with the exact test of the brute force
-    only when the boundary lies within 1e-9 of a cell centre."""
-    bound = px + (py - yy) * slope
-    if bound > b + 1.0:
-        return b + 1
-    if bound < a - 1.0:
-        return a
-    k = int(math.ceil(bound))
-    if abs(bound - math.floor(bound + 0.5)) < 1e-9 * (1.0 + abs(bound)):
-        while k <= b and _cond(px, py, vx, vy, float(k), yy):
-            k += 1
-        while k > a and not _cond(px, py, vx, vy, float(k - 1), yy):
-            k -= 1
-    return max(a, min(k, b + 1))
+def _first(a, b, yy, px, py, vx, vy, slope):
+    """Row yy, cells a..b, vx != 0: the first cell where the half-plane indicator changes, in
+    [a, b + 1]: the first cell outside for vx > 0 (the half-plane is qx < bound), the first
+    inside for vx < 0 (qx > bound). Computed directly; fixed up with the exact test of the
+    brute force only when the boundary lies within 1e-9 px of a cell centre (a bound beyond
+    a - 0.5 or b + 0.5 gives a or b + 1 whatever its rounding)."""
+    bound = min(max(px + (py - yy) * slope, a - 0.5), b + 0.5)
+    kf = math.floor(bound)
+    k = int(kf) + 1
+    if abs(bound - kf - 0.5) > NEAR:
+        if vx > 0.0:
+            while k <= b and _cond(px, py, vx, vy, float(k), yy):
+                k += 1
+            while k > a and not _cond(px, py, vx, vy, float(k - 1), yy):
+                k -= 1
+        else:
+            while k - 1 >= a and _cond(px, py, vx, vy, float(k - 1), yy):
+                k -= 1
+            while k <= b and not _cond(px, py, vx, vy, float(k), yy):
+                k += 1
+    return k
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _first_in(a, b, yy, px, py, vx, vy, slope):
-    """Row yy, cells a..b, vx < 0 (the half-plane is qx > bound): the first cell inside,
-    clipped to [a, b + 1]."""
-    bound = px + (py - yy) * slope
-    if bound < a - 1.0:
-        return a
-    if bound > b + 1.0:
-        return b + 1
-    k = int(math.floor(bound)) + 1
-    if abs(bound - math.floor(bound + 0.5)) < 1e-9 * (1.0 + abs(bound)):
-        while k - 1 >= a and _cond(px, py, vx, vy, float(k - 1), yy):
-            k -= 1
-        while k <= b and not _cond(px, py, vx, vy, float(k), yy):
-            k += 1
-    return max(a, min(k, b + 1))
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _first_out_t(a, b, xx, px, py, vx, vy, slope):
-    """Column xx, rows a..b, vy > 0 (qy < bound): the first row outside, in [a, b + 1]."""
-    bound = py + (px - xx) * slope
-    if bound > b + 1.0:
-        return b + 1
-    if bound < a - 1.0:
-        return a
-    k = int(math.ceil(bound))
-    if abs(bound - math.floor(bound + 0.5)) < 1e-9 * (1.0 + abs(bound)):
-        while k <= b and _cond(px, py, vx, vy, xx, float(k)):
-            k += 1
-        while k > a and not _cond(px, py, vx, vy, xx, float(k - 1)):
-            k -= 1
-    return max(a, min(k, b + 1))
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _first_in_t(a, b, xx, px, py, vx, vy, slope):
-    """Column xx, rows a..b, vy < 0 (qy > bound): the first row inside, in [a, b + 1]."""
-    bound = py + (px - xx) * slope
-    if bound < a - 1.0:
-        return a
-    if bound > b + 1.0:
-        return b + 1
-    k = int(math.floor(bound)) + 1
-    if abs(bound - math.floor(bound + 0.5)) < 1e-9 * (1.0 + abs(bound)):
-        while k - 1 >= a and _cond(px, py, vx, vy, xx, float(k - 1)):
-            k -= 1
-        while k <= b and not _cond(px, py, vx, vy, xx, float(k)):
-            k += 1
-    return max(a, min(k, b + 1))
+def _first_t(a, b, xx, px, py, vx, vy, slope):
+    """:func:`_first` transposed: column xx, rows a..b, vy != 0."""
+    bound = min(max(py + (px - xx) * slope, a - 0.5), b + 0.5)
+    kf = math.floor(bound)
+    k = int(kf) + 1
+    if abs(bound - kf - 0.5) > NEAR:
+        if vy > 0.0:
+            while k <= b and _cond(px, py, vx, vy, xx, float(k)):
+                k += 1
+            while k > a and not _cond(px, py, vx, vy, xx, float(k - 1)):
+                k -= 1
+        else:
+            while k - 1 >= a and _cond(px, py, vx, vy, xx, float(k - 1)):
+                k -= 1
+            while k <= b and not _cond(px, py, vx, vy, xx, float(k)):
+                k += 1
+    return k
 
 
 @njit(cache=True, error_model="numpy")
@@ -196,24 +178,34 @@ def _from_bits(typingctx, k):
 
 
 @njit(cache=True, error_model="numpy")
-def refresh(diffR, constR, diffC, constC, lo, hi, x0, fst, rst, out, refine_fraction):
+def refresh(diffR, rowv, diffC, constC, lo, hi, x0, fst, rst, out, refine_fraction):
     """Bring up to date the rows of the dense map ``out`` (map units) that this read needs;
     returns the (max, min) over A (-inf, inf when A is empty) and sets ``rst[:, 0]`` to each
     needed row's maximum (rows left out stay below the read's threshold).
 
     ``rst[r]`` holds row r's maximum and minimum when it was last computed, the ``whole`` votes
-    and the partial votes' total weight (``fst[5]``) at that time, and 1 if valid (0 forces a
-    recomputation). Votes only add, so since then every cell of the row rose by exactly the
-    ``whole`` difference plus at most the partial weight difference: bounds on the row's
+    and the row's whole-row and touching weights (prefix sums of ``rowv[1]``, of ``rowv[1]``
+    plus ``rowv[2]``) at that time, and 1 if valid (0 forces a recomputation). Votes only add,
+    so since then every cell of the row rose by at least the ``whole`` plus the whole-row
+    difference and at most the ``whole`` plus the touching difference: bounds on the row's
     maximum and minimum now. Only rows that can hold the maximum, the minimum or a cell above
     the lowest possible threshold are recomputed (the same prefix sums in the same order as
     :func:`materialize`, so the same values bit for bit); the pass over ``diffC`` stops at the
     last of them.
     """
     ny, nx = out.shape
+    constR = rowv[0]
     whole = fst[0]
-    wpart = fst[5]
     eps = 1e-12 * fst[4]
+    full = np.empty(ny)    # per row: the partial votes' weight that covered all of it
+    touch = np.empty(ny)   # and that reached any of its cells
+    fa = 0.0
+    ta = 0.0
+    for r in range(ny):
+        fa += rowv[1, r]
+        ta += rowv[2, r]
+        full[r] = fa
+        touch[r] = fa + ta
     lbest = -np.inf    # the maximum is at least this
     uworst = np.inf    # the minimum is at most this
     lworst = np.inf    # and at least this
@@ -225,9 +217,11 @@ def refresh(diffR, constR, diffC, constC, lo, hi, x0, fst, rst, out, refine_frac
             every = True
             break
         up = whole - rst[r, 2]
-        lbest = max(lbest, rst[r, 0] + up - eps)
-        uworst = min(uworst, rst[r, 1] + up + (wpart - rst[r, 3]) + eps)
-        lworst = min(lworst, rst[r, 1] + up - eps)
+        lup = up + (full[r] - rst[r, 5])
+        hup = up + (touch[r] - rst[r, 3])
+        lbest = max(lbest, rst[r, 0] + lup - eps)
+        uworst = min(uworst, rst[r, 1] + hup + eps)
+        lworst = min(lworst, rst[r, 1] + lup - eps)
     if refine_fraction > 0.0:
         lthr = lbest - refine_fraction * (lbest - lworst)
     else:
@@ -239,8 +233,8 @@ def refresh(diffR, constR, diffC, constC, lo, hi, x0, fst, rst, out, refine_frac
         if hi[r] < lo[r]:
             continue
         up = whole - rst[r, 2]
-        if (every or rst[r, 0] + up + (wpart - rst[r, 3]) + eps >= lthr
-                or rst[r, 1] + up - eps <= uworst):
+        if (every or rst[r, 0] + up + (touch[r] - rst[r, 3]) + eps >= lthr
+                or rst[r, 1] + up + (full[r] - rst[r, 5]) - eps <= uworst):
             need[r] = True
             last = r
     _row_prefixes(diffR, lo, hi, x0, need, out)
@@ -276,8 +270,9 @@ def refresh(diffR, constR, diffC, constC, lo, hi, x0, fst, rst, out, refine_frac
             rst[r, 0] = rbest
             rst[r, 1] = rworst
             rst[r, 2] = whole
-            rst[r, 3] = wpart
+            rst[r, 3] = touch[r]
             rst[r, 4] = 1.0
+            rst[r, 5] = full[r]
             best = max(best, rbest)
             worst = min(worst, rworst)
     return best, worst
@@ -340,18 +335,20 @@ def read_estimate(m, x0, y0, best, worst, refine_fraction, lo, hi, rowmax):
 
 
 @njit(cache=True, error_model="numpy")
-def process(x, y, t, vx, vy, diffR, constR, diffC, constC, bounds_r, bounds_c, mbuf, rst, fst,
+def process(x, y, t, vx, vy, diffR, rowv, diffC, constC, bounds_r, bounds_c, mbuf, rst, fst,
             ist, cst, t_end, out):
     """Vote with every flow event of a packet; read estimates at multiples of ``period_us``
     into the structured array ``out`` (fields t, x, y, support, total).
 
     A read at time T sees exactly the events with t < T. Reads happen before the first event at
     or after T, and at the end for every T < ``t_end``. Returns the number of estimates written.
-    ``bounds_r`` holds ``lo`` and ``hi``, ``bounds_c`` ``clo`` and ``chi``; ``cst`` the constants
+    ``rowv`` holds ``constR`` and the row bounds' difference arrays (see the module docstring),
+    ``bounds_r`` ``lo`` and ``hi``, ``bounds_c`` ``clo`` and ``chi``; ``cst`` the constants
     tau_us, min_speed_pxs, cos(gate angle), gate on (1/0), period_us, refine_fraction,
     min_support, speed weight s0, region A's centre x, y and radius, x0, y0 (few arguments:
     each costs ~0.15 us per call in numba's dispatcher).
     """
+    constR = rowv[0]
     lo = bounds_r[0]
     hi = bounds_r[1]
     clo = bounds_c[0]
@@ -366,7 +363,8 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, bounds_r, bounds_c, m
     speed_w0 = cst[7]
     ccx = cst[8]
     ccy = cst[9]
-    crad = cst[10]
+    rr = cst[10] + MARGIN_PX
+    rr2 = rr * rr
     x0 = np.int64(cst[11])
     y0 = np.int64(cst[12])
     n_out = 0
@@ -380,7 +378,8 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, bounds_r, bounds_c, m
     dirty = ist[3]
     whole = fst[0]
     total = fst[4]
-    wpart = fst[5]
+    t_w = t_ref - 1  # w_t = the weight of a vote at time t_w
+    w_t = math.exp((t_w - t_ref) / tau_us)
     i = 0
     while True:
         t_next = t[i] if i < n else t_end
@@ -390,8 +389,7 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, bounds_r, bounds_c, m
             if dirty == 1:
                 fst[0] = whole
                 fst[4] = total
-                fst[5] = wpart
-                best, worst = refresh(diffR, constR, diffC, constC, lo, hi, x0, fst, rst, mbuf,
+                best, worst = refresh(diffR, rowv, diffC, constC, lo, hi, x0, fst, rst, mbuf,
                                       refine_fraction)
                 ex, ey = read_estimate(mbuf, x0, y0, best, worst, refine_fraction, lo, hi,
                                        rst[:, 0])
@@ -430,57 +428,59 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, bounds_r, bounds_c, m
                     ok = cg >= cos_gate
             if ok:
                 ti = t[i]
-                e = (ti - t_ref) / tau_us
-                if e > RENORM_EXPONENT:
-                    s = math.exp(-e)
-                    # element loops: array expressions here put refcount operations into
-                    # every iteration of the event loop (measured: 6x slower overall)
-                    for a in range(diffR.shape[0]):
-                        for b in range(diffR.shape[1]):
-                            diffR[a, b] *= s
-                    for a in range(constR.shape[0]):
-                        constR[a] *= s
-                    for a in range(diffC.shape[0]):
-                        for b in range(diffC.shape[1]):
-                            diffC[a, b] *= s
-                    for a in range(constC.shape[0]):
-                        constC[a] *= s
-                    whole *= s
-                    fst[3] *= s
-                    total *= s
-                    wpart *= s
-                    for a in range(rst.shape[0]):
-                        rst[a, 4] = 0.0
-                    t_ref = ti
-                    e = 0.0
-                w = math.exp(e)
+                if ti != t_w:  # most flow events share their time with the one before: same w
+                    e = (ti - t_ref) / tau_us
+                    if e > RENORM_EXPONENT:
+                        s = math.exp(-e)
+                        # element loops: array expressions here put refcount operations into
+                        # every iteration of the event loop (measured: 6x slower overall)
+                        for a in range(diffR.shape[0]):
+                            for b in range(diffR.shape[1]):
+                                diffR[a, b] *= s
+                        for a in range(constR.shape[0]):
+                            constR[a] *= s
+                        for a in range(diffC.shape[0]):
+                            for b in range(diffC.shape[1]):
+                                diffC[a, b] *= s
+                        for a in range(constC.shape[0]):
+                            constC[a] *= s
+                        whole *= s
+                        fst[3] *= s
+                        total *= s
+                        for a in range(rst.shape[0]):
+                            rst[a, 4] = 0.0
+                        for a in range(rowv.shape[1]):
+                            rowv[1, a] = 0.0
+                            rowv[2, a] = 0.0
+                        t_ref = ti
+                        e = 0.0
+                    w_t = math.exp(e)
+                    t_w = ti
+                w = w_t
                 if speed_w0 > 0.0:  # tight constraints (slow normal flow) weigh more
                     w *= speed_w0 / (speed_w0 + math.sqrt(s2))
                 # vote: all of A (O(1)), none of it, or the rows (columns) the boundary crosses
                 # plus two caps. Written out here: calls passing many arrays per event cost
                 # refcount traffic that is slower than the work itself.
-                speed = math.sqrt(fvx * fvx + fvy * fvy)
-                pv = px * fvx + py * fvy
-                cv = ccx * fvx + ccy * fvy
-                margin = (crad + 2.0) * speed
-                if cv + margin < pv:          # every cell of A in the half-plane
+                speed = math.sqrt(s2)
+                dn = (px * fvx + py * fvy) - (ccx * fvx + ccy * fvy)  # distance from c * speed
+                margin = rr * speed
+                if dn > margin:               # every cell of A in the half-plane
                     whole += w
-                elif cv - margin <= pv:       # otherwise no cell of A is in the half-plane
-                    wpart += w
-                    dxl = -fvy / speed
-                    dyl = fvx / speed
-                    ox = px - ccx
-                    oy = py - ccy
-                    bb = ox * dxl + oy * dyl
-                    rr = crad + 2.0
-                    disc = bb * bb - (ox * ox + oy * oy - rr * rr)
-                    sq = math.sqrt(disc) if disc > 0.0 else 0.0
+                elif dn >= -margin:           # otherwise no cell of A is in the half-plane
+                    # the chord of the line {q : q.v = p.v} through the disc (c, rr): centre
+                    # c + dn v / |v|^2, half-extent sqrt(rr^2 |v|^2 - dn^2) / |v|^2 along it
+                    inv = 1.0 / s2
+                    disc = rr2 * s2 - dn * dn
+                    sq = math.sqrt(disc) * inv if disc > 0.0 else 0.0
                     if abs(fvx) >= abs(fvy):
                         ncol = clo.shape[0]
-                        xa = px + (-bb - sq) * dxl
-                        xb = px + (-bb + sq) * dxl
-                        k0 = max(int(math.floor(min(xa, xb))) - 1 - x0, 0)
-                        k1 = min(int(math.ceil(max(xa, xb))) + 1 - x0, ncol - 1)
+                        rowv[2, 0] += w           # may reach every row
+                        rowv[2, lo.shape[0]] -= w
+                        xm = ccx + dn * fvx * inv
+                        hx = sq * abs(fvy)
+                        k0 = max(int(math.floor(xm - hx)) - x0, 0)
+                        k1 = min(int(math.ceil(xm + hx)) - x0, ncol - 1)
                         if disc <= 0.0 or k0 > k1:
                             k0 = ncol
                             k1 = ncol - 1
@@ -488,78 +488,87 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, bounds_r, bounds_c, m
                             for c in range(k0, k1 + 1):
                                 if chi[c] >= clo[c] and (px - (x0 + c)) * fvx > 0.0:
                                     diffC[clo[c] - y0, c] += w
-                        elif fvy > 0.0:
-                            sl = fvx / fvy
-                            if k1 >= k0:
-                                constC[k0] += w
-                                constC[k1 + 1] -= w
-                            for c in range(k0, k1 + 1):
-                                if chi[c] >= clo[c]:
-                                    k = _first_out_t(clo[c], chi[c],
-                                                     float(x0 + c), px, py, fvx, fvy, sl)
-                                    diffC[k - y0, c] -= w
                         else:
+                            # vy > 0: +w to the columns' rows before the boundary (constC), -w
+                            # from it on; vy < 0: +w from it on. One path for both (selects,
+                            # not branches: the sign is random); adding 0.0 changes nothing
                             sl = fvx / fvy
+                            cw = w if fvy > 0.0 else 0.0
+                            sw = -w if fvy > 0.0 else w
+                            if k1 >= k0:
+                                constC[k0] += cw
+                                constC[k1 + 1] -= cw
                             for c in range(k0, k1 + 1):
                                 if chi[c] >= clo[c]:
-                                    k = _first_in_t(clo[c], chi[c],
-                                                    float(x0 + c), px, py, fvx, fvy, sl)
-                                    diffC[k - y0, c] += w
+                                    k = _first_t(clo[c], chi[c], float(x0 + c), px, py, fvx, fvy,
+                                                 sl)
+                                    diffC[k - y0, c] += sw
+                        # the columns before and after: wholly on one side; test one cell each
                         c = min(k0, ncol) - 1
                         while c >= 0 and chi[c] < clo[c]:
                             c -= 1
-                        if c >= 0 and _cond(px, py, fvx, fvy, float(x0 + c), float(clo[c])):
-                            constC[0] += w
-                            constC[min(k0, ncol)] -= w
+                        cc = max(c, 0)
+                        cw = w if (c >= 0) & _cond(px, py, fvx, fvy, float(x0 + cc),
+                                                  float(clo[cc])) else 0.0
+                        constC[0] += cw
+                        constC[min(k0, ncol)] -= cw
                         c = k1 + 1 if k1 >= k0 else ncol
                         first = c
                         while c < ncol and chi[c] < clo[c]:
                             c += 1
-                        if c < ncol and _cond(px, py, fvx, fvy, float(x0 + c), float(clo[c])):
-                            constC[first] += w
-                            constC[ncol] -= w
+                        cc = min(c, ncol - 1)
+                        cw = w if (c < ncol) & _cond(px, py, fvx, fvy, float(x0 + cc),
+                                                    float(clo[cc])) else 0.0
+                        constC[first] += cw
+                        constC[ncol] -= cw
                     else:
                         nrow = lo.shape[0]
-                        ya = py + (-bb - sq) * dyl
-                        yb = py + (-bb + sq) * dyl
-                        k0 = max(int(math.floor(min(ya, yb))) - 1 - y0, 0)
-                        k1 = min(int(math.ceil(max(ya, yb))) + 1 - y0, nrow - 1)
+                        ym = ccy + dn * fvy * inv
+                        hy = sq * abs(fvx)
+                        k0 = max(int(math.floor(ym - hy)) - y0, 0)
+                        k1 = min(int(math.ceil(ym + hy)) - y0, nrow - 1)
                         if disc <= 0.0 or k0 > k1:
                             k0 = nrow
                             k1 = nrow - 1
+                        if k1 >= k0:                # the rows crossed
+                            rowv[2, k0] += w
+                            rowv[2, k1 + 1] -= w
                         if fvx == 0.0:
                             for r in range(k0, k1 + 1):
                                 if hi[r] >= lo[r] and (py - (y0 + r)) * fvy > 0.0:
                                     diffR[r, lo[r] - x0] += w
-                        elif fvx > 0.0:
-                            sl = fvy / fvx
-                            if k1 >= k0:
-                                constR[k0] += w
-                                constR[k1 + 1] -= w
-                            for r in range(k0, k1 + 1):
-                                if hi[r] >= lo[r]:
-                                    k = _first_out(lo[r], hi[r],
-                                                   float(y0 + r), px, py, fvx, fvy, sl)
-                                    diffR[r, k - x0] -= w
                         else:
                             sl = fvy / fvx
+                            cw = w if fvx > 0.0 else 0.0
+                            sw = -w if fvx > 0.0 else w
+                            if k1 >= k0:
+                                constR[k0] += cw
+                                constR[k1 + 1] -= cw
                             for r in range(k0, k1 + 1):
                                 if hi[r] >= lo[r]:
-                                    k = _first_in(lo[r], hi[r], float(y0 + r), px, py, fvx, fvy, sl)
-                                    diffR[r, k - x0] += w
+                                    k = _first(lo[r], hi[r], float(y0 + r), px, py, fvx, fvy, sl)
+                                    diffR[r, k - x0] += sw
                         r = min(k0, nrow) - 1
                         while r >= 0 and hi[r] < lo[r]:
                             r -= 1
-                        if r >= 0 and _cond(px, py, fvx, fvy, float(lo[r]), float(y0 + r)):
-                            constR[0] += w
-                            constR[min(k0, nrow)] -= w
+                        rc = max(r, 0)
+                        cw = w if (r >= 0) & _cond(px, py, fvx, fvy, float(lo[rc]),
+                                                  float(y0 + rc)) else 0.0
+                        constR[0] += cw
+                        constR[min(k0, nrow)] -= cw
+                        rowv[1, 0] += cw
+                        rowv[1, min(k0, nrow)] -= cw
                         r = k1 + 1 if k1 >= k0 else nrow
                         first = r
                         while r < nrow and hi[r] < lo[r]:
                             r += 1
-                        if r < nrow and _cond(px, py, fvx, fvy, float(lo[r]), float(y0 + r)):
-                            constR[first] += w
-                            constR[nrow] -= w
+                        rc = min(r, nrow - 1)
+                        cw = w if (r < nrow) & _cond(px, py, fvx, fvy, float(lo[rc]),
+                                                    float(y0 + rc)) else 0.0
+                        constR[first] += cw
+                        constR[nrow] -= cw
+                        rowv[1, first] += cw
+                        rowv[1, nrow] -= cw
                 total += w
                 dirty = 1
         i += 1
@@ -568,5 +577,4 @@ def process(x, y, t, vx, vy, diffR, constR, diffC, constC, bounds_r, bounds_c, m
     ist[3] = dirty
     fst[0] = whole
     fst[4] = total
-    fst[5] = wpart
     return n_out

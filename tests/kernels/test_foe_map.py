@@ -47,7 +47,43 @@ CASES = [  # geometry, region radius, refine_fraction, max_angle_deg, other para
 @pytest.mark.parametrize("hard", [False, True])
 def test_kernel_equals_brute_force(case, hard):
     g, radius, refine, gate, other = CASES[case]
-    packet = random_flow(500, g, seed=case + 10 * hard, hard=hard)
+    check_against_brute_force(random_flow(500, g, seed=case + 10 * hard, hard=hard), g, radius,
+                              refine, gate, other)
+
+
+def border_flow(n, g, radius, seed):
+    """Flow whose boundary lines pass at distance radius + d from A's centre, d in
+    {-0.6, -0.3, -1e-7, 0, 1e-7, 0.3, 0.6, 2.5} px (the kernel's classification and span use a
+    disc 0.5 px wider than A): tangent lines, lines just missing or just cutting A."""
+    rng = np.random.default_rng(seed)
+    c = np.array([g.cx, g.cy])
+    pts = np.stack([rng.integers(0, g.width, 20 * n), rng.integers(0, g.height, 20 * n)], 1)
+    pts = pts[np.hypot(*(pts - c).T) > radius + 3.0][:n]
+    d = radius + rng.choice([-0.6, -0.3, -1e-7, 0.0, 1e-7, 0.3, 0.6, 2.5], len(pts))
+    rel = pts - c
+    dist = np.hypot(*rel.T)
+    theta = np.arctan2(rel[:, 1], rel[:, 0]) + rng.choice([-1, 1], len(pts)) * np.arccos(d / dist)
+    v = rng.choice([-1, 1], len(pts))[:, None] * rng.uniform(1, 200, (len(pts), 1)) * np.stack(
+        [np.cos(theta), np.sin(theta)], 1)
+    m = len(pts)
+    t = np.sort(rng.integers(0, 40_000, m)).astype(np.int64)
+    return FlowPacket(geometry=g, t_start=0, t_end=40_000, x=pts[:, 0].astype(np.uint16),
+                      y=pts[:, 1].astype(np.uint16), t=t, p=np.ones(m, np.int8),
+                      vx=v[:, 0].astype(np.float32), vy=v[:, 1].astype(np.float32))
+
+
+@pytest.mark.parametrize("g, radius", [
+    (Geometry(40, 30, cx=20.0, cy=15.0), 5.0),     # cells exactly on A's circle
+    (Geometry(40, 30), 11.0),
+    (Geometry(33, 21, cx=5.0, cy=18.0), 9.5),     # clipped by the border
+])
+def test_lines_near_the_border_of_a(g, radius):
+    """(p - c).v / |v| = R + d: the votes that hold all of A, none or part, near the limit."""
+    check_against_brute_force(border_flow(400, g, radius, seed=3), g, radius, 0.0, None, {})
+
+
+def check_against_brute_force(packet, g, radius, refine, gate, other):
+    """The filter's estimates and (without gating) its whole map equal the brute force's."""
     other = {"speed_weight_pxs": None, **other}  # unweighted unless the case says otherwise
     params = FoeMap.Params(tau_ms=15.0, region_radius_px=radius, estimate_every_us=4000,
                            refine_fraction=refine, max_angle_deg=gate, **other)
@@ -145,10 +181,11 @@ def test_refresh_equals_materialize_with_negative_values(radius):
     rowmax = np.empty(ny)
     best, worst = k.materialize(diffR, constR, diffC, constC, lo, hi, clo, chi, x0, y0, -0.5,
                                 want, rowmax)
-    fst = np.array([-0.5, 0, 0, 0, 1.0, 0.0])
-    rst = np.zeros((ny, 5))
+    fst = np.array([-0.5, 0, 0, 0, 1.0])
+    rst = np.zeros((ny, 6))
     got = np.full((ny, nx), np.nan)
-    b2, w2 = k.refresh(diffR, constR, diffC, constC, lo, hi, x0, fst, rst, got, 0.05)
+    rowv = np.stack([constR, np.zeros(ny + 1), np.zeros(ny + 1)])
+    b2, w2 = k.refresh(diffR, rowv, diffC, constC, lo, hi, x0, fst, rst, got, 0.05)
     assert worst < 0 < best
     assert (b2, w2) == (best, worst)
     inside = ~np.isnan(want)
