@@ -278,24 +278,44 @@ def refresh(diffR, rowv, diffC, constC, lo, hi, x0, fst, rst, out, refine_fracti
     return best, worst
 
 
-@njit(cache=True, error_model="numpy", fastmath={"reassoc", "nsz"})
+@njit(cache=True, error_model="numpy")
+def _cell_weight(v, thr, weighted):
+    if weighted:
+        return max(v - thr, 0.0)
+    return 1.0 if v >= thr else 0.0
+
+
+@njit(cache=True, error_model="numpy")
 def _row_sums(m, r, a, b, thr, weighted):
     """Row r of ``m``, cells a..b - 1: the sums of the weights w and of w * column index, where
-    w = (v - thr) for cells v >= thr (``weighted``) or 1 for them. Reassociated (vectorised):
-    the sums differ from a left-to-right loop by rounding only."""
-    sw = 0.0
-    sc = 0.0
-    if weighted:
-        for c in range(a, b):
-            wt = max(m[r, c] - thr, 0.0)
-            sw += wt
-            sc += wt * np.float64(c)
-    else:
-        for c in range(a, b):
-            wt = 1.0 if m[r, c] >= thr else 0.0
-            sw += wt
-            sc += wt * np.float64(c)
-    return sw, sc
+    w = (v - thr) for cells v >= thr (``weighted``) or 1 for them. Four interleaved partial
+    sums in a fixed order (four independent chains of additions), so the result does not
+    depend on how the code was compiled: a reassociated (``fastmath``) loop gave other last
+    bits fresh from the JIT than loaded from numba's cache."""
+    sw0 = sw1 = sw2 = sw3 = 0.0
+    sc0 = sc1 = sc2 = sc3 = 0.0
+    one, four = np.uint64(1), np.uint64(4)
+    c = a
+    while c + four <= b:
+        w0 = _cell_weight(m[r, c], thr, weighted)
+        w1 = _cell_weight(m[r, c + one], thr, weighted)
+        w2 = _cell_weight(m[r, c + one + one], thr, weighted)
+        w3 = _cell_weight(m[r, c + four - one], thr, weighted)
+        sw0 += w0
+        sw1 += w1
+        sw2 += w2
+        sw3 += w3
+        sc0 += w0 * np.float64(c)
+        sc1 += w1 * (np.float64(c) + 1.0)
+        sc2 += w2 * (np.float64(c) + 2.0)
+        sc3 += w3 * (np.float64(c) + 3.0)
+        c += four
+    while c < b:
+        w0 = _cell_weight(m[r, c], thr, weighted)
+        sw0 += w0
+        sc0 += w0 * np.float64(c)
+        c += one
+    return (sw0 + sw1) + (sw2 + sw3), (sc0 + sc1) + (sc2 + sc3)
 
 
 @njit(cache=True, error_model="numpy")
@@ -303,7 +323,7 @@ def read_estimate(m, x0, y0, best, worst, refine_fraction, lo, hi, rowmax):
     """(x, y) of a dense map ``m`` (NaN outside A; row r holds A's columns ``lo[r]..hi[r]``,
     its maximum is ``rowmax[r]``) with maximum ``best`` and minimum ``worst``: centroid of the
     maximal set, refined. Rows whose maximum is below the threshold are skipped; the others are
-    summed row by row (vectorised, :func:`_row_sums`).
+    summed row by row (:func:`_row_sums`).
 
     With ``refine_fraction`` f > 0 the estimate is the centroid of the cells within
     f * (max - min) of the max, weighted by their height above that threshold; with f = 0 the

@@ -198,7 +198,7 @@ def test_refresh_equals_materialize_with_negative_values(radius):
 @pytest.mark.parametrize("refine", [0.0, 0.05, 0.5])
 @pytest.mark.parametrize("kind", ["random", "plateau", "flat", "one_cell", "negative", "two_tops"])
 def test_read_estimate_equals_naive(refine, kind):
-    """The read's refined centroid (row sums reassociated, vectorised) against the naive
+    """The read's refined centroid (row sums in four interleaved lanes) against the naive
     estimate on random maps and hard ones: a wide plateau, a constant map (max = min), one
     maximal cell, negative values, two separate maximal cells; region A a clipped disc."""
     from evchain.filters.foe_map import region_cells
