@@ -365,155 +365,19 @@ def sg_gradient_masks(wt, rowmask, colmask, size, coef, pairs):
     return True, gx * (1e-6 / SG_SCALE) / nx, gy * (1e-6 / SG_SCALE) / ny
 
 
-@njit(cache=True, inline="always")
-def estimate(ts, pi, xi, yi, ti, variant, r, window_us, min_points, th1, th2, max_iter,
-             spread2, centre_check, tabulated, coef, pairs, popcount, bitsum,
-             X, Y, T, use, wt, wv, rowmask, colmask):
-    """One event's fit with neighbours at most ``window_us`` old; (ok, a, b).
-
-    (a, b): the gradient (dt/dx, dt/dy) in s/px, except for ``original`` (variant 3): its
-    velocity (vx, vy) in px/s. Not ok: too few points, spread, degenerate fit, centre check.
-    The event is inside the border margin and, for SG, the whole stencil inside the image
-    (checked by the caller). The work arrays come from :func:`plane_flow_kernel`.
-    """
-    height = ts.shape[1]
-    width = ts.shape[2]
-    size = 2 * r + 1
-    cap = size * size
-    n = 0
-    st = 0.0
-    sx = 0
-    sy = 0
-    sxx = 0
-    syy = 0
-    sxy = 0
-    if tabulated:  # SG: the window's times and validity masks per row and column
-        for dy in range(-r, r + 1):
-            row = ts[pi, yi + dy]
-            k0 = (dy + r) * size + r
-            rm = 0
-            for dx in range(-r, r + 1):
-                age = ti - row[xi + dx]
-                # invalid times stay in wt: the tables give them weight 0
-                wt[k0 + dx] = -age
-                ok = np.int64(age <= window_us)  # branch-free: validity is unpredictable
-                st -= age * ok
-                rm |= ok << (dx + r)
-            rowmask[dy + r] = rm
-            n += popcount[rm]
-            sx += bitsum[rm]
-            sy += dy * popcount[rm]
-        for c in range(size):
-            cm = 0
-            for line in range(size):
-                cm |= ((rowmask[line] >> c) & 1) << line
-            colmask[c] = cm
-        if spread2 > 0.0:
-            for k in range(cap):
-                if (rowmask[k // size] >> (k % size)) & 1:
-                    dx = k % size - r
-                    dy = k // size - r
-                    sxx += dx * dx
-                    syy += dy * dy
-                    sxy += dx * dy
-    elif variant == 4:  # SG, wide window: only the window's times and validity
-        for dy in range(-r, r + 1):
-            row = ts[pi, yi + dy]
-            k0 = (dy + r) * size + r
-            for dx in range(-r, r + 1):
-                age = ti - row[xi + dx]
-                ok = 1 if age <= window_us else 0
-                wv[k0 + dx] = ok
-                wt[k0 + dx] = -age * ok
-                st -= age * ok
-                n += ok
-                sx += dx * ok
-                sy += dy * ok
-        if spread2 > 0.0:
-            for k in range(cap):
-                if wv[k] > 0.0:
-                    dx = k % size - r
-                    dy = k // size - r
-                    sxx += dx * dx
-                    syy += dy * dy
-                    sxy += dx * dy
-    else:  # the valid neighbours as points (the event itself included), branch-free
-        for dy in range(-r, r + 1):
-            yy = yi + dy
-            if yy < 0 or yy >= height:
-                continue
-            row = ts[pi, yy]
-            for dx in range(-r, r + 1):
-                xx = xi + dx
-                if xx < 0 or xx >= width:
-                    continue
-                age = ti - row[xx]
-                ok = 1 if age <= window_us else 0
-                X[n] = dx
-                Y[n] = dy
-                T[n] = -age * 1e-6
-                use[n] = True
-                n += ok
-                sx += dx * ok
-                sy += dy * ok
-                sxx += dx * dx * ok
-                syy += dy * dy * ok
-                sxy += dx * dy * ok
-    if n < min_points or n < 3:
-        return False, 0.0, 0.0
-    if spread2 > 0.0:
-        cxx = (sxx - sx * sx / n) / n
-        cyy = (syy - sy * sy / n) / n
-        cxy = (sxy - sx * sy / n) / n
-        half = 0.5 * (cxx + cyy)
-        lam = half - math.sqrt(max(0.25 * (cxx - cyy) ** 2 + cxy * cxy, 0.0))
-        if lam < spread2:
-            return False, 0.0, 0.0
-    if variant == 4:
-        if tabulated:
-            ok, gx, gy = sg_gradient_masks(wt, rowmask, colmask, size, coef, pairs)
-        else:
-            ok, gx, gy = sg_gradient(wt, wv, size)
-        if not ok:
-            return False, 0.0, 0.0
-        # the plane with these slopes through the points' centroid, at the event
-        c = (st * 1e-6 - gx * sx - gy * sy) / n
-        if centre_check and abs(c) > th2:
-            return False, 0.0, 0.0
-        return True, gx, gy
-    if variant == 0:
-        ok, gx, gy, c = fit_explicit(X, Y, T, use, n)
-        if not ok or (centre_check and abs(c) > th2):
-            return False, 0.0, 0.0
-        return True, gx, gy
-    if variant == 1:
-        ok, gx, gy, c = iterate_explicit(X, Y, T, use, n, th1, th2, max_iter)
-        if not ok or (centre_check and abs(c) > th2):
-            return False, 0.0, 0.0
-        return True, gx, gy
-    ok, nx, ny, nt, d = iterate_homogeneous(X, Y, T, use, n, th1, th2, max_iter)
-    if not ok or nt <= 0.0 or (centre_check and abs(d) > th2):
-        return False, 0.0, 0.0
-    if variant == 3:
-        if nx == 0.0 or ny == 0.0:
-            return False, 0.0, 0.0
-        return True, -nt / nx, -nt / ny
-    return True, -nx / nt, -ny / nt
-
-
 #: refits of the adaptive window at most (the window only grows, so this bounds the work)
 MAX_REFITS = 4
 
 
-@njit(cache=True)
-def plane_flow_adaptive_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, margin,
-                               min_points, th1, th2, max_speed, max_iter, min_spread,
-                               centre_check,
-                               out_idx, out_vx, out_vy, max_window_us, slow_px,
-                               refit_failed, refractory_updates):
-    """:func:`plane_flow_kernel` with the speed-adaptive window (see there): the same loop
-    with the fit in :func:`estimate`, which the refits call again. Kept apart so that the fixed
-    window's loop stays as it was (same speed, same results)."""
+@njit(cache=True, inline="always")
+def event_loop(x, y, t, p, ts, variant, r, window_us, refractory_us, margin, min_points, th1,
+               th2, max_speed, max_iter, min_spread, centre_check, out_idx, out_vx, out_vy,
+               max_window_us, slow_px, refit_failed, refractory_updates, adaptive):
+    """The loop of :func:`plane_flow_kernel`; the speed-adaptive window's refits with
+    ``adaptive``. Inlined into each kernel with ``adaptive`` a constant, so that the fixed
+    window's loop compiles without the refits. The fit is written out in the loop, not called:
+    a (numba-inlined) function taking the work arrays costs their reference counts per event
+    (~20 % of the fixed window's time, docs/benchmarks.md)."""
     height = ts.shape[1]
     width = ts.shape[2]
     size = 2 * r + 1
@@ -542,6 +406,7 @@ def plane_flow_adaptive_kernel(x, y, t, p, ts, variant, r, window_us, refractory
     g_min2 = 1.0 / (max_speed * max_speed)
     spread2 = min_spread * min_spread
     k_us = slow_px * 1e6  # W (µs) = k_us |g| (s/px): the window in which the edge moves k px
+    fits = MAX_REFITS + 1 if adaptive else 1
     n_out = 0
     for i in range(len(x)):
         xi = np.int64(x[i])
@@ -559,27 +424,152 @@ def plane_flow_adaptive_kernel(x, y, t, p, ts, variant, r, window_us, refractory
         full = xi >= r and yi >= r and xi + r < width and yi + r < height
         if variant == 4 and not full:
             continue  # SG needs the whole stencil (border_px < r)
-        ok, gx, gy = estimate(ts, pi, xi, yi, ti, variant, r, window_us, min_points, th1, th2,
-                              max_iter, spread2, centre_check, tabulated, coef, pairs,
-                              popcount, bitsum, X, Y, T, use, wt, wv, rowmask, colmask)
+        # fits with window w (µs) and residual / centre check limit lim (s); a failed fit
+        # continues with the next, whose start decides whether to refit
         w = window_us
-        for _ in range(MAX_REFITS):
-            if ok:
-                want = k_us * math.sqrt(gx * gx + gy * gy)
-                if want <= w:
-                    break  # the edge moved at least slow_px within the window
-                w_new = max_window_us if want >= max_window_us else np.int64(want)
-            elif refit_failed and w == window_us:
-                w_new = max_window_us
+        lim = th2
+        ok = False
+        gx = 0.0
+        gy = 0.0
+        for k in range(fits):
+            if k > 0:  # adaptive: refit when the last fit asks for a longer window
+                if ok:
+                    want = k_us * math.sqrt(gx * gx + gy * gy)
+                    if want <= w:
+                        break  # the edge moved at least slow_px within the window
+                    w_new = max_window_us if want >= max_window_us else np.int64(want)
+                elif refit_failed and w == window_us:
+                    w_new = max_window_us
+                else:
+                    break
+                if w_new <= w:
+                    break
+                w = w_new
+                lim = th2 * w / window_us
+            ok = False
+            n = 0
+            st = 0.0
+            sx = 0
+            sy = 0
+            sxx = 0
+            syy = 0
+            sxy = 0
+            if tabulated:  # SG: the window's times and validity masks per row and column
+                for dy in range(-r, r + 1):
+                    row = ts[pi, yi + dy]
+                    k0 = (dy + r) * size + r
+                    rm = 0
+                    for dx in range(-r, r + 1):
+                        age = ti - row[xi + dx]
+                        # invalid times stay in wt: the tables give them weight 0
+                        wt[k0 + dx] = -age
+                        valid = np.int64(age <= w)  # branch-free: validity is unpredictable
+                        st -= age * valid
+                        rm |= valid << (dx + r)
+                    rowmask[dy + r] = rm
+                    n += popcount[rm]
+                    sx += bitsum[rm]
+                    sy += dy * popcount[rm]
+                for c in range(size):
+                    cm = 0
+                    for line in range(size):
+                        cm |= ((rowmask[line] >> c) & 1) << line
+                    colmask[c] = cm
+                if spread2 > 0.0:
+                    for kk in range(cap):
+                        if (rowmask[kk // size] >> (kk % size)) & 1:
+                            dx = kk % size - r
+                            dy = kk // size - r
+                            sxx += dx * dx
+                            syy += dy * dy
+                            sxy += dx * dy
+            elif variant == 4:  # SG, wide window: only the window's times and validity
+                for dy in range(-r, r + 1):
+                    row = ts[pi, yi + dy]
+                    k0 = (dy + r) * size + r
+                    for dx in range(-r, r + 1):
+                        age = ti - row[xi + dx]
+                        valid = 1 if age <= w else 0
+                        wv[k0 + dx] = valid
+                        wt[k0 + dx] = -age * valid
+                        st -= age * valid
+                        n += valid
+                        sx += dx * valid
+                        sy += dy * valid
+                if spread2 > 0.0:
+                    for kk in range(cap):
+                        if wv[kk] > 0.0:
+                            dx = kk % size - r
+                            dy = kk // size - r
+                            sxx += dx * dx
+                            syy += dy * dy
+                            sxy += dx * dy
+            else:  # the valid neighbours as points (the event itself included), branch-free
+                for dy in range(-r, r + 1):
+                    yy = yi + dy
+                    if yy < 0 or yy >= height:
+                        continue
+                    row = ts[pi, yy]
+                    for dx in range(-r, r + 1):
+                        xx = xi + dx
+                        if xx < 0 or xx >= width:
+                            continue
+                        age = ti - row[xx]
+                        valid = 1 if age <= w else 0
+                        X[n] = dx
+                        Y[n] = dy
+                        T[n] = -age * 1e-6
+                        use[n] = True
+                        n += valid
+                        sx += dx * valid
+                        sy += dy * valid
+                        sxx += dx * dx * valid
+                        syy += dy * dy * valid
+                        sxy += dx * dy * valid
+            if n < min_points or n < 3:
+                continue
+            if spread2 > 0.0:
+                cxx = (sxx - sx * sx / n) / n
+                cyy = (syy - sy * sy / n) / n
+                cxy = (sxy - sx * sy / n) / n
+                half = 0.5 * (cxx + cyy)
+                lam = half - math.sqrt(max(0.25 * (cxx - cyy) ** 2 + cxy * cxy, 0.0))
+                if lam < spread2:
+                    continue
+            # (gx, gy): the gradient (dt/dx, dt/dy) in s/px; for original its velocity
+            if variant == 4:
+                if tabulated:
+                    fit_ok, gx, gy = sg_gradient_masks(wt, rowmask, colmask, size, coef, pairs)
+                else:
+                    fit_ok, gx, gy = sg_gradient(wt, wv, size)
+                if not fit_ok:
+                    continue
+                # the plane with these slopes through the points' centroid, at the event
+                c = (st * 1e-6 - gx * sx - gy * sy) / n
+                if centre_check and abs(c) > lim:
+                    continue
+            elif variant == 0:
+                fit_ok, gx, gy, c = fit_explicit(X, Y, T, use, n)
+                if not fit_ok or (centre_check and abs(c) > lim):
+                    continue
+            elif variant == 1:
+                fit_ok, gx, gy, c = iterate_explicit(X, Y, T, use, n, th1, lim, max_iter)
+                if not fit_ok or (centre_check and abs(c) > lim):
+                    continue
             else:
-                break
-            if w_new <= w:
-                break
-            w = w_new
-            ok, gx, gy = estimate(ts, pi, xi, yi, ti, variant, r, w, min_points, th1,
-                                  th2 * w / window_us, max_iter, spread2, centre_check,
-                                  tabulated, coef, pairs, popcount, bitsum, X, Y, T, use,
-                                  wt, wv, rowmask, colmask)
+                fit_ok, nx, ny, nt, d = iterate_homogeneous(X, Y, T, use, n, th1, lim,
+                                                            max_iter)
+                if not fit_ok or nt <= 0.0 or (centre_check and abs(d) > lim):
+                    continue
+                if variant == 3:
+                    if nx == 0.0 or ny == 0.0:
+                        continue
+                    gx = -nt / nx
+                    gy = -nt / ny
+                else:
+                    gx = -nx / nt
+                    gy = -ny / nt
+            ok = True
         if not ok:
             continue
         if variant == 3:
@@ -601,6 +591,17 @@ def plane_flow_adaptive_kernel(x, y, t, p, ts, variant, r, window_us, refractory
 
 
 @njit(cache=True)
+def plane_flow_adaptive_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, margin,
+                               min_points, th1, th2, max_speed, max_iter, min_spread,
+                               centre_check, out_idx, out_vx, out_vy, max_window_us, slow_px,
+                               refit_failed, refractory_updates):
+    """:func:`plane_flow_kernel` with the speed-adaptive window (the loop with the refits)."""
+    return event_loop(x, y, t, p, ts, variant, r, window_us, refractory_us, margin, min_points,
+                      th1, th2, max_speed, max_iter, min_spread, centre_check, out_idx, out_vx,
+                      out_vy, max_window_us, slow_px, refit_failed, refractory_updates, True)
+
+
+@njit(cache=True)
 def plane_flow_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, margin,
                       min_points, th1, th2, max_speed, max_iter, min_spread, centre_check,
                       out_idx, out_vx, out_vy, max_window_us=0, slow_px=2.0,
@@ -618,9 +619,9 @@ def plane_flow_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, marg
     (or, with ``refit_failed``, gives no estimate), refit with the window in which it would
     move ``slow_px`` px, W = slow_px |g|, at most ``max_window_us`` (the longest when there
     is no estimate); repeat while the window grows (at most :data:`MAX_REFITS` refits). A
-    refit's centre check limit is ``th2 W / window_us`` (the same fraction of the time per
-    pixel). The last fit is the result; a failed refit gives no flow. Runs
-    :func:`plane_flow_adaptive_kernel`.
+    refit's centre check limit (and the iterative fits' residual limit) is ``th2 W / window_us``
+    (the same fraction of the time per pixel). The last fit is the result; a failed refit gives
+    no flow. Runs :func:`plane_flow_adaptive_kernel`.
 
     ``refractory_updates`` (jAER: true): an event within ``refractory_us`` still updates the
     surface; false: it is dropped entirely (the thesis's description), so the surface holds the
@@ -632,181 +633,6 @@ def plane_flow_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, marg
                                           min_spread, centre_check, out_idx, out_vx, out_vy,
                                           max_window_us, slow_px, refit_failed,
                                           refractory_updates)
-    height = ts.shape[1]
-    width = ts.shape[2]
-    size = 2 * r + 1
-    cap = size * size
-    X = np.empty(cap, np.float64)
-    Y = np.empty(cap, np.float64)
-    T = np.empty(cap, np.float64)
-    use = np.empty(cap, np.bool_)
-    wt = np.empty(cap, np.float64)
-    wv = np.empty(cap, np.float64)
-    rowmask = np.zeros(size, np.int64)
-    colmask = np.zeros(size, np.int64)
-    tabulated = variant == 4 and size <= SG_TABLE_MAX_SIZE
-    if tabulated:
-        coef, pairs = sg_tables(size)
-    else:
-        coef, pairs = sg_tables(1)
-    # per line mask: number of valid pixels and the sum of their offsets from the centre
-    popcount = np.zeros(coef.shape[0], np.int64)
-    bitsum = np.zeros(coef.shape[0], np.int64)
-    for m in range(coef.shape[0]):
-        for b in range(size):
-            if (m >> b) & 1:
-                popcount[m] += 1
-                bitsum[m] += b - r
-    g_min2 = 1.0 / (max_speed * max_speed)
-    spread2 = min_spread * min_spread
-    n_out = 0
-    for i in range(len(x)):
-        xi = np.int64(x[i])
-        yi = np.int64(y[i])
-        ti = t[i]
-        pi = 1 if p[i] > 0 else 0
-        prev = ts[pi, yi, xi]
-        if prev != NO_EVENT and ti - prev < refractory_us:
-            if refractory_updates:
-                ts[pi, yi, xi] = ti
-            continue
-        ts[pi, yi, xi] = ti
-        if xi < margin or yi < margin or xi >= width - margin or yi >= height - margin:
-            continue
-        full = xi >= r and yi >= r and xi + r < width and yi + r < height
-        if variant == 4 and not full:
-            continue  # SG needs the whole stencil (border_px < r)
-        n = 0
-        st = 0.0
-        sx = 0
-        sy = 0
-        sxx = 0
-        syy = 0
-        sxy = 0
-        if tabulated:  # SG: the window's times and validity masks per row and column
-            for dy in range(-r, r + 1):
-                row = ts[pi, yi + dy]
-                k0 = (dy + r) * size + r
-                rm = 0
-                for dx in range(-r, r + 1):
-                    age = ti - row[xi + dx]
-                    # invalid times stay in wt: the tables give them weight 0
-                    wt[k0 + dx] = -age
-                    ok = np.int64(age <= window_us)  # branch-free: validity is unpredictable
-                    st -= age * ok
-                    rm |= ok << (dx + r)
-                rowmask[dy + r] = rm
-                n += popcount[rm]
-                sx += bitsum[rm]
-                sy += dy * popcount[rm]
-            for c in range(size):
-                cm = 0
-                for line in range(size):
-                    cm |= ((rowmask[line] >> c) & 1) << line
-                colmask[c] = cm
-            if spread2 > 0.0:
-                for k in range(cap):
-                    if (rowmask[k // size] >> (k % size)) & 1:
-                        dx = k % size - r
-                        dy = k // size - r
-                        sxx += dx * dx
-                        syy += dy * dy
-                        sxy += dx * dy
-        elif variant == 4:  # SG, wide window: only the window's times and validity
-            for dy in range(-r, r + 1):
-                row = ts[pi, yi + dy]
-                k0 = (dy + r) * size + r
-                for dx in range(-r, r + 1):
-                    age = ti - row[xi + dx]
-                    ok = 1 if age <= window_us else 0
-                    wv[k0 + dx] = ok
-                    wt[k0 + dx] = -age * ok
-                    st -= age * ok
-                    n += ok
-                    sx += dx * ok
-                    sy += dy * ok
-            if spread2 > 0.0:
-                for k in range(cap):
-                    if wv[k] > 0.0:
-                        dx = k % size - r
-                        dy = k // size - r
-                        sxx += dx * dx
-                        syy += dy * dy
-                        sxy += dx * dy
-        else:  # the valid neighbours as points (the event itself included), branch-free
-            for dy in range(-r, r + 1):
-                yy = yi + dy
-                if yy < 0 or yy >= height:
-                    continue
-                row = ts[pi, yy]
-                for dx in range(-r, r + 1):
-                    xx = xi + dx
-                    if xx < 0 or xx >= width:
-                        continue
-                    age = ti - row[xx]
-                    ok = 1 if age <= window_us else 0
-                    X[n] = dx
-                    Y[n] = dy
-                    T[n] = -age * 1e-6
-                    use[n] = True
-                    n += ok
-                    sx += dx * ok
-                    sy += dy * ok
-                    sxx += dx * dx * ok
-                    syy += dy * dy * ok
-                    sxy += dx * dy * ok
-        if n < min_points or n < 3:
-            continue
-        if spread2 > 0.0:
-            cxx = (sxx - sx * sx / n) / n
-            cyy = (syy - sy * sy / n) / n
-            cxy = (sxy - sx * sy / n) / n
-            half = 0.5 * (cxx + cyy)
-            lam = half - math.sqrt(max(0.25 * (cxx - cyy) ** 2 + cxy * cxy, 0.0))
-            if lam < spread2:
-                continue
-        if variant == 4:
-            if tabulated:
-                ok, gx, gy = sg_gradient_masks(wt, rowmask, colmask, size, coef, pairs)
-            else:
-                ok, gx, gy = sg_gradient(wt, wv, size)
-            if not ok:
-                continue
-            # the plane with these slopes through the points' centroid, at the event
-            c = (st * 1e-6 - gx * sx - gy * sy) / n
-            if centre_check and abs(c) > th2:
-                continue
-        elif variant == 0:
-            ok, gx, gy, c = fit_explicit(X, Y, T, use, n)
-            if not ok or (centre_check and abs(c) > th2):
-                continue
-        elif variant == 1:
-            ok, gx, gy, c = iterate_explicit(X, Y, T, use, n, th1, th2, max_iter)
-            if not ok or (centre_check and abs(c) > th2):
-                continue
-        else:
-            ok, nx, ny, nt, d = iterate_homogeneous(X, Y, T, use, n, th1, th2, max_iter)
-            if not ok or nt <= 0.0 or (centre_check and abs(d) > th2):
-                continue
-            if variant == 3:
-                if nx == 0.0 or ny == 0.0:
-                    continue
-                vx = -nt / nx
-                vy = -nt / ny
-                if vx * vx + vy * vy > max_speed * max_speed:
-                    continue
-                out_idx[n_out] = i
-                out_vx[n_out] = vx
-                out_vy[n_out] = vy
-                n_out += 1
-                continue
-            gx = -nx / nt
-            gy = -ny / nt
-        g2 = gx * gx + gy * gy
-        if g2 < g_min2 or g2 == 0.0:
-            continue
-        out_idx[n_out] = i
-        out_vx[n_out] = gx / g2
-        out_vy[n_out] = gy / g2
-        n_out += 1
-    return n_out
+    return event_loop(x, y, t, p, ts, variant, r, window_us, refractory_us, margin, min_points,
+                      th1, th2, max_speed, max_iter, min_spread, centre_check, out_idx, out_vx,
+                      out_vy, max_window_us, slow_px, refit_failed, refractory_updates, False)

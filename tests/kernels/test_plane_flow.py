@@ -13,6 +13,7 @@ from evchain.kernels.plane_flow import (
     VARIANTS,
     fit_explicit,
     new_state,
+    plane_flow_adaptive_kernel,
     plane_flow_kernel,
     smallest_eigvec3,
 )
@@ -379,6 +380,26 @@ def test_adaptive_window_random_stream_matches_reference(variant, refit_failed):
     if variant != "original":  # the refits change the result (the comparison is not vacuous)
         off = run_kernel(ev.x, ev.y, ev.t, ev.p, g.width, g.height, **{**kw, "max_window_us": 0})
         assert not np.array_equal(off[0], got[0])
+
+
+@pytest.mark.parametrize("variant", list(VARIANTS))
+@pytest.mark.parametrize("r", [2, 4])  # 4: Savitzky-Golay without the mask tables
+def test_adaptive_loop_without_refits_equals_fixed_loop(variant, r):
+    """The loop is compiled twice (with and without the refits): with no window to grow to,
+    the adaptive copy gives exactly the fixed copy's flow and surface."""
+    g = Geometry(24, 20)
+    ev = random_events(3000, g, 0, 400_000, seed=5)
+    args = (ev.x, ev.y, ev.t, ev.p)
+    prm = (VARIANTS[variant], r, 20_000, 3000, r, 3, 1e-5, 0.01, 1e4, 10, 0.3, True)
+    out = []
+    for kernel in (plane_flow_kernel, plane_flow_adaptive_kernel):
+        ts = new_state(g.width, g.height)
+        idx, vx, vy = np.empty(len(ev), np.int64), np.empty(len(ev)), np.empty(len(ev))
+        k = kernel(*args, ts, *prm, idx, vx, vy, 20_000, 2.0, False, True)
+        out.append((idx[:k], vx[:k], vy[:k], ts))
+    assert len(out[0][0]) > 20
+    for a, b in zip(out[0], out[1], strict=True):
+        np.testing.assert_array_equal(a, b)
 
 
 @settings(max_examples=12, deadline=None)
