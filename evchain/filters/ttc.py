@@ -83,10 +83,9 @@ class Ttc(Filter):
                                   "their rows can be the obstacle: median(tau * dy) / K < 1 - "
                                   "ground_tolerance, K = f h / V estimated from the events")
         ground_tolerance: float = Field(0.1, gt=0, lt=0.5, description="relative band around "
-                                        "K that counts as road (K itself follows the events "
-                                        "within twice this band)")
-        ground_rate: float = Field(0.002, gt=0, lt=1, description="relative step of the "
-                                   "running median K per event")
+                                        "K that counts as road (also K's mode window)")
+        ground_memory_ms: float = Field(1000.0, gt=0, description="K is the mode of tau * dy "
+                                        "over the events' votes, which fade with this memory")
         ground_min_events: int = Field(500, ge=1, description="events K must have seen before "
                                        "the ground test applies")
         corridor_half_width_h: float | None = Field(
@@ -105,14 +104,15 @@ class Ttc(Filter):
     def reset(self) -> None:
         p = self.params
         k, b = p.max_clusters, p.samples_per_cluster
-        from evchain.kernels.ttc import NCOL
+        from evchain.kernels.ttc import KG_BINS, NCOL
 
         self._C = np.zeros((k, NCOL), np.float64)
         self._I = np.zeros((k, 4), np.int64)
         self._ST = np.zeros((k, b), np.float64)
         self._SV = np.zeros((k, b), np.float64)
         self._SK = np.zeros((k, b), np.float64)
-        self._G = np.zeros(8, np.float64)
+        self._G = np.zeros(9, np.float64)
+        self._H = np.zeros(KG_BINS, np.float64)
         self._G[7] = -1.0
         self._started = False
         self._S = None
@@ -145,14 +145,15 @@ class Ttc(Filter):
         c = [np.empty(m, np.int64), np.empty(m, np.int64)] + [np.empty(m) for _ in range(6)]
         no, nc = kern.process(
             packet.x, packet.y, packet.t, packet.p, packet.vx, packet.vy, ft, fx, fy, self._C,
-            self._I, self._ST, self._SV, self._SK, self._G, self._S, int(packet.t_end), period,
+            self._I, self._ST, self._SV, self._SK, self._G, self._S, self._H, int(packet.t_end),
+            period,
             p.select == "nearest_foe", p.select_min_activity,
             p.region_b_half_width_px, p.region_b_min_below_px, p.min_distance_px,
             p.min_speed_pxs, p.max_speed_pxs, p.min_tau_s, p.max_tau_s, p.cluster_size_px,
             p.max_cluster_size_px, p.join_margin_px, p.activity_tau_ms * 1000.0,
             p.min_activity, p.sample_max_age_ms * 1000.0, p.min_samples, p.rel_noise_floor,
             p.process_noise_s2_per_s, p.gate_sigma, p.ground_test, p.ground_tolerance,
-            p.ground_rate, float(p.ground_min_events), p.ground_fallback,
+            p.ground_memory_ms * 1000.0, float(p.ground_min_events), p.ground_fallback,
             p.corridor_half_width_h or 0.0, p.select_hold, p.baseline_px,
             p.baseline_max_ms * 1000.0, *o, *c)
         ttc = np.zeros(no, TTC_DTYPE)

@@ -4,15 +4,15 @@ Cluster state ``C[k, :]`` (float64) has the columns below; ``I[k, :]`` (int64) h
 flag, number of stored samples and ring position. Each cluster keeps a ring of its recent samples
 ``(t_us, tau_s)`` in ``ST[k]``, ``SV[k]``. ``G`` (float64) holds the carried state: ``[0]`` 1 when
 an FOE is known, ``[1]`` foe x, ``[2]`` foe y, ``[3]`` next tick (µs), ``[4]`` next cluster id,
-``[5]`` the ground constant K (s px), ``[6]`` the number of events K has seen, ``[7]`` the id of
-the last selected cluster (-1: none).
+``[5]`` the ground constant K (s px), ``[6]`` the number of votes for K, ``[7]`` the id of the
+last selected cluster (-1: none), ``[8]`` the reference time of the votes' weights (µs).
 
 Ground plane: for a road point at ``dy = y - y_foe`` rows below the FOE, seen by a level camera
 at height h moving at speed V, ``tau * dy = f h / V =: K`` (the same for all road points). An
 obstacle point at height hp above the road has ``tau * dy = K (1 - hp / h) < K``: it is nearer
-than the road at its row. K is estimated from the events themselves (a running median of
-``tau * dy``, first over all region-B events, then only over those within ``2 ground_tol`` of
-it: the road's mode; events joining a cluster already known to be off the road are left out);
+than the road at its row. K is estimated from the events themselves: the mode of ``tau * dy``
+over region-B events (a fading histogram ``H`` of its log, see ``ground_vote``,
+``ground_mode``; events joining a cluster already known to be off the road are left out);
 each cluster keeps ``tau * dy`` of its samples in ``SK[k]`` and its
 ratio ``rho = median(tau * dy) / K`` in ``C[k, RHO]``.
 """
@@ -92,27 +92,55 @@ def baseline_tau(S, pol, px, py, nx, ny, d0, ti, max_px, max_age_us):
     return tau
 
 
-@njit(cache=True)
-def ground_update(G, kg, tol, rate, min_events):
-    """One step of the ground constant K = G[5] (events seen: G[6]) with kg = tau * dy > 0.
+KG_LN_MIN = math.log(0.01)  # ground histogram: bins of ln(tau * dy) from 0.01 s px
+KG_BIN = 0.02               # bin width in ln (2 %)
+KG_BINS = 1024              # up to 0.01 e^20.48 ~ 8e6 s px
 
-    A running median by multiplicative sign steps of size max(rate, 1 / (n + 2)): over every
-    event until ``min_events`` have been seen, then only over events within ``2 tol`` of K
-    (the road's mode, so that a large obstacle close by does not drag K down).
-    """
+
+@njit(cache=True)
+def ground_vote(H, G, kg, t_us, memory_us):
+    """Add kg = tau * dy > 0 of an event at ``t_us`` to the ground histogram ``H`` (bins of
+    ln kg), weighted ``exp((t_us - G[8]) / memory_us)`` (older votes fade with that memory);
+    ``G[6]`` counts the votes, ``G[8]`` is the weights' reference time (the first vote's, moved
+    on with a rescale before the weights overflow)."""
     if not (kg > 0.0):
         return
-    nk = G[6]
-    if nk == 0.0:
-        G[5] = kg
-        G[6] = 1.0
-    elif nk < min_events or abs(kg - G[5]) <= 2.0 * tol * G[5]:
-        step = max(rate, 1.0 / (nk + 2.0))
-        if kg > G[5]:
-            G[5] *= 1.0 + step
-        elif kg < G[5]:
-            G[5] *= 1.0 - step
-        G[6] = nk + 1.0
+    b = int(math.floor((math.log(kg) - KG_LN_MIN) / KG_BIN))
+    if b < 0 or b >= H.shape[0]:
+        return
+    if G[6] == 0.0:
+        G[8] = t_us
+    w = math.exp((t_us - G[8]) / memory_us)
+    if w > 1e100:
+        for j in range(H.shape[0]):
+            H[j] /= w
+        G[8] = t_us
+        w = 1.0
+    H[b] += w
+    G[6] += 1.0
+
+
+@njit(cache=True)
+def ground_mode(H, half_bins):
+    """The ground constant K: the road's mode of tau * dy, the weighted mean of ln kg over the
+    window of ``2 half_bins + 1`` bins holding the most weight (first of equals); 0 if empty."""
+    nb = H.shape[0]
+    w = 2 * half_bins + 1
+    best, best_s = 0, -1.0
+    for j in range(max(1, nb - w + 1)):
+        s = 0.0
+        for i in range(j, min(j + w, nb)):
+            s += H[i]
+        if s > best_s:
+            best, best_s = j, s
+    tot = 0.0
+    m = 0.0
+    for j in range(best, min(best + w, nb)):
+        tot += H[j]
+        m += H[j] * (j + 0.5)
+    if not (tot > 0.0):
+        return 0.0
+    return math.exp(KG_LN_MIN + KG_BIN * m / tot)
 
 
 @njit(cache=True)
@@ -179,12 +207,12 @@ def _cluster_estimate(C, I, ST, SV, SK, k, T, max_age_us, min_samples, rel_floor
 
 
 @njit(cache=True)
-def process(x, y, t, pol, vx, vy, ft, fx, fy, C, I, ST, SV, SK, G, S, t_end, period_us,
+def process(x, y, t, pol, vx, vy, ft, fx, fy, C, I, ST, SV, SK, G, S, H, t_end, period_us,
             select_nearest, select_min_activity,
             half_width, min_below, min_dist, min_speed, max_speed, min_tau, max_tau,
             init_size, max_size, join_margin, act_tau_us, min_activity,
             max_age_us, min_samples, rel_floor, q_s2_per_s, gate,
-            ground_test, ground_tol, ground_rate, ground_min_events, ground_fallback,
+            ground_test, ground_tol, ground_memory_us, ground_min_events, ground_fallback,
             corridor, hold, base_px, base_age_us,
             o_t, o_tau, o_id, o_x, o_y, o_sup, c_t, c_id, c_x, c_y, c_size, c_tau, c_sup,
             c_rho):
@@ -202,6 +230,7 @@ def process(x, y, t, pol, vx, vy, ft, fx, fy, C, I, ST, SV, SK, G, S, t_end, per
     """
     K = C.shape[0]
     B = ST.shape[1]
+    half_bins = int(round(math.log(1.0 + ground_tol) / KG_BIN))
     buf = np.empty(B, np.float64)
     n = t.shape[0]
     nf = ft.shape[0]
@@ -213,6 +242,8 @@ def process(x, y, t, pol, vx, vy, ft, fx, fy, C, I, ST, SV, SK, G, S, t_end, per
         t_next = t[i] if i < n else t_end
         while G[3] < t_next or (i < n and G[3] == t_next):
             T = G[3]
+            if G[6] >= ground_min_events:
+                G[5] = ground_mode(H, half_bins)
             k_ground = G[5] if G[6] >= ground_min_events else 0.0
             use_ground = ground_test and k_ground > 0.0
             best = -1
@@ -367,7 +398,7 @@ def process(x, y, t, pol, vx, vy, ft, fx, fy, C, I, ST, SV, SK, G, S, t_end, per
                     I[kb, NS] += 1
                 # K learns from events of clusters not (yet) known to be off the road
                 if not (C[kb, RHO] < 1.0 - ground_tol):
-                    ground_update(G, kg, ground_tol, ground_rate, ground_min_events)
+                    ground_vote(H, G, kg, float(ti), ground_memory_us)
         if S.shape[1] > 0:
             qx = int(x[i])
             qy = int(y[i])

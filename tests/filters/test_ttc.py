@@ -187,26 +187,52 @@ def test_ground_plane_test_selects_the_obstacle(ground):
         assert rel > 0.2, rel
 
 
+def _ground_run(kg, t, tol, memory_us):
+    from evchain.kernels.ttc import KG_BINS, ground_mode, ground_vote
+
+    g, h = np.zeros(9), np.zeros(KG_BINS)
+    for v, ti in zip(kg, t, strict=True):
+        ground_vote(h, g, v, float(ti), memory_us)
+    half = int(round(np.log(1.0 + tol) / 0.02))
+    return ground_mode(h, half), g[6]
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_ground_constant_matches_reference(seed):
-    from evchain.kernels.ttc import ground_update
-
     rng = np.random.default_rng(seed)
-    kg = rng.lognormal(np.log(40.0), 0.3, 4000)
-    kg[rng.random(kg.size) < 0.3] *= 0.4          # obstacle-like events, below the road
+    n = 4000
+    kg = rng.lognormal(np.log(40.0), 0.3, n)
+    kg[rng.random(n) < 0.3] *= 0.4               # obstacle-like events, below the road
     kg[::97] = 0.0
     kg[::89] = -5.0
     kg[::101] = np.nan
+    kg[::103] = np.inf
     kg[1000:1010] = 1e6                          # outliers
-    for tol, rate, min_events in ((0.1, 0.002, 500), (0.05, 0.01, 50), (0.3, 0.0005, 1)):
-        g = np.zeros(8)
-        for v in kg:
-            ground_update(g, v, tol, rate, float(min_events))
-        k, n = ground_constant_naive(kg, tol, rate, min_events)
-        np.testing.assert_allclose(g[5], k, rtol=1e-12)
-        assert g[6] == n
-        if min_events == 500:  # long ungated start: K finds the road's mode (40)
-            assert 30.0 < k < 50.0, k
+    kg[2000:2005] = 0.01                         # the histogram's lowest bin, and below it
+    kg[2005:2010] = 0.0099
+    kg[3000:3005] = 1e12                         # beyond its highest bin
+    # times with long gaps: the kernel's weights overflow and get rescaled
+    t = np.cumsum(rng.exponential(1.0, n) * np.where(rng.random(n) < 0.01, 3e8, 2e3))
+    for tol, memory_us in ((0.1, 1e6), (0.05, 2e5), (0.3, 5e7)):
+        k, nv = _ground_run(kg, t, tol, memory_us)
+        want_k, want_n = ground_constant_naive(kg, t, tol, memory_us)
+        np.testing.assert_allclose(k, want_k, rtol=1e-9)
+        assert nv == want_n
+    assert _ground_run(np.array([np.nan, -1.0, 0.0]), np.arange(3.0), 0.1, 1e6) == (0.0, 0.0)
+
+
+def test_ground_constant_leaves_a_wrong_start():
+    """A mode seen first (here half the road's K, as from events while the FOE is still far
+    off) is left once the road's votes outweigh it: K follows the road within one bin."""
+    rng = np.random.default_rng(5)
+    first = rng.lognormal(np.log(20.0), 0.05, 2000)          # a wrong start, for 0.2 s
+    road = rng.lognormal(np.log(40.0), 0.05, 20000)          # then the road, for 2 s
+    kg = np.concatenate([first, road])
+    t = np.concatenate([np.linspace(0, 2e5, first.size), np.linspace(2e5, 2.2e6, road.size)])
+    k, _ = _ground_run(kg[:first.size], t[:first.size], 0.1, 1e6)
+    np.testing.assert_allclose(k, 20.0, rtol=0.02)
+    k, _ = _ground_run(kg, t, 0.1, 1e6)
+    np.testing.assert_allclose(k, 40.0, rtol=0.02)
 
 
 def test_ground_plane_contract():

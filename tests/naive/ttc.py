@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
@@ -20,25 +22,30 @@ def event_tau_naive(px, py, vx, vy, fx, fy, half_width, min_below, min_dist, min
     return np.where(ok, tau, -1.0)
 
 
-def ground_constant_naive(kg, tol, rate, min_events) -> tuple[float, int]:
-    """The ground constant K after the sequence ``kg`` (tau * dy per event), and the number of
-    events it has taken: a running median by multiplicative sign steps of max(rate, 1/(n+2)),
-    over every positive kg until ``min_events``, then only over kg within 2 tol of K."""
-    k, n = 0.0, 0
-    for v in kg:
-        v = float(v)
-        if not v > 0.0:
-            continue
-        if n == 0:
-            k, n = v, 1
-        elif n < min_events or abs(v - k) <= 2.0 * tol * k:
-            step = max(rate, 1.0 / (n + 2.0))
-            if v > k:
-                k *= 1.0 + step
-            elif v < k:
-                k *= 1.0 - step
-            n += 1
-    return k, n
+def ground_constant_naive(kg, t_us, tol, memory_us, k_min=0.01, width=0.02,
+                          bins=1024) -> tuple[float, int]:
+    """The ground constant K after the votes ``kg`` (tau * dy) at times ``t_us``, and the number
+    of votes: every positive kg whose bin floor((ln kg - ln k_min) / width) lies in [0, bins)
+    votes with weight exp(t / memory) (only the ratios matter); K is the weighted mean bin
+    centre (in ln) of the window of 2 round(ln(1 + tol) / width) + 1 bins with the most weight
+    (the first of equals), 0 without votes."""
+    ln_min = math.log(k_min)
+    kg = np.asarray(kg, np.float64)
+    t = np.asarray(t_us, np.float64)
+    ok = kg > 0.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        b = np.floor((np.log(np.where(ok, kg, 1.0)) - ln_min) / width)
+    ok &= (b >= 0) & (b < bins)
+    if not ok.any():
+        return 0.0, 0
+    w = np.exp((t[ok] - t[ok].max()) / memory_us)
+    h = np.bincount(b[ok].astype(np.int64), w, minlength=bins)
+    win = 2 * int(round(math.log(1.0 + tol) / width)) + 1
+    sums = [h[j:j + win].sum() for j in range(max(1, bins - win + 1))]
+    j = int(np.argmax(sums))
+    c = np.arange(j, min(j + win, bins)) + 0.5
+    k = math.exp(ln_min + width * float((h[j:j + win] * c).sum() / h[j:j + win].sum()))
+    return k, int(ok.sum())
 
 
 def baseline_tau_naive(last_t, px, py, nx, ny, d0, ti, max_px, max_age_us) -> float:
