@@ -424,10 +424,11 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
         touch += rows[r, S_L0] + rows[r, S_LC]
     if touch == 1e308:
         g0[0] = 0.0                      # never: keeps the loads
-    # pass 2b: the logarithms the rule needs, in tight loops of independent libm calls (the
-    # same values as computing them in the rule): per candidate the end-frame log (cubic:
-    # of the look-ahead frame), then for the candidates without cached logs (listed
-    # branch-free) those of the interval's other frames
+    # pass 2b (cubic): the logarithms the rule needs, in tight loops of independent libm calls
+    # (the same values as computing them in the rule): per candidate the look-ahead frame's
+    # log, then for the candidates without cached logs (listed branch-free) those of the
+    # interval's other frames. (Linear needs at most two logs per candidate and gains
+    # nothing from it: they stay in the rule.)
     llb = logs[0]
     lla = logs[1]
     llm = logs[2]
@@ -436,20 +437,16 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
         if has_next:
             for k in range(np.uint64(nc)):
                 llp[k] = np.log(np.float64(gp[k]) + eps)
-    else:
+        nu = np.uint64(0)
         for k in range(np.uint64(nc)):
-            llb[k] = _logi(f1, np.uint64(cand[k]), eps)
-    nu = np.uint64(0)
-    for k in range(np.uint64(nc)):
-        unc[nu] = k
-        nu += np.uint64(rows[np.uint64(cand[k]), S_LC] != jm)
-    for q in range(nu):
-        k = np.uint64(unc[q])
-        if cubic:
+            unc[nu] = k
+            nu += np.uint64(rows[np.uint64(cand[k]), S_LC] != jm)
+        for q in range(nu):
+            k = np.uint64(unc[q])
             llb[k] = _logi(f1, np.uint64(cand[k]), eps)
             if has_prev:
                 llm[k] = np.log(np.float64(gm[k]) + eps)
-        lla[k] = np.log(np.float64(g0[k]) + eps)
+            lla[k] = np.log(np.float64(g0[k]) + eps)
     # pass 3: the candidates' events
     for k in range(nc):
         i = cand[k]
@@ -457,7 +454,9 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
         # logs of this pixel from the previous interval (frames jg-1 .. jg+1 when cubic,
         # jg-1 .. jg when linear): the same float64 values, computed once
         cached = rows[r, S_LC] == jm
-        if cached and cubic:
+        if not cubic:
+            lb = _logi(f1, i, eps)
+        elif cached:
             lb = rows[r, S_LC + 3]
         else:
             lb = llb[k]
@@ -477,8 +476,10 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
                 continue
         if cached:
             la = rows[r, S_LC + 2]
-        else:
+        elif cubic:
             la = lla[k]
+        else:
+            la = _logi(g0, k, eps)
         m0 = lb - la
         m1 = lb - la
         if cubic:
