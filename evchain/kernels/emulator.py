@@ -22,7 +22,8 @@ Per interval (``_interval``): pass 1 scans chunks of ``CHUNK`` pixels (the frame
 ``PREFETCH_AHEAD`` pixels ahead) with a branch-free,
 vectorised bit mask of the pixels outside their gates and lists these candidates from the set
 bits, in pixel order; pass 2
-gathers their values of the other frames (independent loads, so cache misses overlap); pass 3
+gathers their values of the other frames (independent loads, so cache misses overlap); pass 2b
+(cubic) computes the libm logarithms the rule needs in tight loops over the candidates; pass 3
 runs the exact rule per candidate. ``lcache`` keeps, per pixel, the logs of the last interval
 it was examined in and (cubic) its end slope, so a pixel active in consecutive intervals
 computes one new logarithm instead of four and one limited slope instead of two (the next
