@@ -22,7 +22,8 @@ Per interval (``_interval``): pass 1 scans chunks of ``CHUNK`` pixels (the frame
 ``PREFETCH_AHEAD`` pixels ahead) with a branch-free,
 vectorised bit mask of the pixels outside their gates and lists these candidates from the set
 bits, in pixel order; pass 2
-gathers their values of the other frames (independent loads, so cache misses overlap); pass 3
+gathers their values of the other frames (independent loads, so cache misses overlap); pass 2b
+(cubic) computes the libm logarithms the rule needs in tight loops over the candidates; pass 3
 runs the exact rule per candidate. ``lcache`` keeps, per pixel, the logs of the last interval
 it was examined in and (cubic) its end slope, so a pixel active in consecutive intervals
 computes one new logarithm instead of four and one limited slope instead of two (the next
@@ -346,7 +347,7 @@ def _times(u0, u1, cubic, t0, dt, refractory_us, ui, utf, up_, piece, rows):
 @njit(cache=True, error_model="numpy")
 def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, eps, tol,
               k_hi, k_lo, refractory_us, cap, rows, irows, hi, lo, jg, first, cand, g0, gm, gp, ui,
-              utf, up_, piece, u):
+              utf, up_, piece, u, logs, unc):
     """Events of one frame interval for pixels ``first ..``, appended to ``ui`` (flat pixel
     index), ``utf``, ``up_`` from position ``u``. A pixel's state is committed only when all
     its events fit, so on a full buffer the call stops before that pixel. ``jg`` is the global
@@ -424,6 +425,29 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
         touch += rows[r, S_L0] + rows[r, S_LC]
     if touch == 1e308:
         g0[0] = 0.0                      # never: keeps the loads
+    # pass 2b (cubic): the logarithms the rule needs, in tight loops of independent libm calls
+    # (the same values as computing them in the rule): per candidate the look-ahead frame's
+    # log, then for the candidates without cached logs (listed branch-free) those of the
+    # interval's other frames. (Linear needs at most two logs per candidate and gains
+    # nothing from it: they stay in the rule.)
+    llb = logs[0]
+    lla = logs[1]
+    llm = logs[2]
+    llp = logs[3]
+    if cubic:
+        if has_next:
+            for k in range(np.uint64(nc)):
+                llp[k] = np.log(np.float64(gp[k]) + eps)
+        nu = np.uint64(0)
+        for k in range(np.uint64(nc)):
+            unc[nu] = k
+            nu += np.uint64(rows[np.uint64(cand[k]), S_LC] != jm)
+        for q in range(nu):
+            k = np.uint64(unc[q])
+            llb[k] = _logi(f1, np.uint64(cand[k]), eps)
+            if has_prev:
+                llm[k] = np.log(np.float64(gm[k]) + eps)
+            lla[k] = np.log(np.float64(g0[k]) + eps)
     # pass 3: the candidates' events
     for k in range(nc):
         i = cand[k]
@@ -431,10 +455,12 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
         # logs of this pixel from the previous interval (frames jg-1 .. jg+1 when cubic,
         # jg-1 .. jg when linear): the same float64 values, computed once
         cached = rows[r, S_LC] == jm
-        if cached and cubic:
+        if not cubic:
+            lb = _logi(f1, i, eps)
+        elif cached:
             lb = rows[r, S_LC + 3]
         else:
-            lb = _logi(f1, i, eps)
+            lb = llb[k]
         con = rows[r, S_CON]
         coff = rows[r, S_COFF]
         k_on = irows[r, S_NON]
@@ -451,6 +477,8 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
                 continue
         if cached:
             la = rows[r, S_LC + 2]
+        elif cubic:
+            la = lla[k]
         else:
             la = _logi(g0, k, eps)
         m0 = lb - la
@@ -466,11 +494,11 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
                     # same bits
                     da = rows[r, S_LC + 1]
                 else:
-                    lm = _logi(gm, k, eps)
+                    lm = llm[k]
                     if np.isfinite(lm):
                         da = slope3((la - lm) / hprev, sec, hprev, dt)
             if has_next:
-                lp = _logi(gp, k, eps)
+                lp = llp[k]
                 if np.isfinite(lp):
                     db = slope3(sec, (lp - lb) / hnext, dt, hnext)
                 rows[r, S_LC] = jg
@@ -535,12 +563,14 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
 @njit(cache=True)
 def new_scratch(npix, ucap):
     """Work arrays of ``emulate`` for ``npix`` pixels and ``ucap`` events per interval: (cand,
-    g0, gm, gp, ui, utf, up_, ub, piece, perm, buckets). The filter keeps them between calls
-    (fresh memory costs a page fault per 4 KiB, ~2.7 µs each on the benchmark machine)."""
+    g0, gm, gp, ui, utf, up_, ub, piece, perm, buckets, logs, unc). The filter keeps them
+    between calls (fresh memory costs a page fault per 4 KiB, ~2.7 µs each on the benchmark
+    machine)."""
     return (np.empty(npix, np.int64), np.empty(npix, np.float32), np.empty(npix, np.float32),
             np.empty(npix, np.float32), np.empty(ucap, np.int64), np.empty(ucap, np.float64),
             np.empty(ucap, np.int8), np.empty(ucap, np.int64), np.empty((7, ucap)),
-            np.empty(ucap, np.int64), np.zeros(1, np.int64))
+            np.empty(ucap, np.int64), np.zeros(1, np.int64), np.empty((4, npix)),
+            np.empty(npix, np.int64))
 
 
 @njit(cache=True, nogil=True)    # renders of the scene source's threads go on meanwhile
@@ -580,7 +610,7 @@ def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractor
     op[:nc0] = cp
     if keep_tf:
         otf[:nc0] = ctf
-    cand, g0, gm, gp, ui, utf, up_, ub, piece, perm, buckets = scratch
+    cand, g0, gm, gp, ui, utf, up_, ub, piece, perm, buckets, logs, unc = scratch
     n = nc0
     for j in range(j_first, j_last):
         f0 = (held[j] if j < nh else cur[j - nh]).ravel()
@@ -607,10 +637,10 @@ def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractor
                 f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, eps, tol,
                 k_hi, k_lo, refractory_us, cap, rows, irows, hi, lo, j_base + j, resume, cand,
                 g0, gm, gp, ui, utf,
-                up_, piece, u)
+                up_, piece, u, logs, unc)
             if err != ERR_NONE:
                 return (ox, oy, ot, otf, op, n, err, j + 1, ep // w, ep % w,
-                        (cand, g0, gm, gp, ui, utf, up_, ub, piece, perm, buckets))
+                        (cand, g0, gm, gp, ui, utf, up_, ub, piece, perm, buckets, logs, unc))
             if resume >= 0 or u + nnoise > ui.shape[0]:
                 ui = _grow(ui, u + nnoise + 1)
                 utf = _grow(utf, u + nnoise + 1)
@@ -667,4 +697,4 @@ def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractor
             op[pos] = up_[q]
         n += u
     return (ox, oy, ot, otf, op, n, ERR_NONE, 0, 0, 0,
-            (cand, g0, gm, gp, ui, utf, up_, ub, piece, perm, buckets))
+            (cand, g0, gm, gp, ui, utf, up_, ub, piece, perm, buckets, logs, unc))
