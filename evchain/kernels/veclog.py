@@ -63,6 +63,14 @@ def _ln(x):
 
 
 @njit(cache=True, error_model="numpy")
+def ln(x):
+    """ln(x) of one float64, the same value as ``log_pass`` gives (libm where x is not a
+    positive normal number)."""
+    v, ok = _ln(x)
+    return v if ok else np.log(x)
+
+
+@njit(cache=True, error_model="numpy")
 def log_pass(x, out, n):
     """``out[k] = ln(x[k])`` for k < n (float64 1-D arrays); as ``np.log`` to <= 1 ulp."""
     nok = np.int64(0)
