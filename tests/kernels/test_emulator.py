@@ -274,3 +274,21 @@ def test_chunk_mask_and_bits_match_scalar_test():
         m = _chunk_mask(f, hi, lo)
         assert (m == 0) == (not ref)
         assert list(bits(np.uint64(m))) == ref
+
+
+@pytest.mark.parametrize("interpolation", ["linear", "cubic"])
+def test_exact_return_to_first_level_with_zero_tolerance(interpolation):
+    # l0 and the rule's logs come from one function (veclog): a pixel back at exactly its first
+    # intensity is exactly at its first level, so with tol = 0 its last OFF event fires
+    rng = np.random.default_rng(5)
+    first = rng.uniform(0.05, 1.0, (40, 50)).astype(np.float32)
+    frames = np.stack([first, first * np.float32(1.6), first])
+    times = np.array([0, 1000, 2000], np.int64)
+    ev, _ = run_filter(frames, times, threshold_on=0.2, threshold_off=0.2, tie_tolerance=0.0,
+                       interpolation=interpolation)
+    on = np.zeros(first.shape, np.int64)
+    off = np.zeros(first.shape, np.int64)
+    np.add.at(on, (ev.y[ev.p > 0], ev.x[ev.p > 0]), 1)
+    np.add.at(off, (ev.y[ev.p < 0], ev.x[ev.p < 0]), 1)
+    assert on.min() == 2
+    np.testing.assert_array_equal(off, on)
