@@ -38,11 +38,9 @@ on these shortcuts.
 from __future__ import annotations
 
 import numpy as np
-from llvmlite import ir
-from numba import njit, types
-from numba.core import cgutils
-from numba.extending import intrinsic
+from numba import njit
 
+from evchain.kernels.intrinsics import cttz, prefetch
 from evchain.kernels.veclog import ln, log_pass
 
 ERR_NONE = 0
@@ -196,23 +194,6 @@ def solve_crossing(level, la, lb, m0, m1, cubic):
     return s
 
 
-@intrinsic
-def _prefetch(typingctx, arr, idx):
-    """Hint the CPU to load the cache line of ``arr[idx]`` (``llvm.prefetch``, read, keep in
-    all levels); ``idx`` must be in bounds. No effect on results."""
-    def codegen(context, builder, signature, args):
-        ary = context.make_array(signature.args[0])(context, builder, args[0])
-        i8p = ir.IntType(8).as_pointer()
-        i32 = ir.IntType(32)
-        fn = cgutils.get_or_insert_function(
-            builder.module, ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32]),
-            "llvm.prefetch.p0i8")
-        ptr = builder.bitcast(builder.gep(ary.data, [args[1]]), i8p)
-        builder.call(fn, [ptr, ir.Constant(i32, 0), ir.Constant(i32, 3), ir.Constant(i32, 1)])
-        return context.get_dummy_value()
-    return types.void(arr, idx), codegen
-
-
 @njit(cache=True)
 def _grow(arr, n):
     out = np.empty(max(2 * arr.shape[0], n), arr.dtype)
@@ -227,24 +208,13 @@ def _chunk_mask(f, hi, lo):
 
     Branch-free with a fixed trip count over views (non-negative indices), so that it
     vectorises (compares into masks, ~60 instructions per chunk); the candidates are then
-    read off the set bits (``_cttz``) without a test per pixel.
+    read off the set bits (``cttz``) without a test per pixel.
     """
     m = np.uint64(0)
     for q in range(CHUNK):
         v = f[q]
         m |= np.uint64(not ((v < hi[q]) & (v > lo[q]))) << np.uint64(q)
     return m
-
-
-@intrinsic
-def _cttz(typingctx, x):
-    """Index of the lowest set bit of a non-zero uint64 (``llvm.cttz``: one tzcnt)."""
-    def codegen(context, builder, signature, args):
-        i64 = ir.IntType(64)
-        fn = cgutils.get_or_insert_function(
-            builder.module, ir.FunctionType(i64, [i64, ir.IntType(1)]), "llvm.cttz.i64")
-        return builder.call(fn, [args[0], ir.Constant(ir.IntType(1), 1)])
-    return types.uint64(types.uint64), codegen
 
 
 @njit(cache=True, error_model="numpy")
@@ -380,8 +350,8 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
         # fp, which the gather reads at every candidate (cubic; bar 1.10x; else fp is f1)
         if c0 + (PREFETCH_AHEAD + CHUNK) <= npix:
             for q in range(0, CHUNK, 16):
-                _prefetch(f1, c0 + PREFETCH_AHEAD + q)
-                _prefetch(fp, c0 + PREFETCH_AHEAD + q)
+                prefetch(f1, c0 + PREFETCH_AHEAD + q)
+                prefetch(fp, c0 + PREFETCH_AHEAD + q)
         if c1 - c0 == CHUNK:
             m = _chunk_mask(f1[c0:c1], hi[c0:c1], lo[c0:c1])
             if m == 0:
@@ -391,7 +361,7 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
             # the candidates from the set bits, in pixel order (the old scalar re-scan of the
             # chunk, a branch per pixel, was ~13 % of the bar's time)
             while m != 0:
-                i = c0 + np.int64(_cttz(m))
+                i = c0 + np.int64(cttz(m))
                 m &= m - np.uint64(1)
                 v1 = f1[i]
                 if not np.isfinite(v1) or v1 < 0:

@@ -37,9 +37,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from llvmlite import ir
-from numba import njit, types
-from numba.extending import intrinsic
+from numba import njit
+
+from evchain.kernels.intrinsics import from_bits
 
 RENORM_EXPONENT = 40.0
 #: the disc around A that decides which votes cover all of A, none or part, and which rows
@@ -169,14 +169,6 @@ def _row_prefixes(diffR, lo, hi, x0, need, out):
 _SIGN = np.int64(0x7FFFFFFFFFFFFFFF)
 
 
-@intrinsic
-def _from_bits(typingctx, k):
-    """The float64 whose bits are the int64 ``k``."""
-    def codegen(context, builder, sig, args):
-        return builder.bitcast(args[0], ir.DoubleType())
-    return types.float64(types.int64), codegen
-
-
 @njit(cache=True, error_model="numpy")
 def refresh(diffR, rowv, diffC, constC, lo, hi, x0, fst, rst, out, refine_fraction):
     """Bring up to date the rows of the dense map ``out`` (map units) that this read needs;
@@ -265,8 +257,8 @@ def refresh(diffR, rowv, diffC, constC, lo, hi, x0, fst, rst, out, refine_fracti
                 k = k ^ ((k >> 63) & _SIGN)
                 kb = max(kb, k)
                 kw = min(kw, k)
-            rbest = _from_bits(kb ^ ((kb >> 63) & _SIGN))
-            rworst = _from_bits(kw ^ ((kw >> 63) & _SIGN))
+            rbest = from_bits(kb ^ ((kb >> 63) & _SIGN))
+            rworst = from_bits(kw ^ ((kw >> 63) & _SIGN))
             rst[r, 0] = rbest
             rst[r, 1] = rworst
             rst[r, 2] = whole

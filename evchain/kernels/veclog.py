@@ -15,9 +15,9 @@ NaN, negative) are counted and recomputed afterwards by libm, so they behave as 
 from __future__ import annotations
 
 import numpy as np
-from llvmlite import ir
-from numba import njit, types
-from numba.extending import intrinsic
+from numba import njit
+
+from evchain.kernels.intrinsics import float_bits, from_bits
 
 #: ln 2 rounded to a multiple of 2^-42, and the rest (derived with 60-digit decimal arithmetic)
 LN2_HI = 0.6931471805598903
@@ -30,29 +30,13 @@ _MIN_NORMAL_BITS = 0x0010000000000000
 _NORMAL_SPAN = 0x7FE0000000000000
 
 
-@intrinsic
-def _bits(typingctx, x):
-    """The IEEE bits of a float64 as int64 (a register move)."""
-    def codegen(context, builder, signature, args):
-        return builder.bitcast(args[0], ir.IntType(64))
-    return types.int64(types.float64), codegen
-
-
-@intrinsic
-def _from_bits(typingctx, b):
-    """The float64 with IEEE bits ``b`` (int64)."""
-    def codegen(context, builder, signature, args):
-        return builder.bitcast(args[0], ir.DoubleType())
-    return types.float64(types.int64), codegen
-
-
 @njit(cache=True, inline="always", error_model="numpy")
 def _ln(x):
     """(ln x, 1) for a positive normal float64 x; (garbage, 0) otherwise. Branch-free."""
-    b = _bits(x)
+    b = float_bits(x)
     ok = np.int64(np.uint64(b - _MIN_NORMAL_BITS) < np.uint64(_NORMAL_SPAN))
     e = (b - _SQRT_HALF_BITS) >> 52                   # arithmetic shift: e of m in range
-    m = _from_bits(b - (e << 52))
+    m = from_bits(b - (e << 52))
     f = m - 1.0
     s = f / (2.0 + f)
     z = s * s

@@ -242,13 +242,14 @@ def test_chunk_mask_and_bits_match_scalar_test():
     # negative values, LO_NONE gates, all-clear and all-set chunks
     from numba import njit
 
-    from evchain.kernels.emulator import CHUNK, LO_NONE, _chunk_mask, _cttz
+    from evchain.kernels.emulator import CHUNK, LO_NONE, _chunk_mask
+    from evchain.kernels.intrinsics import cttz
 
     @njit
     def bits(m):
         out = []
         while m != 0:
-            out.append(np.int64(_cttz(m)))
+            out.append(np.int64(cttz(m)))
             m &= m - np.uint64(1)
         return out
 
