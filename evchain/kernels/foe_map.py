@@ -62,7 +62,8 @@ def _first(a, b, yy, px, py, vx, vy, slope):
     [a, b + 1]: the first cell outside for vx > 0 (the half-plane is qx < bound), the first
     inside for vx < 0 (qx > bound). Computed directly; fixed up with the exact test of the
     brute force only when the boundary lies within 1e-9 px of a cell centre (a bound beyond
-    a - 0.5 or b + 0.5 gives a or b + 1 whatever its rounding)."""
+    a - 0.5 or b + 0.5 gives a or b + 1 whatever its rounding). A column is the same call with
+    x and y swapped (``_cond`` is symmetric in them, exactly: its sum commutes)."""
     bound = min(max(px + (py - yy) * slope, a - 0.5), b + 0.5)
     kf = math.floor(bound)
     k = int(kf) + 1
@@ -76,26 +77,6 @@ def _first(a, b, yy, px, py, vx, vy, slope):
             while k - 1 >= a and _cond(px, py, vx, vy, float(k - 1), yy):
                 k -= 1
             while k <= b and not _cond(px, py, vx, vy, float(k), yy):
-                k += 1
-    return k
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _first_t(a, b, xx, px, py, vx, vy, slope):
-    """:func:`_first` transposed: column xx, rows a..b, vy != 0."""
-    bound = min(max(py + (px - xx) * slope, a - 0.5), b + 0.5)
-    kf = math.floor(bound)
-    k = int(kf) + 1
-    if abs(bound - kf - 0.5) > NEAR:
-        if vy > 0.0:
-            while k <= b and _cond(px, py, vx, vy, xx, float(k)):
-                k += 1
-            while k > a and not _cond(px, py, vx, vy, xx, float(k - 1)):
-                k -= 1
-        else:
-            while k - 1 >= a and _cond(px, py, vx, vy, xx, float(k - 1)):
-                k -= 1
-            while k <= b and not _cond(px, py, vx, vy, xx, float(k)):
                 k += 1
     return k
 
@@ -512,8 +493,7 @@ def process(x, y, t, vx, vy, diffR, rowv, diffC, constC, bounds_r, bounds_c, mbu
                                 constC[k1 + 1] -= cw
                             for c in range(k0, k1 + 1):
                                 if chi[c] >= clo[c]:
-                                    k = _first_t(clo[c], chi[c], float(x0 + c), px, py, fvx, fvy,
-                                                 sl)
+                                    k = _first(clo[c], chi[c], float(x0 + c), py, px, fvy, fvx, sl)
                                     diffC[k - y0, c] += sw
                         # the columns before and after: wholly on one side; test one cell each
                         c = min(k0, ncol) - 1
