@@ -35,6 +35,13 @@ _I = dict(cache=True, error_model="numpy", inline="always")   # helpers of the h
 
 INF = np.inf
 
+# Width of a sample's box filter on the box faces' textures, in sample spacings. 1 would be the
+# sample's own share of the pixel; a GPU's mip-mapped bilinear lookup (TORCS, the thesis's
+# renderer) averages over texels of 1-2 footprints blended with a tent of one texel, a filter as
+# wide as a box of sqrt(3) to 2 sqrt(3) footprints (equal variance); 2 is at its narrow end.
+# The ground's mip levels have texels of 1-2 footprints.
+TEXTURE_FOOTPRINT = 2.0
+
 
 # ----------------------------------------------------------------------------- hashing / noise
 
@@ -322,44 +329,74 @@ def ground_albedo(x, y, segs, ground, tex, lv_inv, lv_off, lv_mask):
 
 
 @njit(**_I)
-def box_albedo(mat, p0, p1, p2, p3, bid, u, z):
+def periodic_cover(a, b, lo, hi):
+    """Length of [a, b] covered by the intervals [m + lo, m + hi], m integer,
+    0 <= lo <= hi <= 1."""
+    fa = math.floor(a)
+    fb = math.floor(b)
+    ca = fa * (hi - lo) + min(max(a - fa - lo, 0.0), hi - lo)
+    cb = fb * (hi - lo) + min(max(b - fb - lo, 0.0), hi - lo)
+    return cb - ca
+
+
+@njit(**_J)
+def box_albedo(mat, p0, p1, p2, p3, bid, u, z, wu):
     """Albedo of a box face at face-horizontal coordinate u and height z (materials:
-    0 plain, 1 grey window grid, 2 orange facade, 3 orange with extra vertical lines, 4 car)."""
+    0 plain, 1 grey window grid, 2 orange facade, 3 orange with extra vertical lines, 4 car),
+    averaged over [u - wu / 2, u + wu / 2] (exactly: the grids are piecewise constant along u;
+    wu = 0: the value at u; wu at most 64 window columns). The average is the texture
+    prefilter of a sample whose footprint on the face is wu wide along u: at grazing angles a
+    sample spans several window columns, whose point samples would alternate between window
+    and wall from frame to frame."""
     if mat == 0:
         return p0
-    if mat == 1:
-        fh = p1
-        cw = p2
-        fi = math.floor(z / fh)
-        ci = math.floor(u / cw)
-        fz = z / fh - fi
-        fu = u / cw - ci
-        # both values and a select instead of branches: at grazing angles neighbouring
-        # samples alternate between window and wall, which branch prediction cannot follow
-        win = 0.06 + 0.2 * hash3(np.int64(ci), np.int64(fi), bid)
-        wall = p0 + 0.06 * (hash3(np.int64(fi), bid, 77) - 0.5)
-        inside = (fz > 0.3) & (fz < 0.85) & (fu > 0.2) & (fu < 0.8)
-        return win if inside else wall
-    if mat == 2 or mat == 3:
-        if mat == 3 and u - math.floor(u) < 0.12:
-            return 0.15
-        fh = p1
-        cw = p2
-        fi = math.floor(z / fh)
-        ci = math.floor(u / cw)
-        fz = z / fh - fi
-        fu = u / cw - ci
-        if fz > 0.15 and fz < 0.9 and fu > 0.3 and fu < 0.7:
-            return 0.1 + 0.15 * hash3(np.int64(ci), np.int64(fi), bid)
-        if z - 0.6 * math.floor(z / 0.6) < 0.06:
-            return p0 * 0.75
+    if mat == 4:    # car: dark window band between p1 and p2
+        if z > p1 and z < p2:
+            return 0.05
+        if z < p3:
+            return 0.08
         return p0
-    # car: dark window band between p1 and p2
-    if z > p1 and z < p2:
-        return 0.05
-    if z < p3:
-        return 0.08
-    return p0
+    fh = p1
+    cw = p2
+    fi = math.floor(z / fh)
+    fz = z / fh - fi
+    if mat == 1:
+        zlo, zhi, ulo, uhi, w0, w1 = 0.3, 0.85, 0.2, 0.8, 0.06, 0.2
+        wall = p0 + 0.06 * (hash3(np.int64(fi), bid, 77) - 0.5)
+    else:
+        zlo, zhi, ulo, uhi, w0, w1 = 0.15, 0.9, 0.3, 0.7, 0.1, 0.15
+        wall = p0 * 0.75 if z - 0.6 * math.floor(z / 0.6) < 0.06 else p0
+    lines = mat == 3          # vertical lines 0.12 m wide every metre, over everything else
+    band = fz > zlo and fz < zhi
+    if not wu > 1e-9 * cw:     # a point sample (also below rounding)
+        if lines and u - math.floor(u) < 0.12:
+            return 0.15
+        ci = math.floor(u / cw)
+        fu = u / cw - ci
+        if band and fu > ulo and fu < uhi:
+            return w0 + w1 * hash3(np.int64(ci), np.int64(fi), bid)
+        return wall
+    wu = min(wu, 64.0 * cw)      # an edge-on face: the 64 window columns around u
+    u0 = u - 0.5 * wu
+    u1 = u + 0.5 * wu
+    on_lines = periodic_cover(u0, u1, 0.0, 0.12) if lines else 0.0
+    acc = 0.15 * on_lines
+    rest = wu - on_lines       # length on the wall, less the windows below
+    if band:
+        s0 = u0 / cw
+        s1 = u1 / cw
+        c0 = math.floor(s0)
+        c1 = math.floor(s1)
+        for ci in range(np.int64(c0), np.int64(c1) + 1):
+            a = max(s0, ci + ulo) * cw
+            b = min(s1, ci + uhi) * cw
+            if b > a:
+                ln = b - a
+                if lines:
+                    ln -= periodic_cover(a, b, 0.0, 0.12)
+                acc += ln * (w0 + w1 * hash3(np.int64(ci), np.int64(fi), bid))
+                rest -= ln
+    return (acc + rest * wall) / wu
 
 
 @njit(**_I)
@@ -610,17 +647,26 @@ def face_light(light):
 
 
 @njit(**_J)
-def box_pass(kd, tb, hid, fc, dxs, dys, ox, oy, oz, dz, pcol, box_mat, box_par, lit, acc):
+def box_pass(kd, tb, hid, fc, dxs, dys, gxs, gys, ox, oy, oz, dz, pcol, box_mat, box_par, lit,
+             acc):
     """acc[pcol[c]] += intensity of the box hit by sample c of a row, for every c with
     kd[c] == 2 (box hid[c], face fc[c], ray parameter tb[c], direction (dxs, dys, dz)[c]).
 
-    Window grids (material 1) are :func:`box_albedo` written out, with the two hashes kept
-    while neighbouring samples stay on the same floor and window column."""
-    pb = -1          # box, floor and column of the cached hashes
+    Side faces are textured by :func:`box_albedo` over the sample's footprint along u times
+    :data:`TEXTURE_FOOTPRINT`, t gxs[c] on a face of constant world y (u = world x), t gys[c] on
+    one of constant x: per sample spacing fscale of normalised image x (image x axis (xh0, xh1)
+    in the world) u moves by t fscale |xh0 - dx xh1 / dy| and t fscale |xh1 - dy xh0 / dx|.
+
+    Window grids (material 1) are :func:`box_albedo` written out, with values kept while
+    neighbouring samples stay on the same box (inverse column width and floor height), floor
+    (wall albedo) and window column (window albedo)."""
+    pb = -1          # box, floor and column of the cached values
     pf = 0.0
     pc = 0.0
-    hwin = 0.0
-    hwall = 0.0
+    win = 0.0
+    wall = 0.0
+    icw = 1.0
+    ifh = 1.0
     for c in range(kd.shape[0]):
         if kd[c] != 2:
             continue
@@ -630,32 +676,66 @@ def box_pass(kd, tb, hid, fc, dxs, dys, ox, oy, oz, dz, pcol, box_mat, box_par, 
         if face >= 4:
             a = 0.8 * box_par[idx, 0]
         else:
-            u = oy + t * dys[c] if face < 2 else ox + t * dxs[c]
-            z = oz + t * dz
             mat = box_mat[idx]
             if mat == 1:
-                fh = box_par[idx, 1]
-                cw = box_par[idx, 2]
-                fi = math.floor(z / fh)
-                ci = math.floor(u / cw)
-                fz = z / fh - fi
-                fu = u / cw - ci
-                if idx != pb or fi != pf:
-                    hwall = hash3(np.int64(fi), idx, 77)
-                    hwin = hash3(np.int64(ci), np.int64(fi), idx)
+                if idx != pb:
+                    icw = 1.0 / box_par[idx, 2]
+                    ifh = 1.0 / box_par[idx, 1]
                     pb = idx
+                    pf = -1.5      # no floor: the hashes are stale
+                zf = (oz + t * dz) * ifh
+                fi = math.floor(zf)
+                fz = zf - fi
+                if fi != pf:
+                    wall = box_par[idx, 0] + 0.06 * (hash3(np.int64(fi), idx, 77) - 0.5)
                     pf = fi
-                    pc = ci
-                elif ci != pc:
-                    hwin = hash3(np.int64(ci), np.int64(fi), idx)
-                    pc = ci
-                win = 0.06 + 0.2 * hwin
-                wall = box_par[idx, 0] + 0.06 * (hwall - 0.5)
-                inside = (fz > 0.3) & (fz < 0.85) & (fu > 0.2) & (fu < 0.8)
-                a = win if inside else wall
+                    pc = -1.5
+                a = wall
+                if (fz > 0.3) & (fz < 0.85):
+                    if face < 2:
+                        su = (oy + t * dys[c]) * icw
+                        wn = t * gys[c] * icw
+                    else:
+                        su = (ox + t * dxs[c]) * icw
+                        wn = t * gxs[c] * icw
+                    s0 = su - 0.5 * wn          # footprint [s0, s1] in window columns
+                    s1 = s0 + wn
+                    c0 = math.floor(s0)
+                    if s1 <= c0 + 1.2:          # one window (column c0's): the footprint's share
+                        ov = min(s1, c0 + 0.8) - max(s0, c0 + 0.2)
+                        if ov >= 0.0:           # it touches the window
+                            if c0 != pc:
+                                win = 0.06 + 0.2 * hash3(np.int64(c0), np.int64(fi), idx)
+                                pc = c0
+                            if (s0 >= c0 + 0.2) & (s1 <= c0 + 0.8):
+                                a = win         # within it (also a point sample: wn 0)
+                            else:               # across an edge: then s1 > s0
+                                a = wall + (win - wall) * (ov / wn)
+                    else:                       # the windows of columns c0 to c1
+                        if wn > 64.0:           # at most 64 columns
+                            wn = 64.0
+                            s0 = su - 0.5 * wn
+                            s1 = s0 + wn
+                            c0 = math.floor(s0)
+                        c1 = math.floor(s1 - 0.2)
+                        sw = 0.0
+                        so = 0.0
+                        for ci in range(np.int64(c0), np.int64(c1) + 1):
+                            ov = max(min(s1, ci + 0.8) - max(s0, ci + 0.2), 0.0)
+                            sw += ov * hash3(ci, np.int64(fi), idx)
+                            so += ov
+                        a = wall + ((0.06 - wall) * so + 0.2 * sw) / wn
+            elif mat == 0:
+                a = box_par[idx, 0]
             else:
+                if face < 2:
+                    u = oy + t * dys[c]
+                    wu = t * gys[c]
+                else:
+                    u = ox + t * dxs[c]
+                    wu = t * gxs[c]
                 a = box_albedo(mat, box_par[idx, 0], box_par[idx, 1], box_par[idx, 2],
-                               box_par[idx, 3], idx, u, z)
+                               box_par[idx, 3], idx, u, oz + t * dz, wu)
         acc[pcol[c]] += a * lit[face]
 
 
@@ -707,10 +787,10 @@ def row_vmax2(tm, yb, tb, f, vc, wc, m2):
 
 @njit(**_J)
 def row_work(n):
-    """Scratch arrays of one sample row of n samples: float64 [6, n], int32 [3, n] (small
+    """Scratch arrays of one sample row of n samples: float64 [8, n], int32 [3, n] (small
     enough to stay in the L1 cache with the rest) and the per-block depth bound of blocks of 16
     samples; the last pair is r0, r1 of the row whose directions the scratch holds (NaN: none)."""
-    return (np.empty((6, n)), np.empty((3, n), np.int32), np.empty(n // 16 + 1),
+    return (np.empty((8, n)), np.empty((3, n), np.int32), np.empty(n // 16 + 1),
             np.full(2, np.nan))
 
 
@@ -724,7 +804,9 @@ def level_work(ntex):
 def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground, light,
                lit, tex, tex_inv, tex_off, vis, minz, bbox, xbs, tm, pcol, fw, iw, bmax, rprev,
                lv_inv, lv_off, lv_mask, acc, out):
-    """Render image row j into out[j]; return the row's largest squared image speed.
+    """Render image row j into out[j]; return the largest squared image speed of its first
+    sample row (the time step's bound on motion: the k sample rows of a pixel row differ by
+    less than a pixel).
 
     Per sample row: the ground hit is one division (no roll: every ray of a row has the same
     world dz); each visible box gets its exact z-slab for the row and the span of sample columns
@@ -755,6 +837,8 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
     ixs = fw[3]
     iys = fw[4]
     m2s = fw[5]
+    gxs = fw[6]
+    gys = fw[7]
     kd = iw[0]
     hid = iw[1]
     fc = iw[2]
@@ -787,8 +871,13 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
                 dy = xh1 * xb + r1
                 dxs[c] = dx
                 dys[c] = dy
-                ixs[c] = 1.0 / dx
-                iys[c] = 1.0 / dy
+                ix = 1.0 / dx
+                iy = 1.0 / dy
+                ixs[c] = ix
+                iys[c] = iy
+                # texture footprints along u on faces of constant y and x, per unit of t
+                gxs[c] = abs(xh0 - dx * xh1 * iy) * fscale * TEXTURE_FOOTPRINT
+                gys[c] = abs(xh1 - dy * xh0 * ix) * fscale * TEXTURE_FOOTPRINT
             rprev[0] = r0
             rprev[1] = r1
         for q in range(nblk):
@@ -865,9 +954,10 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
                         if tb[c] > m:
                             m = tb[c]
                     bmax[blk] = m
-        m2 = row_vmax2(tm, yb, tb, f, vc, wc, m2s)
-        if m2 > vmax2:
-            vmax2 = m2
+        if b == 0:    # the speed bound of the time step: one sample row per pixel row is enough
+            m2 = row_vmax2(tm, yb, tb, f, vc, wc, m2s)
+            if m2 > vmax2:
+                vmax2 = m2
         # shading in separate simple passes over the row (one huge inlined loop body compiles
         # to slower code): sky here, ground and box samples by their own kernels
         if kind0 == 1:      # texture levels for the row's largest ground footprint
@@ -883,8 +973,8 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
                 acc[pcol[c]] += sky0 + (sky1 - sky0) * e      # as sky_value
         ground_pass(kd, dxs, dys, tg, ox, oy, pcol, segs, ground, light, tex, lv_inv, lv_off,
                     lv_mask, acc)
-        box_pass(kd, tb, hid, fc, dxs, dys, ox, oy, oz, dz, pcol, box_mat, box_par, lit,
-                 acc)
+        box_pass(kd, tb, hid, fc, dxs, dys, gxs, gys, ox, oy, oz, dz, pcol, box_mat, box_par,
+                 lit, acc)
     for i in range(w):
         out[j, i] = acc[i] * inv_k2
     return vmax2
@@ -936,7 +1026,8 @@ def render_rows(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, g
 def render(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground, light,
            tex, tex_inv, tex_off, vis, minz, bbox, out):
     """Render one frame into out [H, W] (float32, linear intensity, k x k supersampling
-    averaged) and return the maximum motion-field magnitude (px/s) over all samples.
+    averaged) and return the maximum motion-field magnitude (px/s) over the samples of every
+    pixel row's first sample row.
     vis: visible boxes nearest first, minz their depth bounds (:func:`frame_boxes`)."""
     return render_rows(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground,
                        light, tex, tex_inv, tex_off, vis, minz, bbox, out, 0, 1)

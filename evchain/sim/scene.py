@@ -92,7 +92,8 @@ class Scene:
 
     def render(self, t_s: float, out: np.ndarray | None = None) -> tuple[np.ndarray, float]:
         """Frame (float32 [H, W], linear intensity) at time t_s and the largest image speed
-        (px/s) of any sample at that time (drives the adaptive time step)."""
+        (px/s) at that time over the first sample row of every pixel row (drives the adaptive
+        time step)."""
         from evchain.kernels.scene import render, render_rows
 
         cam = self.camera

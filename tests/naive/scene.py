@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from evchain.kernels.scene import TEXTURE_FOOTPRINT
+
 M32 = 0xFFFFFFFF
 
 
@@ -93,7 +95,8 @@ def ground_albedo(x, y, fp, segs, g, tex, tex_inv, tex_off):
     return np.where(w < hw, asphalt, np.where(w < hw + sw, side, beyond))
 
 
-def box_albedo(mat, par, bid, u, z):
+def box_point_albedo(mat, par, bid, u, z):
+    """Albedo at (u, z) of a box face, per element."""
     mat = np.asarray(mat)
     p0, p1, p2, p3 = (par[..., i] for i in range(4))
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -111,6 +114,35 @@ def box_albedo(mat, par, bid, u, z):
     lines = np.where((u % 1.0) < 0.12, 0.15, orange)
     car = np.where((z > p1) & (z < p2), 0.05, np.where(z < p3, 0.08, p0))
     return np.select([mat == 0, mat == 1, mat == 2, mat == 3], [p0, grey, orange, lines], car)
+
+
+def box_albedo(mat, par, bid, u, z, wu):
+    """Mean albedo over [u - wu/2, u + wu/2] at height z (wu = 0: the value at u): the interval
+    is cut at every edge of the window columns (and of the vertical lines) and each piece,
+    constant, weighs its length. Footprints beyond 64 window columns are cut to 64."""
+    mat, u, z, wu = np.broadcast_arrays(np.asarray(mat), u, z, wu)
+    par = np.broadcast_to(par, u.shape + (4,))
+    bid = np.broadcast_to(bid, u.shape)
+    out = np.empty(u.shape)
+    for i in np.ndindex(u.shape):
+        if not wu[i] > 0 or mat[i] in (0, 4):     # plain and car: nothing varies along u
+            out[i] = box_point_albedo(mat[i], par[i], bid[i], u[i], z[i])
+            continue
+        cw = par[i][2]
+        w = min(wu[i], 64 * cw)
+        u0, u1 = u[i] - w / 2, u[i] + w / 2
+        cuts = [u0, u1]
+        for c in range(int(np.floor(u0 / cw)), int(np.floor(u1 / cw)) + 1):
+            cuts += [c * cw, (c + 0.2) * cw, (c + 0.3) * cw, (c + 0.7) * cw, (c + 0.8) * cw]
+        if mat[i] == 3:
+            for m in range(int(np.floor(u0)), int(np.floor(u1)) + 1):
+                cuts += [m, m + 0.12]
+        cuts = np.unique(np.clip(cuts, u0, u1))
+        mid = (cuts[1:] + cuts[:-1]) / 2
+        val = box_point_albedo(np.full(len(mid), mat[i]), np.tile(par[i], (len(mid), 1)),
+                               bid[i], mid, np.full(len(mid), z[i]))
+        out[i] = np.sum(val * np.diff(cuts)) / (u1 - u0)
+    return out
 
 
 def rotation(psi, theta):
@@ -184,8 +216,9 @@ def trace(o, d, boxes):
     return best, kind, idx, face
 
 
-def shade(t, kind, idx, face, o, d, fp, scene):
-    """Intensity of every ray; fp: ground footprint of each ray's sample row."""
+def shade(t, kind, idx, face, o, d, fp, wu, scene):
+    """Intensity of every ray; fp: ground footprint of each ray's sample row; wu: the width over
+    which box faces average their texture along u."""
     boxes, mats, pars = scene.boxes, scene.box_mat, scene.box_par
     light = scene.light
     n = np.linalg.norm(d, axis=1)
@@ -199,10 +232,27 @@ def shade(t, kind, idx, face, o, d, fp, scene):
     sgn = np.where(face % 2 == 1, 1.0, -1.0)
     lam = np.maximum(sgn * light[np.minimum(axis, 2)], 0)
     u = np.where(axis == 0, p[:, 1], p[:, 0])
-    alb = box_albedo(mats[bi], pars[bi], bi, u, p[:, 2]) if len(boxes) else np.zeros(len(t))
+    alb = box_albedo(mats[bi], pars[bi], bi, u, p[:, 2], wu) if len(boxes) else np.zeros(len(t))
     alb = np.where(axis == 2, 0.8 * pars[bi, 0] if len(boxes) else 0.0, alb)
     bx = alb * (light[4] + light[3] * lam)
     return np.select([kind == 0, kind == 1], [sky, g], bx)
+
+
+def box_footprint(t, face, o, xs, ys, rot, cam, h=1e-4):
+    """|du / dx| (metres per pixel along the image row) on the side face each ray hit: the rays
+    through x -+ h meet the face's plane at u -+; 0 where no side face was hit."""
+    axis = np.where(face >= 0, face // 2, 2)
+    side = axis < 2
+    a = np.minimum(axis, 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = rays(xs, ys, cam.f, cam.cx, cam.cy, rot)
+        plane = o[a] + np.where(side, t, 0.0) * d[np.arange(len(t)), a]
+        us = []
+        for e in (-h, h):
+            de = rays(xs + e, ys, cam.f, cam.cx, cam.cy, rot)
+            te = (plane - o[a]) / de[np.arange(len(t)), a]
+            us.append(o[1 - a] + te * de[np.arange(len(t)), 1 - a])
+        return np.where(side, np.abs(us[1] - us[0]) / (2 * h), 0.0)
 
 
 def render(scene, t_s):
@@ -222,9 +272,11 @@ def render(scene, t_s):
             fp_rays = [tg / (cam.f * k) * (d ** 2).sum(1) / -d[:, 2] for d in ds]
         fp = np.max([f.reshape(xs.shape) for f in fp_rays], axis=(0, 2))       # per row
         fp = np.repeat(fp, cam.width)
-        for d in ds:
+        for a, d in zip(sub, ds, strict=True):
             t, kind, idx, face = trace(o, d, scene.boxes)
-            acc += shade(t, kind, idx, face, o, d, fp, scene).reshape(xs.shape)
+            wu = box_footprint(t, face, o, xs.ravel() + a, ys.ravel() + b, rot, cam) * \
+                TEXTURE_FOOTPRINT / k
+            acc += shade(t, kind, idx, face, o, d, fp, wu, scene).reshape(xs.shape)
     return acc / (k * k)
 
 

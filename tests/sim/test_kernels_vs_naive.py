@@ -87,10 +87,67 @@ def test_box_albedo_all_materials():
         par = np.array([0.5, 3.1, 2.3, 0.4])
         u = rng.uniform(-100, 100, 300)
         z = rng.uniform(0, 60, 300)
-        got = [K.box_albedo(mat, *par, 5, a, b) for a, b in zip(u, z, strict=True)]
-        want = N.box_albedo(np.full(300, mat), np.tile(par, (300, 1)), 5, u, z)
+        # point values, footprints within a column, across a few and across many columns
+        wu = np.concatenate([np.zeros(75), rng.uniform(0, 1, 75), rng.uniform(1, 10, 75),
+                             rng.uniform(10, 300, 75)])
+        got = [K.box_albedo(mat, *par, 5, a, b, w) for a, b, w in zip(u, z, wu, strict=True)]
+        want = N.box_albedo(np.full(300, mat), np.tile(par, (300, 1)), 5, u, z, wu)
         np.testing.assert_allclose(got, want, atol=1e-12, err_msg=f"material {mat}")
 
+
+def test_box_albedo_footprint_limits():
+    """A vanishing footprint gives the value at u (away from edges); a footprint of whole
+    window columns gives their exact mean; the average never leaves the albedos' range."""
+    par = np.array([0.5, 3.1, 2.3, 0.4])
+    z = 3.1 * 4 + 0.5 * 3.1                    # a window row of floor 4
+    for u in (2.3 * 7 + 0.5 * 2.3, 2.3 * 7 + 0.05 * 2.3):   # a window's middle, the wall
+        # lengths in the footprint round to eps |u|, relative to it eps |u| / wu ~ 1e-9
+        assert K.box_albedo(1, *par, 5, u, z, 1e-6) == pytest.approx(
+            K.box_albedo(1, *par, 5, u, z, 0.0), abs=1e-8)
+    c0, c1 = 3, 11
+    mean = K.box_albedo(1, *par, 5, (c0 + c1 + 1) * 2.3 / 2, z, (c1 + 1 - c0) * 2.3)
+    wall = 0.5 + 0.06 * (K.hash3(4, 5, 77) - 0.5)
+    wins = [0.06 + 0.2 * K.hash3(c, 4, 5) for c in range(c0, c1 + 1)]
+    assert mean == pytest.approx(0.4 * wall + 0.6 * np.mean(wins), abs=1e-12)
+    rng = np.random.default_rng(4)
+    for mat in (1, 2, 3):
+        v = [K.box_albedo(mat, *par, 5, u, z, w)
+             for u, w in zip(rng.uniform(-50, 50, 200), rng.uniform(0, 100, 200), strict=True)]
+        assert min(v) >= 0.06 - 1e-12 and max(v) <= 0.5 * 1.03 + 1e-12
+
+
+def test_box_pass_vs_naive_albedo():
+    """The box pass (window grid written out with cached hashes, footprint t gxs / t gys) equals
+    the numpy box_albedo per sample: all faces and materials, runs of samples on one box and
+    floor (the caches), footprints from zero to beyond the 64-column cap."""
+    rng = np.random.default_rng(5)
+    n = 4000
+    box_mat = np.array([0, 1, 2, 3, 4, 1])
+    box_par = np.array([[0.4, 3.0, 2.2, 0.3], [0.5, 3.1, 2.3, 0.4], [0.6, 3.3, 2.6, 0.4],
+                        [0.55, 2.9, 2.1, 0.4], [0.3, 0.6, 1.1, 0.2], [0.45, 3.5, 3.0, 0.4]])
+    hid = np.repeat(rng.integers(0, 6, n // 20), 20).astype(np.int32)     # runs on one box
+    fc = np.repeat(rng.integers(0, 6, n // 10), 10).astype(np.int32)
+    kd = np.where(rng.random(n) < 0.9, 2, 1).astype(np.int32)
+    tb = np.repeat(rng.uniform(5, 300, n // 40), 40) + rng.uniform(0, 0.5, n)
+    dxs, dys = rng.normal(0, 1, n), rng.normal(0, 1, n)
+    scale = np.exp(rng.uniform(np.log(1e-12), np.log(5.0), n))
+    scale[:200] = 0.0                                               # point samples
+    gxs, gys = scale * rng.uniform(0.5, 2, n), scale * rng.uniform(0.5, 2, n)
+    ox, oy, oz, dz = 3.0, -7.0, 1.2, 0.05
+    lit = rng.uniform(0.3, 1.0, 6)
+    acc = np.zeros(n)
+    K.box_pass(kd, tb, hid, fc, dxs, dys, gxs, gys, ox, oy, oz, dz, np.arange(n), box_mat,
+               box_par, lit, acc)
+    side = fc < 4
+    u = np.where(fc < 2, oy + tb * dys, ox + tb * dxs)
+    z = oz + tb * dz
+    wu = np.where(fc < 2, tb * gys, tb * gxs)
+    want = N.box_albedo(box_mat[hid], box_par[hid], hid, u, z, wu)
+    want = np.where(side, want, 0.8 * box_par[hid, 0]) * lit[fc] * (kd == 2)
+    # lengths within the footprint round to eps |u|: relative to it eps |u| / wu
+    tol = 1e-12 + 1e-15 * (np.abs(u) + 1.0) / np.maximum(wu, 1e-300)
+    assert (np.abs(acc - want) <= tol).all()
+    assert (np.abs(acc - want)[wu > 0.1] <= 1e-12).all()
 
 def _trace_all(o, d, boxes):
     n = len(boxes)
@@ -286,6 +343,26 @@ def test_row_speed_maximum_vs_naive():
         got = K.row_vmax2(K.flow_terms(xbs, vc, wc), yb, tb, 300.0, vc, wc, np.empty(n))
         want = N.row_speed2_max(xbs, yb, tb, 300.0, vc, wc)
         assert got == want, (trial, got, want)
+
+
+@pytest.mark.parametrize("name", ["high-rise", "pitch", "curves"])
+def test_frame_speed_bound_vs_naive(name):
+    """The speed a frame returns (the time step's bound) is the largest motion-field speed over
+    the first sample row of every pixel row, hits traced by testing every box."""
+    sc = Scene.from_params(width=40, height=30, supersample=2, **SCENES[name])
+    cam = sc.camera
+    k = cam.supersample
+    sub = (np.arange(k) + 0.5) / k - 0.5
+    for t in (0.0, 0.9):
+        o, rot, vc, wc = sc.state(t)
+        xs = (np.arange(cam.width)[:, None] + sub[None, :]).ravel()
+        best = 0.0
+        for j in range(cam.height):
+            ys = np.full(xs.shape, j + sub[0])
+            tb = N.trace(o, N.rays(xs, ys, cam.f, cam.cx, cam.cy, rot), sc.boxes)[0]
+            best = max(best, N.row_speed2_max((xs - cam.cx) / cam.f, (j + sub[0] - cam.cy) /
+                                              cam.f, tb, cam.f, vc, wc))
+        assert sc.render(t)[1] == pytest.approx(np.sqrt(best), rel=1e-9)
 
 
 @pytest.mark.parametrize("name", ["high-rise", "pitch", "curves"])
