@@ -9,6 +9,7 @@ time, so 1.0 means "as fast as touching the data once".
 
 from __future__ import annotations
 
+import hashlib
 import itertools
 import json
 import time
@@ -38,6 +39,26 @@ class BenchRow:
         extra = d.pop("extra")
         d.update(extra)
         return d
+
+
+_PACKAGE = Path(__file__).resolve().parent
+
+#: the sources that make the simulator's events: a cache of rendered events is valid for them only
+SIMULATOR_SOURCES = ("sim", "kernels/scene.py", "kernels/emulator.py", "kernels/veclog.py",
+                     "kernels/intrinsics.py", "filters/scene.py", "filters/emulator.py")
+
+
+def source_stamp(*sources: str) -> str:
+    """Short hash of the package's source files (``sources``: paths or folders relative to the
+    ``evchain`` package), for the names of cached benchmark inputs: a cache made by other code is
+    not found and gets remade instead of silently reused."""
+    h = hashlib.sha256()
+    for rel in sources:
+        p = _PACKAGE / rel
+        for f in sorted(p.rglob("*.py")) if p.is_dir() else [p]:
+            h.update(f.relative_to(_PACKAGE).as_posix().encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()[:10]
 
 
 def best_time(fn: Callable[[], object], repeat: int = 3, min_time_s: float = 0.0) -> float:

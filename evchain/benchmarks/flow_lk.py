@@ -23,7 +23,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from evchain.bench import BenchRow, cut_every
+from evchain.bench import SIMULATOR_SOURCES, BenchRow, cut_every, source_stamp
 from evchain.core.filter import Context
 from evchain.core.packets import EventPacket
 from evchain.testing.contract import run_filter
@@ -104,9 +104,9 @@ def reference_stream(seconds: float):
         return _CACHE[seconds]
     from evchain.benchmarks.flow_plane import CACHE, expanding_scene_events, load_reference_cache
 
-    path = CACHE / f"reference_{seconds:g}s.npz"
+    path = CACHE / f"reference_{seconds:g}s_{source_stamp(*SIMULATOR_SOURCES)}.npz"
     if not path.is_file():
-        cached = sorted(CACHE.glob("reference_*s.npz"),
+        cached = sorted(CACHE.glob(f"reference_*s_{source_stamp(*SIMULATOR_SOURCES)}.npz"),
                         key=lambda p: float(p.stem.split("_")[1][:-1]))
         path = cached[-1] if cached else path
     if path.is_file():

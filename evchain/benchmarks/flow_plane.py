@@ -19,7 +19,14 @@ from pathlib import Path
 
 import numpy as np
 
-from evchain.bench import BenchRow, best_cpu_time, best_time, cut_every
+from evchain.bench import (
+    SIMULATOR_SOURCES,
+    BenchRow,
+    best_cpu_time,
+    best_time,
+    cut_every,
+    source_stamp,
+)
 from evchain.core.filter import Context
 from evchain.core.packets import EventPacket, Geometry
 from evchain.filters.flow_scorer import score_flow
@@ -145,7 +152,7 @@ def make_reference_cache(seconds: float = 10.0, path: Path | None = None,
     from evchain.core.config import pipeline_from_text
     from evchain.core.registry import make_registry
 
-    path = path or CACHE / f"reference_{seconds:g}s.npz"
+    path = path or CACHE / f"reference_{seconds:g}s_{source_stamp(*SIMULATOR_SOURCES)}.npz"
     reg = make_registry()
     spec = pipeline_from_text(REFERENCE_CHAIN.format(seconds=seconds), "<flow-plane-bench>", reg)
     ctx = Context(seed=0)
@@ -193,9 +200,9 @@ def _reference_stream(seconds: float):
     """(events, truth, label): the simulator's reference scene from the cache written by
     :func:`make_reference_cache` (``seconds`` long, else the longest cached stretch), else the
     synthetic expanding scene. The label says which."""
-    path = CACHE / f"reference_{seconds:g}s.npz"
+    path = CACHE / f"reference_{seconds:g}s_{source_stamp(*SIMULATOR_SOURCES)}.npz"
     if not path.is_file():
-        cached = sorted(CACHE.glob("reference_*s.npz"),
+        cached = sorted(CACHE.glob(f"reference_*s_{source_stamp(*SIMULATOR_SOURCES)}.npz"),
                         key=lambda p: float(p.stem.split("_")[1][:-1]))
         path = cached[-1] if cached else path
     if path.is_file():

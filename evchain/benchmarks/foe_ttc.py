@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from evchain.bench import BenchRow, best_cpu_time, best_time
+from evchain.bench import SIMULATOR_SOURCES, BenchRow, best_cpu_time, best_time, source_stamp
 from evchain.core.filter import Context
 from evchain.core.packets import EventPacket, Geometry, series_array
 from evchain.testing.synthetic import approach_flow_packets
@@ -95,7 +95,8 @@ def reference_flow(flow: str, start_m: float, duration_s: float):
     from evchain.core.registry import make_registry
 
     events, ctx = reference_events(start_m, duration_s)
-    path = _cache_dir() / f"reference-{start_m:g}m-{duration_s:g}s-{flow}.npz"
+    stamp = source_stamp(*SIMULATOR_SOURCES, f"filters/{flow}.py", f"kernels/{flow}.py")
+    path = _cache_dir() / f"reference-{start_m:g}m-{duration_s:g}s-{flow}-{stamp}.npz"
     if not path.exists():
         f = make_registry().get(flow)()
         f.id = flow
@@ -245,7 +246,8 @@ def reference_events(start_m: float, duration_s: float):
     scene.setup(scene.Params(scenario="high-rise", speed_mps=20, width=320, height=240,
                              supersample=2, fov_deg=35, max_motion_px=0.5, start_m=start_m,
                              duration_s=duration_s), ctx)
-    path = _cache_dir() / f"reference-{start_m:g}m-{duration_s:g}s.npz"
+    stamp = source_stamp(*SIMULATOR_SOURCES)
+    path = _cache_dir() / f"reference-{start_m:g}m-{duration_s:g}s-{stamp}.npz"
     if not path.exists():
         emu = reg.get("emulator")()
         emu.id = "emulator"
