@@ -657,16 +657,18 @@ def box_pass(kd, tb, hid, fc, dxs, dys, gxs, gys, ox, oy, oz, dz, pcol, box_mat,
     one of constant x: per sample spacing fscale of normalised image x (image x axis (xh0, xh1)
     in the world) u moves by t fscale |xh0 - dx xh1 / dy| and t fscale |xh1 - dy xh0 / dx|.
 
-    Window grids (material 1) are :func:`box_albedo` written out, with values kept while
-    neighbouring samples stay on the same box (inverse column width and floor height), floor
-    (wall albedo) and window column (window albedo)."""
+    Window grids (materials 1 and 2) are :func:`box_albedo` written out, with values kept
+    while neighbouring samples stay on the same box (inverse column width and floor height,
+    the material's grid), floor (wall albedo) and window column (window albedo)."""
     pb = -1          # box, floor and column of the cached values
     pf = 0.0
     pc = 0.0
     win = 0.0
     wall = 0.0
+    wall0 = 0.0
     icw = 1.0
     ifh = 1.0
+    zlo, zhi, ulo, uhi, w0, w1 = 0.3, 0.85, 0.2, 0.8, 0.06, 0.2
     for c in range(kd.shape[0]):
         if kd[c] != 2:
             continue
@@ -677,21 +679,30 @@ def box_pass(kd, tb, hid, fc, dxs, dys, gxs, gys, ox, oy, oz, dz, pcol, box_mat,
             a = 0.8 * box_par[idx, 0]
         else:
             mat = box_mat[idx]
-            if mat == 1:
+            if mat == 1 or mat == 2:
                 if idx != pb:
                     icw = 1.0 / box_par[idx, 2]
                     ifh = 1.0 / box_par[idx, 1]
+                    if mat == 1:
+                        zlo, zhi, ulo, uhi, w0, w1 = 0.3, 0.85, 0.2, 0.8, 0.06, 0.2
+                    else:
+                        zlo, zhi, ulo, uhi, w0, w1 = 0.15, 0.9, 0.3, 0.7, 0.1, 0.15
                     pb = idx
                     pf = -1.5      # no floor: the hashes are stale
-                zf = (oz + t * dz) * ifh
+                z = oz + t * dz
+                zf = z * ifh
                 fi = math.floor(zf)
                 fz = zf - fi
                 if fi != pf:
-                    wall = box_par[idx, 0] + 0.06 * (hash3(np.int64(fi), idx, 77) - 0.5)
+                    wall0 = box_par[idx, 0] + 0.06 * (hash3(np.int64(fi), idx, 77) - 0.5)
                     pf = fi
                     pc = -1.5
+                wall = wall0
+                if mat == 2:          # bright wall with a dark band every 0.6 m
+                    wall = box_par[idx, 0] * (0.75 if z - 0.6 * math.floor(z / 0.6) < 0.06
+                                              else 1.0)
                 a = wall
-                if (fz > 0.3) & (fz < 0.85):
+                if (fz > zlo) & (fz < zhi):
                     if face < 2:
                         su = (oy + t * dys[c]) * icw
                         wn = t * gys[c] * icw
@@ -701,13 +712,13 @@ def box_pass(kd, tb, hid, fc, dxs, dys, gxs, gys, ox, oy, oz, dz, pcol, box_mat,
                     s0 = su - 0.5 * wn          # footprint [s0, s1] in window columns
                     s1 = s0 + wn
                     c0 = math.floor(s0)
-                    if s1 <= c0 + 1.2:          # one window (column c0's): the footprint's share
-                        ov = min(s1, c0 + 0.8) - max(s0, c0 + 0.2)
+                    if s1 <= c0 + 1.0 + ulo:    # no window but column c0's: its share
+                        ov = min(s1, c0 + uhi) - max(s0, c0 + ulo)
                         if ov >= 0.0:           # it touches the window
                             if c0 != pc:
-                                win = 0.06 + 0.2 * hash3(np.int64(c0), np.int64(fi), idx)
+                                win = w0 + w1 * hash3(np.int64(c0), np.int64(fi), idx)
                                 pc = c0
-                            if (s0 >= c0 + 0.2) & (s1 <= c0 + 0.8):
+                            if (s0 >= c0 + ulo) & (s1 <= c0 + uhi):
                                 a = win         # within it (also a point sample: wn 0)
                             else:               # across an edge: then s1 > s0
                                 a = wall + (win - wall) * (ov / wn)
@@ -717,14 +728,14 @@ def box_pass(kd, tb, hid, fc, dxs, dys, gxs, gys, ox, oy, oz, dz, pcol, box_mat,
                             s0 = su - 0.5 * wn
                             s1 = s0 + wn
                             c0 = math.floor(s0)
-                        c1 = math.floor(s1 - 0.2)
+                        c1 = math.floor(s1 - ulo)
                         sw = 0.0
                         so = 0.0
                         for ci in range(np.int64(c0), np.int64(c1) + 1):
-                            ov = max(min(s1, ci + 0.8) - max(s0, ci + 0.2), 0.0)
+                            ov = max(min(s1, ci + uhi) - max(s0, ci + ulo), 0.0)
                             sw += ov * hash3(ci, np.int64(fi), idx)
                             so += ov
-                        a = wall + ((0.06 - wall) * so + 0.2 * sw) / wn
+                        a = wall + ((w0 - wall) * so + w1 * sw) / wn
             elif mat == 0:
                 a = box_par[idx, 0]
             else:
@@ -737,7 +748,6 @@ def box_pass(kd, tb, hid, fc, dxs, dys, gxs, gys, ox, oy, oz, dz, pcol, box_mat,
                 a = box_albedo(mat, box_par[idx, 0], box_par[idx, 1], box_par[idx, 2],
                                box_par[idx, 3], idx, u, oz + t * dz, wu)
         acc[pcol[c]] += a * lit[face]
-
 
 @njit(**_J)
 def flow_terms(xbs, vc, wc):
