@@ -23,7 +23,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from evchain.bench import SIMULATOR_SOURCES, BenchRow, cut_every, source_stamp
+from evchain.bench import BenchRow, cut_every
 from evchain.core.filter import Context
 from evchain.core.packets import EventPacket
 from evchain.testing.contract import run_filter
@@ -95,30 +95,13 @@ def bench_square(quick: bool) -> list[BenchRow]:
 
 
 def reference_stream(seconds: float):
-    """(events, truth, label): the simulator's reference scene from the cache that
-    ``evchain.benchmarks.flow_plane.make_reference_cache`` writes (the same data as the
-    ``flow-plane-*-reference`` rows: high-rise, 20 m/s, thesis 8-bit log mapping, thresholds
-    20/20; ``seconds`` long, else the longest cached stretch), else the synthetic expanding scene
-    (:func:`evchain.benchmarks.flow_plane.expanding_scene_events`). The label says which."""
-    if seconds in _CACHE:
-        return _CACHE[seconds]
-    from evchain.benchmarks.flow_plane import CACHE, expanding_scene_events, load_reference_cache
+    """:func:`evchain.benchmarks.flow_plane.reference_stream` (the same data as the
+    ``flow-plane-*-reference`` rows), kept per ``seconds`` for the rows of one run."""
+    if seconds not in _CACHE:
+        from evchain.benchmarks.flow_plane import reference_stream as load
 
-    path = CACHE / f"reference_{seconds:g}s_{source_stamp(*SIMULATOR_SOURCES)}.npz"
-    if not path.is_file():
-        cached = sorted(CACHE.glob(f"reference_*s_{source_stamp(*SIMULATOR_SOURCES)}.npz"),
-                        key=lambda p: float(p.stem.split("_")[1][:-1]))
-        path = cached[-1] if cached else path
-    if path.is_file():
-        ev, truth = load_reference_cache(path)
-        secs = (ev.t_end - ev.t_start) / 1e6
-        result = (ev, truth, f"simulator reference scene (high-rise, 20 m/s), first {secs:g} s")
-    else:
-        ev, truth = expanding_scene_events(seconds)
-        result = (ev, truth, "synthetic expanding scene (no simulator cache; make it with "
-                             "python -m evchain.benchmarks.flow_plane SECONDS)")
-    _CACHE[seconds] = result
-    return result
+        _CACHE[seconds] = load(seconds)
+    return _CACHE[seconds]
 
 
 def bench_reference(quick: bool) -> list[BenchRow]:

@@ -196,13 +196,14 @@ def load_reference_cache(path: Path):
     return ev, truth
 
 
-def _reference_stream(seconds: float):
+def reference_stream(seconds: float):
     """(events, truth, label): the simulator's reference scene from the cache written by
-    :func:`make_reference_cache` (``seconds`` long, else the longest cached stretch), else the
-    synthetic expanding scene. The label says which."""
-    path = CACHE / f"reference_{seconds:g}s_{source_stamp(*SIMULATOR_SOURCES)}.npz"
+    :func:`make_reference_cache` with this code (``seconds`` long, else the longest cached
+    stretch), else the synthetic expanding scene. The label says which."""
+    stamp = source_stamp(*SIMULATOR_SOURCES)
+    path = CACHE / f"reference_{seconds:g}s_{stamp}.npz"
     if not path.is_file():
-        cached = sorted(CACHE.glob(f"reference_*s_{source_stamp(*SIMULATOR_SOURCES)}.npz"),
+        cached = sorted(CACHE.glob(f"reference_*s_{stamp}.npz"),
                         key=lambda p: float(p.stem.split("_")[1][:-1]))
         path = cached[-1] if cached else path
     if path.is_file():
@@ -270,7 +271,7 @@ def bench_square(quick: bool) -> list[BenchRow]:
 
 def bench_reference(quick: bool) -> list[BenchRow]:
     seconds = 2.0 if quick else 10.0
-    ev, truth, label = _reference_stream(seconds)
+    ev, truth, label = reference_stream(seconds)
     packets = cut_every(ev)
     rows = _rows("reference", packets, truth, REFERENCE_PARAMS, "invalid_rate", quick,
                  {"scene": label})
