@@ -42,6 +42,11 @@ INF = np.inf
 # The ground's mip levels have texels of 1-2 footprints.
 TEXTURE_FOOTPRINT = 2.0
 
+# Window grids, in fractions of a floor (z) and of a window column (u): the band of windows
+# zlo..zhi, the window ulo..uhi of each column and its albedo w0 + w1 * (hash in [0, 1)).
+GREY_GRID = (0.3, 0.85, 0.2, 0.8, 0.06, 0.2)        # material 1
+ORANGE_GRID = (0.15, 0.9, 0.3, 0.7, 0.1, 0.15)      # materials 2 and 3
+
 
 # ----------------------------------------------------------------------------- hashing / noise
 
@@ -329,6 +334,12 @@ def ground_albedo(x, y, segs, ground, tex, lv_inv, lv_off, lv_mask):
 
 
 @njit(**_I)
+def orange_wall(p0, z):
+    """Albedo of the orange wall at height z: p0 with a darker band every 0.6 m."""
+    return p0 * 0.75 if z - 0.6 * math.floor(z / 0.6) < 0.06 else p0
+
+
+@njit(**_I)
 def periodic_cover(a, b, lo, hi):
     """Length of [a, b] covered by the intervals [m + lo, m + hi], m integer,
     0 <= lo <= hi <= 1."""
@@ -361,11 +372,11 @@ def box_albedo(mat, p0, p1, p2, p3, bid, u, z, wu):
     fi = math.floor(z / fh)
     fz = z / fh - fi
     if mat == 1:
-        zlo, zhi, ulo, uhi, w0, w1 = 0.3, 0.85, 0.2, 0.8, 0.06, 0.2
+        zlo, zhi, ulo, uhi, w0, w1 = GREY_GRID
         wall = p0 + 0.06 * (hash3(np.int64(fi), bid, 77) - 0.5)
     else:
-        zlo, zhi, ulo, uhi, w0, w1 = 0.15, 0.9, 0.3, 0.7, 0.1, 0.15
-        wall = p0 * 0.75 if z - 0.6 * math.floor(z / 0.6) < 0.06 else p0
+        zlo, zhi, ulo, uhi, w0, w1 = ORANGE_GRID
+        wall = orange_wall(p0, z)
     lines = mat == 3          # vertical lines 0.12 m wide every metre, over everything else
     band = fz > zlo and fz < zhi
     if not wu > 1e-9 * cw:     # a point sample (also below rounding)
@@ -668,7 +679,7 @@ def box_pass(kd, tb, hid, fc, dxs, dys, gxs, gys, ox, oy, oz, dz, pcol, box_mat,
     wall0 = 0.0
     icw = 1.0
     ifh = 1.0
-    zlo, zhi, ulo, uhi, w0, w1 = 0.3, 0.85, 0.2, 0.8, 0.06, 0.2
+    zlo, zhi, ulo, uhi, w0, w1 = GREY_GRID
     for c in range(kd.shape[0]):
         if kd[c] != 2:
             continue
@@ -684,9 +695,9 @@ def box_pass(kd, tb, hid, fc, dxs, dys, gxs, gys, ox, oy, oz, dz, pcol, box_mat,
                     icw = 1.0 / box_par[idx, 2]
                     ifh = 1.0 / box_par[idx, 1]
                     if mat == 1:
-                        zlo, zhi, ulo, uhi, w0, w1 = 0.3, 0.85, 0.2, 0.8, 0.06, 0.2
+                        zlo, zhi, ulo, uhi, w0, w1 = GREY_GRID
                     else:
-                        zlo, zhi, ulo, uhi, w0, w1 = 0.15, 0.9, 0.3, 0.7, 0.1, 0.15
+                        zlo, zhi, ulo, uhi, w0, w1 = ORANGE_GRID
                     pb = idx
                     pf = -1.5      # no floor: the hashes are stale
                 z = oz + t * dz
@@ -698,9 +709,8 @@ def box_pass(kd, tb, hid, fc, dxs, dys, gxs, gys, ox, oy, oz, dz, pcol, box_mat,
                     pf = fi
                     pc = -1.5
                 wall = wall0
-                if mat == 2:          # bright wall with a dark band every 0.6 m
-                    wall = box_par[idx, 0] * (0.75 if z - 0.6 * math.floor(z / 0.6) < 0.06
-                                              else 1.0)
+                if mat == 2:
+                    wall = orange_wall(box_par[idx, 0], z)
                 a = wall
                 if (fz > zlo) & (fz < zhi):
                     if face < 2:
