@@ -1,4 +1,4 @@
-"""The ``evchain`` command: run, validate, filters, plugins, sweep, bench, docs.
+"""The ``evchain`` command: run, validate, filters, plugins, sweep, bench, results, docs.
 
 User mistakes (an :class:`EvchainError`) print one line and exit with code 2; ``--debug`` shows
 the traceback. Unexpected errors are bugs: they exit with code 1.
@@ -58,8 +58,13 @@ def _fmt(v) -> str:
 
 def cmd_validate(args) -> int:
     from evchain.core.config import load_pipeline
+    from evchain.sweep import load_sweep, looks_like_sweep, validate_sweep
 
     for path in args.pipeline:
+        if looks_like_sweep(path):
+            n = validate_sweep(load_sweep(path), _registry())
+            print(f"{path}: ok (sweep: {n} runs validated)")
+            continue
         spec = load_pipeline(path, _registry(), args.set)
         print(f"{path}: ok ({len(spec.stages)} stages: "
               f"{' -> '.join(s.id for s in spec.stages)})")
@@ -114,11 +119,27 @@ def cmd_sweep(args) -> int:
 
     sweep = load_sweep(args.sweep)
     if args.replay:
-        sweep.replay = Path(args.replay)
+        sweep.replay, sweep.record = Path(args.replay), None
     out = Path(args.out) if args.out else Path("out") / "sweeps" / sweep.name
-    print(f"sweep {sweep.name}: {len(sweep.variations)} runs of {sweep.base} -> {out}/")
+    print(f"sweep {sweep.name}: {len(sweep.runs())} runs of "
+          f"{', '.join(str(b) for b in sweep.bases.values())} -> {out}/")
     run_sweep(sweep, out, workers=args.workers, scheduler=args.scheduler)
     print(f"table: {out}/sweep.md")
+    return 0
+
+
+def cmd_results(args) -> int:
+    from evchain import results
+
+    manifest = results.load_manifest(Path(args.root))
+    if args.run is not None:
+        saved = results.run_and_save(manifest, args.run, workers=args.workers)
+        print(f"saved {len(saved)} results: " + ", ".join(str(p) for p in saved))
+    if args.check:
+        ok, message = results.check(manifest)
+        print(message, file=sys.stdout if ok else sys.stderr)
+        return 0 if ok else 1
+    print(f"wrote {results.write(manifest)}")
     return 0
 
 
@@ -150,7 +171,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
     r.set_defaults(fn=cmd_run)
 
-    v = sub.add_parser("validate", help="check pipelines without running them")
+    v = sub.add_parser("validate", help="check pipelines (or sweeps: every run) without "
+                       "running them")
     v.add_argument("pipeline", nargs="+")
     v.add_argument("--set", action="append", default=[], metavar="STAGE.PARAM=VALUE")
     v.set_defaults(fn=cmd_validate)
@@ -168,13 +190,24 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--workers", type=int, default=2, help="local processes (1: in-process)")
     sw.add_argument("--replay", metavar="EVENTS.aedat",
                     help="every run reads these recorded events instead of scene -> emulator "
-                         "(overrides the sweep's 'replay')")
+                         "(instead of the sweep's 'replay' or 'record')")
     sw.add_argument("--scheduler", help="Dask scheduler address (needs evchain[dask])")
     sw.set_defaults(fn=cmd_sweep)
 
     d = sub.add_parser("docs", help="generate the reference docs (filters, hooks)")
     d.add_argument("--out", default="docs/reference")
     d.set_defaults(fn=cmd_docs)
+
+    rs = sub.add_parser("results", help="docs/results.md from the saved results (--run: "
+                        "measure them first)")
+    rs.add_argument("--run", nargs="*", metavar="NAME",
+                    help="run the manifest's sweeps and benchmarks (all, or those named) and "
+                         "save them under results/ before writing")
+    rs.add_argument("--check", action="store_true",
+                    help="exit 1 if docs/results.md is not what the saved results give")
+    rs.add_argument("--workers", type=int, default=2, help="local processes for sweeps")
+    rs.add_argument("--root", default=".", help="repository folder (default: here)")
+    rs.set_defaults(fn=cmd_results)
 
     b = sub.add_parser("bench", help="benchmarks: throughput next to error")
     b.add_argument("prefix", nargs="*", help="workload name prefixes (default: all)")

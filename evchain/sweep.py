@@ -1,4 +1,4 @@
-"""``evchain sweep``: variations of a base pipeline, run in parallel, cached, tabulated.
+"""``evchain sweep``: variations of pipelines, run in parallel, cached, tabulated.
 
 A sweep file::
 
@@ -10,19 +10,32 @@ A sweep file::
       scene.speed_mps: [10, 20, 30]
       emulator.threshold_on,emulator.threshold_off: [[10, 10], [20, 20], [40, 40]]
     report: [foe.dx_mean_px, foe.dy_mean_px, ttc.median_rel_error_last3s]
-    replay: ../../runs/reference/events.aedat   # optional: see below
 
 A key naming several parameters, separated by commas, sets them together from a list per value.
 ``one_at_a_time`` varies one key while the others keep the base's values (as the thesis's
-tables do); ``grid`` runs every combination. Each run writes into
-``OUT/<hash of the resolved pipeline>/``; a run whose folder already holds an ``ok`` report of
-the same resolved pipeline is not repeated. Runs go to a local process pool, or to a Dask cluster
-when a scheduler address is given (``pip install 'evchain[dask]'``). The table is printed and
-written as ``OUT/sweep.csv`` and ``OUT/sweep.md``.
+tables do); ``grid`` runs every combination. Instead of (or beside) ``vary``, ``cells`` names
+each variation and lists its overrides::
+
+    cells:
+      open-field: [scene.scenario=open-field, scene.start_m=0]
+      640x480: [scene.width=640, scene.height=480]
+
+Several pipelines over the same variations: ``bases`` maps a label to each pipeline (the
+table gets a ``base`` column). With ``record`` (a pipeline that runs ``scene`` -> ``emulator``
+-> ``aedat_writer``), each variation's events are rendered once, with the overrides that address
+the record pipeline's stages, and every base replays them (``evchain run --replay``): two flow
+chains over one drive cost one render. ``repeat`` lists override sets applied on top of every
+variation, each a separate run (e.g. a drive started a fraction of a metre later): the rows
+carry ``repeat`` and ``evchain results`` reports the spread over them.
+
+Each run writes into ``OUT/<hash of the resolved pipeline>/`` (recordings into
+``OUT/record-<hash>/``); a run whose folder already holds an ``ok`` report of the same resolved
+pipeline is not repeated. Runs go to a local process pool, or to a Dask cluster when a scheduler
+address is given (``pip install 'evchain[dask]'``). The table is printed and written as
+``OUT/sweep.csv``, ``OUT/sweep.md`` and ``OUT/sweep.json`` (rows, the machine, wall time).
 
 With ``replay`` (relative to the sweep file, or ``evchain sweep --replay FILE``) every run reads
-the recorded events of an earlier ``scene`` -> ``emulator`` run instead of rendering (see
-``evchain run --replay``), so sweeps over the later stages take seconds per run.
+the recorded events of one earlier ``scene`` -> ``emulator`` run instead of rendering.
 """
 
 from __future__ import annotations
@@ -32,17 +45,20 @@ import hashlib
 import io
 import itertools
 import json
+import time
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from evchain.core.config import load_pipeline, parse_yaml
+from evchain.core.config import PipelineSpec, load_pipeline, parse_yaml
 from evchain.core.registry import Registry, make_registry
 from evchain.errors import ConfigError
 from evchain.io.atomic import atomic_write_text
 
-SWEEP_KEYS = {"name", "base", "mode", "set", "vary", "report", "description", "replay"}
+SWEEP_KEYS = {"name", "base", "bases", "mode", "set", "vary", "cells", "report", "description",
+              "replay", "record", "repeat"}
 
 
 @dataclass
@@ -54,11 +70,36 @@ class Variation:
 @dataclass
 class SweepSpec:
     name: str
-    base: Path
+    bases: dict[str, Path]
     variations: list[Variation]
     report: list[str]
     file: str
     replay: Path | None = None
+    record: Path | None = None
+    repeats: list[list[str]] = field(default_factory=lambda: [[]])
+    description: str = ""
+
+    @property
+    def base(self) -> Path:
+        """The first (or only) base pipeline."""
+        return next(iter(self.bases.values()))
+
+    def runs(self) -> list[tuple[Variation, int, str, Path]]:
+        """Every run: (variation, repeat index, base label, base file)."""
+        return [(v, r, label, path) for v in self.variations
+                for r in range(len(self.repeats)) for label, path in self.bases.items()]
+
+    def overrides(self, v: Variation, repeat: int) -> list[str]:
+        return v.overrides + self.repeats[repeat]
+
+
+def looks_like_sweep(path: str | Path) -> bool:
+    """Whether the YAML file at ``path`` is a sweep (``base``/``bases``, no ``chain``)."""
+    try:
+        data, _ = parse_yaml(Path(path).read_text(encoding="utf-8"), str(path))
+    except (OSError, UnicodeDecodeError, ConfigError):
+        return False
+    return isinstance(data, dict) and "chain" not in data and ("base" in data or "bases" in data)
 
 
 def load_sweep(path: str | Path) -> SweepSpec:
@@ -83,26 +124,60 @@ def load_sweep(path: str | Path) -> SweepSpec:
     for key in data:
         if key not in SWEEP_KEYS:
             fail(f"unknown key; allowed: {', '.join(sorted(SWEEP_KEYS))}", key)
-    if "base" not in data or "vary" not in data:
-        fail("a sweep needs 'base' (a pipeline file) and 'vary' (KEY: [values])")
-    vary = data["vary"]
-    if not isinstance(vary, dict) or not vary or not all(
-            isinstance(v, list) and v for v in vary.values()):
-        fail("must map STAGE.PARAM to a non-empty list of values", "vary")
+    if ("base" in data) == ("bases" in data) or not ("vary" in data or "cells" in data):
+        fail("a sweep needs 'base' (a pipeline file) or 'bases' (LABEL: file), and 'vary' "
+             "(KEY: [values]) or 'cells' (LABEL: [overrides])")
+    if "bases" in data:
+        bases = data["bases"]
+        if not isinstance(bases, dict) or not bases or not all(
+                isinstance(v, str) for v in bases.values()):
+            fail("must map a label to each pipeline file", "bases")
+        bases = {str(k): path.parent / v for k, v in bases.items()}
+    else:
+        if not isinstance(data["base"], str):
+            fail("must be a pipeline file", "base")
+        bases = {"": path.parent / data["base"]}
     mode = data.get("mode", "one_at_a_time")
     if mode not in ("one_at_a_time", "grid"):
         fail(f"must be 'one_at_a_time' or 'grid', got {mode!r}", "mode")
     common = data.get("set", []) or []
     if not isinstance(common, list):
         fail("must be a list of STAGE.PARAM=VALUE overrides", "set")
+    common = [str(c) for c in common]
+    variations = []
+    if "vary" in data:
+        vary = data["vary"]
+        if not isinstance(vary, dict) or not vary or not all(
+                isinstance(v, list) and v for v in vary.values()):
+            fail("must map STAGE.PARAM to a non-empty list of values", "vary")
+        variations += _variations(vary, mode, common)
+    if "cells" in data:
+        cells = data["cells"]
+        if not isinstance(cells, dict) or not cells or not all(
+                isinstance(v, list) for v in (cells.values())):
+            fail("must map a label to a list of STAGE.PARAM=VALUE overrides", "cells")
+        variations += [Variation(str(k), common + [str(o) for o in v]) for k, v in cells.items()]
+    labels = [v.label for v in variations]
+    if len(set(labels)) != len(labels):
+        fail(f"two variations share a label: {sorted({x for x in labels if labels.count(x) > 1})}")
+    repeats = data.get("repeat", [[]])
+    if not isinstance(repeats, list) or not repeats or not all(
+            isinstance(r, list) for r in repeats):
+        fail("must be a list of override lists, one per repeat (e.g. [[], [scene.start_m=0.5]])",
+             "repeat")
     report = data.get("report", []) or []
-    replay = data.get("replay")
-    if replay is not None and not isinstance(replay, str):
-        fail("must be the path of a recorded run's events file", "replay")
-    return SweepSpec(name=data.get("name") or path.stem, base=path.parent / data["base"],
-                     variations=_variations(vary, mode, [str(c) for c in common]),
+    for key in ("replay", "record"):
+        if data.get(key) is not None and not isinstance(data[key], str):
+            fail("must be a file path", key)
+    if data.get("replay") is not None and data.get("record") is not None:
+        fail("give 'record' (render each variation) or 'replay' (one recording), not both",
+             "record")
+    return SweepSpec(name=data.get("name") or path.stem, bases=bases, variations=variations,
                      report=list(report), file=str(path),
-                     replay=None if replay is None else path.parent / replay)
+                     replay=None if data.get("replay") is None else path.parent / data["replay"],
+                     record=None if data.get("record") is None else path.parent / data["record"],
+                     repeats=[[str(o) for o in r] for r in repeats],
+                     description=str(data.get("description") or "").strip())
 
 
 def _overrides(key: str, value: Any) -> list[str]:
@@ -132,27 +207,122 @@ def config_hash(resolved: dict[str, Any]) -> str:
     return hashlib.sha256(json.dumps(resolved, sort_keys=True).encode()).hexdigest()[:12]
 
 
-def _load(base: str, overrides: list[str], registry: Registry, replay: str | None):
-    spec = load_pipeline(base, registry, overrides)
-    if replay is None:
-        return spec
+# -- resolving runs ---------------------------------------------------------------------------
+
+def _stage_names(spec: PipelineSpec) -> set[str]:
+    return {n for s in spec.stages for n in (s.use, s.id)}
+
+
+def _target(override: str) -> str:
+    """The stage an override addresses (``seed`` for the pipeline's seed)."""
+    key = override.split("=", 1)[0]
+    return key if key == "seed" else key.split(".", 1)[0]
+
+
+def overrides_for(spec: PipelineSpec, overrides: list[str]) -> list[str]:
+    """The overrides that address a stage of ``spec`` (and ``seed``): with several bases, an
+    override of one flow's stage is not applied to the other flow's pipeline."""
+    names = _stage_names(spec) | {"seed"}
+    return [o for o in overrides if _target(o) in names]
+
+
+def events_file(record: PipelineSpec) -> str:
+    """The events file a record pipeline writes (its ``aedat_writer``'s path)."""
+    writers = [s for s in record.stages if s.use == "aedat_writer"]
+    if not writers or [s.use for s in record.stages[:2]] != ["scene", "emulator"]:
+        raise ConfigError("a sweep's 'record' pipeline must run scene -> emulator -> "
+                          "aedat_writer", file=record.file)
+    return writers[0].params.path
+
+
+@dataclass
+class _Job:
+    """One pipeline run: the pipeline file, its overrides, an optional recording to replay."""
+
+    base: str
+    overrides: list[str]
+    out_dir: str
+    replay: str | None = None
+
+
+def plan(sweep: SweepSpec, out: Path, registry: Registry,
+         check_recordings: bool = True) -> tuple[list[_Job], list[_Job]]:
+    """(recording jobs, one job per run of ``sweep.runs()``), every pipeline validated first;
+    ``check_recordings``: also that a given ``replay`` recording is this sweep's."""
+    plain = {str(p): load_pipeline(p, registry)
+             for p in [*sweep.bases.values(), *([sweep.record] if sweep.record else [])]}
+    known = set().union(*(_stage_names(s) for s in plain.values())) | {"seed"}
+    for v in sweep.variations:
+        for r in range(len(sweep.repeats)):
+            for o in sweep.overrides(v, r):
+                if _target(o) not in known:
+                    raise ConfigError(f"{v.label}: override {o!r} addresses no stage of the "
+                                      f"sweep's pipelines; stages: {', '.join(sorted(known))}",
+                                      file=sweep.file)
+    records: dict[str, _Job] = {}
+    jobs = []
+    for v, r, _label, base in sweep.runs():
+        overrides = overrides_for(plain[str(base)], sweep.overrides(v, r))
+        replay = None if sweep.replay is None else str(sweep.replay)
+        if sweep.record is not None:
+            rec_over = overrides_for(plain[str(sweep.record)], sweep.overrides(v, r))
+            rec = load_pipeline(sweep.record, registry, rec_over)
+            rec_dir = out / f"record-{config_hash(rec.resolved())}"
+            records.setdefault(str(rec_dir), _Job(str(sweep.record), rec_over, str(rec_dir)))
+            replay = str(rec_dir / events_file(rec))
+        spec = load_pipeline(base, registry, overrides)
+        if replay is not None:  # a recording still to be made is checked when it is replayed
+            spec = _replayed(spec, replay,
+                             check_recording=check_recordings and sweep.record is None)
+        jobs.append(_Job(str(base), overrides, str(out / config_hash(spec.resolved())), replay))
+    return list(records.values()), jobs
+
+
+def _replayed(spec: PipelineSpec, replay: str, check_recording: bool = True) -> PipelineSpec:
     from evchain.filters.scene_events import replay_spec
 
-    return replay_spec(spec, replay)
+    return replay_spec(spec, replay, check_recording=check_recording)
 
 
-def _run_one(base: str, overrides: list[str], out_dir: str, registry: Registry | None = None,
-             replay: str | None = None):
+def validate_sweep(sweep: SweepSpec, registry: Registry | None = None) -> int:
+    """Validate every pipeline the sweep would run (no run); returns the number of runs."""
+    registry = registry or make_registry()
+    records, jobs = plan(sweep, Path("out"), registry, check_recordings=False)
+    return len(records) + len(jobs)
+
+
+def _run_one(job: _Job, registry: Registry | None = None):
     from evchain.core.chain import run_pipeline
 
     registry = registry or make_registry()
-    spec = _load(base, overrides, registry, replay)
-    report_path = Path(out_dir) / "report.json"
+    spec = load_pipeline(job.base, registry, job.overrides)
+    if job.replay is not None:
+        spec = _replayed(spec, job.replay)
+    report_path = Path(job.out_dir) / "report.json"
     if report_path.exists():
         old = json.loads(report_path.read_text())
         if old.get("status") == "ok" and old.get("pipeline") == spec.resolved():
             return old, True
-    return run_pipeline(spec, registry, out_dir).report, False
+    return run_pipeline(spec, registry, job.out_dir).report, False
+
+
+def _run_all(jobs: list[_Job], workers: int, scheduler: str | None,
+             registry: Registry | None) -> list[tuple[dict, bool]]:
+    if not jobs:
+        return []
+    if scheduler is None and workers <= 1:
+        return [_run_one(j, registry) for j in jobs]
+    if scheduler is not None:
+        try:
+            from dask.distributed import Client
+        except ImportError:
+            raise ConfigError("a Dask scheduler needs 'pip install evchain[dask]'",
+                              file="--scheduler") from None
+        with Client(scheduler) as client:
+            return client.gather([client.submit(_run_one, j, pure=False) for j in jobs])
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        futures = [pool.submit(_run_one, j) for j in jobs]
+        return [f.result() for f in futures]
 
 
 def lookup(report: dict[str, Any], dotted: str):
@@ -166,41 +336,42 @@ def lookup(report: dict[str, Any], dotted: str):
 
 def run_sweep(sweep: SweepSpec, out_dir: str | Path, workers: int = 2,
               scheduler: str | None = None, registry: Registry | None = None,
-              echo=print) -> list[dict[str, Any]]:
-    """Run every variation (skipping cached ones) and return one table row per variation."""
+              echo: Callable[[str], object] = print) -> list[dict[str, Any]]:
+    """Run every variation (skipping cached ones) and return one table row per run."""
+    from evchain.machine import machine_info
+
     out = Path(out_dir)
-    check = registry or make_registry()
-    replay = None if sweep.replay is None else str(sweep.replay)
-    jobs = []
-    for v in sweep.variations:
-        spec = _load(str(sweep.base), v.overrides, check, replay)  # fail early, before any run
-        jobs.append((v, str(out / config_hash(spec.resolved()))))
-    if scheduler is None and workers <= 1:
-        results = [_run_one(str(sweep.base), v.overrides, d, registry, replay) for v, d in jobs]
-    elif scheduler is not None:
-        try:
-            from dask.distributed import Client
-        except ImportError:
-            raise ConfigError("a Dask scheduler needs 'pip install evchain[dask]'",
-                              file="--scheduler") from None
-        with Client(scheduler) as client:
-            futures = [client.submit(_run_one, str(sweep.base), v.overrides, d, None, replay,
-                                     pure=False) for v, d in jobs]
-            results = client.gather(futures)
-    else:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            futures = [pool.submit(_run_one, str(sweep.base), v.overrides, d, None, replay)
-                       for v, d in jobs]
-            results = [f.result() for f in futures]
+    started = time.perf_counter()
+    load_before = machine_info()["load"]
+    records, jobs = plan(sweep, out, registry or make_registry())  # fails before any run
+    if records:
+        echo(f"  recording {len(records)} drives")
+        _run_all(records, workers, scheduler, registry)
+    results = _run_all(jobs, workers, scheduler, registry)
     rows = []
-    for (v, d), (report, cached) in zip(jobs, results, strict=True):
-        row = {"variation": v.label, "run": Path(d).name, "cached": cached,
-               "wall_s": round(report["wall_s"], 3)}
+    multi = len(sweep.bases) > 1 or next(iter(sweep.bases)) != ""
+    for (v, r, label, _), job, (report, cached) in zip(sweep.runs(), jobs, results,
+                                                        strict=True):
+        row: dict[str, Any] = {"variation": v.label}
+        if multi:
+            row["base"] = label
+        if len(sweep.repeats) > 1:
+            row["repeat"] = r
+        row.update({"run": Path(job.out_dir).name, "cached": cached,
+                    "wall_s": round(report["wall_s"], 3)})
         row.update({key: lookup(report, key) for key in sweep.report})
         rows.append(row)
-        echo(f"  {v.label:40s} {'(cached) ' if cached else ''}" +
+        echo(f"  {v.label:28s} {label:6s} {'(cached) ' if cached else ''}" +
              " ".join(f"{k}={_fmt(row[k])}" for k in sweep.report))
     write_table(rows, out)
+    machine = machine_info()
+    machine["load_before"] = load_before
+    summary = {"sweep": sweep.name, "file": Path(sweep.file).as_posix(),
+               "description": sweep.description, "report": sweep.report,
+               "bases": {k: Path(p).as_posix() for k, p in sweep.bases.items()},
+               "wall_s": round(time.perf_counter() - started, 1), "machine": machine,
+               "rows": rows}
+    atomic_write_text(out / "sweep.json", json.dumps(summary, indent=2))
     return rows
 
 
@@ -218,4 +389,3 @@ def write_table(rows: list[dict[str, Any]], out: Path) -> None:
     md += ["| " + " | ".join(_fmt(r[c]) for c in cols) + " |" for r in rows]
     atomic_write_text(out / "sweep.csv", text.getvalue())
     atomic_write_text(out / "sweep.md", "\n".join(md) + "\n")
-

@@ -70,12 +70,13 @@ class SceneEvents(Filter):
 RENDER_ONLY = ("threads", "max_frames_per_packet", "packet_us")
 
 
-def replay_spec(spec, events_path: str | Path):
+def replay_spec(spec, events_path: str | Path, check_recording: bool = True):
     """``spec`` with its leading ``scene`` -> ``emulator`` stages replaced by ``scene_events``
     reading ``events_path``, the events of an earlier run (``evchain run ... --replay``).
 
     That run's ``pipeline.resolved.yaml`` (beside the file) must show the same scene and
-    emulator parameters, else the events would not be the ones this pipeline makes."""
+    emulator parameters, else the events would not be the ones this pipeline makes.
+    ``check_recording`` False skips that check, for a recording still to be made."""
     from evchain.core.config import StageSpec
     from evchain.errors import ConfigError
 
@@ -84,6 +85,21 @@ def replay_spec(spec, events_path: str | Path):
         raise ConfigError("--replay needs a pipeline that starts with scene -> emulator",
                           file=spec.file)
     recorded = Path(events_path).parent / "pipeline.resolved.yaml"
+    if check_recording:
+        _check_recording(spec, recorded)
+    scene = stages[0].params
+    params = SceneEvents.Params(path=str(events_path), packet_us=scene.packet_us,
+                                **{k: getattr(scene, k) for k in SceneConfig.model_fields})
+    first = StageSpec(use=SceneEvents.name, id=SceneEvents.name, cls=SceneEvents,
+                      params=params, mark=stages[0].mark)
+    return dataclasses.replace(spec, stages=[first, *stages[2:]])
+
+
+def _check_recording(spec, recorded: Path) -> None:
+    """The recorded run's resolved pipeline has this pipeline's scene and emulator."""
+    from evchain.errors import ConfigError
+
+    stages = spec.stages
     if not recorded.is_file():
         raise ConfigError(f"{recorded} not found: --replay takes the events file of a run "
                           "folder (written with its pipeline.resolved.yaml)", file=spec.file)
@@ -97,9 +113,3 @@ def replay_spec(spec, events_path: str | Path):
             shown = ", ".join(f"{k}: {theirs.get(k)!r} there, {mine[k]!r} here" for k in differ)
             raise ConfigError(f"the recorded run ({recorded}) is not this pipeline's "
                               f"{stage.use}: {shown or 'other stages'}", file=spec.file)
-    scene = stages[0].params
-    params = SceneEvents.Params(path=str(events_path), packet_us=scene.packet_us,
-                                **{k: getattr(scene, k) for k in SceneConfig.model_fields})
-    first = StageSpec(use=SceneEvents.name, id=SceneEvents.name, cls=SceneEvents,
-                      params=params, mark=stages[0].mark)
-    return dataclasses.replace(spec, stages=[first, *stages[2:]])

@@ -1,4 +1,8 @@
+import json
+from pathlib import Path
+
 import pytest
+import yaml
 
 from evchain import ConfigError
 from evchain.sweep import load_sweep, run_sweep
@@ -66,3 +70,111 @@ def test_joint_keys(tmp_path, registry):
     bad = write(tmp_path, "base: base.yaml\nvary:\n  a.b,c.d: [[1]]\n")
     with pytest.raises(ConfigError, match="list of 2 values"):
         load_sweep(bad)
+
+
+def test_cells_bases_and_repeats(tmp_path, registry):
+    (tmp_path / "other.yaml").write_text(BASE)
+    p = write(tmp_path, "bases: {a: base.yaml, b: other.yaml}\nreport: [toy.count]\n"
+                        "repeat: [[], [toy_source.events_per_packet=3]]\n"
+                        "cells:\n  small: [toy_source.packets=1]\n  big: [toy_source.packets=4]\n")
+    sweep = load_sweep(p)
+    assert [v.label for v in sweep.variations] == ["small", "big"]
+    rows = run_sweep(sweep, tmp_path / "out", workers=1, registry=registry, echo=lambda s: None)
+    got = [(r["variation"], r["repeat"], r["base"], r["toy.count"]) for r in rows]
+    assert got == [("small", 0, "a", 100), ("small", 0, "b", 100), ("small", 1, "a", 3),
+                   ("small", 1, "b", 3), ("big", 0, "a", 400), ("big", 0, "b", 400),
+                   ("big", 1, "a", 12), ("big", 1, "b", 12)]
+    summary = json.loads((tmp_path / "out" / "sweep.json").read_text())
+    assert summary["rows"] == rows and summary["machine"]["cores"] >= 1
+
+
+@pytest.mark.parametrize("text, pattern", [
+    ("base: base.yaml\nbases: {a: base.yaml}\nvary: {a.b: [1]}\n", "needs 'base'"),
+    ("bases: [base.yaml]\nvary: {a.b: [1]}\n", "bases: must map"),
+    ("base: base.yaml\ncells: {x: [a.b=1]}\nvary: {c.d: [2]}\nrepeat: []\n", "repeat: must"),
+    ("base: base.yaml\ncells: {x: a.b=1}\n", "cells: must map"),
+    ("base: base.yaml\nrecord: r.yaml\nreplay: e.aedat\ncells: {x: []}\n", "not both"),
+])
+def test_sweep_errors_new_keys(tmp_path, text, pattern):
+    with pytest.raises(ConfigError, match=pattern):
+        load_sweep(write(tmp_path, text))
+
+
+RECORD = """chain:
+  - use: scene
+    scenario: high-rise
+    width: 32
+    height: 24
+    supersample: 1
+    start_m: 200
+    duration_s: 0.05
+    max_motion_px: 1.0
+  - use: emulator
+    threshold_on: 0.3
+    threshold_off: 0.3
+  - use: aedat_writer
+    path: events.aedat
+"""
+
+REPLAYED = """chain:
+  - use: scene
+    scenario: high-rise
+    width: 32
+    height: 24
+    supersample: 1
+    start_m: 200
+    duration_s: 0.05
+    max_motion_px: 1.0
+  - use: emulator
+    threshold_on: 0.3
+    threshold_off: 0.3
+  - use: {flow}
+  - use: flow_scorer
+"""
+
+
+def test_record_renders_each_variation_once_and_every_base_replays_it(tmp_path):
+    (tmp_path / "record.yaml").write_text(RECORD)
+    (tmp_path / "lk.yaml").write_text(REPLAYED.format(flow="lk_flow"))
+    (tmp_path / "plane.yaml").write_text(REPLAYED.format(flow="plane_flow"))
+    p = tmp_path / "s.yaml"
+    p.write_text("bases: {lk: lk.yaml, plane: plane.yaml}\nrecord: record.yaml\n"
+                 "report: [flow.n_scored]\ncells:\n  ref: []\n"
+                 "  thr: [emulator.threshold_on=0.5, emulator.threshold_off=0.5, "
+                 "lk_flow.search_distance=3]\n")
+    sweep = load_sweep(p)
+    out = tmp_path / "out"
+    rows = run_sweep(sweep, out, workers=1, echo=lambda s: None)
+    records = sorted(out.glob("record-*"))
+    assert len(records) == 2                             # one recording per cell, not per base
+    for rec in records:
+        assert (rec / "events.aedat").stat().st_size > 0
+        chain = yaml.safe_load((rec / "pipeline.resolved.yaml").read_text())["chain"]
+        assert [s["use"] for s in chain] == ["scene", "emulator", "aedat_writer"]
+    assert [(r["variation"], r["base"]) for r in rows] == [
+        ("ref", "lk"), ("ref", "plane"), ("thr", "lk"), ("thr", "plane")]
+    for r in rows:
+        rep = json.loads((out / r["run"] / "report.json").read_text())
+        first = rep["pipeline"]["chain"][0]
+        assert first["use"] == "scene_events"             # replayed, not rendered again
+        assert Path(first["path"]).parent.name.startswith("record-")
+    thr = json.loads((out / rows[2]["run"] / "report.json").read_text())["pipeline"]["chain"]
+    assert [s.get("search_distance") for s in thr if s["use"] == "lk_flow"] == [3]
+    again = run_sweep(sweep, out, workers=1, echo=lambda s: None)
+    assert all(r["cached"] for r in again)
+
+
+def test_record_pipeline_must_write_events(tmp_path):
+    (tmp_path / "record.yaml").write_text(RECORD.replace("  - use: aedat_writer\n"
+                                                         "    path: events.aedat\n", ""))
+    (tmp_path / "lk.yaml").write_text(REPLAYED.format(flow="lk_flow"))
+    p = tmp_path / "s.yaml"
+    p.write_text("base: lk.yaml\nrecord: record.yaml\ncells: {ref: []}\n")
+    with pytest.raises(ConfigError, match="aedat_writer"):
+        run_sweep(load_sweep(p), tmp_path / "out", workers=1, echo=lambda s: None)
+
+
+def test_override_of_no_stage_is_an_error(tmp_path, registry):
+    p = write(tmp_path, "base: base.yaml\ncells: {x: [toy_sorce.packets=1]}\n")
+    with pytest.raises(ConfigError, match="toy_sorce.packets=1.*addresses no stage"):
+        run_sweep(load_sweep(p), tmp_path / "out", workers=1, registry=registry)

@@ -1,0 +1,123 @@
+"""``evchain results``: verdicts from repeats, docs/results.md from saved JSON, --check."""
+
+import json
+
+import pytest
+
+from evchain import ConfigError
+from evchain.cli import main
+from evchain.results import Value, load_manifest, render, verdict
+
+MANIFEST = """sweeps:
+  ref: ref.yaml
+  ev: ev.yaml
+evaluation: {sweep: ev, reference_cell: reference}
+bench:
+  - {prefix: toy-, repeat: 3}
+metrics:
+  foe.dx_mean_px: {label: "FOE |dx| px", better: lower, format: ".2f"}
+  ttc.share: {label: "TTC share", better: higher, format: ".1%"}
+goals:
+  - {name: dx lk, source: "sweep:ref", select: {base: lk}, metric: foe.dx_mean_px,
+     goal: "<= 2"}
+  - {name: share lk, source: "sweep:ref", select: {base: lk}, metric: ttc.share, goal: ">= 0.8"}
+  - {name: toy speed, source: bench, select: {workload: toy-a}, metric: throughput,
+     goal: ">= 100"}
+"""
+
+
+def sweep_doc(rows, report=("foe.dx_mean_px", "ttc.share")):
+    return {"sweep": "x", "file": "pipelines/sweeps/x.yaml", "description": "A sweep.",
+            "report": list(report), "wall_s": 12.0, "command": "evchain results --run x",
+            "machine": {"cores": 2, "cpu": "Test CPU", "load": 0.5, "evchain": "0.1.0",
+                        "commit": "abc"}, "rows": rows}
+
+
+@pytest.fixture
+def root(tmp_path):
+    (tmp_path / "results" / "sweeps").mkdir(parents=True)
+    (tmp_path / "results" / "bench").mkdir()
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "results" / "results.yaml").write_text(MANIFEST)
+    ref = [{"variation": "whole", "base": b, "repeat": r, "foe.dx_mean_px": dx,
+            "ttc.share": sh}
+           for b, dxs, shs in (("lk", (1.9, 1.95, 1.98), (0.9, 0.91, 0.95)),
+                               ("plane", (2.5, 2.6, 2.7), (0.5, 0.6, 0.7)))
+           for r, (dx, sh) in enumerate(zip(dxs, shs, strict=True))]
+    ev = [{"variation": c, "base": b, "foe.dx_mean_px": dx, "ttc.share": sh}
+          for c, dx, sh in (("reference", 2.0, 0.9), ("a", 3.0, 0.5), ("b", 5.0, None),
+                            ("c", 4.0, 0.7))
+          for b in ("lk", "plane")]
+    (tmp_path / "results" / "sweeps" / "ref.json").write_text(json.dumps(sweep_doc(ref)))
+    (tmp_path / "results" / "sweeps" / "ev.json").write_text(json.dumps(sweep_doc(ev)))
+    bench = {"prefix": "toy-", "quick": False, "repeat": 3, "command": "evchain results --run toy-",
+             "machine": {"cores": 2, "cpu": "Test CPU", "load": 1.0}, "wall_s": 3.0,
+             "rows": [{"workload": "toy-a", "stage": "toy", "throughput": t, "unit": "ev/s",
+                       "error": 0.1, "error_name": "err", "limit_ratio": None,
+                       "data": "synthetic toy", "repeat": r}
+                      for r, t in enumerate((150.0, 160.0, 155.0))]}
+    (tmp_path / "results" / "bench" / "toy-.json").write_text(json.dumps(bench))
+    return tmp_path
+
+
+@pytest.mark.parametrize("values, op, target, word", [
+    ([1.0, 1.1, 1.2], "<=", 2.0, "met"),           # margin 0.9 > spread 0.2
+    ([1.8, 1.9, 2.1], "<=", 2.0, "borderline"),    # margin 0.1 inside spread 0.3
+    ([2.0, 2.1, 2.1], ">=", 2.2, "borderline"),    # short by 0.1, spread 0.1
+    ([3.0, 3.1, 3.2], "<=", 2.0, "not met"),
+    ([0.9, 0.9, 0.9], ">=", 0.8, "met"),           # deterministic: spread 0
+    ([0.79, 0.79, 0.79], ">=", 0.8, "not met"),
+    ([1.0], "<=", 2.0, "unrepeated"),
+    ([], "<=", 2.0, "no data"),
+])
+def test_verdicts(values, op, target, word):
+    assert verdict(Value(values), op, target)[1] == word
+
+
+def test_page_from_saved_results(root):
+    text = render(load_manifest(root))
+    assert ("| dx lk | sweep ref (base lk) | 1.95 (1.90-1.98, x3) | <= 2.00 | 0.05 | "
+            "borderline |") in text
+    assert "| share lk | sweep ref (base lk) | 91.0% (90.0%-95.0%, x3) | >= 80.0% | 11.0% | met |" \
+        in text
+    assert "| toy speed | toy-a: synthetic toy | 155 (150-160, x3) | >= 100 | 55 | met |" in text
+    # evaluation summary: median and worst over the cells a, b, c; the reference beside them
+    assert "| FOE |dx| px |" not in text                               # pipes escaped
+    assert "| FOE \\|dx\\| px | 2.00 | 4.00 | 5.00 (b) | 2.00 | 4.00 | 5.00 (b) |" in text
+    assert "| TTC share | 90.0% | 60.0% | 50.0% (a) |" in text        # b has no TTC
+    assert "3 cells" in text and "Test CPU" in text
+    assert "## ref" in text and "| whole | lk | 1.95 (1.90-1.98, x3) |" in text
+    assert render(load_manifest(root)) == text                          # deterministic
+
+
+def test_check_and_write(root, monkeypatch, capsys):
+    monkeypatch.chdir(root)
+    assert main(["results", "--check"]) == 1
+    assert "missing" in capsys.readouterr().err
+    assert main(["results"]) == 0
+    assert main(["results", "--check"]) == 0
+    doc = json.loads((root / "results" / "sweeps" / "ref.json").read_text())
+    doc["rows"][0]["foe.dx_mean_px"] = 2.5
+    (root / "results" / "sweeps" / "ref.json").write_text(json.dumps(doc))
+    assert main(["results", "--check"]) == 1
+    assert "differs" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("bad, pattern", [
+    (MANIFEST.replace('goal: "<= 2"', 'goal: "< 2"'), "must read"),
+    (MANIFEST.replace('source: "sweep:ref", select: {base: lk}, metric: ttc.share',
+                      'source: "sweep:nope", select: {base: lk}, metric: ttc.share'),
+     "sweep:nope"),
+    (MANIFEST + "extra: 1\n", "extra: unknown key"),
+])
+def test_manifest_errors(root, bad, pattern):
+    (root / "results" / "results.yaml").write_text(bad)
+    with pytest.raises(ConfigError, match=pattern):
+        load_manifest(root)
+
+
+def test_unknown_name_to_run(root):
+    with pytest.raises(ConfigError, match="nope: not in the manifest"):
+        from evchain.results import run_and_save
+
+        run_and_save(load_manifest(root), ["nope"])
