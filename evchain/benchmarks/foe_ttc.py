@@ -329,6 +329,8 @@ def chain_rows(flow: str, quick: bool) -> list[BenchRow]:
                       "foe_dy_mean_px": fm.get("dy_mean_px"),
                       "foe_dx_std_px": fm.get("dx_std_px"),
                       "foe_dy_std_px": fm.get("dy_std_px"),
+                      "ttc_share_on_obstacle_within_20pct":
+                          tm.get("share_on_obstacle_within_20pct"),
                       "ttc_share_within_20pct": tm.get("share_within_20pct"),
                       "ttc_share_within_10pct": tm.get("share_within_10pct")})]
 

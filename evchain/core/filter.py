@@ -32,9 +32,10 @@ from evchain.core.packets import Geometry, Packet
 class GroundTruth(Protocol):
     """What a source knows exactly. Times ``t_us`` are µs (scalars or arrays, float allowed).
 
-    Providers implement what they can (``flow``, ``foe``, ``ttc``, ``depth``); a method they cannot
-    answer simply does not exist, and scorers check with ``hasattr``. Undefined values are NaN
-    (e.g. the FOE when not moving forward).
+    Providers implement what they can (``flow``, ``foe``, ``ttc``, ``depth``; a simulator also
+    ``object_id(x, y, t_us)`` and ``obstacle_ids``: which object is seen where); a method they
+    cannot answer simply does not exist, and scorers check with ``hasattr``. Undefined values
+    are NaN (e.g. the FOE when not moving forward).
     """
 
     def flow(self, x: np.ndarray, y: np.ndarray, t_us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -13,7 +13,7 @@ from evchain.core.packets import FlowPacket, series_array
 FOE_ERR_DTYPE = [("t", "i8"), ("x", "f8"), ("y", "f8"), ("x_true", "f8"), ("y_true", "f8"),
                  ("dx", "f8"), ("dy", "f8"), ("angle_deg", "f8")]
 TTC_ERR_DTYPE = [("t", "i8"), ("tau_s", "f8"), ("tau_true_s", "f8"), ("rel_error", "f8"),
-                 ("cluster", "i8")]
+                 ("cluster", "i8"), ("x", "f8"), ("y", "f8"), ("on_obstacle", "i1")]
 
 
 def _truth_foe(truth, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -31,6 +31,28 @@ def _truth_ttc(truth, t: np.ndarray) -> np.ndarray:
     return np.broadcast_to(np.asarray(tau, np.float64), t.shape).copy()
 
 
+def on_obstacle(truth, x, y, t_us, radius_px: int) -> np.ndarray | None:
+    """Whether the obstacle is seen at (x, y) or at any position offset by whole pixels of at
+    most ``radius_px`` in x and y (a (2 r + 1)^2 grid) at t_us, per element (1-D arrays); one
+    ``object_id`` call for all of them. None when the truth knows no objects (no
+    ``object_id``) or no obstacle (no or empty ``obstacle_ids``). Non-finite positions: False."""
+    ids = getattr(truth, "obstacle_ids", None)
+    if truth is None or not hasattr(truth, "object_id") or ids is None or len(ids) == 0:
+        return None
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    t = np.asarray(t_us, np.float64)
+    finite = np.isfinite(x) & np.isfinite(y)
+    if not len(x):
+        return np.zeros(0, bool)
+    off = np.arange(-radius_px, radius_px + 1, dtype=np.float64)
+    ox, oy = (a.ravel() for a in np.meshgrid(off, off))
+    qx = np.where(finite, x, 0.0)[:, None] + ox[None, :]
+    qy = np.where(finite, y, 0.0)[:, None] + oy[None, :]
+    qt = np.broadcast_to(t[:, None], qx.shape)
+    seen = np.asarray(truth.object_id(qx, qy, qt)).reshape(qx.shape)
+    return np.isin(seen, ids).any(axis=1) & finite
+
+
 def foe_angle_deg(x, y, xt, yt, f: float | None, cx: float, cy: float) -> np.ndarray:
     """Angle between the viewing rays through the estimated and the true FOE, in degrees."""
     if f is None:
@@ -46,12 +68,26 @@ class FoeTtcScorer(Filter):
     """Scores FOE (|dx|, |dy|, ray angle) and TTC (relative error) against the ground truth.
 
     Pass-through. Appends series ``foe_error`` (per ``foe`` entry) and ``ttc_error`` (per ``ttc``
-    entry). At the end writes ``metrics.foe`` (``dx_mean_px``, ``dx_std_px``, ``dy_mean_px``,
-    ``dy_std_px``, ``angle_mean_deg`` after ``warmup_s``; thesis eq. 4.1) and ``metrics.ttc``
-    (``median_rel_error_last3s``, ``share_within_10pct``, ``share_within_20pct`` over the last
-    ``last_window_s`` before collision, sampled every ``sample_every_us``; a time without an
-    estimate counts as a miss) and, with ``plots``, PNGs: FOE error over time, TTC against
-    truth, and frame snapshots with flow, FOE and clusters.
+    entry: the cluster's centre x, y and ``on_obstacle``: 1 if it lies on the obstacle at that
+    tick, 0 if not, -1 if the truth cannot tell). At the end writes ``metrics.foe`` (``dx_mean_px``,
+    ``dx_std_px``, ``dy_mean_px``, ``dy_std_px``, ``angle_mean_deg`` after ``warmup_s``;
+    thesis eq. 4.1) and ``metrics.ttc`` over the last ``last_window_s`` before collision,
+    sampled every ``sample_every_us`` (a time without an estimate of at most ``max_age_us``
+    counts as a miss):
+
+    * ``share_on_obstacle_within_20pct`` (the headline): share of the times at which the
+      reported cluster lies on the obstacle (the truth's ``object_id`` sees one of its
+      ``obstacle_ids`` at the cluster centre or within ``obstacle_margin_px`` of it) and its tau
+      is within 20 % of the true TTC; ``coverage_on_obstacle``: share on the obstacle, whatever
+      its tau; ``median_rel_error_on_obstacle``: median relative error at the times on the
+      obstacle (None if never). All three are None when the truth knows no objects (no
+      ``object_id``, e.g. the synthetic expansion or recorded data) or no obstacle.
+    * ``median_rel_error_last3s``, ``share_within_10pct``, ``share_within_20pct``,
+      ``coverage_last3s``: whatever cluster is reported, so a roadside object whose TTC happens
+      to match the car's counts as a hit.
+
+    With ``plots``, PNGs: FOE error over time, TTC against truth (estimates on and off the
+    obstacle in their own colours), and frame snapshots with flow, FOE and clusters.
     """
 
     name = "foe_ttc_scorer"
@@ -65,6 +101,11 @@ class FoeTtcScorer(Filter):
         sample_every_us: int = Field(10_000, ge=1, description="TTC scoring grid")
         max_age_us: int = Field(50_000, ge=0, description="an estimate older than this at a "
                                 "grid time counts as missing")
+        obstacle_margin_px: int = Field(
+            2, ge=0, le=20, description="the reported cluster lies on the obstacle when the "
+            "obstacle is seen at its centre or at any pixel up to this far from it in x and y: "
+            "a cluster of edge events sits on the car's outline, so its centre can fall just "
+            "beside the car")
         plots: bool = Field(True, description="write the PNGs (needs ground truth)")
         plot_dir: str = Field("plots", description="folder for the PNGs, in the output folder")
         snapshot_ttc_s: list[float] = Field(
@@ -110,8 +151,10 @@ class FoeTtcScorer(Filter):
             tau = np.asarray(ttc["tau_s"], np.float64)
             with np.errstate(invalid="ignore", divide="ignore"):
                 rel = np.where(tt > 0, np.abs(tau - tt) / tt, np.nan)
+            on = on_obstacle(truth, ttc["x"], ttc["y"], t, self.params.obstacle_margin_px)
             err = series_array(TTC_ERR_DTYPE, t=t, tau_s=tau, tau_true_s=tt, rel_error=rel,
-                               cluster=ttc["cluster"])
+                               cluster=ttc["cluster"], x=ttc["x"], y=ttc["y"],
+                               on_obstacle=np.full(len(t), -1) if on is None else on)
             self._ttc.append(err)
             out = out.with_series("ttc_error", err)
         cl = packet.series.get("ttc_clusters")
@@ -189,7 +232,8 @@ class FoeTtcScorer(Filter):
         t_last = grid[ok][-1]
         win = ok & (grid >= t_last - int(p.last_window_s * 1e6))
         relw = rel[win]
-        m = {"median_rel_error_last3s": float(np.median(relw)),
+        m = {**self._obstacle_metrics(ttc, grid[win], idx[win], have[win], relw),
+             "median_rel_error_last3s": float(np.median(relw)),
              "share_within_10pct": float(np.mean(relw <= 0.10)),
              "share_within_20pct": float(np.mean(relw <= 0.20)),
              "coverage_last3s": float(np.mean(np.isfinite(relw))),
@@ -199,6 +243,21 @@ class FoeTtcScorer(Filter):
              "n_estimates": int(len(ttc))}
         curves = {"grid_s": grid * 1e-6, "truth": truth}
         return m, curves
+
+    def _obstacle_metrics(self, ttc: np.ndarray, grid: np.ndarray, idx: np.ndarray,
+                          have: np.ndarray, rel: np.ndarray) -> dict:
+        """The on-obstacle metrics over the window's grid times (estimate index idx where have,
+        relative errors rel); None each when the truth cannot tell."""
+        on = np.zeros(len(grid), bool)
+        sub = on_obstacle(self.context.truth, ttc["x"][idx[have]], ttc["y"][idx[have]],
+                          grid[have], self.params.obstacle_margin_px)
+        if sub is None:
+            return dict.fromkeys(("share_on_obstacle_within_20pct", "coverage_on_obstacle",
+                                  "median_rel_error_on_obstacle"))
+        on[have] = sub
+        return {"share_on_obstacle_within_20pct": float(np.mean(on & (rel <= 0.20))),
+                "coverage_on_obstacle": float(np.mean(on)),
+                "median_rel_error_on_obstacle": float(np.median(rel[on])) if on.any() else None}
 
     def flush(self):
         if self._t0 is None or self.context.truth is None:
@@ -223,7 +282,7 @@ class FoeTtcScorer(Filter):
                                  warmup_s=(self._t0 * 1e-6 + self.params.warmup_s))
         if curves:
             plots.plot_ttc(ttc["t"] * 1e-6, ttc["tau_s"], curves["grid_s"], curves["truth"],
-                           d / "ttc.png")
+                           d / "ttc.png", on_obstacle=ttc["on_obstacle"])
         snaps = list(self._snapshots)
         if self._recent or not snaps:
             snaps.append(self._snapshot(self._t_end, "end"))

@@ -1056,9 +1056,11 @@ def render(pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground
 # ----------------------------------------------------------------------------- ground truth
 
 @njit(**_J)
-def truth_query(x, y, t_s, f, cx, cy, boxes, segs, traj, depth, vx, vy):
-    """Exact depth (m, inf for sky) and motion field (px/s) at pixel positions (x, y) and times
-    t_s (seconds), one query per element. Uses the same tracing as the renderer."""
+def truth_query(x, y, t_s, f, cx, cy, boxes, segs, traj, depth, vx, vy, obj):
+    """Exact depth (m, inf for sky), motion field (px/s) and object id (int64: the index of the
+    box seen, -2 for the ground, -1 for the sky: ``OBJECT_*`` in :mod:`evchain.sim.world`) at
+    pixel positions (x, y) and times t_s (seconds), one query per element. Uses the same
+    tracing as the renderer."""
     n = x.shape[0]
     nb = boxes.shape[0]
     cand = np.arange(nb)
@@ -1079,6 +1081,7 @@ def truth_query(x, y, t_s, f, cx, cy, boxes, segs, traj, depth, vx, vy):
         dz = rot[2, 0] * xb + rot[2, 1] * yb + rot[2, 2]
         t, kind, idx, face = trace(pos[0], pos[1], pos[2], dx, dy, dz, boxes, cand, 0, nb, minz)
         depth[q] = t
+        obj[q] = idx if kind == 2 else (-2 if kind == 1 else -1)
         fu, fv = flow_at(xb, yb, 1.0 / t, f, vc, wc)
         vx[q] = fu
         vy[q] = fv

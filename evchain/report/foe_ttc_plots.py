@@ -50,13 +50,23 @@ def plot_foe_error(t_s: np.ndarray, dx: np.ndarray, dy: np.ndarray, path: str | 
 
 
 def plot_ttc(t_s: np.ndarray, tau_s: np.ndarray, t_true_s: np.ndarray, tau_true_s: np.ndarray,
-             path: str | Path, title: str = "Time to contact") -> Path:
-    """Estimated TTC (dots) against the ground truth (line), relative error below."""
+             path: str | Path, title: str = "Time to contact",
+             on_obstacle: np.ndarray | None = None) -> Path:
+    """Estimated TTC (dots) against the ground truth (line), relative error below.
+    ``on_obstacle`` (per estimate: 1 on the obstacle, 0 off it, -1 unknown) colours the dots
+    of estimates on and off the obstacle apart."""
     plt = _plt()
     fig, (ax, ax2) = plt.subplots(2, 1, figsize=(7, 5), sharex=True,
                                   gridspec_kw={"height_ratios": [2, 1]})
     ax.plot(t_true_s, tau_true_s, "r-", lw=1.5, label="ground truth")
-    ax.plot(t_s, tau_s, ".", ms=2, color="tab:blue", label="estimate")
+    if on_obstacle is None or not (np.asarray(on_obstacle) >= 0).any():
+        groups = [(np.ones(len(t_s), bool), "tab:blue", "estimate")]
+    else:
+        on = np.asarray(on_obstacle)
+        groups = [(on == 1, "tab:blue", "estimate on the obstacle"),
+                  (on != 1, "tab:orange", "estimate off the obstacle")]
+    for k, color, label in groups:
+        ax.plot(t_s[k], tau_s[k], ".", ms=2, color=color, label=label)
     finite = tau_true_s[np.isfinite(tau_true_s)]
     if len(finite):
         ax.set_ylim(0, 1.3 * float(np.max(finite)))
@@ -69,7 +79,8 @@ def plot_ttc(t_s: np.ndarray, tau_s: np.ndarray, t_true_s: np.ndarray, tau_true_
                                                                                         np.nan)
         with np.errstate(invalid="ignore", divide="ignore"):
             rel = np.abs(tau_s - tau_at) / tau_at
-        ax2.plot(t_s, 100 * rel, ".", ms=2, color="tab:blue")
+        for k, color, _ in groups:
+            ax2.plot(t_s[k], 100 * rel[k], ".", ms=2, color=color)
     for level in (10, 20):
         ax2.axhline(level, color="0.5", lw=0.8, ls="--")
     ax2.set_ylim(0, 100)

@@ -24,6 +24,7 @@ from evchain.sim.world import (
     MAT_ORANGE_LINES,
     MAT_PLAIN,
     MAT_WINDOWS,
+    OBSTACLE_LABEL,
     World,
     make_ground,
     make_light,
@@ -172,7 +173,8 @@ def _overlap(a, b) -> bool:
 
 
 def _obstacle(world: World, cfg: SceneConfig) -> None:
-    """A car standing across the ego lane, its near side ``obstacle_gap_m`` past the route end."""
+    """A car standing across the ego lane, its near side ``obstacle_gap_m`` past the route end:
+    body, cabin and two wheels, every box labelled ``OBSTACLE_LABEL``."""
     pts, hs = path_points(world.segs, np.array([world.route_m]))
     ex, ey, h = float(pts[0, 0]), float(pts[0, 1]), float(hs[0])
     if abs(np.sin(h)) > 1e-9:
@@ -180,10 +182,10 @@ def _obstacle(world: World, cfg: SceneConfig) -> None:
     x0 = ex + cfg.obstacle_gap_m
     c = ey
     world.add_box((x0, c - 2.25, 0.3), (x0 + 1.8, c + 2.25, 1.0), MAT_CAR, (0.6, 9.0, 9.0, 0.4),
-                  "car")
+                  OBSTACLE_LABEL)
     world.add_box((x0 + 0.2, c - 1.2, 1.0), (x0 + 1.6, c + 1.1, 1.45), MAT_CAR,
-                  (0.6, 1.05, 1.4, 0.0), "car")
+                  (0.6, 1.05, 1.4, 0.0), OBSTACLE_LABEL)
     for wy in (c - 1.45, c + 1.45):
         world.add_box((x0 + 0.05, wy - 0.35, 0.0), (x0 + 0.35, wy + 0.35, 0.62), MAT_PLAIN,
-                      (0.05,), "car")
+                      (0.05,), OBSTACLE_LABEL)
     world.obstacle_rear = np.array([x0, c, 0.65])

@@ -13,6 +13,10 @@ Sky pixels have Z = inf and only the rotational part. All objects are static, so
 motion enters. FOE = projection of the translational velocity (thesis eq. 3.5), NaN unless
 moving forward; TTC = (obstacle - camera)·v / |v|² (thesis eq. 3.6), NaN without an obstacle,
 at rest, or once passed.
+
+Objects: ``object_id`` names the surface seen at (x, y): the index of its box in the world's
+boxes (>= 0), ``OBJECT_GROUND`` (-2) or ``OBJECT_SKY`` (-1); ``obstacle_ids`` are the boxes of
+the obstacle car (empty without one).
 """
 
 from __future__ import annotations
@@ -20,6 +24,9 @@ from __future__ import annotations
 import numpy as np
 
 from evchain.sim.scene import Scene
+from evchain.sim.world import OBJECT_GROUND, OBJECT_SKY
+
+__all__ = ["OBJECT_GROUND", "OBJECT_SKY", "SceneTruth"]
 
 
 class SceneTruth:
@@ -29,6 +36,7 @@ class SceneTruth:
         self.scene = scene
         cam = scene.camera
         self.f, self.cx, self.cy = cam.f, cam.cx, cam.cy
+        self.obstacle_ids: np.ndarray = scene.world.obstacle_ids   # box indices of the car
 
     # -- per pixel ------------------------------------------------------------------------
     def _query(self, x, y, t_us):
@@ -42,11 +50,12 @@ class SceneTruth:
         tf = np.ascontiguousarray(t.ravel()) * 1e-6
         n = xf.size
         depth, vx, vy = np.empty(n), np.empty(n), np.empty(n)
+        obj = np.empty(n, np.int64)
         if n:
             s = self.scene
             truth_query(xf, yf, tf, self.f, self.cx, self.cy, s.boxes, s.segs, s.traj,
-                        depth, vx, vy)
-        return depth.reshape(shape), vx.reshape(shape), vy.reshape(shape)
+                        depth, vx, vy, obj)
+        return depth.reshape(shape), vx.reshape(shape), vy.reshape(shape), obj.reshape(shape)
 
     def depth(self, x, y, t_us) -> np.ndarray:
         """Depth Z (m, along the optical axis) of the surface seen at (x, y); inf for sky."""
@@ -54,12 +63,17 @@ class SceneTruth:
 
     def flow(self, x, y, t_us) -> tuple[np.ndarray, np.ndarray]:
         """Motion field (vx, vy) in px/s at (x, y) and t_us."""
-        _, vx, vy = self._query(x, y, t_us)
+        _, vx, vy, _ = self._query(x, y, t_us)
         return vx, vy
 
     def depth_and_flow(self, x, y, t_us):
         """(depth, vx, vy) in one pass."""
-        return self._query(x, y, t_us)
+        return self._query(x, y, t_us)[:3]
+
+    def object_id(self, x, y, t_us) -> np.ndarray:
+        """Id (int64) of the surface seen at (x, y) at t_us (>= 0): the index of its box (see
+        ``obstacle_ids``), ``OBJECT_GROUND`` or ``OBJECT_SKY``."""
+        return self._query(x, y, t_us)[3]
 
     # -- per time ----------------------------------------------------------------------------
     def _states(self, t_us):

@@ -12,6 +12,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 MAT_PLAIN, MAT_WINDOWS, MAT_ORANGE, MAT_ORANGE_LINES, MAT_CAR = 0, 1, 2, 3, 4
+# Object ids of what a ray sees (truth_query in evchain.kernels.scene): a box's index in
+# World.boxes (>= 0), or one of these.
+OBJECT_SKY = -1
+OBJECT_GROUND = -2
+# Label of the boxes that make up the obstacle (the car across the ego lane).
+OBSTACLE_LABEL = "car"
 
 
 @dataclass
@@ -35,6 +41,11 @@ class World:
         self.mats.append(int(mat))
         self.pars.append(tuple(float(p) for p in (list(par) + [0.0] * 4)[:4]))
         self.labels.append(label)
+
+    @property
+    def obstacle_ids(self) -> np.ndarray:
+        """Indices (int64) of the boxes labelled ``OBSTACLE_LABEL``; empty without an obstacle."""
+        return np.array([i for i, lb in enumerate(self.labels) if lb == OBSTACLE_LABEL], np.int64)
 
     def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(boxes [N, 6], materials [N] int64, parameters [N, 4]); N may be 0."""

@@ -20,9 +20,10 @@ G = Geometry(128, 96, f=100.0)
 FOE = (60.0, 40.0)
 
 
-def stream(dx=0.0, dy=0.0, tau_factor=1.0, t_collision=4.0, gap=None):
+def stream(dx=0.0, dy=0.0, tau_factor=1.0, t_collision=4.0, gap=None, at=None):
     """Empty flow packets of 100 ms carrying a foe estimate (true + offset) and a ttc estimate
-    (true * factor) every 10 ms; ``gap`` = (t0, t1) in s without ttc estimates."""
+    (true * factor) every 10 ms; ``gap`` = (t0, t1) in s without ttc estimates; ``at``: the
+    reported cluster's centre (x, y) as a function of t in s (default (60, 60))."""
     out = []
     for k in range(int(t_collision * 10) - 1):
         t0 = k * 100_000
@@ -30,8 +31,9 @@ def stream(dx=0.0, dy=0.0, tau_factor=1.0, t_collision=4.0, gap=None):
         tau = (t_collision - t * 1e-6) * tau_factor
         keep = np.ones(len(t), bool) if gap is None else ~((t >= gap[0] * 1e6)
                                                           & (t < gap[1] * 1e6))
+        cx, cy = (60.0, 60.0) if at is None else at(t[keep] * 1e-6)
         ttc = series_array(TTC_DTYPE, t=t[keep], tau_s=tau[keep], cluster=np.ones(keep.sum()),
-                           x=np.full(keep.sum(), 60.0), y=np.full(keep.sum(), 60.0),
+                           x=np.broadcast_to(cx, keep.sum()), y=np.broadcast_to(cy, keep.sum()),
                            support=np.ones(keep.sum()))
         p = FlowPacket.empty(G, t0, t0 + 100_000)
         p = p.with_series("foe", foe_series(np.full(len(t), FOE[0] + dx),
@@ -117,3 +119,119 @@ def test_contract(tmp_path):
     check_filter(FoeTtcScorer, {"plots": False}, packets, truth=truth, out_dir=tmp_path)
     packets, truth = expansion_stream(foe_series=True)
     check_filter(FoeTtcScorer, {}, packets, truth=truth, out_dir=tmp_path)
+
+
+class ObjectTruth(ExpansionTruth):
+    """The expansion's truth plus objects: the obstacle (box 7) is seen inside a rectangle that
+    moves right at 5 px/s (x from 20 + 5 t to 40 + 5 t, y from 20 to 40, t in s), a roadside
+    post (box 3) at x >= 55, the ground elsewhere. Records the size of every query."""
+
+    def __init__(self, t_collision_s: float, obstacle_ids=(7,)):
+        super().__init__(FOE, t_collision_s)
+        self.obstacle_ids = np.array(obstacle_ids, np.int64)
+        self.calls: list[int] = []
+
+    def object_id(self, x, y, t_us):
+        x, y, t = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float),
+                                      np.asarray(t_us, float) * 1e-6)
+        self.calls.append(x.size)
+        car = (x >= 20 + 5 * t) & (x <= 40 + 5 * t) & (y >= 20) & (y <= 40)
+        return np.where(car, 7, np.where(x >= 55, 3, -2)).astype(np.int64)
+
+
+def on_car(t_s):
+    """The centre of the obstacle's rectangle at t_s."""
+    return 30.0 + 5.0 * t_s, 30.0
+
+
+WINDOW = 301       # grid times 0.89 .. 3.89 s of the 3.9 s stream (every 10 ms)
+
+
+def test_off_obstacle_match_counts_only_in_plain_share(tmp_path):
+    """A roadside cluster whose tau equals the true TTC: a hit for share_within_20pct, never
+    on the obstacle."""
+    packets, _ = stream()
+    m, out = score(packets, ObjectTruth(4.0), tmp_path)
+    t = m["ttc"]
+    assert t["share_within_20pct"] == 1.0
+    assert t["share_on_obstacle_within_20pct"] == 0.0 and t["coverage_on_obstacle"] == 0.0
+    assert t["median_rel_error_on_obstacle"] is None
+    assert (out.series["ttc_error"]["on_obstacle"] == 0).all()
+
+
+def test_on_obstacle_within_20pct_counts(tmp_path):
+    """A cluster following the moving obstacle (queried at each grid time: at time 0 the
+    rectangle would have missed it after 2 s)."""
+    truth = ObjectTruth(4.0)
+    m, out = score(*stream(tau_factor=1.15, at=on_car)[:1], truth, tmp_path)
+    t = m["ttc"]
+    assert t["share_on_obstacle_within_20pct"] == 1.0 and t["coverage_on_obstacle"] == 1.0
+    assert t["median_rel_error_on_obstacle"] == pytest.approx(0.15)
+    assert (out.series["ttc_error"]["on_obstacle"] == 1).all()
+    assert out.series["ttc_error"]["on_obstacle"].dtype == np.int8
+    # vectorised: one query of 5 x 5 positions per packet's 10 ticks, one for the window
+    assert truth.calls == [25 * 10] * 39 + [25 * WINDOW]
+    m, _ = score(*stream(tau_factor=1.3, at=on_car)[:1], ObjectTruth(4.0), tmp_path)
+    t = m["ttc"]
+    assert t["share_on_obstacle_within_20pct"] == 0.0 and t["coverage_on_obstacle"] == 1.0
+    assert t["median_rel_error_on_obstacle"] == pytest.approx(0.3)
+
+
+def test_obstacle_margin(tmp_path):
+    """A centre 2 px beside the obstacle's outline is on it with the default margin (2), not
+    with 0; 3 px beside it is off."""
+    def beside(gap):
+        return lambda t_s: (40.0 + 5.0 * t_s + gap, 30.0)
+
+    cov = {}
+    for gap, margin in ((2.0, 2), (2.0, 0), (3.0, 2)):
+        m, _ = score(*stream(at=beside(gap))[:1], ObjectTruth(4.0), tmp_path,
+                     obstacle_margin_px=margin)
+        cov[gap, margin] = m["ttc"]["coverage_on_obstacle"]
+    assert cov == {(2.0, 2): 1.0, (2.0, 0): 0.0, (3.0, 2): 0.0}
+
+
+def test_on_obstacle_part_of_the_window(tmp_path):
+    """Off the obstacle (but right) before 2.5 s, on it after: the share on the obstacle is
+    the share of grid times from 2.5 s on."""
+    def moving(t_s):
+        x, y = on_car(t_s)
+        return np.where(t_s >= 2.5, x, 60.0), y
+
+    m, out = score(*stream(at=moving)[:1], ObjectTruth(4.0), tmp_path)
+    t = m["ttc"]
+    assert t["share_within_20pct"] == 1.0
+    assert t["share_on_obstacle_within_20pct"] == pytest.approx(140 / WINDOW)
+    assert t["coverage_on_obstacle"] == pytest.approx(140 / WINDOW)
+    err = out.series["ttc_error"]
+    np.testing.assert_array_equal(err["on_obstacle"], err["t"] >= 2_500_000)
+
+
+def test_stale_estimates_on_obstacle_count_as_misses(tmp_path):
+    m, _ = score(*stream(at=on_car, gap=(2.0, 3.0))[:1], ObjectTruth(4.0), tmp_path)
+    t = m["ttc"]
+    assert 0.6 < t["share_on_obstacle_within_20pct"] < 0.72      # about 1 s of 3 s missing
+    assert t["share_on_obstacle_within_20pct"] == t["coverage_on_obstacle"] \
+        == t["coverage_last3s"]
+
+
+@pytest.mark.parametrize("truth", [ExpansionTruth(FOE, 4.0), ObjectTruth(4.0, obstacle_ids=())],
+                         ids=["no object_id", "no obstacle"])
+def test_truth_without_objects_gives_none(tmp_path, truth):
+    m, out = score(*stream(at=on_car)[:1], truth, tmp_path)
+    t = m["ttc"]
+    assert t["share_within_20pct"] == 1.0
+    for key in ("share_on_obstacle_within_20pct", "coverage_on_obstacle",
+                "median_rel_error_on_obstacle"):
+        assert key in t and t[key] is None
+    assert (out.series["ttc_error"]["on_obstacle"] == -1).all()
+
+
+def test_ttc_plot_on_and_off_the_obstacle(tmp_path):
+    truth = ObjectTruth(4.0)
+    m, _ = score(*stream(at=lambda t_s: (np.where(t_s >= 2.5, 30.0 + 5.0 * t_s, 60.0), 30.0)
+                         )[:1], truth, tmp_path, plots=True)
+    assert (tmp_path / "plots" / "ttc.png").read_bytes()[:4] == b"\x89PNG"
+    packets, _ = stream(t_collision=1.0, at=on_car)
+    check_filter(FoeTtcScorer, {"plots": False}, packets, truth=ObjectTruth(1.0),
+                 out_dir=tmp_path)

@@ -295,6 +295,15 @@ def depth(xs, ys, t_s, scene):
     return trace(o, d, scene.boxes)[0]
 
 
+def object_id(xs, ys, t_s, scene):
+    """What every ray sees: its box's index, -2 for the ground, -1 for the sky."""
+    cam = scene.camera
+    o, rot = pose(t_s, scene.segs, scene.traj)
+    d = rays(np.asarray(xs, float), np.asarray(ys, float), cam.f, cam.cx, cam.cy, rot)
+    _, kind, idx, _ = trace(o, d, scene.boxes)
+    return np.select([kind == 2, kind == 1], [idx, -2], -1)
+
+
 def flow_fd(xs, ys, t_s, scene, h=1e-6):
     """Motion field by central differences: re-project the 3-D point seen at (x, y, t)."""
     cam = scene.camera

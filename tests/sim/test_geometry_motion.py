@@ -8,7 +8,7 @@ from scipy.ndimage import gaussian_filter, map_coordinates
 
 from evchain.sim.camera import focal_from_fov
 from evchain.sim.scene import Scene
-from evchain.sim.truth import SceneTruth
+from evchain.sim.truth import OBJECT_GROUND, OBJECT_SKY, SceneTruth
 from tests.naive import scene as N
 
 
@@ -41,6 +41,30 @@ def test_box_corners_project_like_a_pinhole():
     z = 10.0
     row = sc.camera.cy + sc.camera.f * 1.2 / z
     assert truth.depth(sc.camera.cx, row, 0.0) == pytest.approx(z, rel=1e-9)
+
+
+def test_object_id_sees_the_car_and_the_sky():
+    """A high-rise drive: near its end the ray through the projected centre of the car's rear
+    face hits one of the obstacle's boxes at that face's depth; at its start the top centre
+    pixel sees the sky over the building closing the street, the bottom row the road."""
+    sc = Scene.from_params(scenario="high-rise", width=160, height=120, start_m=120.0,
+                           duration_s=7.8)
+    truth = SceneTruth(sc)
+    assert [sc.world.labels[i] for i in truth.obstacle_ids] == ["car"] * 4
+    t = 7.6                                   # the car's rear face 9 m ahead
+    u, v = sc.project(sc.world.obstacle_rear[None], t)[0]
+    assert 0 <= u < 160 and 0 <= v < 120
+    seen = truth.object_id(u, v, t * 1e6)
+    assert seen in truth.obstacle_ids and sc.world.labels[seen] == "car"
+    pos = sc.state(t)[0]
+    assert truth.depth(u, v, t * 1e6) == pytest.approx(sc.world.obstacle_rear[0] - pos[0])
+    assert truth.object_id(sc.camera.cx, 0.0, 0.0) == OBJECT_SKY
+    assert np.isinf(truth.depth(sc.camera.cx, 0.0, 0.0))
+    assert truth.object_id(sc.camera.cx, 119.0, 0.0) == OBJECT_GROUND
+    ids = truth.object_id(*np.meshgrid(np.arange(160.0), np.arange(120.0)), t * 1e6)
+    assert ids.shape == (120, 160) and np.isin(ids, truth.obstacle_ids).sum() > 100
+    no_car = SceneTruth(Scene.from_params(scenario="curves", dynamics="curves"))
+    assert no_car.obstacle_ids.dtype == np.int64 and len(no_car.obstacle_ids) == 0
 
 
 def test_pure_translation_flow_diverges_from_foe():

@@ -229,6 +229,87 @@ def test_truth_depth_and_flow_vs_naive():
         np.testing.assert_allclose(vy[ok], fy, atol=1e-3 * (1 + np.abs(fy).max()))
 
 
+OBJECT_SCENES = {**SCENES, "car-ahead": dict(scenario="high-rise", start_m=255.0)}
+
+
+def _object_scene(name):
+    return Scene.from_params(width=64, height=48, supersample=1, **OBJECT_SCENES[name])
+
+
+@pytest.mark.parametrize("name", sorted(OBJECT_SCENES))
+def test_truth_object_id_vs_naive_random(name):
+    """The id of the surface seen (box index, -2 ground, -1 sky) at random pixel positions
+    (also just outside the image) equals the naive trace's, every box against every ray."""
+    from evchain.sim.truth import SceneTruth
+
+    sc = _object_scene(name)
+    truth = SceneTruth(sc)
+    rng = np.random.default_rng(8)
+    x = rng.uniform(-3, 66, 600)
+    y = rng.uniform(-3, 50, 600)
+    for t in (0.0, 0.9):
+        got = truth.object_id(x, y, t * 1e6)
+        assert got.dtype == np.int64
+        np.testing.assert_array_equal(got, N.object_id(x, y, t, sc))
+    if name == "car-ahead":
+        assert np.isin(got, truth.obstacle_ids).any()
+
+
+def _edge_points(box):
+    """Corners, edge midpoints and face centres of a box [6] (world, [26, 3])."""
+    lo, hi = np.asarray(box[:3]), np.asarray(box[3:])
+    grid = np.stack(np.meshgrid(*[(a, (a + b) / 2, b) for a, b in zip(lo, hi, strict=True)],
+                                indexing="ij"), -1).reshape(-1, 3)
+    return np.delete(grid, 13, axis=0)           # all but the box's centre
+
+
+@pytest.mark.parametrize("name", ["car-ahead", "pitch", "open-field"])
+def test_truth_object_id_vs_naive_hard(name):
+    """Rays grazing box edges and corners, through face centres (the car's too), along the
+    horizon and into sky and ground: at 1e-6 px off a projected edge (never on it) kernel and
+    naive agree exactly; exactly on it the kernel sees one of the surfaces around it."""
+    from evchain.sim.truth import OBJECT_GROUND, OBJECT_SKY, SceneTruth
+
+    sc = _object_scene(name)
+    truth = SceneTruth(sc)
+    cam = sc.camera
+    e = 1e-6
+    offsets = np.array([(e, 0.37 * e), (-e, -0.37 * e), (0.37 * e, -e), (-0.37 * e, e)])
+    car_edge_crossed = False
+    for t in (0.4, 1.1):
+        pts = np.concatenate([_edge_points(b) for b in sc.boxes])
+        pos, rot, _, _ = sc.state(t)
+        depth = (pts - pos) @ rot[:, 2]
+        uv = sc.project(pts[depth > 0.5], t)
+        inside = ((uv[:, 0] > -0.5) & (uv[:, 0] < cam.width - 0.5) & (uv[:, 1] > -0.5)
+                  & (uv[:, 1] < cam.height - 0.5))
+        uv = uv[inside]
+        # along the horizon row and just off it, top and bottom rows
+        xs = np.linspace(-0.5, cam.width - 0.5, 9)
+        for row in (cam.cy - 1e-6, cam.cy, cam.cy + 1e-6, -0.5, cam.height - 0.5):
+            uv = np.concatenate([uv, np.stack([xs, np.full(9, row)], 1)])
+        assert len(uv) > 50
+        near = uv[:, None, :] + offsets[None]                      # [n, 4, 2]
+        got_near = truth.object_id(near[..., 0], near[..., 1], t * 1e6)
+        want_near = N.object_id(near[..., 0].ravel(), near[..., 1].ravel(), t, sc).reshape(-1, 4)
+        np.testing.assert_array_equal(got_near, want_near)
+        got = truth.object_id(uv[:, 0], uv[:, 1], t * 1e6)
+        want = N.object_id(uv[:, 0], uv[:, 1], t, sc)
+        seen = np.concatenate([want[:, None], want_near], 1)
+        assert ((seen == got[:, None]).any(axis=1)).all()
+        on_car = np.isin(want_near, truth.obstacle_ids)
+        car_edge_crossed |= bool((on_car.any(axis=1) & ~on_car.all(axis=1)).any())
+        if name == "open-field":       # level camera: the horizon ray runs parallel to the
+            top, bottom = got[-18:-9], got[-9:]        # ground; top row sky, bottom row ground
+            assert (top == OBJECT_SKY).all() and (bottom == OBJECT_GROUND).all()
+    if name == "car-ahead":          # the car's outline was among the grazing rays
+        assert car_edge_crossed
+        body = int(truth.obstacle_ids[0])
+        x0, y0, z0, x1, y1, z1 = sc.boxes[body]
+        uv = sc.project(np.array([[x0, (y0 + y1) / 2, (z0 + z1) / 2]]), 1.1)[0]
+        assert truth.object_id(uv[0], uv[1], 1.1e6) == body
+
+
 def test_parallel_render_is_identical():
     serial = Scene.from_params(width=40, height=30, start_m=100.0)
     parallel = Scene.from_params(threads=2, width=40, height=30, start_m=100.0)
