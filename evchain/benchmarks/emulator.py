@@ -1,4 +1,4 @@
-"""Benchmarks of the DVS emulator (issue 3): ``emulator-sparse`` and ``emulator-bar``.
+"""Benchmarks of the DVS emulator: ``emulator-sparse`` and ``emulator-bar``.
 
 Throughput is measured through the filter (``process`` on packets of 100 frames, then
 ``flush``), best CPU time (``time.process_time``) of a few runs, one thread: the machine is

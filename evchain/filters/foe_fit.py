@@ -42,16 +42,15 @@ class FoeFit(Filter):
                                  "plane's vanishing line (the FOE's row or column) are left "
                                  "out of that plane")
         tolerance: float = Field(0.25, gt=0, description="Tukey constant on the relative "
-                                 "speed residual |s - predicted| / predicted (0.5 until "
-                                 "session 6: an obstacle's lower rows then fit the road and "
+                                 "speed residual |s - predicted| / predicted (with a looser "
+                                 "one an approaching obstacle's lower rows fit the road and "
                                  "pull the FOE up as it fills the view)")
         max_iter: int = Field(4, ge=1, description="Gauss-Newton iterations per fit")
         max_deviation_px: float = Field(40.0, gt=0, description="a fit farther than this "
                                         "from the voting estimate is checked against a fit "
                                         "started from the votes and falls back to them if "
-                                        "that one has the larger inlier weight (the votes err "
-                                        "by 20-35 px on the reference drive, 30-50 px at "
-                                        "15 m/s; a plain distance gate until session 6)")
+                                        "that one has the larger inlier weight (the votes can "
+                                        "err by tens of px for seconds)")
         min_inliers: float = Field(50.0, ge=0, description="fall back when the decayed "
                                    "inlier weight is below this")
 

@@ -228,8 +228,8 @@ def _fractions(u0, u1, cubic, lev, pa, pb, p0, p1, sv):
     ``solve_crossing``. Branch-free over separate 1-D rows, writing only ``sv``, with an
     unsigned index (numba then emits no wraparound test per load), so that it vectorises
     (vdivpd) with the same operations per value as the scalar code: no crossing waits on
-    another's divisions. (Session 6: loops over rows of the 2-D ``piece`` updating a row in
-    place did not vectorise; session 7: the checked step moved here from a scalar loop.)
+    another's divisions. (Loops over rows of the 2-D ``piece`` array updating a row in place
+    do not vectorise.)
     """
     if not cubic:
         for q in range(np.uint64(u0), np.uint64(u1)):
@@ -358,8 +358,8 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
                 continue
             if c0 < first:
                 m &= ~((np.uint64(1) << np.uint64(first - c0)) - np.uint64(1))
-            # the candidates from the set bits, in pixel order (the old scalar re-scan of the
-            # chunk, a branch per pixel, was ~13 % of the bar's time)
+            # the candidates from the set bits, in pixel order (a scalar re-scan of the chunk
+            # would cost a branch per pixel)
             while m != 0:
                 i = c0 + np.int64(cttz(m))
                 m &= m - np.uint64(1)

@@ -376,8 +376,8 @@ def event_loop(x, y, t, p, ts, variant, r, window_us, refractory_us, margin, min
     """The loop of :func:`plane_flow_kernel`; the speed-adaptive window's refits with
     ``adaptive``. Inlined into each kernel with ``adaptive`` a constant, so that the fixed
     window's loop compiles without the refits. The fit is written out in the loop, not called:
-    a (numba-inlined) function taking the work arrays costs their reference counts per event
-    (~20 % of the fixed window's time, docs/benchmarks.md)."""
+    a (numba-inlined) function taking the work arrays costs their reference counts per event,
+    a large share of the fixed window's time."""
     height = ts.shape[1]
     width = ts.shape[2]
     size = 2 * r + 1

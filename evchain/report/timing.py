@@ -1,4 +1,4 @@
-"""Event timing error against exact crossing times (emulator validation, issue 3).
+"""Event timing error against exact crossing times (emulator validation).
 
 The k-th event of each pixel and polarity is matched with the k-th true crossing of that pixel
 and polarity; unmatched events on either side count in ``count_diff``.

@@ -1,4 +1,4 @@
-"""The emulator filter: issue 3's correctness list."""
+"""The emulator filter: its correctness list (timing, tie rule, ordering, cuts, noise, mismatch)."""
 
 from __future__ import annotations
 

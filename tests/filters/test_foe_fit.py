@@ -137,7 +137,7 @@ def test_keeps_fits_30_px_from_biased_votes():
     assert len(s) == 60 and s["x"][0] == votes["x"][0]  # nothing to fit at t = 0 yet
     assert np.all(s["x"][1:] != votes["x"][0])  # then never fell back
     assert abs(s["x"][-1] - foe[0]) < 0.5 and abs(s["y"][-1] - foe[1]) < 0.5
-    # the 20 px gate fell back here until session 6; now the fit explains more than one started
+    # a plain 20 px distance gate would fall back here; the fit explains more than one started
     # from the votes and is kept
     assert np.all(fits(max_deviation_px=20.0)["x"][1:] != votes["x"][0])
 
@@ -160,8 +160,8 @@ def _fits(pk, **params):
 
 def test_keeps_the_fit_when_the_votes_go_farther_than_the_deviation():
     """At 15 m/s the votes err by 30-50 px for seconds; a fit that explains the flow better than
-    a fit started from the votes is kept, however far they are (until session 6 it fell back and
-    restarted from the votes, so the emitted FOE followed them)."""
+    a fit started from the votes is kept, however far they are (a plain distance gate would
+    fall back and restart from the votes, so the emitted FOE would follow them)."""
     foe = (159.5, 119.5)
     pk = packets(foe, G, n=60000, duration_us=600_000, n_packets=60, noise=0.2, outliers=0.1)
     pk = _with_votes(pk, lambda t: (foe[0] + 2.0, foe[1]) if t < 200_000 else (foe[0] - 60.0,

@@ -1,9 +1,9 @@
 """Kernels give the same bits fresh from the JIT as loaded from numba's cache.
 
 A reduction compiled with ``fastmath={"reassoc"}`` may be vectorised differently in the two
-paths, so a first run and later runs differed in their last bits (``foe_map``'s estimates until
-session 7). Each case runs in two subprocesses sharing a new cache folder: the first compiles,
-the second loads.
+paths, so a first run and later runs can differ in their last bits (as ``foe_map``'s estimates
+did with a reassociated reduction). Each case runs in two subprocesses sharing a new cache
+folder: the first compiles, the second loads.
 """
 
 from __future__ import annotations

@@ -210,8 +210,8 @@ def _obstacle_fits(foot, c):
 
 @pytest.mark.parametrize("foot", [45.0, 70.0])
 def test_fronto_parallel_obstacle_does_not_pull_the_foe(foot):
-    """With the filter's default Tukey constant (0.25 since session 6) the obstacle's lower
-    rows are outliers of the road and the FOE stays (docs/explanation/foe_ttc.md)."""
+    """With the filter's default Tukey constant (0.25) the obstacle's lower rows are outliers
+    of the road and the FOE stays (docs/explanation/foe_ttc.md)."""
     from evchain.filters.foe_fit import FoeFit
 
     dx, dy = _obstacle_fits(foot, FoeFit.Params().tolerance)
@@ -219,14 +219,14 @@ def test_fronto_parallel_obstacle_does_not_pull_the_foe(foot):
 
 
 def test_fronto_parallel_obstacle_pulls_the_foe_with_a_loose_tolerance():
-    """Why the default changed: with Tukey 0.5 (until session 6) the obstacle's rows from
-    2/3 of its foot row down fit the road, and the warm-started fits rise ~3.6 px."""
+    """Why the default is tight: with Tukey 0.5 the obstacle's rows from 2/3 of its foot row
+    down fit the road, and the warm-started fits rise."""
     dx, dy = _obstacle_fits(45.0, 0.5)
     assert dy < -2.0
 
 
 @pytest.mark.xfail(strict=True, reason="known: an obstacle whose foot is only 30 rows below "
-                   "the FOE still pulls it ~2.7 px at Tukey 0.25 (docs/benchmarks.md, session 6)")
+                   "the FOE still pulls it at Tukey 0.25 (docs/explanation/foe_ttc.md, Limits)")
 def test_nearer_the_horizon_obstacle_does_not_pull_the_foe():
     from evchain.filters.foe_fit import FoeFit
 
