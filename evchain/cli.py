@@ -102,12 +102,27 @@ def cmd_plugins(args) -> int:
 def cmd_bench(args) -> int:
     from evchain import bench
 
-    workloads = bench.select(_registry().workloads, args.prefix)
-    if not workloads:
-        raise EvchainError(f"no benchmark workload matches {args.prefix}; known: "
-                           f"{', '.join(sorted(_registry().workloads))}")
+    known = _registry().workloads
+    workloads = bench.select(known, args.prefix, exact=args.exact)
+    unknown = sorted(set(args.prefix) - set(known)) if args.exact else []
+    if not workloads or unknown:
+        raise EvchainError(f"no benchmark workload {'is' if args.exact else 'matches'} "
+                           f"{unknown or args.prefix}; known: {', '.join(sorted(known))}")
+    if args.repeat < 1:
+        raise EvchainError(f"--repeat {args.repeat}: expected a count of at least 1")
+    if args.prepare:
+        if args.json:
+            raise EvchainError("--prepare makes inputs and runs no rows: nothing to write to "
+                               f"{args.json} (run again without --prepare)")
+        made = bench.prepare(workloads, quick=args.quick)
+        print(f"prepared {len(made)} input(s); run the rows with: "
+              + " ".join(["evchain bench", *(["--exact"] if args.exact else []), *args.prefix]
+                         + (["--quick"] if args.quick else [])))
+        return 0
+    bench.check_inputs(workloads, quick=args.quick,
+                       selection=(["--exact"] if args.exact else []) + args.prefix)
     print(bench.HEADER)
-    rows = bench.run(workloads, quick=args.quick)
+    rows = bench.run(workloads, quick=args.quick, repeat=args.repeat)
     if args.json:
         bench.write_json(rows, args.json)
         print(f"wrote {len(rows)} rows to {args.json}")
@@ -209,10 +224,26 @@ def build_parser() -> argparse.ArgumentParser:
     rs.add_argument("--root", default=".", help="repository folder (default: here)")
     rs.set_defaults(fn=cmd_results)
 
-    b = sub.add_parser("bench", help="benchmarks: throughput next to error")
+    b = sub.add_parser(
+        "bench", help="benchmarks: throughput next to error",
+        description="Run benchmark workloads; each row is a throughput next to the error it "
+                    "reached and says what it ran on. Rows on the simulated reference drive "
+                    "read inputs (rendered events, flow) from the cache folder ($EVCHAIN_CACHE, "
+                    "default the user cache folder); when one is missing nothing runs and the "
+                    "error names the --prepare command that makes it.")
     b.add_argument("prefix", nargs="*", help="workload name prefixes (default: all)")
     b.add_argument("--quick", action="store_true", help="smaller workloads")
-    b.add_argument("--json", help="write the rows to this JSON file")
+    b.add_argument("--exact", action="store_true",
+                   help="the names are whole workload names, not prefixes (each row's "
+                        "'command' uses this)")
+    b.add_argument("--json", help="write the rows to this JSON file (a list of row objects)")
+    b.add_argument("--prepare", action="store_true",
+                   help="only make the missing cached inputs of the selected workloads (with "
+                        "--quick: of their quick rows) and run no rows; rows without inputs "
+                        "need none. Rendering takes minutes for the full-size inputs")
+    b.add_argument("--repeat", type=int, default=1, metavar="N",
+                   help="run every selected workload N times (round-robin); each row records "
+                        "its repeat (0-based)")
     b.set_defaults(fn=cmd_bench)
     return p
 

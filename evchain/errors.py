@@ -52,3 +52,8 @@ class FilterError(EvchainError):
     def __init__(self, message: str, *, internal: bool = False):
         super().__init__(message)
         self.internal = internal
+
+
+class MissingBenchInput(EvchainError):
+    """A benchmark row's cached input (rendered events, flow) is not made yet: names the input
+    and the ``evchain bench --prepare`` command that makes it."""

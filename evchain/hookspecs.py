@@ -37,4 +37,7 @@ def evchain_filters() -> list[type]:
 @hookspec
 def evchain_bench_workloads() -> dict[str, object]:
     """Return benchmark workloads ``{name: function(quick: bool) -> list[BenchRow]}`` for
-    ``evchain bench``. Names start with the stage's prefix (e.g. ``flow-``)."""
+    ``evchain bench``. Names start with the stage's prefix (e.g. ``flow-``). Every row sets
+    ``data`` (what it ran on). A workload that reads cached inputs is an
+    :class:`evchain.bench_cache.Workload` listing them, so that ``evchain bench --prepare``
+    makes them."""

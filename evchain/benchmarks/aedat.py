@@ -20,6 +20,10 @@ from evchain.testing.synthetic import random_events
 RATE_EPS = 1_000_000  # events per second of stream time: 10 ms packets of 10 000 events
 
 
+def _data(n: int) -> str:
+    return f"random events {n / 1e6:g} M, 240x180, 1 M events/s, 10 ms packets"
+
+
 def _packets(n: int) -> list[EventPacket]:
     """``n`` random events on a DAVIS240, 10 ms packets of 10 000 events."""
     return cut_every(random_events(n, Geometry(240, 180), t_end=n * 1_000_000 // RATE_EPS))
@@ -31,7 +35,8 @@ def aedat_read(quick: bool) -> list[BenchRow]:
         path = write_aedat2(Path(tmp) / "bench.aedat", EventPacket.concat(_packets(n)))
         t_kernel = best_time(_decode_only(path), repeat=3)
         return [source_row("aedat-read", AedatSource, {"path": str(path)}, path, n,
-                           {"packet_us": 10_000, "decode_kernel_eps": n / t_kernel})]
+                           {"packet_us": 10_000, "decode_kernel_eps": n / t_kernel},
+                           _data(n))]
 
 
 def _decode_only(path: Path):
@@ -57,7 +62,8 @@ def aedat_write(quick: bool) -> list[BenchRow]:
     t_kernel = best_time(lambda: encode(ev.x, ev.y, ev.t, ev.p, 0, 240, 180, 0, words), repeat=3)
     with tempfile.TemporaryDirectory() as tmp:
         return [sink_row("aedat-write", AedatWriter, packets, Path(tmp), "bench{}.aedat",
-                         extra={"packet_us": 10_000, "encode_kernel_eps": n / t_kernel})]
+                         extra={"packet_us": 10_000, "encode_kernel_eps": n / t_kernel},
+                         data=_data(n))]
 
 
 WORKLOADS = {"aedat-read": aedat_read, "aedat-write": aedat_write}

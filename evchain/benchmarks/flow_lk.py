@@ -5,12 +5,17 @@ Variants: the four gradients in calibrated mode (``backward``, ``central``, ``ce
 jAER's default central gradient (``faithful-central``). Parameters: the thesis's selection
 (search distance 2, window 80 ms, refractory 150 ms, eigenvalue threshold 1.0).
 
-* ``square``: the DVSFLOW16 translating square (``../shared/data/dvsflow16``; no rows when
-  absent); error = AEE (px/s) against ``gtTranslatingSquare.mat`` (truth: 20 px/s).
-* ``reference``: 10 s (2 s with ``--quick``) of the simulator's reference scene from the cache
-  shared with the plane-fit benchmark (see :func:`reference_stream`), else a synthetic expanding
-  scene; ``extra["scene"]`` says which.
-  Error = invalid rate (share of flow vectors more than 90° from p - FOE); AEE in ``extra``.
+* ``square`` (workload ``flow-lk-square``): the DVSFLOW16 translating square
+  (``../shared/data/dvsflow16``; no rows when absent); error = AEE (px/s) against
+  ``gtTranslatingSquare.mat`` (truth: 20 px/s).
+* ``reference`` (``flow-lk-reference``): the first 10 s (2 s with ``--quick``) of the reference
+  drive as pipelines/reference.yaml renders it, a cached input shared with the plane-fit
+  benchmark (:func:`evchain.benchmarks.flow_plane.reference_input`; ``evchain bench --prepare
+  flow-lk-reference`` makes it); exact ground truth from the scene. Error = invalid rate (share
+  of flow vectors more than 90° from p - FOE); AEE in ``extra``.
+* ``expanding`` (``flow-lk-expanding``): the synthetic expanding scene of
+  :func:`evchain.benchmarks.flow_plane.expanding_scene_events` (240x180, 10 s, 2 s with
+  ``--quick``), error as for ``reference``.
 
 ``throughput`` = input events / s of the filter's ``process`` over 10 ms packets (one thread,
 Python per-packet overhead included), from the thread's CPU time because the machine is shared
@@ -24,6 +29,15 @@ import time
 from pathlib import Path
 
 from evchain.bench import BenchRow, cut_every
+from evchain.bench_cache import Workload
+from evchain.benchmarks.flow_plane import (
+    expanding_data,
+    expanding_scene_events,
+    expanding_seconds,
+    flow_row,
+    reference_input,
+    reference_stream,
+)
 from evchain.core.filter import Context
 from evchain.core.packets import EventPacket
 from evchain.testing.contract import run_filter
@@ -38,7 +52,6 @@ VARIANTS = {
     "faithful-sg": dict(mode="faithful", gradient="savitzky_golay"),
     "faithful-central": dict(mode="faithful", gradient="central"),
 }
-_CACHE: dict[float, tuple] = {}
 
 
 def _lk(params, packets):
@@ -67,17 +80,15 @@ def _kernel_rate(ev: EventPacket, params, repeat: int) -> float:
     return len(ev) / max(best, 1e-9)
 
 
-def _rows(workload, ev, truth, error_key, quick, extra) -> list[BenchRow]:
-    from evchain.benchmarks.flow_plane import flow_row
-
+def _rows(workload, ev, truth, error_key, quick, data) -> list[BenchRow]:
     packets = cut_every(ev)
     rows = []
     for variant, vparams in VARIANTS.items():
         prm = {**THESIS, **vparams}
         rows.append(flow_row(f"flow-lk-{variant}-{workload}", "lk_flow",
                              lambda prm=prm: _lk(prm, packets), packets, truth, error_key, quick,
-                             {**extra, "params": prm,
-                              "kernel_ev_s": _kernel_rate(ev, prm, 1 if quick else 3)}))
+                             {"params": prm,
+                              "kernel_ev_s": _kernel_rate(ev, prm, 1 if quick else 3)}, data))
     return rows
 
 
@@ -91,24 +102,21 @@ def bench_square(quick: bool) -> list[BenchRow]:
 
     ev = read_aedat2(path, chip="davis240")
     truth = DVSFLOW16Truth(gt, 180, 240)
-    return _rows("square", ev, truth, "aee_pxs", quick, {"data": "DVSFLOW16 TranslatingSquare"})
-
-
-def reference_stream(seconds: float):
-    """:func:`evchain.benchmarks.flow_plane.reference_stream` (the same data as the
-    ``flow-plane-*-reference`` rows), kept per ``seconds`` for the rows of one run."""
-    if seconds not in _CACHE:
-        from evchain.benchmarks.flow_plane import reference_stream as load
-
-        _CACHE[seconds] = load(seconds)
-    return _CACHE[seconds]
+    return _rows("square", ev, truth, "aee_pxs", quick,
+                 "DVSFLOW16 TranslatingSquare, thesis parameters")
 
 
 def bench_reference(quick: bool) -> list[BenchRow]:
-    seconds = 2.0 if quick else 10.0
-    ev, truth, label = reference_stream(seconds)
-    return _rows("reference", ev, truth, "invalid_rate", quick,
-                 {"scene": label, "seconds": seconds})
+    ev, truth, data = reference_stream(quick)
+    return _rows("reference", ev, truth, "invalid_rate", quick, f"{data}, thesis parameters")
 
 
-WORKLOADS = {"flow-lk-square": bench_square, "flow-lk-reference": bench_reference}
+def bench_expanding(quick: bool) -> list[BenchRow]:
+    ev, truth = expanding_scene_events(expanding_seconds(quick))
+    return _rows("expanding", ev, truth, "invalid_rate", quick,
+                 f"{expanding_data(quick)}, thesis parameters")
+
+
+WORKLOADS = {"flow-lk-square": bench_square,
+             "flow-lk-reference": Workload(bench_reference, lambda q: [reference_input(q)]),
+             "flow-lk-expanding": bench_expanding}

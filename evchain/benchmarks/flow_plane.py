@@ -1,12 +1,19 @@
 """Benchmarks of ``plane_flow``: rows ``flow-plane-<variant>-<workload>``.
 
-* ``square``: the DVSFLOW16 translating square (``../shared/data/dvsflow16``; skipped when
-  absent); error = AEE (px/s) against the file's ground truth, window 100 ms, no refractory.
-* ``reference``: 10 s of the reference scene with the thesis's selected parameters (search
-  distance 2, window 80 ms, refractory 150 ms); error = invalid rate (0-1) against the
-  ground-truth FOE, AEE in ``extra``. Uses the ``scene`` source and the ``emulator`` when both are
-  registered, else :func:`expanding_scene_events` (a synthetic expanding scene; the row's
-  ``extra["scene"]`` says which).
+Variants: ``single``, ``iterative``, ``robust``, ``original``, ``sg`` (``savitzky_golay``).
+
+* ``square`` (workload ``flow-plane-square``): the DVSFLOW16 translating square
+  (``../shared/data/dvsflow16``; no rows when absent); error = AEE (px/s) against the file's
+  ground truth, window 100 ms, no refractory.
+* ``reference`` (``flow-plane-reference``): the first 10 s (2 s with ``--quick``) of the
+  reference drive as pipelines/reference.yaml renders it (a cached input, :func:`reference_input`:
+  ``evchain bench --prepare flow-plane-reference`` makes it), with the thesis's selected
+  parameters (search distance 2, window 80 ms, refractory 150 ms), not the pipelines'; error =
+  invalid rate (0-1) against the scene's exact FOE, AEE in ``extra``. Without ``--quick`` also
+  ``reference-nocheck``: the same without the centre check and with jAER's th2 (jAER's
+  behaviour).
+* ``expanding`` (``flow-plane-expanding``): the same rows on a synthetic expanding scene
+  (:func:`expanding_scene_events`, 240x180, 10 s, 2 s with ``--quick``), made in the run.
 
 Throughput = input events / s of the filter's ``process`` over 10 ms packets, one thread, from
 the thread's CPU time (the machine is shared; ``extra["throughput_wall_eps"]`` has wall time).
@@ -19,14 +26,9 @@ from pathlib import Path
 
 import numpy as np
 
-from evchain.bench import (
-    SIMULATOR_SOURCES,
-    BenchRow,
-    best_cpu_time,
-    best_time,
-    cut_every,
-    source_stamp,
-)
+from evchain.bench import BenchRow, best_cpu_time, best_time, cut_every
+from evchain.bench_cache import BenchInput, Workload
+from evchain.benchmarks.drive_inputs import PIPELINES, drive_events, load_events
 from evchain.core.filter import Context
 from evchain.core.packets import EventPacket, Geometry
 from evchain.filters.flow_scorer import score_flow
@@ -98,121 +100,26 @@ def expanding_scene_events(seconds: float = 10.0, geometry: Geometry = Geometry(
     return ev.validate("expanding scene"), ExpansionTruth(foe, t_collision_s)
 
 
-class TableTruth:
-    """Ground truth sampled at given events: ``flow`` looks up the exact (x, y, t) of an event
-    (NaN for anything else); ``foe`` interpolates FOE samples over time."""
-
-    def __init__(self, x, y, t, vx, vy, foe_t, foe_x, foe_y, width: int, height: int):
-        self.width, self.height = int(width), int(height)
-        key = self._key(x, y, t)
-        order = np.argsort(key, kind="stable")
-        self.keys = key[order]
-        self.vx = np.asarray(vx, np.float64)[order]
-        self.vy = np.asarray(vy, np.float64)[order]
-        self.foe_t = np.asarray(foe_t, np.float64)
-        self.foe_x = np.asarray(foe_x, np.float64)
-        self.foe_y = np.asarray(foe_y, np.float64)
-
-    def _key(self, x, y, t):
-        t = np.asarray(t, np.int64)
-        return (t * self.height + np.asarray(y, np.int64)) * self.width + np.asarray(x, np.int64)
-
-    def flow(self, x, y, t_us):
-        key = self._key(np.rint(x), np.rint(y), np.rint(t_us))
-        i = np.clip(np.searchsorted(self.keys, key), 0, len(self.keys) - 1)
-        hit = self.keys[i] == key
-        return np.where(hit, self.vx[i], np.nan), np.where(hit, self.vy[i], np.nan)
-
-    def foe(self, t_us):
-        t = np.asarray(t_us, np.float64)
-        return (np.interp(t, self.foe_t, self.foe_x), np.interp(t, self.foe_t, self.foe_y))
+def reference_input(quick: bool) -> BenchInput:
+    """The events of the reference drive's first 10 s (``quick``: 2 s), as made by
+    pipelines/reference.yaml's ``scene`` and ``emulator``: shared by the ``flow-*-reference``
+    rows of both flow benchmarks."""
+    return drive_events(PIPELINES / "reference.yaml", 0.0, 2.0 if quick else 10.0)
 
 
-CACHE = Path("/tmp/evchain-bench-cache")
-REFERENCE_CHAIN = """
-chain:
-  - use: scene
-    scenario: high-rise
-    speed_mps: 20
-    duration_s: {seconds}
-  - use: emulator
-    log_mapping: thesis8bit
-    threshold_on: 20
-    threshold_off: 20
-"""
+def reference_stream(quick: bool):
+    """(events, exact ground truth, ``data`` string) of :func:`reference_input`."""
+    inp = reference_input(quick)
+    packets, ctx = load_events(inp)
+    return EventPacket.concat(packets), ctx.truth, inp.describe()
 
 
-def make_reference_cache(seconds: float = 10.0, path: Path | None = None,
-                         events_file: Path | None = None) -> Path:
-    """Store the thesis reference drive's events (high-rise, 20 m/s, threshold 20 on the 8-bit
-    log scale) of the first ``seconds`` with their exact flow and the FOE. The events come from
-    ``events_file`` (the AEDAT file of ``evchain run pipelines/reference.yaml``) or are made by
-    running ``scene`` + ``emulator`` (slow: the renderer is far from real time)."""
-    from evchain.core.chain import Chain
-    from evchain.core.config import pipeline_from_text
-    from evchain.core.registry import make_registry
-
-    path = path or CACHE / f"reference_{seconds:g}s_{source_stamp(*SIMULATOR_SOURCES)}.npz"
-    reg = make_registry()
-    spec = pipeline_from_text(REFERENCE_CHAIN.format(seconds=seconds), "<flow-plane-bench>", reg)
-    ctx = Context(seed=0)
-    chain = Chain(spec, ctx)
-    chain.setup()  # the scene's ground truth is analytic: setting up renders nothing
-    try:
-        if events_file is None:
-            packets = [p for p in chain.stream() if len(p)]
-        else:
-            from evchain.io.aedat2 import AedatSource
-            from evchain.testing.contract import run_source
-
-            got, _ = run_source(AedatSource, {"path": str(events_file)}, Path(events_file).parent)
-            packets = [p.select(p.t < seconds * 1e6) for p in got if p.t_start < seconds * 1e6]
-    finally:
-        chain.close()
-    ev = EventPacket.concat(packets)
-    vx, vy = ctx.truth.flow(ev.x.astype(float), ev.y.astype(float), ev.t.astype(float))
-    t_foe = np.arange(0, int(seconds * 1e6), 10_000, dtype=np.int64)
-    fx, fy = ctx.truth.foe(t_foe.astype(float))
-    g = ctx.geometry
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".partial.npz")
-    np.savez(tmp, x=ev.x, y=ev.y, t=ev.t, p=ev.p, vx=vx, vy=vy,
-             foe=np.column_stack([t_foe, fx, fy]).astype(np.float64),
-             geometry=np.array([g.width, g.height]), seconds=seconds)
-    tmp.replace(path)
-    return path
+def expanding_seconds(quick: bool) -> float:
+    return 2.0 if quick else 10.0
 
 
-def load_reference_cache(path: Path):
-    d = np.load(path)
-    w, h = (int(v) for v in d["geometry"])
-    g = Geometry(w, h)
-    ev = EventPacket(geometry=g, t_start=0, t_end=int(float(d["seconds"]) * 1e6),
-                     x=d["x"].astype(np.uint16), y=d["y"].astype(np.uint16),
-                     t=d["t"].astype(np.int64), p=d["p"].astype(np.int8))
-    foe = d["foe"]
-    truth = TableTruth(d["x"], d["y"], d["t"], d["vx"], d["vy"], foe[:, 0], foe[:, 1], foe[:, 2],
-                       w, h)
-    return ev, truth
-
-
-def reference_stream(seconds: float):
-    """(events, truth, label): the simulator's reference scene from the cache written by
-    :func:`make_reference_cache` with this code (``seconds`` long, else the longest cached
-    stretch), else the synthetic expanding scene. The label says which."""
-    stamp = source_stamp(*SIMULATOR_SOURCES)
-    path = CACHE / f"reference_{seconds:g}s_{stamp}.npz"
-    if not path.is_file():
-        cached = sorted(CACHE.glob(f"reference_*s_{stamp}.npz"),
-                        key=lambda p: float(p.stem.split("_")[1][:-1]))
-        path = cached[-1] if cached else path
-    if path.is_file():
-        ev, truth = load_reference_cache(path)
-        secs = (ev.t_end - ev.t_start) / 1e6
-        return ev, truth, f"simulator reference scene (high-rise, 20 m/s), first {secs:g} s"
-    ev, truth = expanding_scene_events(seconds)
-    return ev, truth, ("synthetic expanding scene (no simulator cache; make it with "
-                       "python -m evchain.benchmarks.flow_plane SECONDS)")
+def expanding_data(quick: bool) -> str:
+    return f"synthetic expanding scene 240x180, {expanding_seconds(quick):g} s, no noise"
 
 
 def _plane(params, packets):
@@ -223,10 +130,11 @@ def _plane(params, packets):
 
 
 def flow_row(workload: str, stage: str, run, packets, truth, error_key: str, quick: bool,
-             extra: dict) -> BenchRow:
-    """One benchmark row of a flow filter: ``run()`` processes ``packets`` and returns the
-    output packets. Throughput = input events per CPU second of this thread (best of 1 or 3);
-    the wall-clock rate and the flow metrics against ``truth`` go into ``extra``."""
+             extra: dict, data: str) -> BenchRow:
+    """One benchmark row of a flow filter: ``run()`` processes ``packets`` (``data`` says what
+    they are) and returns the output packets. Throughput = input events per CPU second of this
+    thread (best of 1 or 3); the wall-clock rate and the flow metrics against ``truth`` go into
+    ``extra``."""
     n_in = sum(len(p) for p in packets)
     outs = run()
     secs = best_cpu_time(run, repeat=1 if quick else 3, warmup=True, clock=time.thread_time)
@@ -241,17 +149,17 @@ def flow_row(workload: str, stage: str, run, packets, truth, error_key: str, qui
                "flow_events": int(len(x)), "density": len(x) / n_in if n_in else None,
                "aee_pxs": m["aee_pxs"], "aee_normal_pxs": m["aee_normal_pxs"],
                "aae_deg": m["aae_deg"], "invalid_rate": m["invalid_rate"],
-               "ree_pct": m["ree_pct"], "n_scored": m["n_scored"]})
+               "ree_pct": m["ree_pct"], "n_scored": m["n_scored"]}, data=data)
 
 
 def _rows(workload: str, packets, truth, params, error_key: str, quick: bool,
-          extra: dict) -> list[BenchRow]:
+          data: str) -> list[BenchRow]:
     rows = []
     for variant in VARIANTS:
         prm = {**params, "variant": variant}
         rows.append(flow_row(f"flow-plane-{SHORT[variant]}-{workload}", "plane_flow",
                              lambda prm=prm: _plane(prm, packets), packets, truth, error_key,
-                             quick, {**extra, "params": prm}))
+                             quick, {"params": prm}, data))
     return rows
 
 
@@ -266,26 +174,29 @@ def bench_square(quick: bool) -> list[BenchRow]:
     truth = DVSFLOW16Truth(DATA / "gtTranslatingSquare.mat", 180, 240)
     params = dict(search_distance=2, window_us=100_000, refractory_us=0)
     return _rows("square", cut_every(ev), truth, params, "aee_pxs", quick,
-                 {"data": "DVSFLOW16 TranslatingSquare"})
+                 "DVSFLOW16 TranslatingSquare, window 100 ms, no refractory")
 
 
-def bench_reference(quick: bool) -> list[BenchRow]:
-    seconds = 2.0 if quick else 10.0
-    ev, truth, label = reference_stream(seconds)
+def _reference_rows(workload: str, ev, truth, quick: bool, data: str) -> list[BenchRow]:
     packets = cut_every(ev)
-    rows = _rows("reference", packets, truth, REFERENCE_PARAMS, "invalid_rate", quick,
-                 {"scene": label})
+    rows = _rows(workload, packets, truth, REFERENCE_PARAMS, "invalid_rate", quick,
+                 f"{data}, thesis parameters")
     if not quick:  # the same without evchain's centre check: what jAER's fits give
-        rows += _rows("reference-nocheck", packets, truth, THESIS_PARAMS, "invalid_rate", quick,
-                      {"scene": label})
+        rows += _rows(f"{workload}-nocheck", packets, truth, THESIS_PARAMS, "invalid_rate",
+                      quick, f"{data}, thesis parameters without the centre check")
     return rows
 
 
-WORKLOADS = {"flow-plane-square": bench_square, "flow-plane-reference": bench_reference}
+def bench_reference(quick: bool) -> list[BenchRow]:
+    ev, truth, data = reference_stream(quick)
+    return _reference_rows("reference", ev, truth, quick, data)
 
 
-if __name__ == "__main__":
-    import sys
+def bench_expanding(quick: bool) -> list[BenchRow]:
+    ev, truth = expanding_scene_events(expanding_seconds(quick))
+    return _reference_rows("expanding", ev, truth, quick, expanding_data(quick))
 
-    print(make_reference_cache(float(sys.argv[1]) if len(sys.argv) > 1 else 10.0,
-                               events_file=Path(sys.argv[2]) if len(sys.argv) > 2 else None))
+
+WORKLOADS = {"flow-plane-square": bench_square,
+             "flow-plane-reference": Workload(bench_reference, lambda q: [reference_input(q)]),
+             "flow-plane-expanding": bench_expanding}

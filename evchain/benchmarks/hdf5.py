@@ -29,14 +29,15 @@ def _workload(read: bool, compression: bool):
         n = 1_000_000 if quick else 5_000_000
         name = f"hdf5-{'read' if read else 'write'}{'-gzip' if compression else ''}"
         extra = {"packet_us": 10_000, "gzip": compression}
+        data = f"random events {n / 1e6:g} M, 346x260, 1 M events/s, 10 ms packets"
         with tempfile.TemporaryDirectory() as tmp:
             if not read:
                 return [sink_row(name, Hdf5Writer, _packets(n), Path(tmp), "b{}.h5",
-                                 {"compression": compression}, extra)]
+                                 {"compression": compression}, extra, data)]
             path = Path(tmp) / "bench.h5"
             run_sink(Hdf5Writer, {"path": str(path), "compression": compression}, _packets(n),
                      Path(tmp))
-            return [source_row(name, Hdf5Source, {"path": str(path)}, path, n, extra)]
+            return [source_row(name, Hdf5Source, {"path": str(path)}, path, n, extra, data)]
     return workload
 
 

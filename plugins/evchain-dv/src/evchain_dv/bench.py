@@ -16,6 +16,10 @@ from evchain.testing.contract import run_sink
 from evchain.testing.synthetic import random_events
 
 
+def _data(n: int) -> str:
+    return f"random events {n / 1e6:g} M, 346x260, 1 M events/s, 10 ms packets"
+
+
 def bench_packets(n: int) -> list[EventPacket]:
     """``n`` random events on a DAVIS346 at 1 M events/s, in 10 ms packets."""
     return cut_every(random_events(n, Geometry(346, 260), t_end=n), 10_000)
@@ -36,7 +40,7 @@ def aedat4_read(quick: bool) -> list[BenchRow]:
     with tempfile.TemporaryDirectory() as tmp:
         path = write_file(Path(tmp) / "bench.aedat4", bench_packets(n))
         return [source_row("aedat4-read", Aedat4Source, {"path": str(path)}, path, n,
-                           {"packet_us": 10_000})]
+                           {"packet_us": 10_000}, _data(n))]
 
 
 def aedat4_write(quick: bool) -> list[BenchRow]:
@@ -45,7 +49,7 @@ def aedat4_write(quick: bool) -> list[BenchRow]:
     n = 1_000_000 if quick else 5_000_000
     with tempfile.TemporaryDirectory() as tmp:
         return [sink_row("aedat4-write", Aedat4Writer, bench_packets(n), Path(tmp),
-                         "b{}.aedat4", extra={"packet_us": 10_000})]
+                         "b{}.aedat4", extra={"packet_us": 10_000}, data=_data(n))]
 
 
 WORKLOADS = {"aedat4-read": aedat4_read, "aedat4-write": aedat4_write}

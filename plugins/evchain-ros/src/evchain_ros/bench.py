@@ -19,6 +19,10 @@ from evchain.testing.synthetic import random_events
 T0 = 1_700_000_000_000_000  # a wall-clock epoch time in µs, as recorded bags have
 
 
+def _data(n: int) -> str:
+    return f"random events {n / 1e6:g} M, 346x260, 1 M events/s, 10 ms packets"
+
+
 def bench_packets(n: int) -> list[EventPacket]:
     """``n`` random events on a DAVIS346 at 1 M events/s from ``T0``, in 10 ms packets."""
     return cut_every(random_events(n, Geometry(346, 260), t_start=T0, t_end=T0 + n), 10_000)
@@ -44,7 +48,7 @@ def _read(fmt: str):
         with tempfile.TemporaryDirectory() as tmp:
             path = write_bag(Path(tmp) / _name(fmt).format("ench"), bench_packets(n), format=fmt)
             return [source_row(f"rosbag-read-{fmt}", RosbagSource, {"path": str(path)}, path, n,
-                               {"packet_us": 10_000})]
+                               {"packet_us": 10_000}, _data(n))]
     return workload
 
 
@@ -55,7 +59,7 @@ def _write(fmt: str):
         n = 1_000_000 if quick else 5_000_000
         with tempfile.TemporaryDirectory() as tmp:
             return [sink_row(f"rosbag-write-{fmt}", RosbagWriter, bench_packets(n), Path(tmp),
-                             _name(fmt), {"format": fmt}, {"packet_us": 10_000})]
+                             _name(fmt), {"format": fmt}, {"packet_us": 10_000}, _data(n))]
     return workload
 
 

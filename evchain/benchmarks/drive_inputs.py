@@ -1,0 +1,151 @@
+"""Cached inputs of the benchmarks on the simulated reference drive (:mod:`evchain.bench_cache`).
+
+* :func:`drive_events`: the emulator output of a stretch of the drive, made by the ``scene`` and
+  ``emulator`` stages of a pipeline file as configured there (``start_m`` and ``duration_s``
+  set to the stretch; ``threads`` is left out of the hash: it does not change the frames).
+* :func:`drive_flow`: the output of that pipeline's flow stage (``lk_flow`` or ``plane_flow``,
+  as configured there) on those events.
+
+Loading gives the packets and a context with the scene's geometry and exact ground truth (set
+up from the stored scene parameters; that renders nothing).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from evchain.bench_cache import SIMULATOR_SOURCES, BenchInput
+from evchain.core.filter import Context
+
+ROOT = Path(__file__).resolve().parents[2]
+PIPELINES = ROOT / "pipelines"
+FLOW_STAGES = ("lk_flow", "plane_flow")
+EVENT_COLUMNS = ("x", "y", "t", "p")
+FLOW_COLUMNS = ("x", "y", "t", "p", "vx", "vy")
+
+
+def relative(path: Path) -> str:
+    """``path`` relative to the repository (``pipelines/reference-lk.yaml``) when inside it."""
+    path = Path(path).resolve()
+    try:
+        return path.relative_to(ROOT).as_posix()
+    except ValueError:
+        return str(path)
+
+
+def _pipeline(path: Path, start_m: float, duration_s: float):
+    from evchain.core.config import load_pipeline
+    from evchain.core.registry import make_registry
+
+    return load_pipeline(path, make_registry(),
+                         [f"scene.start_m={start_m!r}", f"scene.duration_s={duration_s!r}"])
+
+
+def _stretch_label(scene: dict[str, Any]) -> str:
+    t0 = scene["start_m"] / scene["speed_mps"] if scene["speed_mps"] else 0.0
+    return f"reference-drive {t0:g}-{t0 + scene['duration_s']:g} s"
+
+
+def drive_events(pipeline: Path, start_m: float, duration_s: float) -> BenchInput:
+    """Events of the drive of ``pipeline`` (its ``scene`` and ``emulator`` stages) from
+    ``start_m`` for ``duration_s``."""
+    spec = _pipeline(pipeline, start_m, duration_s)
+    scene, emulator = spec.stage("scene"), spec.stage("emulator")
+    scene_params = scene.params.model_dump(mode="json")
+    scene_params.pop("threads")
+    params = {"seed": spec.seed, "scene": scene_params, "scene_id": scene.id,
+              "emulator": emulator.params.model_dump(mode="json"), "emulator_id": emulator.id}
+
+    def make() -> dict[str, np.ndarray]:
+        from evchain.core.packets import EventPacket
+
+        ctx = Context(seed=params["seed"])
+        source = _scene(params, ctx, threads=0)
+        emu = emulator.cls()
+        emu.id = params["emulator_id"]
+        emu.setup(emulator.params, ctx)
+        try:
+            outs = [emu.process(p) for p in source.packets()]
+            last = emu.flush()
+        finally:
+            source.close()
+        if last is not None:
+            outs.append(last)
+        ev = EventPacket.concat(outs)
+        return {**{c: getattr(ev, c) for c in EVENT_COLUMNS},
+                "bounds": np.array([o.t_start for o in outs] + [outs[-1].t_end], np.int64)}
+
+    return BenchInput("drive-events", _stretch_label(scene_params), params, SIMULATOR_SOURCES,
+                      make)
+
+
+def drive_flow(pipeline: Path, start_m: float, duration_s: float) -> BenchInput:
+    """Output of the flow stage of ``pipeline`` on :func:`drive_events` of the same stretch."""
+    spec = _pipeline(pipeline, start_m, duration_s)
+    stage = next((s for s in spec.stages if s.use in FLOW_STAGES), None)
+    if stage is None:
+        from evchain.errors import ConfigError
+
+        raise ConfigError(f"no flow stage ({' or '.join(FLOW_STAGES)})", file=spec.file)
+    events = drive_events(pipeline, start_m, duration_s)
+    params = {"use": stage.use, "id": stage.id, "flow": stage.params.model_dump(mode="json")}
+
+    def make() -> dict[str, np.ndarray]:
+        packets, ctx = load_events(events)
+        f = stage.cls()
+        f.id = stage.id
+        f.setup(stage.params, Context(seed=events.params["seed"], geometry=ctx.geometry,
+                                      truth=ctx.truth))
+        outs = [f.process(p) for p in packets]
+        last = f.flush()
+        if last is not None:
+            outs.append(last)
+        return {**{c: np.concatenate([getattr(o, c) for o in outs]) for c in FLOW_COLUMNS},
+                "bounds": np.array([o.t_start for o in outs] + [outs[-1].t_end], np.int64)}
+
+    label = f"{events.label}, {stage.use} of {Path(pipeline).name}"
+    return BenchInput("drive-flow", label, params,
+                      (f"filters/{stage.use}.py", f"kernels/{stage.use}.py"), make, (events,))
+
+
+def _scene(params: dict[str, Any], ctx: Context, threads: int = 1):
+    """The scene source of a :func:`drive_events` input, set up (sets the context's geometry
+    and truth)."""
+    from evchain.filters.scene import SceneSource
+
+    scene = SceneSource()
+    scene.id = params["scene_id"]
+    scene.setup(SceneSource.Params(**params["scene"], threads=threads), ctx)
+    return scene
+
+
+def _packets(cls, d: dict[str, np.ndarray], columns, geometry) -> list:
+    b = d["bounds"]
+    idx = np.searchsorted(d["t"], b)
+    return [cls(geometry=geometry, t_start=int(b0), t_end=int(b1),
+                **{c: d[c][i:j] for c in columns})
+            for b0, b1, i, j in zip(b[:-1], b[1:], idx[:-1], idx[1:], strict=True)]
+
+
+def load_events(inp: BenchInput) -> tuple[list, Context]:
+    """(event packets as the emulator made them, context with geometry and truth)."""
+    from evchain.core.packets import EventPacket
+
+    d = inp.load()
+    ctx = Context(seed=inp.params["seed"])
+    _scene(inp.params, ctx).close()
+    return _packets(EventPacket, d, EVENT_COLUMNS, ctx.geometry), ctx
+
+
+def load_flow(inp: BenchInput) -> tuple[list, Context]:
+    """(flow packets as the flow stage made them, context with geometry and truth)."""
+    from evchain.core.packets import FlowPacket
+
+    d = inp.load()
+    events = inp.needs[0]
+    ctx = Context(seed=events.params["seed"])
+    _scene(events.params, ctx).close()
+    return _packets(FlowPacket, d, FLOW_COLUMNS, ctx.geometry), ctx
