@@ -178,12 +178,11 @@ def run_and_save(m: Manifest, names: list[str], workers: int = 2,
             raise ConfigError(f"no benchmark workload starts with {prefix!r}",
                               file=str(m.root / MANIFEST), key="bench")
         echo(f"bench {prefix} x {repeat}{' --quick' if quick else ''}")
+        bench.prepare(workloads, quick=quick, echo=echo)   # rendered inputs, not timed
         machine = machine_info()
         t0 = time.perf_counter()
-        rows = []
-        for r in range(repeat):
-            for row in bench.run(workloads, quick=quick, echo=echo):
-                rows.append({**row.as_dict(), "repeat": r})
+        rows = [row.as_dict() for row in bench.run(workloads, quick=quick, repeat=repeat,
+                                                    echo=echo)]
         machine["load_after"] = machine_info()["load"]
         doc = {"prefix": prefix, "quick": quick, "repeat": repeat,
                "command": f"evchain results --run {prefix}", "machine": machine,
