@@ -12,9 +12,9 @@ FILE}``), benchmark rows (``bench: [{prefix, repeat, quick}]``), how metrics rea
 
 A value is the median over its repeats (a sweep's ``repeat`` runs, or a benchmark run
 ``repeat`` times); its spread is max - min over them. A goal's margin is how far the value is
-on the good side of the goal. Verdict: ``met`` when the margin exceeds the spread, ``not met``
-when it falls short by more than the spread, else ``borderline``; a value measured fewer than
-three times gets ``unrepeated`` instead of a verdict.
+on the good side of the goal. Verdict: ``met`` when every repeat meets the goal and the margin
+exceeds the spread, ``not met`` when no repeat meets it, else ``borderline``; a value measured
+fewer than three times gets ``unrepeated`` instead of a verdict.
 """
 
 from __future__ import annotations
@@ -221,15 +221,18 @@ class Value:
 
 
 def verdict(v: Value, op: str, target: float) -> tuple[float | None, str]:
-    """(margin, verdict) of value ``v`` against the goal ``op target``."""
+    """(margin, verdict) of value ``v`` against the goal ``op target``: ``met`` when every
+    repeat meets the goal and the median's margin exceeds the spread, ``not met`` when no
+    repeat meets it, ``borderline`` otherwise."""
     if v.median is None:
         return None, "no data"
     margin = (target - v.median) if op == "<=" else (v.median - target)
     if v.n < MIN_REPEATS:
         return margin, "unrepeated"
-    if margin > v.spread:
+    meets = [(x <= target) if op == "<=" else (x >= target) for x in v.values]
+    if all(meets) and margin > v.spread:
         return margin, "met"
-    if margin < -v.spread:
+    if not any(meets):
         return margin, "not met"
     return margin, "borderline"
 
@@ -266,6 +269,8 @@ def _fmt(v: float | None, spec: str = ".3g") -> str:
     a = abs(v)
     if a >= 1e5:
         return f"{v / 1e6:.3g} M"
+    if a >= 1e3:
+        return f"{v:.0f}"
     return format(v, spec)
 
 
@@ -333,9 +338,9 @@ def render(m: Manifest) -> str:
            "edit by hand). `evchain results --run [NAME ...]` measures again and saves; "
            "`evchain results` rewrites this page; `evchain results --check` tells whether it "
            "is current. A value is the median over its repeats, with the range (min-max) and "
-           "the number of repeats in brackets. Verdicts: **met** when the margin to the goal "
-           "exceeds the spread of the repeats, **borderline** when it lies within it, **not "
-           "met** when it falls short by more; values measured fewer than "
+           "the number of repeats in brackets. Verdicts: **met** when every repeat meets the "
+           "goal and the median's margin exceeds the spread of the repeats, **not met** when no "
+           "repeat meets it, **borderline** otherwise; values measured fewer than "
            f"{MIN_REPEATS} times are **unrepeated**.", ""]
     out += _goals_section(m, src)
     out += _sweep_sections(m, src)

@@ -63,7 +63,9 @@ def root(tmp_path):
 @pytest.mark.parametrize("values, op, target, word", [
     ([1.0, 1.1, 1.2], "<=", 2.0, "met"),           # margin 0.9 > spread 0.2
     ([1.8, 1.9, 2.1], "<=", 2.0, "borderline"),    # margin 0.1 inside spread 0.3
-    ([2.0, 2.1, 2.1], ">=", 2.2, "borderline"),    # short by 0.1, spread 0.1
+    ([2.0, 2.1, 2.1], ">=", 2.2, "not met"),       # no repeat meets it
+    ([1.9, 2.0, 2.9], "<=", 2.0, "borderline"),    # some repeats meet it, some do not
+    ([1.0, 1.5, 1.9], "<=", 2.0, "borderline"),    # all meet it, margin 0.5 < spread 0.9
     ([3.0, 3.1, 3.2], "<=", 2.0, "not met"),
     ([0.9, 0.9, 0.9], ">=", 0.8, "met"),           # deterministic: spread 0
     ([0.79, 0.79, 0.79], ">=", 0.8, "not met"),
