@@ -10,6 +10,7 @@ from pydantic import Field
 
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import EventPacket
+from evchain.core.series import FOE, TTC
 from evchain.errors import ConfigError
 from evchain.io.atomic import partial_path
 from evchain.report.render import RED, YELLOW, draw_cross, event_image
@@ -26,6 +27,7 @@ class Video(Filter):
 
     name = "video"
     consumes = EventPacket
+    optional_series = (FOE, TTC)
 
     class Params(FilterParams):
         path: str = Field("events.gif", description="output file (.gif or .mp4), in the run folder")
@@ -84,10 +86,11 @@ class Video(Filter):
         self.frame_start = t_end
         if self.frames >= self.params.max_frames:
             return
-        if "foe" in series and len(series["foe"]):
-            self.foe = (series["foe"]["x"][-1], series["foe"]["y"][-1])
-        if "ttc" in series and len(series["ttc"]):
-            self.ttc_text = f"TTC {series['ttc']['tau_s'][-1]:.2f} s"
+        foe, ttc = series.get(FOE.name), series.get(TTC.name)
+        if foe is not None and len(foe):
+            self.foe = (foe["x"][-1], foe["y"][-1])
+        if ttc is not None and len(ttc):
+            self.ttc_text = f"TTC {ttc['tau_s'][-1]:.2f} s"
         g = shown.geometry
         flow = (shown.vx, shown.vy) if hasattr(shown, "vx") else (None, None)
         img = event_image(g.height, g.width, shown.x, shown.y, shown.p, *flow)
