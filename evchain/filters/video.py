@@ -12,7 +12,7 @@ from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import EventPacket
 from evchain.core.series import FOE, TTC
 from evchain.errors import ConfigError
-from evchain.io.atomic import partial_path
+from evchain.io.atomic import AtomicFile
 from evchain.report.render import RED, YELLOW, draw_cross, event_image
 
 
@@ -47,9 +47,7 @@ class Video(Filter):
 
     def reset(self):
         self.close()
-        self.path = self.context.output_path(self.params.path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.tmp = partial_path(self.path)
+        self.out = AtomicFile.reserve(self.context.output_path(self.params.path))
         self.writer = None
         self.frame_start = None
         self.pending: list[EventPacket] = []
@@ -63,7 +61,7 @@ class Video(Filter):
         kw = {"duration": 1.0 / self.params.fps, "loop": 0} if self.format == "GIF" else {
             "fps": self.params.fps, "macro_block_size": 1}
         try:
-            return iio.get_writer(self.tmp, format=self.format, mode="I", **kw)
+            return iio.get_writer(self.out.tmp, format=self.format, mode="I", **kw)
         except ImportError:
             raise ConfigError("writing .mp4 needs: pip install 'evchain[video]'",
                               key="video.path") from None
@@ -126,7 +124,7 @@ class Video(Filter):
                                               g.width * self.params.scale, 3), np.uint8))
         self.writer.close()
         self.writer = None
-        self.tmp.replace(self.path)
+        self.out.commit()
         return None
 
     def close(self):
@@ -134,5 +132,4 @@ class Video(Filter):
         if writer is not None:
             writer.close()
             self.writer = None
-            if self.path.exists():
-                self.path.unlink()
+            self.out.abort()
