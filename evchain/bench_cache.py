@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from evchain.errors import MissingBenchInput
-from evchain.io.atomic import partial_path
+from evchain.io.atomic import AtomicFile
 
 _PACKAGE = Path(__file__).resolve().parent
 
@@ -121,11 +121,9 @@ class BenchInput:
         t0 = time.perf_counter()
         arrays = self.make()
         path = self.path
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = partial_path(path)
-        with open(tmp, "wb") as fh:  # a file object: np.savez adds no ".npz" to its name
-            np.savez(fh, recipe=np.array(json.dumps(self.recipe, sort_keys=True)), **arrays)
-        os.replace(tmp, path)
+        with AtomicFile(path) as out:  # a file object: np.savez adds no ".npz" to its name
+            np.savez(out.file, recipe=np.array(json.dumps(self.recipe, sort_keys=True)),
+                     **arrays)
         echo(f"made {self.describe()} in {time.perf_counter() - t0:.1f} s: {path}")
         return True
 

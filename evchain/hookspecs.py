@@ -29,8 +29,10 @@ def evchain_filters() -> list[type]:
     """Return the :class:`evchain.Filter` subclasses this plugin provides.
 
     Each class needs a unique ``name`` (the ``use:`` key in pipelines), ``consumes`` and
-    ``produces`` packet types and a nested pydantic ``Params`` model. Two plugins claiming one
-    name is an error that names both distributions.
+    ``produces`` packet types and a nested pydantic ``Params`` model; the series it needs, reads
+    if present and adds are tuples of :class:`evchain.core.series.SeriesDef` in
+    ``needs_series``, ``optional_series`` and ``adds_series`` (empty by default). Two plugins
+    claiming one name is an error that names both distributions.
     """
 
 

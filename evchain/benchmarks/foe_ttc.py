@@ -49,7 +49,7 @@ from evchain.benchmarks.drive_inputs import (
     relative,
 )
 from evchain.core.filter import Context
-from evchain.core.packets import Geometry, series_array
+from evchain.core.packets import Geometry
 from evchain.testing.synthetic import approach_flow_packets
 
 G = Geometry(320, 240, f=380.6)
@@ -218,7 +218,7 @@ def foe_fit_pipeline_rows(flow: str, quick: bool) -> list[BenchRow]:
 
 
 def ttc_rows(quick: bool) -> list[BenchRow]:
-    from evchain.filters.foe_map import FOE_DTYPE
+    from evchain.core.series import FOE
     from evchain.filters.ttc import Ttc
 
     n = 500_000 if quick else 2_000_000
@@ -226,8 +226,8 @@ def ttc_rows(quick: bool) -> list[BenchRow]:
     packets = approach_flow_packets(foe=CENTRE, tau_s=3.0, n=n, geometry=G, duration_us=dur,
                                     n_packets=200, normal_only=True, noise_frac=0.1,
                                     tau_shrinks=True)
-    packets = [p.with_series("foe", series_array(FOE_DTYPE, t=[p.t_start], x=[CENTRE[0]],
-                                                 y=[CENTRE[1]], support=[1.0], total=[1.0]))
+    packets = [p.with_series(FOE.name, FOE.array(t=[p.t_start], x=[CENTRE[0]], y=[CENTRE[1]],
+                                                 support=[1.0], total=[1.0]))
                for p in packets]
     series = []
 

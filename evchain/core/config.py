@@ -7,13 +7,15 @@ A pipeline file::
     description: ...        # optional
     chain:
       - use: aedat          # a registered filter name
-        id: reader          # optional, to address one of two stages of the same filter
+        id: reader          # optional; needed to tell two stages of one filter apart
         path: tests/data/x.aedat   # every other key is a parameter of that filter
 
 Pass 1 checks this shape; pass 2 checks each stage's keys against its filter's ``Params``, then
-the wiring (each stage consumes what its predecessor produces). Every error names
-``file:line:column``, the key and what is allowed. Overrides ``STAGE.PARAM=VALUE`` address a
-stage by ``id`` or ``use`` name; the value is parsed as YAML (``0.3``, ``true``, ``[1, 2]``).
+the wiring (each stage consumes what its predecessor produces and finds the series it needs added
+by a stage before it) and that every stage has its own name (two stages of one filter need
+``id:`` keys). Every error names ``file:line:column``, the key and what is allowed. Overrides
+``STAGE.PARAM=VALUE`` address a stage by ``id`` or ``use`` name; the value is parsed as YAML
+(``0.3``, ``true``, ``[1, 2]``).
 """
 
 from __future__ import annotations
@@ -29,6 +31,7 @@ from pydantic import ValidationError
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import Packet
 from evchain.core.registry import Registry, unknown_filter_message
+from evchain.core.series import SeriesDef
 from evchain.errors import ConfigError, WiringError
 
 TOP_KEYS = {"name": "a string", "seed": "an integer", "description": "a string",
@@ -144,8 +147,8 @@ def pipeline_from_text(text: str, file: str, registry: Registry,
             problems.append(exc)
     if problems:
         raise _all_of(problems)
+    check_wiring(stages, registry)
     _check_ids(stages)
-    check_wiring(stages)
     return PipelineSpec(name=name or Path(file).stem, seed=seed, stages=stages, file=file,
                         description=description)
 
@@ -193,10 +196,6 @@ def _check_shape(data, node, file) -> tuple[list[_RawStage], str, int, str]:
         key_marks = {k: _mark_of(v, file) for k, (_, v) in _child_nodes(item_node).items()}
         stages.append(_RawStage(dict(item), mark, key_marks))
     return stages, name, seed, description
-
-
-def _stage_label(raw: _RawStage) -> str:
-    return str(raw.values.get("id", raw.values["use"]))
 
 
 def _all_of(problems: list[ConfigError]) -> ConfigError:
@@ -256,10 +255,19 @@ def _describe_field(cls: type[Filter], key: str | None) -> str:
 
 
 def _check_ids(stages: list[StageSpec]) -> None:
+    """Every stage has its own name (its ``id``, else its ``use``): overrides, metrics and
+    messages address stages by it."""
     seen: dict[str, StageSpec] = {}
     for s in stages:
-        if s.id in seen and s.id != s.use:
-            _raise(f"id {s.id!r} is used twice", s.mark, f"{s.id}.id")
+        first = seen.get(s.id)
+        if first is not None:
+            where = f"line {first.mark.line}" if first.mark.line else "earlier"
+            if s.id == s.use and first.id == first.use:
+                _raise(f"a second stage of filter {s.use!r} (the first is at {where}); give "
+                       f"each its own 'id:' (e.g. id: {s.use}_2) so that overrides and metrics "
+                       "can tell them apart", s.mark, s.id)
+            _raise(f"id {s.id!r} is used twice (first at {where}); give each stage its own "
+                   "'id:'", s.mark, f"{s.id}.id")
         seen[s.id] = s
 
 
@@ -271,8 +279,9 @@ def output_type(stages: list[StageSpec], upto: int) -> type[Packet] | None:
     return kind
 
 
-def check_wiring(stages: list[StageSpec]) -> None:
-    """The first stage is a source, no later one is, and each consumes what it is given."""
+def check_wiring(stages: list[StageSpec], registry: Registry) -> None:
+    """The first stage is a source, no later one is, each consumes what it is given, and each
+    finds the series it needs added by a stage before it (with the dtype it expects)."""
     first = stages[0]
     if not first.cls.is_source():
         _raise(f"the first stage must be a source (a filter that consumes nothing), but "
@@ -287,6 +296,32 @@ def check_wiring(stages: list[StageSpec]) -> None:
             _raise(f"{s.use!r} consumes {s.cls.consumes.__name__} but {stages[i - 1].use!r} "
                    f"before it produces {getattr(given, '__name__', 'nothing')}", s.mark,
                    f"{s.id}.use", WiringError)
+    _check_series(stages, registry)
+
+
+def _check_series(stages: list[StageSpec], registry: Registry) -> None:
+    """Walk the chain keeping the series added so far; a stage's needs must be among them."""
+    added: dict[str, tuple[SeriesDef, StageSpec]] = {}
+    for s in stages:
+        problems = []
+        for want in (*s.cls.needs_series, *s.cls.optional_series):
+            have = added.get(want.name)
+            if have is None:
+                if want in s.cls.needs_series:
+                    adders = registry.adders(want.name)
+                    by = (f"added by {' or '.join(adders)}" if adders
+                          else "no installed filter adds it")
+                    problems.append(f"needs series {want.name!r} ({by}) but no stage before it "
+                                    "adds it")
+            elif have[0].dtype != want.dtype:
+                other = have[1]
+                problems.append(f"reads series {want.name!r} with fields ({want.fields()}) but "
+                                f"stage {other.id!r} (line {other.mark.line}) adds it with "
+                                f"fields ({have[0].fields()})")
+        if problems:
+            _raise(f"stage {s.id!r} " + "; and it ".join(problems), s.mark, None, WiringError)
+        for series in s.cls.series_added(s.params):
+            added[series.name] = (series, s)
 
 
 def _find_stage(items, key, names, mark):

@@ -26,6 +26,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict
 
 from evchain.core.packets import Geometry, Packet
+from evchain.core.series import SeriesDef
 
 
 @runtime_checkable
@@ -81,11 +82,20 @@ class Context:
 class Filter:
     """Base class of every stage. Subclasses set ``name``, ``consumes``, ``produces`` and
     ``Params``, allocate their state in :meth:`reset` and implement :meth:`process` (or
-    :meth:`packets` for sources, which consume ``None``)."""
+    :meth:`packets` for sources, which consume ``None``).
+
+    Series (:mod:`evchain.core.series`) are declared beside the packet types:
+    ``needs_series`` must be added by an earlier stage (validation rejects the chain
+    otherwise), ``optional_series`` are read when an earlier stage adds them, ``adds_series``
+    are attached to the output packets (:meth:`series_added` when a parameter names them).
+    """
 
     name: ClassVar[str] = ""
     consumes: ClassVar[type[Packet] | None] = None
     produces: ClassVar[type[Packet] | None] = None
+    needs_series: ClassVar[tuple[SeriesDef, ...]] = ()
+    optional_series: ClassVar[tuple[SeriesDef, ...]] = ()
+    adds_series: ClassVar[tuple[SeriesDef, ...]] = ()
     Params: ClassVar[type[FilterParams]] = FilterParams
 
     params: Any
@@ -121,6 +131,17 @@ class Filter:
 
     def close(self) -> None:
         """Release resources; runs on success and on error (after flush on success)."""
+
+    @classmethod
+    def series_added(cls, params: FilterParams) -> tuple[SeriesDef, ...]:
+        """The series a stage with ``params`` adds: ``adds_series`` unless a parameter renames
+        them."""
+        return cls.adds_series
+
+    def metrics_key(self, group: str) -> str:
+        """Where this stage writes its ``group`` of metrics in ``context.metrics``: ``group``,
+        or ``group@ID`` when the stage has an ``id`` of its own (two scorers of one kind)."""
+        return group if self.id == self.name else f"{group}@{self.id}"
 
     @classmethod
     def summary(cls) -> str:

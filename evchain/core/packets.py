@@ -10,7 +10,8 @@ Invariants (checked by :meth:`Packet.validate`, at sources and between filters i
   int64 µs non-decreasing and inside the slice, ``p`` int8 in {+1 ON, -1 OFF}; all the same length;
 * ``FlowPacket``: an ``EventPacket`` plus ``vx``, ``vy`` float32 in px/s, finite;
 * ``series``: named time series (numpy structured arrays with an int64 field ``t``) that filters
-  append to, e.g. ``foe`` (t, x, y, support). A packet's series hold only the entries of its slice.
+  append to, e.g. ``foe`` (t, x, y, support, total), each defined in :mod:`evchain.core.series`.
+  A packet's series hold only the entries of its slice.
 """
 
 from __future__ import annotations
@@ -253,15 +254,6 @@ class FlowPacket(EventPacket):
                    series=events.series, x=events.x[index], y=events.y[index],
                    t=events.t[index], p=events.p[index], vx=np.asarray(vx, np.float32),
                    vy=np.asarray(vy, np.float32))
-
-
-def series_array(dtype: list[tuple[str, str]], **columns) -> np.ndarray:
-    """Build a series' structured array from equal-length columns (``t`` first)."""
-    n = len(next(iter(columns.values()))) if columns else 0
-    out = np.zeros(n, dtype=dtype)
-    for name, values in columns.items():
-        out[name] = values
-    return out
 
 
 _FIELDS: dict[type, frozenset[str]] = {}

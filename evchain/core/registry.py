@@ -13,6 +13,7 @@ import pluggy
 
 from evchain import hookspecs
 from evchain.core.filter import Filter, FilterParams
+from evchain.core.series import SeriesDef
 from evchain.errors import ConfigError, PluginError
 
 BUILTIN = "evchain"
@@ -58,11 +59,21 @@ class Registry:
         if not (isinstance(cls.Params, type) and issubclass(cls.Params, FilterParams)):
             raise PluginError(f"filter {cls.name!r} of {dist!r}: Params must subclass "
                               "evchain.FilterParams")
+        for attr in ("needs_series", "optional_series", "adds_series"):
+            value = getattr(cls, attr)
+            if not (isinstance(value, tuple) and all(isinstance(v, SeriesDef) for v in value)):
+                raise PluginError(f"filter {cls.name!r} of {dist!r}: {attr} must be a tuple of "
+                                  f"evchain.core.series.SeriesDef, got {value!r}")
         if cls.name in self.filters:
             other = self.filters[cls.name].distribution
             raise PluginError(f"filter name {cls.name!r} is claimed by both {other!r} and "
                               f"{dist!r}; uninstall one or rename the filter")
         self.filters[cls.name] = FilterInfo(cls, dist, version)
+
+    def adders(self, series: str) -> list[str]:
+        """The filters that declare they add the series called ``series``, sorted."""
+        return sorted(n for n, info in self.filters.items()
+                      if any(a.name == series for a in info.cls.adds_series))
 
     def get(self, name: str) -> type[Filter]:
         """The filter class called ``name``; unknown names suggest close matches."""

@@ -7,6 +7,7 @@ from typing import Any
 from pydantic_core import PydanticUndefined
 
 from evchain.core.filter import Filter
+from evchain.core.series import SeriesDef
 
 _BOUND_NAMES = {"gt": ">", "ge": ">=", "lt": "<", "le": "<=", "multiple_of": "multiple of",
                 "min_length": "min length", "max_length": "max length"}
@@ -40,12 +41,24 @@ def field_rows(cls: type[Filter]) -> list[dict[str, str]]:
     return rows
 
 
+def series_rows(cls: type[Filter]) -> list[tuple[str, SeriesDef]]:
+    """The series a filter declares, as (how, definition) with how ``needs``, ``reads if
+    present`` or ``adds``."""
+    return ([("needs", s) for s in cls.needs_series]
+            + [("reads if present", s) for s in cls.optional_series]
+            + [("adds", s) for s in cls.adds_series])
+
+
 def describe_filter(cls: type[Filter], distribution: str) -> str:
-    """Human-readable reference of one filter: doc, wiring and parameter table."""
+    """Human-readable reference of one filter: doc, wiring, series and parameter table."""
     consumes = cls.consumes.__name__ if cls.consumes else "(source)"
     produces = cls.produces.__name__ if cls.produces else "(same as input)"
     lines = [f"{cls.name}  [{distribution}]  {consumes} -> {produces}", ""]
     lines += [ln.rstrip() for ln in (cls.__doc__ or "").strip().splitlines()]
+    rows = series_rows(cls)
+    if rows:
+        lines += ["", "series:"]
+        lines += [f"  {how} {s.name} ({s.fields()})" for how, s in rows]
     lines += ["", "parameters:"]
     rows = field_rows(cls)
     if not rows:
@@ -73,6 +86,11 @@ def filters_markdown(registry, distribution: str = "evchain") -> str:
         produces = cls.produces.__name__ if cls.produces else "(same as input)"
         out += [f"## `{name}`", "", f"*{info.distribution}* · {consumes} → {produces}", ""]
         out += [ln.strip() for ln in (cls.__doc__ or "").strip().splitlines()] + [""]
+        series = series_rows(cls)
+        if series:
+            out += ["| declares | series | fields |", "|---|---|---|"]
+            out += [f"| {how} | `{s.name}` | {s.fields()} |" for how, s in series]
+            out.append("")
         rows = field_rows(cls)
         if rows:
             out += ["| parameter | type | default | bounds | description |",
@@ -80,7 +98,32 @@ def filters_markdown(registry, distribution: str = "evchain") -> str:
             out += [f"| `{r['name']}` | {r['type']} | `{r['default']}` | {r['bounds']} | "
                     f"{r['description']} |".replace("\n", " ") for r in rows]
             out.append("")
+    out += series_markdown(registry, distribution)
     return "\n".join(out)
+
+
+def series_markdown(registry, distribution: str = "evchain") -> list[str]:
+    """The index of series: each one's fields and description, who adds and who reads it."""
+    found: dict[str, SeriesDef] = {}
+    adders: dict[str, list[str]] = {}
+    readers: dict[str, list[str]] = {}
+    for name in sorted(registry.filters):
+        info = registry.filters[name]
+        if info.distribution != distribution:
+            continue
+        for how, s in series_rows(info.cls):
+            found.setdefault(s.name, s)
+            (adders if how == "adds" else readers).setdefault(s.name, []).append(name)
+    out = ["## Series", "",
+           "Named time series that stages attach to packets (definitions in "
+           "`evchain/core/series.py`; every one has an int64 field `t` in µs first).", "",
+           "| series | fields | meaning | added by | read by |", "|---|---|---|---|---|"]
+    for name in sorted(found):
+        s = found[name]
+        out.append(f"| `{name}` | {s.fields()} | {s.description} | "
+                   f"{', '.join(adders.get(name, [])) or '-'} | "
+                   f"{', '.join(readers.get(name, [])) or '-'} |")
+    return out + [""]
 
 
 def hooks_markdown() -> str:

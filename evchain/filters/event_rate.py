@@ -7,6 +7,7 @@ from pydantic import Field
 
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import EventPacket
+from evchain.core.series import EVENT_RATE
 
 
 class EventRatePlot(Filter):
@@ -23,6 +24,7 @@ class EventRatePlot(Filter):
     name = "event_rate_plot"
     consumes = EventPacket
     produces = None
+    adds_series = (EVENT_RATE,)
 
     class Params(FilterParams):
         column: int = Field(0, ge=0, description="pixel column x to observe")
@@ -31,6 +33,11 @@ class EventRatePlot(Filter):
         path: str | None = Field("event_rate.png", description="PNG written at the end "
                                  "(relative to the output folder); null for none")
         title: str = Field("", description="plot title")
+
+    @classmethod
+    def series_added(cls, params):
+        """``event_rate``, or the name given by the parameter ``series``."""
+        return (EVENT_RATE.renamed(params.series),)
 
     def reset(self) -> None:
         self._bin = None          # index of the open bin
@@ -41,8 +48,6 @@ class EventRatePlot(Filter):
         self._pend = None         # input of [cut, last t_end) held back for the next output
 
     def _close_bins(self, upto_bin: int) -> np.ndarray:
-        from evchain.report.event_rate import RATE_DTYPE
-
         b = self.params.bin_us
         out = []
         while self._bin is not None and self._bin < upto_bin:
@@ -51,7 +56,7 @@ class EventRatePlot(Filter):
             self._rows.append(out[-1])
             self._bin += 1
             self._on = self._off = 0
-        return np.array(out, dtype=RATE_DTYPE)
+        return np.array(out, dtype=EVENT_RATE.dtype)
 
     def process(self, packet: EventPacket) -> EventPacket:
         b = self.params.bin_us
@@ -87,23 +92,23 @@ class EventRatePlot(Filter):
         return type(packet).concat([pend, packet])
 
     def flush(self) -> EventPacket | None:
-        from evchain.report.event_rate import RATE_DTYPE, plot_event_rate
+        from evchain.report.event_rate import plot_event_rate
 
         if self._bin is None or self._pend is None:
             return None
         b = self.params.bin_us
         last = self._last_end
-        tail = np.zeros(0, RATE_DTYPE)
+        tail = np.zeros(0, EVENT_RATE.dtype)
         if self._on + self._off > 0 or (last % b):
             # the partial last bin, rate over the covered part
             s = self._bin * b
             span = max(last - s, 1)
             tail = np.array([(max(last - 1, s), s, last, (self._on + self._off) * 1e6 / span,
-                              self._on, self._off)], RATE_DTYPE)
+                              self._on, self._off)], EVENT_RATE.dtype)
             self._rows.append(tuple(tail[0]))
             self._on = self._off = 0
         if self.params.path:
-            allrows = np.array(self._rows, dtype=RATE_DTYPE)
+            allrows = np.array(self._rows, dtype=EVENT_RATE.dtype)
             plot_event_rate(allrows, self.context.output_path(self.params.path),
                             title=self.params.title or f"event rate at column "
                             f"{self.params.column}")

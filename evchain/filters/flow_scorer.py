@@ -3,11 +3,10 @@
 * :func:`flow_errors` gives per-event errors of flow events against a ground-truth provider
   (``truth.flow(x, y, t_us)``, optionally ``truth.foe(t_us)``); :func:`summarize` turns them
   into metrics; :func:`score_flow` does both (pure numpy, for benchmarks).
-* :class:`DensityCounter` is the flow filters' side of the density convention: every flow
-  filter appends the series ``flow_density`` (``t``, ``n_in``, ``n_out``) with the number of
-  input events and of flow events per fixed time bin (see ``docs/explanation/flow_scoring.md``).
 * :class:`FlowScorer` (``flow_scorer``) passes flow packets through unchanged, appends the series
-  ``flow_error`` per time bin and writes ``context.metrics["flow"]`` at the end of the stream.
+  ``flow_error`` per time bin and writes ``context.metrics["flow"]`` at the end of the stream,
+  with the density from the flow filter's ``flow_density`` series
+  (:class:`evchain.core.series.DensityCounter`; see ``docs/explanation/flow_scoring.md``).
 """
 
 from __future__ import annotations
@@ -20,71 +19,13 @@ import numpy as np
 from pydantic import Field
 
 from evchain.core.filter import Filter, FilterParams
-from evchain.core.packets import FlowPacket, series_array
+from evchain.core.packets import FlowPacket
+from evchain.core.series import FLOW_DENSITY, FLOW_ERROR
 from evchain.errors import ConfigError
-
-#: the series every flow filter appends: events in and flow events out per time bin
-DENSITY_SERIES = "flow_density"
-DENSITY_DTYPE = [("t", "i8"), ("n_in", "i8"), ("n_out", "i8")]
-#: default bin of the density series (µs)
-DENSITY_BIN_US = 100_000
-
-ERROR_SERIES = "flow_error"
-ERROR_DTYPE = [("t", "i8"), ("n", "i8"), ("aee_pxs", "f8"), ("aee_normal_pxs", "f8"),
-               ("aae_deg", "f8"), ("invalid_rate", "f8")]
 
 #: outlier thresholds
 OUTLIER_REL = 0.5  # relative endpoint error above 50 %
 OUTLIER_DEG = 45.0  # angular error above 45 degrees
-
-
-class DensityCounter:
-    """Counts input and flow events per time bin ``[k B, (k+1) B)`` and emits series entries.
-
-    Use in a flow filter: ``entries = counter.add(events.t, events.t[index], packet.t_end)`` (both
-    time arrays sorted, as event times are) in
-    ``process`` and ``counter.flush()`` at the end; append both to the output packet's series
-    ``flow_density`` (always, even when empty). A bin is emitted, with ``t`` = its end, in the
-    first packet whose slice reaches past its end, so entries do not depend on how the stream was
-    cut; the last, partial bin comes from :meth:`flush`. Only bins with input events appear.
-    """
-
-    def __init__(self, bin_us: int = DENSITY_BIN_US):
-        if bin_us <= 0:
-            raise ConfigError(f"density bin must be > 0 us, got {bin_us}")
-        self.bin_us = int(bin_us)
-        self.reset()
-
-    def reset(self) -> None:
-        self.pending: dict[int, list[int]] = {}
-
-    def add(self, t_in: np.ndarray, t_out: np.ndarray, t_end: int) -> np.ndarray:
-        for times, col in ((t_in, 0), (t_out, 1)):
-            if len(times):  # times are sorted: count per bin by bisection
-                times = np.asarray(times, np.int64)
-                k0 = int(times[0]) // self.bin_us
-                k1 = int(times[-1]) // self.bin_us
-                if k0 == k1:
-                    self.pending.setdefault(k0, [0, 0])[col] += len(times)
-                    continue
-                cuts = np.searchsorted(times, np.arange(k0 + 1, k1 + 1) * self.bin_us)
-                counts = np.diff(np.concatenate([[0], cuts, [len(times)]]))
-                for kk, cc in zip(range(k0, k1 + 1), counts.tolist(), strict=True):
-                    if cc:
-                        self.pending.setdefault(kk, [0, 0])[col] += cc
-        done = sorted(k for k in self.pending if (k + 1) * self.bin_us < t_end)
-        return self._emit(done)
-
-    def flush(self) -> np.ndarray:
-        return self._emit(sorted(self.pending))
-
-    def _emit(self, keys: list[int]) -> np.ndarray:
-        rows = [(k, *self.pending.pop(k)) for k in keys]
-        rows = [r for r in rows if r[1] > 0]
-        return series_array(DENSITY_DTYPE, t=np.array([(k + 1) * self.bin_us for k, _, _ in rows],
-                                                      np.int64),
-                            n_in=np.array([r[1] for r in rows], np.int64),
-                            n_out=np.array([r[2] for r in rows], np.int64))
 
 
 def flow_errors(x, y, t, vx, vy, truth) -> dict[str, np.ndarray]:
@@ -204,13 +145,16 @@ class FlowScorer(Filter):
     Ground truth: the source's (``context.truth``) or a DVSFLOW16 ``.mat`` file given as
     ``ground_truth``. Packets pass through unchanged, plus the series ``flow_error`` (one entry
     per ``bin_us`` with flow events: t = bin end, n, aee_pxs, aee_normal_pxs, aae_deg,
-    invalid_rate). At the end ``metrics.flow`` holds the run's values; ``density`` = flow events
-    / input events from the flow filter's ``flow_density`` series (None if it has none).
+    invalid_rate). At the end ``metrics.flow`` (``metrics.flow@ID`` for a stage with an ``id``)
+    holds the run's values; ``density`` = flow events / input events from the flow filter's
+    ``flow_density`` series (None if it has none).
     """
 
     name = "flow_scorer"
     consumes = FlowPacket
     produces = None
+    optional_series = (FLOW_DENSITY,)
+    adds_series = (FLOW_ERROR,)
 
     class Params(FilterParams):
         ground_truth: str | None = Field(
@@ -242,7 +186,7 @@ class FlowScorer(Filter):
 
     def _close_bins(self, keys: list[int]) -> np.ndarray:
         if not keys:
-            return np.zeros(0, ERROR_DTYPE)
+            return np.zeros(0, FLOW_ERROR.dtype)
         rows = []
         for k in keys:
             parts = self.bins.pop(k)
@@ -255,12 +199,13 @@ class FlowScorer(Filter):
             rows.append(((k + 1) * self.params.bin_us, m["n_flow"],
                          *(np.nan if m[key] is None else m[key]
                            for key in ("aee_pxs", "aee_normal_pxs", "aae_deg", "invalid_rate"))))
-        cols = list(zip(*rows, strict=True)) if rows else [[]] * len(ERROR_DTYPE)
-        return series_array(ERROR_DTYPE, **{name: np.asarray(c) for (name, _), c
-                                             in zip(ERROR_DTYPE, cols, strict=True)})
+        names = FLOW_ERROR.dtype.names
+        cols = list(zip(*rows, strict=True)) if rows else [[]] * len(names)
+        return FLOW_ERROR.array(**{name: np.asarray(c)
+                                   for name, c in zip(names, cols, strict=True)})
 
     def process(self, packet: FlowPacket) -> FlowPacket:
-        dens = packet.series.get(DENSITY_SERIES)
+        dens = packet.series.get(FLOW_DENSITY.name)
         if dens is not None and len(dens):
             self.n_in += int(dens["n_in"].sum())
             self.n_out_reported += int(dens["n_out"].sum())
@@ -273,7 +218,7 @@ class FlowScorer(Filter):
         done = sorted(kk for kk in self.bins if (kk + 1) * self.params.bin_us < packet.t_end) \
             if self.bins else []
         self.last = packet
-        return packet.with_series(ERROR_SERIES, self._close_bins(done))
+        return packet.with_series(FLOW_ERROR.name, self._close_bins(done))
 
     def flush(self) -> FlowPacket | None:
         entries = self._close_bins(sorted(self.bins))
@@ -281,8 +226,9 @@ class FlowScorer(Filter):
         m = metrics_from_sums(merged)
         m["density"] = (self.n_out_reported / self.n_in) if self.n_in else None
         m["n_input_events"] = self.n_in if self.n_in else None
-        self.context.metrics["flow"] = m
+        self.context.metrics[self.metrics_key("flow")] = m
         if self.last is None:
             return None
         end = self.last.t_end
-        return FlowPacket.empty(self.last.geometry, end, end).with_series(ERROR_SERIES, entries)
+        return FlowPacket.empty(self.last.geometry, end, end).with_series(FLOW_ERROR.name,
+                                                                          entries)

@@ -9,8 +9,10 @@ from pydantic import Field
 
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import FlowPacket
+from evchain.core.series import FOE, FOE_VOTES
 from evchain.errors import DataError
-from evchain.filters.foe_map import FOE_DTYPE
+
+FOE_DTYPE = FOE.dtype
 
 
 class FoeFit(Filter):
@@ -33,6 +35,8 @@ class FoeFit(Filter):
     name = "foe_fit"
     consumes = FlowPacket
     produces = FlowPacket
+    needs_series = (FOE,)
+    adds_series = (FOE, FOE_VOTES)
 
     class Params(FilterParams):
         tau_ms: float = Field(200.0, gt=0, description="decay time constant of the events' "

@@ -8,11 +8,11 @@ import numpy as np
 from pydantic import Field
 
 from evchain.core.filter import Filter, FilterParams
-from evchain.core.packets import FlowPacket, Geometry, series_array
+from evchain.core.packets import FlowPacket, Geometry
+from evchain.core.series import FOE
 from evchain.errors import DataError
 
-FOE_DTYPE = [("t", "i8"), ("x", "f8"), ("y", "f8"), ("support", "f8"), ("total", "f8")]
-_FOE = np.dtype(FOE_DTYPE)
+_FOE = FOE.dtype
 
 
 def region_cells(geometry: Geometry, radius_px: float | None):
@@ -86,6 +86,7 @@ class FoeMap(Filter):
     name = "foe_map"
     consumes = FlowPacket
     produces = FlowPacket
+    adds_series = (FOE,)
 
     class Params(FilterParams):
         tau_ms: float = Field(300.0, gt=0, description="decay time constant of the votes")
@@ -206,4 +207,4 @@ class FoeMap(Filter):
 def foe_series(entries_x, entries_y, t, support, total=None) -> np.ndarray:
     """Build a ``foe`` series array (helper for tests and other producers)."""
     total = support if total is None else total
-    return series_array(FOE_DTYPE, t=t, x=entries_x, y=entries_y, support=support, total=total)
+    return FOE.array(t=t, x=entries_x, y=entries_y, support=support, total=total)

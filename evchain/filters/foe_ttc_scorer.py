@@ -8,12 +8,8 @@ import numpy as np
 from pydantic import Field
 
 from evchain.core.filter import Filter, FilterParams
-from evchain.core.packets import FlowPacket, series_array
-
-FOE_ERR_DTYPE = [("t", "i8"), ("x", "f8"), ("y", "f8"), ("x_true", "f8"), ("y_true", "f8"),
-                 ("dx", "f8"), ("dy", "f8"), ("angle_deg", "f8")]
-TTC_ERR_DTYPE = [("t", "i8"), ("tau_s", "f8"), ("tau_true_s", "f8"), ("rel_error", "f8"),
-                 ("cluster", "i8"), ("x", "f8"), ("y", "f8"), ("on_obstacle", "i1")]
+from evchain.core.packets import FlowPacket
+from evchain.core.series import FOE, FOE_ERROR, TTC, TTC_CLUSTERS, TTC_ERROR
 
 
 def _truth_foe(truth, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -86,13 +82,16 @@ class FoeTtcScorer(Filter):
       ``coverage_last3s``: whatever cluster is reported, so a roadside object whose TTC happens
       to match the car's counts as a hit.
 
-    With ``plots``, PNGs: FOE error over time, TTC against truth (estimates on and off the
-    obstacle in their own colours), and frame snapshots with flow, FOE and clusters.
+    A stage with an ``id`` writes ``metrics.foe@ID`` and ``metrics.ttc@ID``. With ``plots``,
+    PNGs: FOE error over time, TTC against truth (estimates on and off the obstacle in their own
+    colours), and frame snapshots with flow, FOE and clusters.
     """
 
     name = "foe_ttc_scorer"
     consumes = FlowPacket
     produces = None
+    optional_series = (FOE, TTC, TTC_CLUSTERS)
+    adds_series = (FOE_ERROR, TTC_ERROR)
 
     class Params(FilterParams):
         warmup_s: float = Field(1.0, ge=0, description="FOE errors before this (from the "
@@ -134,17 +133,17 @@ class FoeTtcScorer(Filter):
         self._t_end = packet.t_end
         g = packet.geometry
         out = packet
-        foe = packet.series.get("foe")
+        foe = packet.series.get(FOE.name)
         if foe is not None and len(foe):
             t = np.asarray(foe["t"], np.int64)
             xt, yt = _truth_foe(truth, t)
             x, y = np.asarray(foe["x"], np.float64), np.asarray(foe["y"], np.float64)
-            err = series_array(FOE_ERR_DTYPE, t=t, x=x, y=y, x_true=xt, y_true=yt, dx=x - xt,
-                               dy=y - yt, angle_deg=foe_angle_deg(x, y, xt, yt, g.f, g.cx, g.cy))
+            err = FOE_ERROR.array(t=t, x=x, y=y, x_true=xt, y_true=yt, dx=x - xt, dy=y - yt,
+                                  angle_deg=foe_angle_deg(x, y, xt, yt, g.f, g.cx, g.cy))
             self._foe.append(err)
             self._last_foe = (float(x[-1]), float(y[-1]))
-            out = out.with_series("foe_error", err)
-        ttc = packet.series.get("ttc")
+            out = out.with_series(FOE_ERROR.name, err)
+        ttc = packet.series.get(TTC.name)
         if ttc is not None and len(ttc):
             t = np.asarray(ttc["t"], np.int64)
             tt = _truth_ttc(truth, t)
@@ -152,12 +151,12 @@ class FoeTtcScorer(Filter):
             with np.errstate(invalid="ignore", divide="ignore"):
                 rel = np.where(tt > 0, np.abs(tau - tt) / tt, np.nan)
             on = on_obstacle(truth, ttc["x"], ttc["y"], t, self.params.obstacle_margin_px)
-            err = series_array(TTC_ERR_DTYPE, t=t, tau_s=tau, tau_true_s=tt, rel_error=rel,
-                               cluster=ttc["cluster"], x=ttc["x"], y=ttc["y"],
-                               on_obstacle=np.full(len(t), -1) if on is None else on)
+            err = TTC_ERROR.array(t=t, tau_s=tau, tau_true_s=tt, rel_error=rel,
+                                  cluster=ttc["cluster"], x=ttc["x"], y=ttc["y"],
+                                  on_obstacle=np.full(len(t), -1) if on is None else on)
             self._ttc.append(err)
-            out = out.with_series("ttc_error", err)
-        cl = packet.series.get("ttc_clusters")
+            out = out.with_series(TTC_ERROR.name, err)
+        cl = packet.series.get(TTC_CLUSTERS.name)
         if cl is not None and len(cl):
             self._last_clusters = cl[cl["t"] == cl["t"][-1]].copy()
         if self.params.plots and truth is not None:
@@ -262,12 +261,12 @@ class FoeTtcScorer(Filter):
     def flush(self):
         if self._t0 is None or self.context.truth is None:
             return None
-        foe = np.concatenate(self._foe) if self._foe else np.zeros(0, FOE_ERR_DTYPE)
-        ttc = np.concatenate(self._ttc) if self._ttc else np.zeros(0, TTC_ERR_DTYPE)
+        foe = np.concatenate(self._foe) if self._foe else np.zeros(0, FOE_ERROR.dtype)
+        ttc = np.concatenate(self._ttc) if self._ttc else np.zeros(0, TTC_ERROR.dtype)
         fm = self._foe_metrics(foe)
         tm, curves = self._ttc_metrics(ttc)
-        self.context.metrics["foe"] = fm
-        self.context.metrics["ttc"] = tm
+        self.context.metrics[self.metrics_key("foe")] = fm
+        self.context.metrics[self.metrics_key("ttc")] = tm
         if self.params.plots:
             self._plots(foe, ttc, curves)
         return None

@@ -9,7 +9,10 @@ from pydantic import Field, model_validator
 
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import EventPacket, FlowPacket
+from evchain.core.series import DENSITY_BIN_US, FLOW_DENSITY, DensityCounter
 from evchain.errors import FilterError
+
+DENSITY_SERIES = FLOW_DENSITY.name
 
 GRADIENTS = {"backward": 0, "central": 1, "central2": 2, "savitzky_golay": 3}
 
@@ -30,6 +33,7 @@ class LKFlow(Filter):
     name = "lk_flow"
     consumes = EventPacket
     produces = FlowPacket
+    adds_series = (FLOW_DENSITY,)
 
     class Params(FilterParams):
         search_distance: int = Field(2, ge=1, le=8, description=(
@@ -93,7 +97,6 @@ class LKFlow(Filter):
             return self
 
     def reset(self) -> None:
-        from evchain.filters.flow_scorer import DENSITY_BIN_US, DensityCounter
         from evchain.kernels.lk_flow import new_state
 
         self._density = DensityCounter(DENSITY_BIN_US)
@@ -130,8 +133,6 @@ class LKFlow(Filter):
                                 q.centre_check_px, q.max_window_us, q.slow_px, idx, vx, vy)
         else:
             n_out = 0
-        from evchain.filters.flow_scorer import DENSITY_SERIES
-
         idx = idx[:n_out]
         out = FlowPacket.from_events(packet, idx, vx[:n_out], vy[:n_out])
         self._last = packet
@@ -139,8 +140,6 @@ class LKFlow(Filter):
                                                                  packet.t_end))
 
     def flush(self) -> FlowPacket | None:
-        from evchain.filters.flow_scorer import DENSITY_SERIES
-
         if self._last is None:
             return None
         end = self._last.t_end

@@ -9,7 +9,9 @@ from pydantic import Field, model_validator
 
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import EventPacket, FlowPacket
-from evchain.filters.flow_scorer import DENSITY_BIN_US, DENSITY_SERIES, DensityCounter
+from evchain.core.series import DENSITY_BIN_US, FLOW_DENSITY, DensityCounter
+
+DENSITY_SERIES = FLOW_DENSITY.name
 
 
 class PlaneFlow(Filter):
@@ -38,6 +40,7 @@ class PlaneFlow(Filter):
     name = "plane_flow"
     consumes = EventPacket
     produces = FlowPacket
+    adds_series = (FLOW_DENSITY,)
 
     class Params(FilterParams):
         variant: Literal["single", "iterative", "robust", "original", "savitzky_golay"] = Field(

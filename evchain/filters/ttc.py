@@ -9,12 +9,11 @@ from pydantic import Field
 
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import FlowPacket
+from evchain.core.series import FOE, TTC, TTC_CLUSTERS
 from evchain.errors import DataError
 
-TTC_DTYPE = [("t", "i8"), ("tau_s", "f8"), ("cluster", "i8"), ("x", "f8"), ("y", "f8"),
-             ("support", "f8")]
-CLUSTER_DTYPE = [("t", "i8"), ("cluster", "i8"), ("x", "f8"), ("y", "f8"), ("size_px", "f8"),
-                 ("tau_s", "f8"), ("support", "f8"), ("ground_ratio", "f8")]
+TTC_DTYPE = TTC.dtype
+CLUSTER_DTYPE = TTC_CLUSTERS.dtype
 
 
 class Ttc(Filter):
@@ -41,6 +40,8 @@ class Ttc(Filter):
     name = "ttc"
     consumes = FlowPacket
     produces = FlowPacket
+    needs_series = (FOE,)
+    adds_series = (TTC, TTC_CLUSTERS)
 
     class Params(FilterParams):
         estimate_every_us: int = Field(10_000, ge=1, description="period of the TTC output")

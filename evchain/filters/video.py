@@ -10,8 +10,9 @@ from pydantic import Field
 
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import EventPacket
+from evchain.core.series import FOE, TTC
 from evchain.errors import ConfigError
-from evchain.io.atomic import partial_path
+from evchain.io.atomic import AtomicFile
 from evchain.report.render import RED, YELLOW, draw_cross, event_image
 
 
@@ -26,6 +27,7 @@ class Video(Filter):
 
     name = "video"
     consumes = EventPacket
+    optional_series = (FOE, TTC)
 
     class Params(FilterParams):
         path: str = Field("events.gif", description="output file (.gif or .mp4), in the run folder")
@@ -45,9 +47,7 @@ class Video(Filter):
 
     def reset(self):
         self.close()
-        self.path = self.context.output_path(self.params.path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.tmp = partial_path(self.path)
+        self.out = AtomicFile.reserve(self.context.output_path(self.params.path))
         self.writer = None
         self.frame_start = None
         self.pending: list[EventPacket] = []
@@ -61,7 +61,7 @@ class Video(Filter):
         kw = {"duration": 1.0 / self.params.fps, "loop": 0} if self.format == "GIF" else {
             "fps": self.params.fps, "macro_block_size": 1}
         try:
-            return iio.get_writer(self.tmp, format=self.format, mode="I", **kw)
+            return iio.get_writer(self.out.tmp, format=self.format, mode="I", **kw)
         except ImportError:
             raise ConfigError("writing .mp4 needs: pip install 'evchain[video]'",
                               key="video.path") from None
@@ -84,10 +84,11 @@ class Video(Filter):
         self.frame_start = t_end
         if self.frames >= self.params.max_frames:
             return
-        if "foe" in series and len(series["foe"]):
-            self.foe = (series["foe"]["x"][-1], series["foe"]["y"][-1])
-        if "ttc" in series and len(series["ttc"]):
-            self.ttc_text = f"TTC {series['ttc']['tau_s'][-1]:.2f} s"
+        foe, ttc = series.get(FOE.name), series.get(TTC.name)
+        if foe is not None and len(foe):
+            self.foe = (foe["x"][-1], foe["y"][-1])
+        if ttc is not None and len(ttc):
+            self.ttc_text = f"TTC {ttc['tau_s'][-1]:.2f} s"
         g = shown.geometry
         flow = (shown.vx, shown.vy) if hasattr(shown, "vx") else (None, None)
         img = event_image(g.height, g.width, shown.x, shown.y, shown.p, *flow)
@@ -123,7 +124,7 @@ class Video(Filter):
                                               g.width * self.params.scale, 3), np.uint8))
         self.writer.close()
         self.writer = None
-        self.tmp.replace(self.path)
+        self.out.commit()
         return None
 
     def close(self):
@@ -131,5 +132,4 @@ class Video(Filter):
         if writer is not None:
             writer.close()
             self.writer = None
-            if self.path.exists():
-                self.path.unlink()
+            self.out.abort()

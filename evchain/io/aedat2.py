@@ -474,12 +474,8 @@ class Writer:
 def write_aedat2(path: str | Path, events: EventPacket, chip: ChipName | None = None) -> Path:
     """Write ``events`` to ``path`` atomically (``path.partial`` until complete)."""
     c = chip_for(events.geometry, chip)
-    out = AtomicFile(path)
-    try:
+    with AtomicFile(path) as out:
         Writer(out, c).write(events.x, events.y, events.t, events.p)
-        out.commit()
-    finally:
-        out.abort()
     return Path(path)
 
 

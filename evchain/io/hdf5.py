@@ -12,7 +12,6 @@ finished file from ``NAME.partial`` only on success.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -22,7 +21,7 @@ from pydantic import Field
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import EventPacket, Geometry
 from evchain.errors import ConfigError, DataError
-from evchain.io.atomic import partial_path
+from evchain.io.atomic import AtomicFile
 from evchain.io.slicing import slice_stream
 
 COLUMNS = ("x", "y", "t", "p")
@@ -135,10 +134,8 @@ class Hdf5Writer(Filter):
 
     def reset(self):
         self.close()
-        self.path = self.context.output_path(self.params.path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.tmp = partial_path(self.path)
-        self.file = self.h5py.File(self.tmp, "w")
+        self.out = AtomicFile.reserve(self.context.output_path(self.params.path))
+        self.file = self.h5py.File(self.out.tmp, "w")
         g = self.file.create_group("events")
         geo = self.context.geometry
         if geo is not None:
@@ -151,7 +148,6 @@ class Hdf5Writer(Filter):
         self.events = g
         self.pending: list[EventPacket] = []
         self.n_pending = 0
-        self.committed = False
 
     def process(self, packet: EventPacket) -> EventPacket:
         if len(packet):
@@ -177,8 +173,7 @@ class Hdf5Writer(Filter):
         self._write_pending()
         self.file.close()
         self.file = None
-        os.replace(self.tmp, self.path)
-        self.committed = True
+        self.out.commit()
         return None
 
     def close(self):
@@ -186,5 +181,4 @@ class Hdf5Writer(Filter):
         if f is not None:
             f.close()
             self.file = None
-            if self.path.exists():
-                self.path.unlink()
+            self.out.abort()

@@ -9,9 +9,6 @@ import numpy as np
 
 from evchain.io.atomic import atomic_write_bytes
 
-RATE_DTYPE = [("t", "i8"), ("t_bin_start", "i8"), ("t_bin_end", "i8"), ("rate_eps", "f8"),
-              ("on", "i8"), ("off", "i8")]
-
 
 def plot_event_rate(series: np.ndarray, path: str | Path, title: str = "",
                     label: str = "") -> None:

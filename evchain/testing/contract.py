@@ -5,7 +5,10 @@ filters alike.
 * ``reset()`` and a replay give the same output;
 * empty packets flow: each input packet gives one output packet, and output slices are
   consecutive, ordered and valid (a filter that holds data back may lag, never overlap);
-* inputs are not mutated.
+* inputs are not mutated;
+* the output carries the series the filter declares it adds (``adds_series``), with the
+  declared dtype, and no series it does not declare (a declared series may be missing only
+  when the input lacks one of the series the filter needs or reads).
 
 Use :func:`check_filter` and :func:`check_source` directly, or the ``filter_contract`` fixture of
 the pytest plugin (``evchain.testing.pytest_plugin``, active once evchain is installed).
@@ -159,11 +162,13 @@ def check_filter(cls: type[Filter], params: dict[str, Any], packets: list[Packet
         f.setup(p, make_context(geometry, truth, out_dir, seed))
         return f
 
+    given = _input_series(cls, packets)
     before = _snapshot(packets)
     f = fresh()
     reference = flatten(run_filter(f, packets))
     if bad := _mutated(before, packets):
         raise ContractError(f"{cls.name}: mutated its input ({bad})")
+    _check_added_series(cls, p, given, reference)
     f.reset()
     replay = flatten(run_filter(f, packets))
     f.close()
@@ -179,6 +184,44 @@ def check_filter(cls: type[Filter], params: dict[str, Any], packets: list[Packet
             raise ContractError(f"{cls.name}: cutting the stream ({label}, {len(cut)} packets) "
                                 f"changed the output in {bad}")
     return reference
+
+
+def _input_series(cls: type[Filter], packets: list[Packet]) -> dict[str, np.dtype]:
+    """The series of the input stream by name; it must carry those ``cls`` needs, with the
+    dtypes it reads."""
+    given = {name: entries.dtype for p in packets for name, entries in p.series.items()}
+    for want in (*cls.needs_series, *cls.optional_series):
+        if want.name in given and given[want.name] != want.dtype:
+            raise ValueError(f"check_filter: the input's series {want.name!r} has fields "
+                             f"({', '.join(given[want.name].names)}); {cls.name} reads "
+                             f"({want.fields()})")
+    missing = [s.name for s in cls.needs_series if s.name not in given]
+    if missing:
+        raise ValueError(f"check_filter: {cls.name} needs the series {missing} on its input "
+                         "packets (its needs_series)")
+    return given
+
+
+def _check_added_series(cls: type[Filter], params, given: dict[str, np.dtype],
+                        output: dict[str, np.ndarray]) -> None:
+    declared = {s.name: s for s in cls.series_added(params)}
+    for key, entries in output.items():
+        if not key.startswith("series:"):
+            continue
+        name = key.removeprefix("series:")
+        want = declared[name].dtype if name in declared else given.get(name)
+        if want is None:
+            raise ContractError(f"{cls.name}: its output carries the series {name!r}, which it "
+                                "does not declare in adds_series")
+        if entries.dtype != want:
+            raise ContractError(f"{cls.name}: series {name!r} has fields "
+                                f"({', '.join(entries.dtype.names)}) of dtype {entries.dtype}, "
+                                f"expected {want}")
+    if all(s.name in given for s in cls.optional_series):
+        missing = [name for name in declared if f"series:{name}" not in output]
+        if missing:
+            raise ContractError(f"{cls.name}: declares it adds the series {missing}, but its "
+                                "output carries none")
 
 
 def _mutated(before: list[dict[str, np.ndarray]], packets: list[Packet]) -> list[str]:

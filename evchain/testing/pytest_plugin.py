@@ -32,10 +32,3 @@ def filter_contract(tmp_path):
     """Contract checks writing any outputs into the test's ``tmp_path``."""
     return _Contract(tmp_path)
 
-
-@pytest.fixture
-def evchain_registry():
-    """The registry of built-in filters plus installed plugins."""
-    from evchain.core.registry import make_registry
-
-    return make_registry()

@@ -126,8 +126,8 @@ def expansion_stream(n_packets: int = 4, events_per_packet: int = 400,
                      ) -> tuple[list[FlowPacket], ExpansionTruth]:
     """Flow packets of a pure expansion (normal flow on random edge normals) and the matching
     ground truth; with ``foe_series``, each packet carries the true FOE as a ``foe`` series entry
-    (t, x, y, support) at its start, as ``foe_map`` would provide."""
-    from evchain.core.packets import series_array
+    (t, x, y, support, total) at its start, as ``foe_map`` would provide."""
+    from evchain.core.series import FOE
 
     truth = ExpansionTruth(foe, t_collision_s)
     packets = []
@@ -136,9 +136,8 @@ def expansion_stream(n_packets: int = 4, events_per_packet: int = 400,
         tau = float(truth.ttc(t0 + packet_us // 2))
         p = expansion_flow(foe, tau, events_per_packet, geometry, t0, t0 + packet_us,
                            seed=seed + i, normal_only=True)
-        entry = series_array([("t", "i8"), ("x", "f8"), ("y", "f8"), ("support", "f8")],
-                             t=[t0], x=[foe[0]], y=[foe[1]], support=[1.0])
-        packets.append(p.with_series("foe", entry) if foe_series else p)
+        entry = FOE.array(t=[t0], x=[foe[0]], y=[foe[1]], support=[1.0], total=[1.0])
+        packets.append(p.with_series(FOE.name, entry) if foe_series else p)
     return packets, truth
 
 

@@ -88,6 +88,20 @@ def test_a_failed_make_leaves_no_entry(cache_dir):
     assert not inp.exists()
 
 
+class _Unwritable:
+    def __array__(self, *_args, **_kwargs):
+        raise RuntimeError("cannot convert")
+
+
+def test_a_failed_write_leaves_only_the_partial_file(cache_dir):
+    inp = BenchInput("fake", "unwritable", {}, ("bench_cache.py",),
+                     lambda: {"values": _Unwritable()})
+    with pytest.raises(RuntimeError, match="cannot convert"):
+        inp.prepare(echo=lambda s: None)
+    assert not inp.exists()
+    assert inp.path.with_name(inp.path.name + ".partial").exists()
+
+
 def _workloads(made: list):
     """``fake-input`` reads a cached input (3 values, 2 with quick); ``fake-plain`` reads none."""
     def inputs(quick):

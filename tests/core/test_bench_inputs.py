@@ -13,7 +13,7 @@ from evchain.benchmarks.drive_inputs import (
     load_events,
     load_flow,
 )
-from evchain.benchmarks.flow_plane import expanding_scene_events
+from evchain.benchmarks.plane_flow import expanding_scene_events
 from evchain.core.config import load_pipeline
 from evchain.core.filter import Context
 from evchain.core.packets import FlowPacket, Geometry

@@ -63,3 +63,11 @@ def test_series_written_as_csv(registry, tmp_path):
     lines = (tmp_path / "series" / "count.csv").read_text().splitlines()
     assert lines == ["t,n", "0,100", "10000,100", "20000,100"]
     assert result.report["series"] == {"count": 3}
+
+
+
+def test_scorers_with_ids_keep_their_own_metrics(registry, tmp_path):
+    text = ("chain:\n  - use: toy_source\n  - use: toy_scorer\n"
+            "  - use: toy_scorer\n    id: second\n    weight: 2\n")
+    rep = run(text, registry, tmp_path).report
+    assert rep["metrics"] == {"scored": {"count": 300}, "scored@second": {"count": 600}}

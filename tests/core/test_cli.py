@@ -53,3 +53,25 @@ def test_filters_lists_and_describes(capsys):
     assert cli.main(["filters", "hdf5"]) == 0
     out = capsys.readouterr().out
     assert "packet_us: int = 10000  [>= 1]" in out and "slice duration" in out
+
+
+def test_validate_rejects_ttc_without_foe(tmp_path, capsys):
+    p = tmp_path / "x.yaml"
+    p.write_text("chain:\n  - use: scene\n  - use: emulator\n  - use: lk_flow\n"
+                 "  - use: ttc\n  - use: foe_ttc_scorer\n")
+    assert cli.main(["validate", str(p)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (f"evchain: error: {p}:5:5: stage 'ttc' needs series 'foe' (added by foe_fit "
+                   "or foe_map) but no stage before it adds it")
+    p.write_text(p.read_text().replace("  - use: ttc\n", "  - use: foe_map\n  - use: ttc\n"))
+    assert cli.main(["validate", str(p)]) == 0
+    assert "ok (6 stages" in capsys.readouterr().out
+
+
+def test_filters_shows_series(capsys):
+    assert cli.main(["filters", "ttc"]) == 0
+    out = capsys.readouterr().out
+    assert ("series:\n  needs foe (t, x, y, support, total)\n"
+            "  adds ttc (t, tau_s, cluster, x, y, support)\n"
+            "  adds ttc_clusters (t, cluster, x, y, size_px, tau_s, support, ground_ratio)\n"
+            in out)

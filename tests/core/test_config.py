@@ -1,7 +1,11 @@
 import pytest
 
-from evchain import ConfigError, WiringError
+from evchain import ConfigError, EventPacket, Filter, WiringError, hookimpl
 from evchain.core.config import pipeline_from_text
+from evchain.core.registry import make_registry
+from evchain.core.series import SeriesDef
+from evchain.errors import PluginError
+from tests.core import toy_filters
 
 
 def load(text, registry, overrides=()):
@@ -101,3 +105,79 @@ def test_override_by_id_and_errors(registry):
         load(GOOD, registry, ["toy_flow.gain=-1"])
     with pytest.raises(ConfigError, match="STAGE.PARAM=VALUE"):
         load(GOOD, registry, ["gain"])
+
+
+def test_unmet_series_need_names_stage_series_and_adders(registry):
+    text = "chain:\n  - use: toy_source\n  - use: toy_writer\n  - use: toy_foe_reader\n"
+    with pytest.raises(WiringError) as info:
+        load(text, registry)
+    assert str(info.value) == (
+        "p.yaml:4:5: stage 'toy_foe_reader' needs series 'foe' (added by foe_fit or foe_map or "
+        "toy_foe) but no stage before it adds it")
+    assert info.value.line == 4
+
+
+def test_series_need_met_upstream(registry):
+    text = "chain:\n  - use: toy_source\n  - use: toy_foe\n  - use: toy_foe_reader\n"
+    assert [s.use for s in load(text, registry).stages][-1] == "toy_foe_reader"
+    # a stage after the reader does not count
+    text = "chain:\n  - use: toy_source\n  - use: toy_foe_reader\n  - use: toy_foe\n"
+    with pytest.raises(WiringError, match="p.yaml:3:5: stage 'toy_foe_reader' needs series"):
+        load(text, registry)
+
+
+class _OtherFoe(Filter):
+    """Adds a 'foe' series of another dtype."""
+
+    name = "toy_other_foe"
+    consumes = EventPacket
+    adds_series = (SeriesDef("foe", [("t", "i8"), ("x", "f8")]),)
+
+
+class _Plugin:
+    @hookimpl
+    def evchain_filters(self):
+        return [_OtherFoe]
+
+
+def test_series_of_another_dtype_is_a_wiring_error():
+    registry = make_registry(discover=False, plugins=(toy_filters, _Plugin()))
+    text = "chain:\n  - use: toy_source\n  - use: toy_other_foe\n  - use: toy_foe_reader\n"
+    with pytest.raises(WiringError, match=r"p.yaml:4:5: stage 'toy_foe_reader' reads series "
+                                          r"'foe' with fields \(t, x, y, support, total\) but "
+                                          r"stage 'toy_other_foe' \(line 3\) adds it with "
+                                          r"fields \(t, x\)"):
+        load(text, registry)
+
+
+def test_series_declarations_must_be_series_definitions():
+    class Bad(Filter):
+        name = "toy_bad_series"
+        consumes = EventPacket
+        adds_series = ("foe",)
+
+    class Plugin:
+        @hookimpl
+        def evchain_filters(self):
+            return [Bad]
+
+    with pytest.raises(PluginError, match="toy_bad_series.*adds_series must be a tuple of"):
+        make_registry(discover=False, plugins=(Plugin(),))
+
+
+def test_two_stages_of_one_filter_need_ids(registry):
+    text = ("chain:\n  - use: toy_source\n  - use: toy_scorer\n  - use: toy_flow\n"
+            "  - use: toy_scorer\n")
+    with pytest.raises(ConfigError) as info:
+        load(text, registry)
+    assert str(info.value) == (
+        "p.yaml:5:5: toy_scorer: a second stage of filter 'toy_scorer' (the first is at line 3); "
+        "give each its own 'id:' (e.g. id: toy_scorer_2) so that overrides and metrics can tell "
+        "them apart")
+    text = text.replace("  - use: toy_flow\n", "  - use: toy_flow\n    id: toy_scorer\n")
+    with pytest.raises(ConfigError, match=r"p.yaml:4:5: toy_scorer.id: id 'toy_scorer' is used "
+                                          r"twice \(first at line 3\)"):
+        load(text, registry)
+    ok = text.replace("id: toy_scorer\n", "id: flow\n") + "    id: second\n"
+    assert [s.id for s in load(ok, registry).stages] == [
+        "toy_source", "toy_scorer", "flow", "second"]

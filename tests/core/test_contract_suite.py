@@ -2,6 +2,7 @@
 
 import pytest
 
+from evchain.core.series import FOE
 from evchain.testing.contract import ContractError, check_filter, check_source, recut
 from evchain.testing.synthetic import random_events
 from tests.core import toy_filters
@@ -36,3 +37,29 @@ def test_recut_keeps_every_event():
 def test_source_contract(tmp_path):
     got = check_source(toy_filters.ToySource, {"packets": 2}, out_dir=tmp_path)
     assert len(got) == 2
+
+
+def test_declared_series_pass():
+    out = check_filter(toy_filters.ToyFoe, {}, stream())
+    assert out["series:foe"].dtype == FOE.dtype and len(out["series:foe"]) == 12
+
+
+@pytest.mark.parametrize("broken, pattern", [
+    ("silent", r"toy_foe: declares it adds the series \['foe'\], but its output carries none"),
+    ("dtype", r"toy_foe: series 'foe' has fields \(t, x, y\)"),
+    ("undeclared", r"toy_foe: its output carries the series 'count', which it does not declare"),
+])
+def test_series_declaration_broken(broken, pattern):
+    with pytest.raises(ContractError, match=pattern):
+        check_filter(toy_filters.ToyFoe, {"broken": broken}, stream())
+
+
+def test_input_must_carry_needed_series():
+    with pytest.raises(ValueError, match=r"toy_foe_reader needs the series \['foe'\]"):
+        check_filter(toy_filters.ToyFoeReader, {}, stream())
+    with_foe = [p.with_series("foe", FOE.array(t=[p.t_start])) for p in stream()]
+    out = check_filter(toy_filters.ToyFoeReader, {}, with_foe)  # passed through: no addition
+    assert len(out["series:foe"]) == 2
+    odd = [p.with_series("foe", toy_filters.COUNT.array(t=[p.t_start])) for p in stream()]
+    with pytest.raises(ValueError, match=r"the input's series 'foe' has fields \(t, n\)"):
+        check_filter(toy_filters.ToyFoeReader, {}, odd)

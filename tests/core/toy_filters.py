@@ -8,7 +8,7 @@ import numpy as np
 from pydantic import Field
 
 from evchain import EventPacket, Filter, FilterParams, FlowPacket, FramePacket, Geometry, hookimpl
-from evchain.core.packets import series_array
+from evchain.core.series import FOE, SeriesDef
 from evchain.io.atomic import AtomicFile
 from evchain.testing.synthetic import random_events, textured_frames
 
@@ -112,18 +112,83 @@ class ToyWriter(Filter):
         CLOSED.append(self.id)
 
 
+COUNT = SeriesDef("count", [("t", "i8"), ("n", "i8")], "events per packet")
+
+
 class CutDependent(Filter):
     """Broken on purpose: its series depends on where packets are cut."""
 
     name = "toy_cut_dependent"
     consumes = EventPacket
+    adds_series = (COUNT,)
 
     class Params(FilterParams):
         pass
 
     def process(self, packet):
-        entry = series_array([("t", "i8"), ("n", "i8")], t=[packet.t_start], n=[len(packet)])
-        return packet.with_series("count", entry)
+        return packet.with_series(COUNT.name, COUNT.array(t=[packet.t_start], n=[len(packet)]))
+
+
+class ToyFoe(Filter):
+    """A fixed FOE at (1, 2) every 10 ms; ``broken`` makes it break its series declaration:
+    ``silent`` adds nothing, ``dtype`` adds its entries with another dtype, ``undeclared`` adds
+    a series it does not declare."""
+
+    name = "toy_foe"
+    consumes = EventPacket
+    adds_series = (FOE,)
+
+    class Params(FilterParams):
+        broken: Literal["no", "silent", "dtype", "undeclared"] = "no"
+
+    def reset(self):
+        self.next = None
+
+    def process(self, packet):
+        if self.next is None:
+            self.next = -(-packet.t_start // 10_000) * 10_000
+        t = np.arange(self.next, packet.t_end, 10_000, dtype=np.int64)
+        self.next = int(t[-1]) + 10_000 if len(t) else self.next
+        entries = FOE.array(t=t, x=np.ones(len(t)), y=np.full(len(t), 2.0))
+        broken = self.params.broken
+        if broken == "silent":
+            return packet
+        if broken == "dtype":
+            entries = entries[["t", "x", "y"]].astype([("t", "i8"), ("x", "f8"), ("y", "f8")])
+        if broken == "undeclared":
+            packet = packet.with_series(COUNT.name, COUNT.array(t=t, n=np.zeros(len(t))))
+        return packet.with_series(FOE.name, entries)
+
+
+class ToyFoeReader(Filter):
+    """Needs the ``foe`` series (passes packets on)."""
+
+    name = "toy_foe_reader"
+    consumes = EventPacket
+    needs_series = (FOE,)
+
+    def process(self, packet):
+        return packet
+
+
+class ToyScorer(Filter):
+    """Writes ``metrics.scored`` (events seen x weight) at the end; pass-through."""
+
+    name = "toy_scorer"
+    consumes = EventPacket
+
+    class Params(FilterParams):
+        weight: int = 1
+
+    def reset(self):
+        self.count = 0
+
+    def process(self, packet):
+        self.count += self.params.weight * len(packet)
+        return packet
+
+    def flush(self):
+        self.context.metrics[self.metrics_key("scored")] = {"count": self.count}
 
 
 class Mutator(Filter):
@@ -142,4 +207,5 @@ class Mutator(Filter):
 
 @hookimpl
 def evchain_filters():
-    return [ToySource, ToyFrames, ToyFlow, ToyWriter, CutDependent, Mutator]
+    return [ToySource, ToyFrames, ToyFlow, ToyWriter, CutDependent, Mutator, ToyFoe,
+            ToyFoeReader, ToyScorer]

@@ -13,6 +13,7 @@ import pytest
 
 from evchain.core.packets import EventPacket, FlowPacket, FramePacket, Geometry, Packet
 from evchain.core.registry import make_registry
+from evchain.core.series import FOE
 from evchain.testing.contract import check_filter, check_source, recut
 from evchain.testing.synthetic import (
     expansion_stream,
@@ -65,17 +66,27 @@ def test_contract(name, tmp_path):
             pytest.skip(SOURCE_SKIP[name])
         check_source(cls, params, out_dir=tmp_path, max_packets=5)
         return
-    # flow input, and the truth every scorer needs; FOE-consuming stages get a foe series
-    packets, truth = expansion_stream(foe_series=name in NEEDS_FOE_SERIES)
+    # flow input, and the truth every scorer needs; stages that read the FOE get the true one
+    reads = (*cls.needs_series, *cls.optional_series)
+    packets, truth = expansion_stream(foe_series=FOE in reads)
     if cls.consumes is FramePacket:
         packets = frame_stream()
     elif cls.consumes is not FlowPacket and cls.consumes is not Packet:
         packets = event_stream()
-    check_filter(cls, params, packets, truth=truth, out_dir=tmp_path)
+    check_filter(cls, params, with_series(packets, reads), truth=truth, out_dir=tmp_path)
 
 
-# Stages that read the FOE estimate of an upstream foe_map from the packet's series.
-NEEDS_FOE_SERIES = {"ttc", "foe_fit"}
+def with_series(packets: list[Packet], series) -> list[Packet]:
+    """``packets`` carrying each of ``series``: the ones they lack get an entry of zeros (t =
+    the packet's start) per packet, so that the contract sees every series a filter reads."""
+    out = []
+    for p in packets:
+        for s in series:
+            if s.name not in p.series:
+                p = p.with_series(s.name, s.array(t=[p.t_start]))
+        out.append(p)
+    return out
+
 
 # Sources that cannot run without a file are covered by their own tests.
 SOURCE_SKIP = {

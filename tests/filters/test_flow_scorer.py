@@ -11,17 +11,10 @@ import numpy as np
 import pytest
 
 from evchain.core.filter import Context
-from evchain.core.packets import FlowPacket, Geometry, series_array
+from evchain.core.packets import FlowPacket, Geometry
+from evchain.core.series import FLOW_DENSITY, FLOW_ERROR, DensityCounter
 from evchain.errors import ConfigError
-from evchain.filters.flow_scorer import (
-    DENSITY_DTYPE,
-    DENSITY_SERIES,
-    ERROR_SERIES,
-    DensityCounter,
-    FlowScorer,
-    flow_errors,
-    score_flow,
-)
+from evchain.filters.flow_scorer import FlowScorer, flow_errors, score_flow
 from evchain.testing.contract import check_filter, recut
 from evchain.testing.synthetic import expansion_stream
 
@@ -57,8 +50,8 @@ def packet(rows, t_start, t_end, density=None):
                    p=np.ones(len(t), np.int8), vx=np.asarray(vx, np.float32),
                    vy=np.asarray(vy, np.float32))
     if density is not None:
-        p = p.with_series(DENSITY_SERIES, series_array(DENSITY_DTYPE, t=[density[0]],
-                                                       n_in=[density[1]], n_out=[density[2]]))
+        p = p.with_series(FLOW_DENSITY.name, FLOW_DENSITY.array(t=[density[0]], n_in=[density[1]],
+                                                                n_out=[density[2]]))
     return p.validate()
 
 
@@ -92,7 +85,7 @@ def test_exact_numbers():
     for a, b in zip(outs[:2], packets, strict=True):
         for c in FlowPacket.columns:
             np.testing.assert_array_equal(getattr(a, c), getattr(b, c))
-    series = np.concatenate([o.series[ERROR_SERIES] for o in outs])
+    series = np.concatenate([o.series[FLOW_ERROR.name] for o in outs])
     assert list(series["t"]) == [100_000, 200_000]
     assert list(series["n"]) == [2, 3]
     assert series["aee_pxs"][0] == pytest.approx(10 * r2 / 2)
@@ -128,8 +121,8 @@ def test_series_do_not_depend_on_cuts():
     ref, m_ref = run_scorer([whole])
     for cuts in ([5_000, 100_000, 100_001], [150_000, 160_000, 160_001, 300_000]):
         outs, m = run_scorer(recut([whole], cuts))
-        a = np.concatenate([o.series[ERROR_SERIES] for o in ref])
-        b = np.concatenate([o.series[ERROR_SERIES] for o in outs])
+        a = np.concatenate([o.series[FLOW_ERROR.name] for o in ref])
+        b = np.concatenate([o.series[FLOW_ERROR.name] for o in outs])
         np.testing.assert_array_equal(a, b)
         assert m == m_ref
 
@@ -160,7 +153,7 @@ def test_needs_truth():
 def test_contract(tmp_path):
     packets, truth = expansion_stream()
     out = check_filter(FlowScorer, {"bin_us": 20_000}, packets, truth=truth, out_dir=tmp_path)
-    assert len(out[f"series:{ERROR_SERIES}"]) > 0
+    assert len(out[f"series:{FLOW_ERROR.name}"]) > 0
 
 
 @pytest.mark.skipif(not (DATA / "TranslatingSquare.aedat").is_file(),

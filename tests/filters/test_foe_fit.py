@@ -7,8 +7,9 @@ import numpy as np
 
 from evchain.core.filter import Context
 from evchain.core.packets import FlowPacket, Geometry
+from evchain.core.series import FOE
 from evchain.filters.foe_fit import FoeFit
-from evchain.filters.foe_map import FOE_DTYPE, FoeMap
+from evchain.filters.foe_map import FoeMap
 from tests.naive.foe_fit import planar_flow
 
 A = (1 / 22.8, 1 / 40.0, 1 / 25.0)
@@ -87,7 +88,7 @@ def _split(pk, n_packets):
     happen at different places); the first one carries one vote near the FOE."""
     one = FlowPacket.concat(pk)
     t0, t1 = pk[0].t_start, pk[-1].t_end
-    votes = np.zeros(1, FOE_DTYPE)
+    votes = np.zeros(1, FOE.dtype)
     votes[0] = (0, 163.0, 115.0, 1.0, 1.0)
     out = []
     for i in range(n_packets):
@@ -124,7 +125,7 @@ def test_keeps_fits_30_px_from_biased_votes():
     it is not a failure. With votes 30 px off the true FOE the fits stay on the truth."""
     foe = (159.5, 119.5)
     pk = packets(foe, G, n=60000, duration_us=600_000, n_packets=60, noise=0.2)
-    votes = np.zeros(1, FOE_DTYPE)
+    votes = np.zeros(1, FOE.dtype)
     votes[0] = (0, foe[0] - 30.0, foe[1], 1.0, 1.0)
     pk = [p.replace(series={"foe": votes if i == 0 else votes[:0]}) for i, p in enumerate(pk)]
 
@@ -146,7 +147,7 @@ def _with_votes(pk, votes_at):
     """``pk`` with one vote per packet, at ``votes_at(t_start)``."""
     out = []
     for p in pk:
-        v = np.zeros(1, FOE_DTYPE)
+        v = np.zeros(1, FOE.dtype)
         v[0] = (p.t_start, *votes_at(p.t_start), 1.0, 1.0)
         out.append(p.replace(series={"foe": v}))
     return out

@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 
 from evchain.core.filter import Context
-from evchain.core.packets import FlowPacket, Geometry, series_array
+from evchain.core.packets import FlowPacket, Geometry
+from evchain.core.series import TTC
 from evchain.filters.foe_map import FoeMap, foe_series
 from evchain.filters.foe_ttc_scorer import FoeTtcScorer, foe_angle_deg
-from evchain.filters.ttc import TTC_DTYPE, Ttc
+from evchain.filters.ttc import Ttc
 from evchain.testing.contract import check_filter
 from evchain.testing.synthetic import ExpansionTruth, expansion_stream
 from tests.naive.foe_map import expansion_packets
@@ -32,9 +33,9 @@ def stream(dx=0.0, dy=0.0, tau_factor=1.0, t_collision=4.0, gap=None, at=None):
         keep = np.ones(len(t), bool) if gap is None else ~((t >= gap[0] * 1e6)
                                                           & (t < gap[1] * 1e6))
         cx, cy = (60.0, 60.0) if at is None else at(t[keep] * 1e-6)
-        ttc = series_array(TTC_DTYPE, t=t[keep], tau_s=tau[keep], cluster=np.ones(keep.sum()),
-                           x=np.broadcast_to(cx, keep.sum()), y=np.broadcast_to(cy, keep.sum()),
-                           support=np.ones(keep.sum()))
+        ttc = TTC.array(t=t[keep], tau_s=tau[keep], cluster=np.ones(keep.sum()),
+                        x=np.broadcast_to(cx, keep.sum()), y=np.broadcast_to(cy, keep.sum()),
+                        support=np.ones(keep.sum()))
         p = FlowPacket.empty(G, t0, t0 + 100_000)
         p = p.with_series("foe", foe_series(np.full(len(t), FOE[0] + dx),
                                             np.full(len(t), FOE[1] + dy), t, np.ones(len(t))))

@@ -9,7 +9,8 @@ import pytest
 
 from evchain.core.filter import Context
 from evchain.core.packets import EventPacket, Geometry
-from evchain.filters.flow_scorer import DENSITY_SERIES, score_flow
+from evchain.core.series import FLOW_DENSITY
+from evchain.filters.flow_scorer import score_flow
 from evchain.filters.plane_flow import PlaneFlow
 from evchain.testing.contract import check_filter, recut
 from evchain.testing.synthetic import moving_edge_events, random_events
@@ -37,7 +38,7 @@ def test_contract(variant, tmp_path):
                        edge_stream(), out_dir=tmp_path)
     assert len(out["t"]) > 50
     assert np.isfinite(out["vx"]).all() and np.isfinite(out["vy"]).all()
-    dens = out[f"series:{DENSITY_SERIES}"]
+    dens = out[f"series:{FLOW_DENSITY.name}"]
     n_in = sum(len(p) for p in edge_stream())
     assert dens["n_in"].sum() == n_in
     assert dens["n_out"].sum() == len(out["t"])
@@ -82,7 +83,7 @@ def test_empty_stream():
     outs = run([EventPacket.empty(g, 0, 1000), EventPacket.empty(g, 1000, 5000)])
     assert [len(o) for o in outs] == [0, 0, 0]
     assert outs[-1].t_start == outs[-1].t_end == 5000
-    assert all(len(o.series[DENSITY_SERIES]) == 0 for o in outs)
+    assert all(len(o.series[FLOW_DENSITY.name]) == 0 for o in outs)
 
 
 @pytest.mark.skipif(not (DATA / "TranslatingSquare.aedat").is_file(),

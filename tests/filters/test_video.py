@@ -34,6 +34,19 @@ def test_gif_of_flow_with_overlays(tmp_path):
     assert not (tmp_path / "flow.gif.partial").exists()
 
 
+def test_failed_run_leaves_only_partial(tmp_path):
+    packets, truth = expansion_stream(n_packets=4, packet_us=25_000, foe_series=True)
+    (tmp_path / "flow.gif").write_bytes(b"stale output of an earlier run")
+    f = Video()
+    f.setup(Video.Params(path="flow.gif", frame_us=20_000, scale=1),
+            make_context(packets[0].geometry, truth, tmp_path))
+    for p in packets[:3]:  # frames are written, then the run fails: no flush
+        f.process(p)
+    f.close()
+    assert not (tmp_path / "flow.gif").exists()
+    assert (tmp_path / "flow.gif.partial").read_bytes()[:6] == b"GIF89a"
+
+
 def test_bad_suffix_is_a_config_error(tmp_path):
     with pytest.raises(ConfigError, match="must end in .gif or .mp4"):
         Video().setup(Video.Params(path="x.avi"), make_context(None, None, tmp_path))

@@ -74,7 +74,7 @@ def test_rules_catch_history(text):
     "the timing scorer helper against the emulator", "def test_timing_errors_helper():",
     "lead = self.x_lead(t_us)", "the leading edge", "a sessionless run", "CHANGELOG.md",
     "one code path for both signs of a vote (two helpers fewer)",
-    "The helper `evchain.filters.flow_scorer.DensityCounter` does", "the helper `box_albedo`",
+    "The helper `evchain.core.series.DensityCounter` does", "the helper `box_albedo`",
     "docs/results.md, \"Benchmarks\"",
 ])
 def test_rules_leave_product_words_alone(text):

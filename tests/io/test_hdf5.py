@@ -3,9 +3,11 @@ import pytest
 
 from evchain.core.chain import run_pipeline
 from evchain.core.config import pipeline_from_text
+from evchain.core.filter import Filter
 from evchain.core.packets import EventPacket
 from evchain.core.registry import make_registry
 from evchain.errors import FilterError
+from evchain.hookspecs import hookimpl
 from evchain.testing.contract import check_source
 from evchain.testing.synthetic import random_events
 
@@ -35,6 +37,42 @@ def test_round_trip_through_pipeline(tmp_path, monkeypatch, block_events):
         for c in ("x", "y", "t", "p"):
             assert np.array_equal(f["events"][c][:], getattr(ev, c)), c
         assert f["events"].attrs["width"] == 64
+
+
+def test_failed_run_leaves_only_partial(tmp_path):
+    ev = random_events(500, t_start=0, t_end=30_000, seed=2)
+    write_file(tmp_path / "in.h5", ev)
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "copy.h5").write_bytes(b"stale output of an earlier run")
+    registry = make_registry(discover=False, plugins=(_FailPlugin(),))
+    text = (f"chain:\n  - use: hdf5\n    path: {tmp_path / 'in.h5'}\n    packet_us: 7000\n"
+            "  - use: hdf5_writer\n    path: copy.h5\n  - use: toy_fail\n")
+    with pytest.raises(FilterError, match="disk on fire"):
+        run_pipeline(pipeline_from_text(text, "p.yaml", registry), registry, tmp_path / "run")
+    assert not (tmp_path / "run" / "copy.h5").exists()
+    assert (tmp_path / "run" / "copy.h5.partial").exists()
+
+
+class _Fail(Filter):
+    """Fails on the second packet."""
+
+    name = "toy_fail"
+    consumes = EventPacket
+
+    def reset(self):
+        self.seen = 0
+
+    def process(self, packet):
+        self.seen += 1
+        if self.seen == 2:
+            raise RuntimeError("disk on fire")
+        return packet
+
+
+class _FailPlugin:
+    @hookimpl
+    def evchain_filters(self):
+        return [_Fail]
 
 
 def test_source_contract_and_slices(tmp_path):

@@ -31,7 +31,7 @@ import numpy as np
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import EventPacket, Geometry
 from evchain.errors import ConfigError, DataError
-from evchain.io.atomic import partial_path
+from evchain.io.atomic import AtomicFile
 from evchain.io.slicing import slice_stream
 from pydantic import Field, field_validator
 
@@ -188,26 +188,25 @@ class Aedat4Writer(Filter):
     def reset(self):
         self._abort()
         self.path = self.context.output_path(self.params.path)
-        self.tmp = partial_path(self.path)
+        self.out: AtomicFile | None = None  # a run has started (its output, once committed)
         self.geometry = None
         self.pending: list = []  # converted event stores not yet handed to the writer
         self.pending_events = 0
-        self.dirty = False  # a run has started and not been committed
 
     def _open(self, geometry: Geometry) -> None:
         dv = self.dv
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        if self.tmp.exists():
-            self.tmp.unlink()
+        if self.out.tmp.exists():
+            self.out.tmp.unlink()
         self.linkdir = Path(tempfile.mkdtemp(prefix="evchain-aedat4-"))
         target = self.linkdir / self.path.name  # ends in .aedat4, points at NAME.partial
         try:
-            os.symlink(self.tmp.resolve(), target)
+            os.symlink(self.out.tmp.resolve(), target)
         except OSError:  # no symbolic links here: write the partial file under a .aedat4 name
             shutil.rmtree(self.linkdir, ignore_errors=True)
             self.linkdir = None
-            self.tmp = self.path.with_name(self.path.stem + ".partial.aedat4")
-            target = self.tmp
+            self.out = AtomicFile.reserve(
+                self.path, self.path.with_name(self.path.stem + ".partial.aedat4"))
+            target = self.out.tmp
         compression = getattr(dv.CompressionType, COMPRESSIONS[self.params.compression])
         config = dv.io.MonoCameraWriter.EventOnlyConfig(
             self.params.camera, (geometry.width, geometry.height), compression)
@@ -225,7 +224,8 @@ class Aedat4Writer(Filter):
             raise DataError(f"{self.path}: packet at {packet.t_start} us is "
                             f"{packet.geometry.width}x{packet.geometry.height}, the file is "
                             f"for {self.geometry.width}x{self.geometry.height}")
-        self.dirty = True
+        if self.out is None:
+            self.out = AtomicFile.reserve(self.path)
         if len(packet):
             # dv-processing takes no numpy arrays: one push_back per event. The tuple overload
             # driven by map() is about 3x faster than push_back(t, x, y, p) in a Python loop.
@@ -252,20 +252,20 @@ class Aedat4Writer(Filter):
             if self.geometry is None:
                 raise DataError(f"{self.path}: no packets and no sensor geometry; cannot write "
                                 "an AEDAT 4.0 file")
+        if self.out is None:
+            self.out = AtomicFile.reserve(self.path)
         self._drain()
         self.writer = None  # the destructor finishes the file (file data table) and closes it
-        os.replace(self.tmp, self.path)
+        self.out.commit()
         self._remove_link()
-        self.dirty = False
         return None
 
     def _abort(self) -> None:
         """No flush: finish the partial file if one is open, remove any stale ``NAME``."""
         self.writer = None
         self.pending, self.pending_events = [], 0
-        if getattr(self, "dirty", False) and self.path.exists():
-            self.path.unlink()
-        self.dirty = False
+        if getattr(self, "out", None) is not None:
+            self.out.abort()
         self._remove_link()
 
     def _remove_link(self) -> None:

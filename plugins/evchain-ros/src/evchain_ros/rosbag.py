@@ -17,7 +17,6 @@ rpg_dvs_ros drivers and stored in most DVS datasets recorded with ROS.
 
 from __future__ import annotations
 
-import os
 import shutil
 from collections.abc import Iterator
 from pathlib import Path
@@ -27,7 +26,7 @@ import numpy as np
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import EventPacket, Geometry
 from evchain.errors import ConfigError, DataError
-from evchain.io.atomic import partial_path
+from evchain.io.atomic import AtomicFile, partial_path
 from evchain.io.slicing import slice_stream
 from pydantic import Field
 
@@ -196,10 +195,12 @@ class RosbagWriter(Filter):
             self.tmp.unlink()
         if self.ros2:  # NAME.partial/NAME/, so the storage file inside is NAME/NAME.db3
             self.tmp.mkdir()
+            self.out = AtomicFile.reserve(self.path, self.tmp / self.path.name)
             plugin = getattr(StoragePlugin, self.params.storage.upper())
-            writer = Writer2(self.tmp / self.path.name, version=9, storage_plugin=plugin)
+            writer = Writer2(self.out.tmp, version=9, storage_plugin=plugin)
         else:
-            writer = Writer1(self.tmp)
+            self.out = AtomicFile.reserve(self.path, self.tmp)
+            writer = Writer1(self.out.tmp)
             if self.params.compression != "none":
                 writer.set_compression(getattr(Writer1.CompressionFormat,
                                                self.params.compression.upper()))
@@ -242,11 +243,9 @@ class RosbagWriter(Filter):
         self.writer.close()
         self.writer = None
         self._remove_old()
+        self.out.commit()
         if self.ros2:
-            os.replace(self.tmp / self.path.name, self.path)
             self.tmp.rmdir()
-        else:
-            os.replace(self.tmp, self.path)
         return None
 
     def _abort(self) -> None:
@@ -259,6 +258,7 @@ class RosbagWriter(Filter):
         except Exception:  # closing only tidies the partial output; the run has failed anyway
             pass
         self._remove_old()
+        self.out.abort()
 
     def _remove_old(self) -> None:
         """Remove the output of an earlier run: a bag file, or a folder that is a ROS 2 bag."""

@@ -10,11 +10,11 @@ jAER's default central gradient (``faithful-central``). Parameters: the thesis's
   ``gtTranslatingSquare.mat`` (truth: 20 px/s).
 * ``reference`` (``flow-lk-reference``): the first 10 s (2 s with ``--quick``) of the reference
   drive as pipelines/reference.yaml renders it, a cached input shared with the plane-fit
-  benchmark (:func:`evchain.benchmarks.flow_plane.reference_input`; ``evchain bench --prepare
+  benchmark (:func:`evchain.benchmarks.plane_flow.reference_input`; ``evchain bench --prepare
   flow-lk-reference`` makes it); exact ground truth from the scene. Error = invalid rate (share
   of flow vectors more than 90° from p - FOE); AEE in ``extra``.
 * ``expanding`` (``flow-lk-expanding``): the synthetic expanding scene of
-  :func:`evchain.benchmarks.flow_plane.expanding_scene_events` (240x180, 10 s, 2 s with
+  :func:`evchain.benchmarks.plane_flow.expanding_scene_events` (240x180, 10 s, 2 s with
   ``--quick``), error as for ``reference``.
 
 ``throughput`` = input events / s of the filter's ``process`` over 10 ms packets (one thread,
@@ -30,7 +30,7 @@ from pathlib import Path
 
 from evchain.bench import BenchRow, cut_every
 from evchain.bench_cache import Workload
-from evchain.benchmarks.flow_plane import (
+from evchain.benchmarks.plane_flow import (
     expanding_data,
     expanding_scene_events,
     expanding_seconds,
