@@ -30,7 +30,9 @@ def evchain_filters() -> list[type]:
 
     Each class needs a unique ``name`` (the ``use:`` key in pipelines), ``consumes`` and
     ``produces`` packet types and a nested pydantic ``Params`` model. Two plugins claiming one
-    name is an error that names both distributions.
+    name is an error that names both distributions. A stage that reads the ground truth
+    declares it (``needs_truth``, ``uses_truth``; protocols of :mod:`evchain.core.truth`), and a
+    source that sets ``context.truth`` declares ``provides_truth``.
     """
 
 
