@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from evchain.core.truth import DepthTruth, FlowTruth
+from evchain.core.truth import DepthTruth, FlowTruth, Truth
 from evchain.io.atomic import atomic_write_bytes
 
 WHITE = 1.6   # linear intensity shown as white (the sky at the horizon)
@@ -58,7 +58,7 @@ def png_bytes(image: np.ndarray) -> bytes:
 
 
 def write_preview(frame: np.ndarray, t_s: float, out_dir: str | Path, prefix: str,
-                  truth: object | None = None) -> list[Path]:
+                  truth: Truth | None = None) -> list[Path]:
     """Write ``{prefix}_t{ms}ms_frame.png`` of ``frame`` (float32 [H, W], linear intensity, the
     frame at ``t_s``) and, when ``truth`` has depth and flow (``DepthTruth`` and ``FlowTruth``),
     ``_depth.png`` and ``_flow.png`` at ``t_s``; returns the paths written."""
