@@ -31,8 +31,11 @@ def evchain_filters() -> list[type]:
     Each class needs a unique ``name`` (the ``use:`` key in pipelines), ``consumes`` and
     ``produces`` packet types and a nested pydantic ``Params`` model; the series it needs, reads
     if present and adds are tuples of :class:`evchain.core.series.SeriesDef` in
-    ``needs_series``, ``optional_series`` and ``adds_series`` (empty by default). Two plugins
-    claiming one name is an error that names both distributions.
+    ``needs_series``, ``optional_series`` and ``adds_series`` (empty by default). A stage that
+    reads the ground truth declares it (``needs_truth``, ``uses_truth``; protocols of
+    :mod:`evchain.core.truth`), and a source that sets ``context.truth`` declares
+    ``provides_truth``. Two plugins claiming one name is an error that names both
+    distributions.
     """
 
 

@@ -20,28 +20,16 @@ import hashlib
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar, Protocol, runtime_checkable
+from typing import Any, ClassVar
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict
 
+from evchain.core import truth as _truth
 from evchain.core.packets import Geometry, Packet
+from evchain.core.renderer import FrameRenderer
 from evchain.core.series import SeriesDef
-
-
-@runtime_checkable
-class GroundTruth(Protocol):
-    """What a source knows exactly. Times ``t_us`` are µs (scalars or arrays, float allowed).
-
-    Providers implement what they can (``flow``, ``foe``, ``ttc``, ``depth``; a simulator also
-    ``object_id(x, y, t_us)`` and ``obstacle_ids``: which object is seen where); a method they
-    cannot answer simply does not exist, and scorers check with ``hasattr``. Undefined values
-    are NaN (e.g. the FOE when not moving forward).
-    """
-
-    def flow(self, x: np.ndarray, y: np.ndarray, t_us: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Motion field (vx, vy) in px/s at pixel positions and times."""
-        ...
+from evchain.core.truth import Truth
 
 
 class FilterParams(BaseModel):
@@ -54,14 +42,18 @@ class FilterParams(BaseModel):
 class Context:
     """What the filters of one run share.
 
-    ``geometry`` and ``truth`` are set by the source during its ``setup``; ``metrics`` is filled
-    by scorers (it becomes ``report.json``'s ``metrics``); ``out_dir`` is where sinks write.
+    ``geometry``, ``truth`` and ``renderer`` are set by the source during its ``setup``:
+    ``truth`` is the ground-truth provider (protocols in :mod:`evchain.core.truth`), read by
+    scorers and picture sinks only; ``renderer`` renders the source's frames at any time, for
+    picture sinks (:mod:`evchain.core.renderer`). ``metrics`` is filled by scorers (it becomes
+    ``report.json``'s ``metrics``); ``out_dir`` is where sinks write.
     """
 
     seed: int = 0
     out_dir: Path = field(default_factory=lambda: Path("."))
     geometry: Geometry | None = None
-    truth: Any = None
+    truth: Truth | None = None
+    renderer: FrameRenderer | None = None
     metrics: dict[str, Any] = field(default_factory=dict)
     debug: bool = False
 
@@ -97,18 +89,39 @@ class Filter:
     optional_series: ClassVar[tuple[SeriesDef, ...]] = ()
     adds_series: ClassVar[tuple[SeriesDef, ...]] = ()
     Params: ClassVar[type[FilterParams]] = FilterParams
+    #: ground truth (protocols of :mod:`evchain.core.truth`) this stage cannot work without;
+    #: :meth:`setup` checks it and stores the truth as ``self.truth``
+    needs_truth: ClassVar[tuple[type, ...]] = ()
+    #: ground truth this stage uses when the truth has it (it says what it could not score)
+    uses_truth: ClassVar[tuple[type, ...]] = ()
+    #: another way to give this stage its truth, named when the truth is missing
+    truth_hint: ClassVar[str] = ""
+    #: sources: the ground truth they set as ``context.truth``
+    provides_truth: ClassVar[tuple[type, ...]] = ()
 
     params: Any
     context: Context
     id: str
 
     def setup(self, params: FilterParams, context: Context) -> None:
-        """Store parameters and context, then :meth:`reset`. Override to open files etc."""
+        """Store parameters and context, check the ground truth that ``needs_truth`` asks for
+        (a ConfigError naming the stage without it), then :meth:`reset`. Override to open
+        files etc."""
         self.params = params
         self.context = context
         if not hasattr(self, "id"):
             self.id = self.name
+        if self.needs_truth or self.uses_truth:
+            self.truth = self.truth_for(params, context)
+            stage = repr(self.id) if self.id == self.name else f"{self.id!r} ({self.name})"
+            _truth.require(stage, self.needs_truth, self.truth, self.truth_hint)
         self.reset()
+
+    def truth_for(self, params: FilterParams, context: Context) -> Truth | None:
+        """The ground truth this stage reads (if it declares ``needs_truth`` or
+        ``uses_truth``): the source's ``context.truth``; a stage may take it from elsewhere
+        (e.g. a file named in its parameters)."""
+        return context.truth
 
     def reset(self) -> None:
         """Clear all state (a replay after reset gives the same output)."""

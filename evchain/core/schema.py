@@ -8,6 +8,7 @@ from pydantic_core import PydanticUndefined
 
 from evchain.core.filter import Filter
 from evchain.core.series import SeriesDef
+from evchain.core.truth import describe
 
 _BOUND_NAMES = {"gt": ">", "ge": ">=", "lt": "<", "le": "<=", "multiple_of": "multiple of",
                 "min_length": "min length", "max_length": "max length"}
@@ -18,6 +19,15 @@ def _type_name(annotation: Any) -> str:
     text = text or str(annotation)
     return (text.replace("typing.", "").replace("pathlib.", "").replace("<class '", "")
             .replace("'>", ""))
+
+
+def truth_line(cls: type[Filter]) -> str:
+    """``ground truth: needs ...; uses ...; provides ...`` from the filter's declarations, or
+    "" for a stage that touches none."""
+    parts = [f"{verb} {describe(protocols)}" for verb, protocols in
+             (("needs", cls.needs_truth), ("optional", cls.uses_truth),
+              ("provides", cls.provides_truth)) if protocols]
+    return f"ground truth: {'; '.join(parts)}" if parts else ""
 
 
 def field_rows(cls: type[Filter]) -> list[dict[str, str]]:
@@ -53,7 +63,9 @@ def describe_filter(cls: type[Filter], distribution: str) -> str:
     """Human-readable reference of one filter: doc, wiring, series and parameter table."""
     consumes = cls.consumes.__name__ if cls.consumes else "(source)"
     produces = cls.produces.__name__ if cls.produces else "(same as input)"
-    lines = [f"{cls.name}  [{distribution}]  {consumes} -> {produces}", ""]
+    lines = [f"{cls.name}  [{distribution}]  {consumes} -> {produces}"]
+    lines += [truth_line(cls)] if truth_line(cls) else []
+    lines += [""]
     lines += [ln.rstrip() for ln in (cls.__doc__ or "").strip().splitlines()]
     rows = series_rows(cls)
     if rows:
@@ -85,6 +97,7 @@ def filters_markdown(registry, distribution: str = "evchain") -> str:
         consumes = cls.consumes.__name__ if cls.consumes else "(source)"
         produces = cls.produces.__name__ if cls.produces else "(same as input)"
         out += [f"## `{name}`", "", f"*{info.distribution}* · {consumes} → {produces}", ""]
+        out += [f"*{truth_line(cls)}*", ""] if truth_line(cls) else []
         out += [ln.strip() for ln in (cls.__doc__ or "").strip().splitlines()] + [""]
         series = series_rows(cls)
         if series:

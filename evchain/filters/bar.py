@@ -13,6 +13,7 @@ from pydantic import Field
 
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import FramePacket, Geometry
+from evchain.core.truth import FlowTruth, FoeTruth, TtcTruth
 
 
 class BarSource(Filter):
@@ -20,13 +21,15 @@ class BarSource(Filter):
 
     A full-height bar moves right at ``speed_pxs``; edges sharp (exact pixel-area coverage) or
     gradual (linear ramp, logistic sigmoid or Gaussian-blurred erf of ``edge_width_px``). Frames
-    at ``t_start_us + k * dt_us``. Ground truth: flow (bar velocity on the bar, 0 elsewhere) and
-    ``crossing_times(...)`` of every log level for the emulator.
+    at ``t_start_us + k * dt_us``. Ground truth: flow (bar velocity on the bar, 0 elsewhere),
+    FOE and TTC (undefined for a translation: NaN) and ``crossing_times(...)`` of every log
+    level for the emulator.
     """
 
     name = "bar"
     consumes = None
     produces = FramePacket
+    provides_truth = (FlowTruth, FoeTruth, TtcTruth)
 
     class Params(FilterParams):
         width: int = Field(64, ge=1, le=4096, description="sensor width in pixels")

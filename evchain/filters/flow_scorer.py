@@ -1,8 +1,9 @@
 """Optical-flow scoring against ground truth: the ``flow_scorer`` stage and reusable helpers.
 
 * :func:`flow_errors` gives per-event errors of flow events against a ground-truth provider
-  (``truth.flow(x, y, t_us)``, optionally ``truth.foe(t_us)``); :func:`summarize` turns them
-  into metrics; :func:`score_flow` does both (pure numpy, for benchmarks).
+  (a :class:`~evchain.core.truth.FlowTruth`, also a ``FoeTruth`` for the invalid rate);
+  :func:`summarize` turns them into metrics; :func:`score_flow` does both (pure numpy, for
+  benchmarks).
 * :class:`FlowScorer` (``flow_scorer``) passes flow packets through unchanged, appends the series
   ``flow_error`` per time bin and writes ``context.metrics["flow"]`` at the end of the stream,
   with the density from the flow filter's ``flow_density`` series
@@ -21,7 +22,7 @@ from pydantic import Field
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import FlowPacket
 from evchain.core.series import FLOW_DENSITY, FLOW_ERROR
-from evchain.errors import ConfigError
+from evchain.core.truth import FlowTruth, FoeTruth, not_scored
 
 #: outlier thresholds
 OUTLIER_REL = 0.5  # relative endpoint error above 50 %
@@ -59,7 +60,7 @@ def flow_errors(x, y, t, vx, vy, truth) -> dict[str, np.ndarray]:
         ang = np.degrees(np.arctan2(np.abs(vx * uy - vy * ux), vx * ux + vy * uy))
         ae = np.where(ok & (gt_speed > 0) & (speed > 0), ang, np.nan)
     invalid = np.full(n, np.nan)
-    if hasattr(truth, "foe"):
+    if isinstance(truth, FoeTruth):
         fx, fy = truth.foe(t)
         fx = np.broadcast_to(np.asarray(fx, np.float64), (n,))
         fy = np.broadcast_to(np.asarray(fy, np.float64), (n,))
@@ -147,7 +148,8 @@ class FlowScorer(Filter):
     per ``bin_us`` with flow events: t = bin end, n, aee_pxs, aee_normal_pxs, aae_deg,
     invalid_rate). At the end ``metrics.flow`` (``metrics.flow@ID`` for a stage with an ``id``)
     holds the run's values; ``density`` = flow events / input events from the flow filter's
-    ``flow_density`` series (None if it has none).
+    ``flow_density`` series (None if it has none). The invalid rate needs the true FOE: without
+    it, it is None and ``not_scored`` says why.
     """
 
     name = "flow_scorer"
@@ -155,27 +157,25 @@ class FlowScorer(Filter):
     produces = None
     optional_series = (FLOW_DENSITY,)
     adds_series = (FLOW_ERROR,)
+    needs_truth = (FlowTruth,)
+    uses_truth = (FoeTruth,)
+    truth_hint = "or give the parameter ground_truth: path/to/gt.mat (DVSFLOW16)"
 
     class Params(FilterParams):
         ground_truth: str | None = Field(
             None, description="DVSFLOW16 ground-truth .mat file; default: the source's truth")
         bin_us: int = Field(100_000, gt=0, description="time-series bin (us)")
 
-    def setup(self, params, context) -> None:
-        super().setup(params, context)
-        if params.ground_truth is not None:
-            from evchain.io.dvsflow16 import DVSFLOW16Truth
+    def truth_for(self, params, context):
+        """The DVSFLOW16 file ``ground_truth`` if given, else the source's truth."""
+        if params.ground_truth is None:
+            return context.truth
+        from evchain.io.dvsflow16 import DVSFLOW16Truth
 
-            geom = context.geometry
-            self.truth = DVSFLOW16Truth(Path(params.ground_truth),
-                                        height=None if geom is None else geom.height,
-                                        width=None if geom is None else geom.width)
-        else:
-            self.truth = context.truth
-        if self.truth is None or not hasattr(self.truth, "flow"):
-            raise ConfigError("flow_scorer needs ground truth: a source that provides flow "
-                              "ground truth, or the parameter ground_truth: path/to/gt.mat",
-                              key="ground_truth")
+        geom = context.geometry
+        return DVSFLOW16Truth(Path(params.ground_truth),
+                              height=None if geom is None else geom.height,
+                              width=None if geom is None else geom.width)
 
     def reset(self) -> None:
         self.bins: dict[int, list[dict[str, np.ndarray]]] = {}
@@ -226,6 +226,8 @@ class FlowScorer(Filter):
         m = metrics_from_sums(merged)
         m["density"] = (self.n_out_reported / self.n_in) if self.n_in else None
         m["n_input_events"] = self.n_in if self.n_in else None
+        if not isinstance(self.truth, FoeTruth):
+            m["not_scored"] = not_scored(["invalid_rate"], self.truth, FoeTruth)
         self.context.metrics[self.metrics_key("flow")] = m
         if self.last is None:
             return None

@@ -10,18 +10,19 @@ from pydantic import Field
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import FlowPacket
 from evchain.core.series import FOE, FOE_ERROR, TTC, TTC_CLUSTERS, TTC_ERROR
+from evchain.core.truth import FoeTruth, ObjectTruth, TtcTruth, not_scored
 
 
-def _truth_foe(truth, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    if truth is None or not hasattr(truth, "foe") or len(t) == 0:
+def _truth_foe(truth: FoeTruth, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    if len(t) == 0:
         return np.full(len(t), np.nan), np.full(len(t), np.nan)
     x, y = truth.foe(t.astype(np.float64))
     return (np.broadcast_to(np.asarray(x, np.float64), t.shape).copy(),
             np.broadcast_to(np.asarray(y, np.float64), t.shape).copy())
 
 
-def _truth_ttc(truth, t: np.ndarray) -> np.ndarray:
-    if truth is None or not hasattr(truth, "ttc") or len(t) == 0:
+def _truth_ttc(truth: TtcTruth, t: np.ndarray) -> np.ndarray:
+    if len(t) == 0:
         return np.full(len(t), np.nan)
     tau = truth.ttc(t.astype(np.float64))
     return np.broadcast_to(np.asarray(tau, np.float64), t.shape).copy()
@@ -30,10 +31,13 @@ def _truth_ttc(truth, t: np.ndarray) -> np.ndarray:
 def on_obstacle(truth, x, y, t_us, radius_px: int) -> np.ndarray | None:
     """Whether the obstacle is seen at (x, y) or at any position offset by whole pixels of at
     most ``radius_px`` in x and y (a (2 r + 1)^2 grid) at t_us, per element (1-D arrays); one
-    ``object_id`` call for all of them. None when the truth knows no objects (no
-    ``object_id``) or no obstacle (no or empty ``obstacle_ids``). Non-finite positions: False."""
-    ids = getattr(truth, "obstacle_ids", None)
-    if truth is None or not hasattr(truth, "object_id") or ids is None or len(ids) == 0:
+    ``object_id`` call for all of them. None when the truth knows no objects (not an
+    :class:`~evchain.core.truth.ObjectTruth`) or no obstacle (no or empty ``obstacle_ids``).
+    Non-finite positions: False."""
+    if not isinstance(truth, ObjectTruth):
+        return None
+    ids = truth.obstacle_ids
+    if ids is None or len(ids) == 0:
         return None
     x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
     t = np.asarray(t_us, np.float64)
@@ -77,7 +81,8 @@ class FoeTtcScorer(Filter):
       is within 20 % of the true TTC; ``coverage_on_obstacle``: share on the obstacle, whatever
       its tau; ``median_rel_error_on_obstacle``: median relative error at the times on the
       obstacle (None if never). All three are None when the truth knows no objects (no
-      ``object_id``, e.g. the synthetic expansion or recorded data) or no obstacle.
+      ``object_id``, e.g. the synthetic expansion or recorded data: then ``not_scored`` names
+      them) or no obstacle.
     * ``median_rel_error_last3s``, ``share_within_10pct``, ``share_within_20pct``,
       ``coverage_last3s``: whatever cluster is reported, so a roadside object whose TTC happens
       to match the car's counts as a hit.
@@ -92,6 +97,8 @@ class FoeTtcScorer(Filter):
     produces = None
     optional_series = (FOE, TTC, TTC_CLUSTERS)
     adds_series = (FOE_ERROR, TTC_ERROR)
+    needs_truth = (FoeTruth, TtcTruth)
+    uses_truth = (ObjectTruth,)
 
     class Params(FilterParams):
         warmup_s: float = Field(1.0, ge=0, description="FOE errors before this (from the "
@@ -126,7 +133,7 @@ class FoeTtcScorer(Filter):
         self._taken: set[float] = set()
 
     def process(self, packet: FlowPacket) -> FlowPacket:
-        truth = self.context.truth
+        truth = self.truth
         if self._t0 is None:
             self._t0 = packet.t_start
             self._geometry = packet.geometry
@@ -159,7 +166,7 @@ class FoeTtcScorer(Filter):
         cl = packet.series.get(TTC_CLUSTERS.name)
         if cl is not None and len(cl):
             self._last_clusters = cl[cl["t"] == cl["t"][-1]].copy()
-        if self.params.plots and truth is not None:
+        if self.params.plots:
             self._keep_recent(packet)
             self._maybe_snapshot(packet)
         return out
@@ -181,14 +188,14 @@ class FoeTtcScorer(Filter):
             x, y, vx, vy = x[k], y[k], vx[k], vy[k]
         else:
             x = y = vx = vy = np.zeros(0)
-        xt, yt = _truth_foe(self.context.truth, np.array([t_us], np.int64))
+        xt, yt = _truth_foe(self.truth, np.array([t_us], np.int64))
         return {"t_us": t_us, "label": label, "x": x, "y": y, "vx": vx, "vy": vy,
                 "foe_est": self._last_foe, "foe_true": (float(xt[0]), float(yt[0])),
                 "clusters": self._last_clusters,
-                "tau_true": float(_truth_ttc(self.context.truth, np.array([t_us]))[0])}
+                "tau_true": float(_truth_ttc(self.truth, np.array([t_us]))[0])}
 
     def _maybe_snapshot(self, packet: FlowPacket) -> None:
-        tau = float(_truth_ttc(self.context.truth, np.array([packet.t_end], np.int64))[0])
+        tau = float(_truth_ttc(self.truth, np.array([packet.t_end], np.int64))[0])
         if not np.isfinite(tau):
             return
         for level in self.params.snapshot_ttc_s:
@@ -213,7 +220,7 @@ class FoeTtcScorer(Filter):
     def _ttc_metrics(self, ttc: np.ndarray) -> tuple[dict, dict]:
         p = self.params
         grid = np.arange(self._t0, self._t_end, p.sample_every_us, dtype=np.int64)
-        truth = _truth_ttc(self.context.truth, grid)
+        truth = _truth_ttc(self.truth, grid)
         ok = np.isfinite(truth) & (truth > 0)
         if not ok.any():
             return {"n": 0}, {}
@@ -248,18 +255,22 @@ class FoeTtcScorer(Filter):
         """The on-obstacle metrics over the window's grid times (estimate index idx where have,
         relative errors rel); None each when the truth cannot tell."""
         on = np.zeros(len(grid), bool)
-        sub = on_obstacle(self.context.truth, ttc["x"][idx[have]], ttc["y"][idx[have]],
+        sub = on_obstacle(self.truth, ttc["x"][idx[have]], ttc["y"][idx[have]],
                           grid[have], self.params.obstacle_margin_px)
         if sub is None:
-            return dict.fromkeys(("share_on_obstacle_within_20pct", "coverage_on_obstacle",
-                                  "median_rel_error_on_obstacle"))
+            keys = ("share_on_obstacle_within_20pct", "coverage_on_obstacle",
+                    "median_rel_error_on_obstacle")
+            if not isinstance(self.truth, ObjectTruth):
+                return {**dict.fromkeys(keys),
+                        "not_scored": not_scored(keys, self.truth, ObjectTruth)}
+            return dict.fromkeys(keys)
         on[have] = sub
         return {"share_on_obstacle_within_20pct": float(np.mean(on & (rel <= 0.20))),
                 "coverage_on_obstacle": float(np.mean(on)),
                 "median_rel_error_on_obstacle": float(np.median(rel[on])) if on.any() else None}
 
     def flush(self):
-        if self._t0 is None or self.context.truth is None:
+        if self._t0 is None:
             return None
         foe = np.concatenate(self._foe) if self._foe else np.zeros(0, FOE_ERROR.dtype)
         ttc = np.concatenate(self._ttc) if self._ttc else np.zeros(0, TTC_ERROR.dtype)

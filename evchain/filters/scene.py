@@ -9,6 +9,7 @@ from pydantic import Field, model_validator
 
 from evchain.core.filter import Filter
 from evchain.core.packets import FramePacket
+from evchain.core.truth import DepthTruth, FlowTruth, FoeTruth, ObjectTruth, TtcTruth
 from evchain.sim.config import SceneConfig
 
 
@@ -19,12 +20,14 @@ class SceneSource(Filter):
     (from the exact motion field at the earlier frame), bounded by ``dt_min_us``/``dt_max_us``;
     ``dt_us`` fixes the step instead (thesis Table 4.4: 20 or 40 µs). Packets cover
     ``packet_us`` slices (shorter when ``max_frames_per_packet`` is reached). Sets
-    ``context.geometry`` (with f, cx, cy) and ``context.truth`` (depth, flow, foe, ttc).
+    ``context.geometry`` (with f, cx, cy), ``context.truth`` (flow, FOE, TTC, depth, object
+    ids) and ``context.renderer`` (frames at any time, for picture sinks).
     """
 
     name = "scene"
     consumes = None
     produces = FramePacket
+    provides_truth = (FlowTruth, FoeTruth, TtcTruth, DepthTruth, ObjectTruth)
 
     class Params(SceneConfig):
         packet_us: int = Field(10_000, ge=1, le=10_000_000, description="slice per packet, µs")
@@ -47,6 +50,7 @@ class SceneSource(Filter):
             return self
 
     def setup(self, params, context) -> None:
+        from evchain.sim.renderer import SceneRenderer
         from evchain.sim.scene import Scene
         from evchain.sim.truth import SceneTruth
 
@@ -55,6 +59,7 @@ class SceneSource(Filter):
         self.duration_us = int(round(self.scene.duration_s * 1e6))
         context.geometry = self.scene.geometry
         context.truth = self.truth
+        context.renderer = SceneRenderer(self.scene)
         super().setup(params, context)
 
     def reset(self) -> None:

@@ -11,6 +11,7 @@ from pydantic import Field
 
 from evchain.core.filter import Context, Filter
 from evchain.core.packets import EventPacket
+from evchain.core.truth import DepthTruth, FlowTruth, FoeTruth, ObjectTruth, TtcTruth
 from evchain.errors import DataError
 from evchain.sim.config import SceneConfig
 
@@ -21,12 +22,14 @@ class SceneEvents(Filter):
 
     Give the scene parameters of the run that wrote the file (see its
     ``pipeline.resolved.yaml``): the truth (flow, depth, FOE, TTC) is computed from them, not
-    read from the file. Sets ``context.geometry`` (with f, cx, cy) and ``context.truth``.
+    read from the file. Sets ``context.geometry`` (with f, cx, cy) and ``context.truth`` (flow,
+    FOE, TTC, depth, object ids).
     """
 
     name = "scene_events"
     consumes = None
     produces = EventPacket
+    provides_truth = (FlowTruth, FoeTruth, TtcTruth, DepthTruth, ObjectTruth)
 
     class Params(SceneConfig):
         path: str = Field(description="AEDAT 2.0 file written by a run of this scene")

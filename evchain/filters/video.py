@@ -11,6 +11,7 @@ from pydantic import Field
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import EventPacket
 from evchain.core.series import FOE, TTC
+from evchain.core.truth import FoeTruth
 from evchain.errors import ConfigError
 from evchain.io.atomic import AtomicFile
 from evchain.report.render import RED, YELLOW, draw_cross, event_image
@@ -28,6 +29,7 @@ class Video(Filter):
     name = "video"
     consumes = EventPacket
     optional_series = (FOE, TTC)
+    uses_truth = (FoeTruth,)
 
     class Params(FilterParams):
         path: str = Field("events.gif", description="output file (.gif or .mp4), in the run folder")
@@ -93,9 +95,8 @@ class Video(Filter):
         flow = (shown.vx, shown.vy) if hasattr(shown, "vx") else (None, None)
         img = event_image(g.height, g.width, shown.x, shown.y, shown.p, *flow)
         if self.params.overlay == "all":
-            truth = self.context.truth
-            if truth is not None and hasattr(truth, "foe"):
-                tx, ty = truth.foe(np.array([t_end], np.float64))
+            if isinstance(self.truth, FoeTruth):
+                tx, ty = self.truth.foe(np.array([t_end], np.float64))
                 draw_cross(img, float(tx[0]), float(ty[0]), RED)
             draw_cross(img, *self.foe, YELLOW)
         img = np.kron(img, np.ones((self.params.scale, self.params.scale, 1), np.uint8))

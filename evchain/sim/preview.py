@@ -4,7 +4,7 @@ Flow is drawn with direction as hue and magnitude as brightness (saturating at t
 percentile, printed into the file name). Used by the ``scene_preview`` sink and usable directly:
 
 >>> from evchain.sim.preview import write_preview
->>> write_preview(truth, t_s=1.0, out_dir="preview", prefix="high-rise")   # doctest: +SKIP
+>>> write_preview(renderer.render(1e6), 1.0, "preview", "high-rise", truth)   # doctest: +SKIP
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from evchain.core.truth import DepthTruth, FlowTruth, Truth
 from evchain.io.atomic import atomic_write_bytes
 
 WHITE = 1.6   # linear intensity shown as white (the sky at the horizon)
@@ -56,24 +57,23 @@ def png_bytes(image: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def write_preview(truth, t_s: float, out_dir: str | Path, prefix: str,
-                  frame: np.ndarray | None = None) -> list[Path]:
-    """Write ``{prefix}_t{ms}ms_frame.png``, ``_depth.png`` and ``_flow.png`` (frame rendered
-    by ``truth.render`` unless given; depth and flow when the provider offers them)."""
+def write_preview(frame: np.ndarray, t_s: float, out_dir: str | Path, prefix: str,
+                  truth: Truth | None = None) -> list[Path]:
+    """Write ``{prefix}_t{ms}ms_frame.png`` of ``frame`` (float32 [H, W], linear intensity, the
+    frame at ``t_s``) and, when ``truth`` has depth and flow (``DepthTruth`` and ``FlowTruth``),
+    ``_depth.png`` and ``_flow.png`` at ``t_s``; returns the paths written."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     t_us = t_s * 1e6
     stem = f"{prefix}_t{int(round(t_s * 1000)):06d}ms"
     written = []
-    if frame is None:
-        frame = truth.render(t_us)
     path = out / f"{stem}_frame.png"
     atomic_write_bytes(path, png_bytes(tone_map(frame)))
     written.append(path)
-    if truth is not None and hasattr(truth, "depth") and hasattr(truth, "flow"):
+    if isinstance(truth, DepthTruth) and isinstance(truth, FlowTruth):
         h, w = frame.shape
         ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
-        if hasattr(truth, "depth_and_flow"):
+        if hasattr(truth, "depth_and_flow"):     # one query instead of two (SceneTruth)
             depth, vx, vy = truth.depth_and_flow(xs, ys, t_us)
         else:
             depth = truth.depth(xs, ys, t_us)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 from collections import deque
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -42,8 +43,8 @@ class Scene:
         #: the latest time the route supports (the drive may stop earlier)
         self.max_time_s = ((self.world.route_m - cfg.start_m) / cfg.speed_mps
                            if cfg.speed_mps > 0 else self.duration_s)
-        self._own = self._scratch()     # for render()
         self._pool: ThreadPoolExecutor | None = None
+        self._pool_lock = threading.Lock()
 
     @classmethod
     def from_params(cls, threads: int = 1, **values) -> Scene:
@@ -86,20 +87,22 @@ class Scene:
                 np.zeros(nb), np.zeros((nb, 4)))
 
     def _pool_of(self, nt: int) -> ThreadPoolExecutor:
-        if self._pool is None:
-            self._pool = ThreadPoolExecutor(nt, thread_name_prefix="scene-render")
-        return self._pool
+        with self._pool_lock:     # render() may be called from several threads
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(nt, thread_name_prefix="scene-render")
+            return self._pool
 
     def render(self, t_s: float, out: np.ndarray | None = None) -> tuple[np.ndarray, float]:
         """Frame (float32 [H, W], linear intensity) at time t_s and the largest image speed
         (px/s) at that time over the first sample row of every pixel row (drives the adaptive
-        time step)."""
+        time step). Thread-safe: each call has scratch of its own, so a picture sink may render
+        while :meth:`frames` renders on other threads."""
         from evchain.kernels.scene import render, render_rows
 
         cam = self.camera
         if out is None:
             out = np.empty((cam.height, cam.width), np.float32)
-        args = self._frame_args(t_s, out, self._own)
+        args = self._frame_args(t_s, out, self._scratch())
         nt = self._nthreads()
         if nt == 1:
             vmax = render(*args)

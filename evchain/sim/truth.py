@@ -1,9 +1,10 @@
 """Exact ground truth of a simulated drive, at any pixel position and time.
 
-:class:`SceneTruth` implements the provider protocol of :mod:`evchain.core.filter`
-(``depth``, ``flow``, ``foe``, ``ttc``; times in µs, floats allowed, scalars or arrays that
-broadcast). Depth uses the renderer's own ray caster; flow is the motion field of the camera's
-translation and rotation at that depth:
+:class:`SceneTruth` implements every protocol of :mod:`evchain.core.truth` (``flow``, ``foe``,
+``ttc``, ``depth``, ``object_id`` and ``obstacle_ids``; times in µs, floats allowed, scalars
+or arrays that broadcast); it answers questions, it does not render (the ``scene`` source's
+:class:`~evchain.sim.renderer.SceneRenderer` does). Depth uses the renderer's own ray
+caster; flow is the motion field of the camera's translation and rotation at that depth:
 
     u' = f [(-vX + x̄ vZ) / Z + ωX x̄ ȳ - ωY (1 + x̄²) + ωZ ȳ]
     v' = f [(-vY + ȳ vZ) / Z + ωX (1 + ȳ²) - ωY x̄ ȳ - ωZ x̄]
@@ -30,10 +31,11 @@ __all__ = ["OBJECT_GROUND", "OBJECT_SKY", "SceneTruth"]
 
 
 class SceneTruth:
-    """Ground-truth provider of a :class:`~evchain.sim.scene.Scene`."""
+    """Ground-truth provider of a :class:`~evchain.sim.scene.Scene`: a ``FlowTruth``,
+    ``FoeTruth``, ``TtcTruth``, ``DepthTruth`` and ``ObjectTruth``."""
 
     def __init__(self, scene: Scene):
-        self.scene = scene
+        self._scene = scene
         cam = scene.camera
         self.f, self.cx, self.cy = cam.f, cam.cx, cam.cy
         self.obstacle_ids: np.ndarray = scene.world.obstacle_ids   # box indices of the car
@@ -52,7 +54,7 @@ class SceneTruth:
         depth, vx, vy = np.empty(n), np.empty(n), np.empty(n)
         obj = np.empty(n, np.int64)
         if n:
-            s = self.scene
+            s = self._scene
             truth_query(xf, yf, tf, self.f, self.cx, self.cy, s.boxes, s.segs, s.traj,
                         depth, vx, vy, obj)
         return depth.reshape(shape), vx.reshape(shape), vy.reshape(shape), obj.reshape(shape)
@@ -84,7 +86,7 @@ class SceneTruth:
         n = tf.size
         pos, rot, vc, wc = np.empty((n, 3)), np.empty((n, 3, 3)), np.empty((n, 3)), np.empty((n, 3))
         if n:
-            camera_states(tf, self.scene.segs, self.scene.traj, pos, rot, vc, wc)
+            camera_states(tf, self._scene.segs, self._scene.traj, pos, rot, vc, wc)
         return t.shape, pos, rot, vc, wc
 
     def velocity(self, t_us):
@@ -104,7 +106,7 @@ class SceneTruth:
     def ttc(self, t_us) -> np.ndarray:
         """Time to contact with the obstacle in s (thesis eq. 3.6); NaN when undefined."""
         shape, pos, rot, vc, _ = self._states(t_us)
-        target = self.scene.world.obstacle_rear
+        target = self._scene.world.obstacle_rear
         if target is None:
             return _shaped(np.full(len(pos), np.nan), shape)
         vw = np.einsum("nij,nj->ni", rot, vc)
@@ -114,32 +116,6 @@ class SceneTruth:
             tau = np.einsum("ni,ni->n", rel, vw) / v2
         tau = np.where((v2 > 0) & (tau >= 0), tau, np.nan)
         return _shaped(tau, shape)
-
-    # -- pictures ----------------------------------------------------------------------------
-    def render(self, t_us: float) -> np.ndarray:
-        """The frame (float32 [H, W], linear intensity) at t_us."""
-        return self.scene.render(float(t_us) * 1e-6)[0].copy()
-
-    def pixel_grid(self) -> tuple[np.ndarray, np.ndarray]:
-        cam = self.scene.camera
-        return np.meshgrid(np.arange(cam.width, dtype=float), np.arange(cam.height, dtype=float))
-
-    def with_scenario(self, scenario: str) -> SceneTruth:
-        """The same camera and speed in another scenario, from the start of its route, to its
-        end (dynamics adapted: curves for the curves scenario)."""
-        from evchain.sim.config import SceneConfig, make_config
-
-        values = self.scene.cfg.model_dump()
-        values = {k: values[k] for k in SceneConfig.model_fields}
-        values["scenario"] = scenario
-        values["route_m"] = None
-        if scenario == "curves":
-            values["dynamics"] = "curves"
-        elif values["dynamics"] == "curves":
-            values["dynamics"] = "constant"
-        values["duration_s"] = None
-        values["start_m"] = 0.0
-        return SceneTruth(Scene(make_config(SceneConfig, **values)))
 
 
 def _shaped(a: np.ndarray, shape) -> np.ndarray:

@@ -9,6 +9,8 @@ filters alike.
 * the output carries the series the filter declares it adds (``adds_series``), with the
   declared dtype, and no series it does not declare (a declared series may be missing only
   when the input lacks one of the series the filter needs or reads).
+* a stage that declares no ground truth (``needs_truth``, ``uses_truth``) never reads
+  ``context.truth``; a source's ``context.truth`` implements exactly its ``provides_truth``.
 
 Use :func:`check_filter` and :func:`check_source` directly, or the ``filter_contract`` fixture of
 the pytest plugin (``evchain.testing.pytest_plugin``, active once evchain is installed).
@@ -24,6 +26,7 @@ import numpy as np
 
 from evchain.core.filter import Context, Filter
 from evchain.core.packets import Packet
+from evchain.core.truth import PROTOCOLS, describe
 
 
 class ContractError(AssertionError):
@@ -146,13 +149,16 @@ def check_filter(cls: type[Filter], params: dict[str, Any], packets: list[Packet
     """Check the contract for ``cls`` with ``params`` on the stream ``packets``.
 
     Files go to ``out_dir``, else to a temporary directory removed afterwards. Returns the
-    reference output (columns and series, concatenated) for further checks.
+    reference output (columns and series, concatenated) for further checks. A filter that
+    declares no ground truth gets ``truth`` behind a guard that fails on any read.
     """
     if not packets:
         raise ValueError("check_filter needs a non-empty input stream")
     if out_dir is None:
         with tempfile.TemporaryDirectory(prefix="evchain-contract-") as tmp:
             return check_filter(cls, params, packets, truth, Path(tmp), seed)
+    if truth is not None and not (cls.needs_truth or cls.uses_truth):
+        truth = UnreadableTruth(cls.name)
     geometry = packets[0].geometry
     p = cls.Params(**params)
 
@@ -224,6 +230,32 @@ def _check_added_series(cls: type[Filter], params, given: dict[str, np.dtype],
                                 "output carries none")
 
 
+class UnreadableTruth:
+    """Stands in for the ground truth of a stage that declares none: any read is a
+    ContractError (algorithm filters never read the truth; scorers declare what they read)."""
+
+    def __init__(self, stage: str):
+        object.__setattr__(self, "_stage", stage)
+
+    def __getattribute__(self, name: str):
+        if name.startswith("__"):
+            return object.__getattribute__(self, name)
+        stage = object.__getattribute__(self, "_stage")
+        raise ContractError(f"{stage}: reads context.truth.{name} but declares neither "
+                            "needs_truth nor uses_truth (algorithm filters never read the "
+                            "ground truth)")
+
+
+def check_truth_provided(cls: type[Filter], context: Context) -> None:
+    """The source ``cls`` set ``context.truth`` implementing exactly its ``provides_truth``."""
+    has = [p for p in PROTOCOLS if context.truth is not None and isinstance(context.truth, p)]
+    declared = [p for p in PROTOCOLS if p in cls.provides_truth]
+    if has != declared:
+        raise ContractError(f"{cls.name}: provides_truth declares "
+                            f"[{describe(declared)}] but its context.truth "
+                            f"({type(context.truth).__name__}) implements [{describe(has)}]")
+
+
 def _mutated(before: list[dict[str, np.ndarray]], packets: list[Packet]) -> list[str]:
     bad = []
     for i, (snap, now) in enumerate(zip(before, _snapshot(packets), strict=True)):
@@ -244,6 +276,7 @@ def check_source(cls: type[Filter], params: dict[str, Any], out_dir: Path | None
     f = cls()
     f.id = cls.name
     f.setup(cls.Params(**params), context)
+    check_truth_provided(cls, context)
 
     def take() -> list[Packet]:
         got = []

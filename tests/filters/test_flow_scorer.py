@@ -111,7 +111,9 @@ def test_no_foe_and_nan_truth():
 
     _, m = run_scorer([packet(EVENTS, 0, 200_000)], truth=FlowOnly())
     assert m["invalid_rate"] is None
+    assert m["not_scored"] == "invalid_rate: the ground truth (FlowOnly) has no FOE (FoeTruth)"
     assert m["aee_pxs"] is None and m["n_scored"] == 0 and m["n_no_ground_truth"] == 5
+    assert "not_scored" not in run_scorer([packet(EVENTS, 0, 200_000)])[1]   # has an FOE
     e = flow_errors([1.0], [2.0], [0.0], [0.0], [0.0], ConstTruth())  # zero flow vector
     assert np.isnan(e["ae_deg"][0]) and np.isnan(e["invalid"][0]) and e["ee"][0] == 10.0
 

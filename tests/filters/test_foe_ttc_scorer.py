@@ -10,6 +10,7 @@ import pytest
 from evchain.core.filter import Context
 from evchain.core.packets import FlowPacket, Geometry
 from evchain.core.series import TTC
+from evchain.errors import ConfigError
 from evchain.filters.foe_map import FoeMap, foe_series
 from evchain.filters.foe_ttc_scorer import FoeTtcScorer, foe_angle_deg
 from evchain.filters.ttc import Ttc
@@ -86,11 +87,11 @@ def test_warmup_and_missing_estimates(tmp_path):
     assert m["ttc"]["coverage_last3s"] == pytest.approx(share)
 
 
-def test_without_truth_passes_through(tmp_path):
+def test_without_truth_fails_at_setup(tmp_path):
     packets, _ = stream()
-    m, out = score(packets, None, tmp_path)
-    assert m == {} and len(out.series["foe_error"]) == len(out.series["foe"])
-    assert np.isnan(out.series["foe_error"]["dx"]).all()
+    with pytest.raises(ConfigError, match=r"stage 'foe_ttc_scorer' needs ground truth with FOE "
+                       r"\(FoeTruth\), TTC \(TtcTruth\), but the source provides no ground truth"):
+        score(packets, None, tmp_path)
 
 
 def test_whole_chain_writes_pictures(tmp_path):
@@ -222,10 +223,16 @@ def test_truth_without_objects_gives_none(tmp_path, truth):
     m, out = score(*stream(at=on_car)[:1], truth, tmp_path)
     t = m["ttc"]
     assert t["share_within_20pct"] == 1.0
-    for key in ("share_on_obstacle_within_20pct", "coverage_on_obstacle",
-                "median_rel_error_on_obstacle"):
+    keys = ("share_on_obstacle_within_20pct", "coverage_on_obstacle",
+            "median_rel_error_on_obstacle")
+    for key in keys:
         assert key in t and t[key] is None
     assert (out.series["ttc_error"]["on_obstacle"] == -1).all()
+    if isinstance(truth, ObjectTruth):     # knows objects, but there is no obstacle
+        assert "not_scored" not in t
+    else:                                  # cannot tell: says what it could not score
+        assert t["not_scored"] == (", ".join(keys) + ": the ground truth (ExpansionTruth) has "
+                                   "no object ids (ObjectTruth)")
 
 
 def test_ttc_plot_on_and_off_the_obstacle(tmp_path):
