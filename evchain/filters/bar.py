@@ -13,7 +13,7 @@ from pydantic import Field
 
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import FramePacket, Geometry
-from evchain.core.truth import FlowTruth, FoeTruth, TtcTruth
+from evchain.core.truth import FlowTruth
 
 
 class BarSource(Filter):
@@ -29,7 +29,7 @@ class BarSource(Filter):
     name = "bar"
     consumes = None
     produces = FramePacket
-    provides_truth = (FlowTruth, FoeTruth, TtcTruth)
+    provides_truth = (FlowTruth,)
 
     class Params(FilterParams):
         width: int = Field(64, ge=1, le=4096, description="sensor width in pixels")

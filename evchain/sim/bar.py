@@ -95,8 +95,10 @@ class Bar:
 
 
 class BarTruth:
-    """Ground truth of a :class:`Bar`: flow (bar velocity on the bar, 0 on the background), no
-    FOE or TTC (NaN), and exact log-level crossing times for the emulator."""
+    """Ground truth of a :class:`Bar`: flow (bar velocity on the bar, 0 on the background) and
+    exact log-level crossing times for the emulator. A bar translating across the view has no
+    FOE and no time to contact, so this truth offers neither (scorers that need them refuse it
+    at setup)."""
 
     def __init__(self, bar: Bar):
         self.bar = bar
@@ -109,12 +111,6 @@ class BarTruth:
         on = (x >= lead - b.bar_width_px - ext) & (x <= lead + ext)
         vx = np.where(on, b.speed_pxs, 0.0)
         return vx, np.zeros_like(vx) + 0.0 * np.asarray(y, np.float64)
-
-    def foe(self, t_us):
-        return math.nan, math.nan
-
-    def ttc(self, t_us):
-        return np.full(np.shape(t_us), np.nan) if np.ndim(t_us) else math.nan
 
     def log_intensity(self, x, t_us, eps: float):
         return np.log(self.bar.intensity(x, t_us) + eps)

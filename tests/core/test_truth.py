@@ -45,7 +45,7 @@ def test_providers_implement_their_protocols(tmp_path):
     assert implemented(SceneTruth(scene)) == list(PROTOCOLS)
     assert implemented(ExpansionTruth((20.0, 15.0), 2.0)) == [FlowTruth, FoeTruth, TtcTruth,
                                                               DepthTruth]
-    assert implemented(BarTruth(Bar(width=40, height=4))) == [FlowTruth, FoeTruth, TtcTruth]
+    assert implemented(BarTruth(Bar(width=40, height=4))) == [FlowTruth]
     path = tmp_path / "gt.mat"
     savemat(str(path), {"vxGT": np.ones((3, 4)), "vyGT": np.zeros((3, 4)),
                         "ts": np.array([[0, 1000]], np.int32)})

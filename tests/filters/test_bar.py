@@ -43,7 +43,10 @@ def test_flow_truth():
     vx, vy = truth.flow(np.array([5, 20, 30, 60]), np.zeros(4), np.zeros(4))
     np.testing.assert_array_equal(vx, [0, 200, 200, 0])
     np.testing.assert_array_equal(vy, 0)
-    assert np.isnan(truth.foe(0.0)).all() and np.isnan(truth.ttc(0.0))
+    from evchain.core.truth import FlowTruth, FoeTruth, TtcTruth
+
+    assert isinstance(truth, FlowTruth)
+    assert not isinstance(truth, FoeTruth) and not isinstance(truth, TtcTruth)  # no FOE, no TTC
 
 
 def emulate_bar(params, emu, seed=0):
