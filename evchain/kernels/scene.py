@@ -59,20 +59,6 @@ def hash3(i, j, s):
     return (h & 0xFFFFFF) / 16777216.0
 
 
-@njit(**_J)
-def cellnoise(x, y, cell, seed, fp):
-    """Zero-mean value per square cell of size ``cell``, faded out when the pixel footprint
-    ``fp`` (metres, the sample spacing) approaches half the cell size (a cheap prefilter against
-    aliasing: cells smaller than two samples cannot be resolved)."""
-    inv = 1.0 / cell   # a constant at every call site: folded by the compiler
-    a = 1.0 - 2.0 * fp * inv
-    if a <= 0.0:
-        return 0.0
-    i = np.int64(math.floor(x * inv))
-    j = np.int64(math.floor(y * inv))
-    return (hash3(i, j, seed) - 0.5) * a
-
-
 # ----------------------------------------------------------------------------- road geometry
 
 @njit(**_I)
@@ -290,47 +276,6 @@ def ground_levels(fp, tex_inv, tex_off, lv_inv, lv_off, lv_mask):
         lv_inv[q] = tex_inv[q] * 0.5 ** lv
         lv_off[q] = tex_off[q, lv]
         lv_mask[q] = (np.int64(1) << (nlev - 1 - lv)) - 1
-
-
-@njit(**_I)
-def tex_lookup(tex, x, y, inv, off, mask):
-    """Nearest texel of a repeating texture level at world (x, y)."""
-    i = np.int64(math.floor(x * inv)) & mask
-    j = np.int64(math.floor(y * inv)) & mask
-    return tex[off + j * (mask + 1) + i]
-
-
-@njit(**_I)
-def ground_albedo(x, y, segs, ground, tex, lv_inv, lv_off, lv_mask):
-    """Albedo of the ground at world (x, y); the noise comes from the mip levels chosen by
-    :func:`ground_levels` for the sample footprint."""
-    s, d = road_coords(x, y, segs)
-    w = abs(d - ground[0])
-    seed = np.int64(ground[8])
-    hw = ground[1]
-    lw = ground[2] * 0.5
-    if w < hw:
-        if w < lw:
-            per = ground[6]
-            if s - per * math.floor(s / per) < ground[5]:
-                return 0.75
-        if abs(w - ground[3]) < lw:
-            return 0.75
-        return 0.16 + tex_lookup(tex, x, y, lv_inv[0], lv_off[0], lv_mask[0])
-    sw = ground[4]
-    if w < hw + sw:
-        if w < hw + 0.3:
-            return 0.45
-        sl = 1.2
-        u = s - sl * math.floor(s / sl)
-        v = (w - hw) - sl * math.floor((w - hw) / sl)
-        if u < 0.05 or v < 0.05:
-            return 0.2
-        return 0.36 + 0.1 * (hash3(np.int64(math.floor(s / sl)),
-                                   np.int64(math.floor((w - hw) / sl)), seed + 3) - 0.5)
-    if ground[7] == 0.0:
-        return 0.1 + tex_lookup(tex, x, y, lv_inv[1], lv_off[1], lv_mask[1])
-    return 0.3 + tex_lookup(tex, x, y, lv_inv[2], lv_off[2], lv_mask[2])
 
 
 @njit(**_I)
@@ -557,27 +502,16 @@ def box_span(bx0, by0, bx1, by1, ox, oy, xh0, xh1, r0, r1, ta, tb, f, cx, k, nco
 
 # ----------------------------------------------------------------------------- render
 
-@njit(**_I)
-def sky_value(xb, yb, rot, light):
-    """Sky intensity along the camera ray (xb, yb, 1): horizon to zenith by elevation."""
-    dx = rot[0, 0] * xb + rot[0, 1] * yb + rot[0, 2]
-    dy = rot[1, 0] * xb + rot[1, 1] * yb + rot[1, 2]
-    dz = rot[2, 0] * xb + rot[2, 1] * yb + rot[2, 2]
-    n = math.sqrt(dx * dx + dy * dy + dz * dz)
-    e = dz / n
-    if e < 0.0:
-        e = 0.0
-    return light[5] + (light[6] - light[5]) * e
-
-
 @njit(**_J)
 def ground_pass(kd, dxs, dys, tg, ox, oy, pcol, segs, ground, light, tex, lv_inv, lv_off,
                 lv_mask, acc):
     """acc[pcol[c]] += ground intensity at world (ox + tg dxs[c], oy + tg dys[c]) for every
     sample c of a row with kd[c] == 1 (texture levels given).
 
-    Same values as :func:`ground_albedo`, written out with the parameters in scalars (an
-    inlined helper taking arrays costs reference counting per call)."""
+    The albedo of the ground at world (x, y): asphalt with noise, centre and edge lines,
+    sidewalk slabs and kerb, grass or paving beyond, the noise from the mip levels chosen by
+    :func:`ground_levels` for the sample footprint. Written out with the parameters in scalars
+    (an inlined helper taking arrays costs reference counting per sample)."""
     lam = light[2]
     if lam < 0.0:
         lam = 0.0
@@ -990,7 +924,7 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
                 e = dz / math.sqrt(ddx * ddx + ddy * ddy + dz * dz)
                 if e < 0.0:
                     e = 0.0
-                acc[pcol[c]] += sky0 + (sky1 - sky0) * e      # as sky_value
+                acc[pcol[c]] += sky0 + (sky1 - sky0) * e
         ground_pass(kd, dxs, dys, tg, ox, oy, pcol, segs, ground, light, tex, lv_inv, lv_off,
                     lv_mask, acc)
         box_pass(kd, tb, hid, fc, dxs, dys, gxs, gys, ox, oy, oz, dz, pcol, box_mat, box_par,

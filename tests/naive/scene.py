@@ -21,13 +21,6 @@ def hash3(i, j, s):
     return (h & 0xFFFFFF) / 16777216.0
 
 
-def cellnoise(x, y, cell, seed, fp):
-    a = np.maximum(1.0 - 2.0 * fp / cell, 0.0)
-    i = np.floor(x / cell).astype(np.int64)
-    j = np.floor(y / cell).astype(np.int64)
-    return np.where(a > 0, (hash3(i, j, seed) - 0.5) * a, 0.0)
-
-
 def road_coords(x, y, segs):
     x, y = np.broadcast_arrays(np.asarray(x, float), np.asarray(y, float))
     best_s = np.zeros(x.shape)
