@@ -59,7 +59,7 @@ class Scene:
     def state(self, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(position, camera-to-world rotation, camera velocity, angular velocity) at t_s;
         velocities in camera coordinates (m/s, rad/s)."""
-        from evchain.kernels.scene import camera_state
+        from evchain.kernels.scene_geometry import camera_state
 
         pos, rot, vc, wc = np.zeros(3), np.zeros((3, 3)), np.zeros(3), np.zeros(3)
         camera_state(float(t_s), self.segs, self.traj, pos, rot, vc, wc)
@@ -68,7 +68,8 @@ class Scene:
     def _frame_args(self, t_s: float, out: np.ndarray, scratch: tuple) -> tuple:
         """Kernel arguments of the frame at t_s (camera state and visible boxes written into
         ``scratch`` = pos, rot, vc, wc, order, minz, bbox)."""
-        from evchain.kernels.scene import camera_state, frame_boxes
+        from evchain.kernels.scene_culling import frame_boxes
+        from evchain.kernels.scene_geometry import camera_state
 
         cam = self.camera
         pos, rot, vc, wc, order, minz, bbox = scratch
@@ -97,7 +98,7 @@ class Scene:
         (px/s) at that time over the first sample row of every pixel row (drives the adaptive
         time step). Thread-safe: each call has scratch of its own, so a picture sink may render
         while :meth:`frames` renders on other threads."""
-        from evchain.kernels.scene import render, render_rows
+        from evchain.kernels.scene_render import render, render_rows
 
         cam = self.camera
         if out is None:
@@ -114,7 +115,7 @@ class Scene:
 
     def _render_alone(self, t_s: float) -> tuple[np.ndarray, float]:
         """:meth:`render` on the calling thread only, with scratch of its own (thread-safe)."""
-        from evchain.kernels.scene import render
+        from evchain.kernels.scene_render import render
 
         cam = self.camera
         out = np.empty((cam.height, cam.width), np.float32)

@@ -42,7 +42,7 @@ class SceneTruth:
 
     # -- per pixel ------------------------------------------------------------------------
     def _query(self, x, y, t_us):
-        from evchain.kernels.scene import truth_query
+        from evchain.kernels.scene_truth import truth_query
 
         x, y, t = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64),
                                       np.asarray(t_us, np.float64))
@@ -79,7 +79,7 @@ class SceneTruth:
 
     # -- per time ----------------------------------------------------------------------------
     def _states(self, t_us):
-        from evchain.kernels.scene import camera_states
+        from evchain.kernels.scene_geometry import camera_states
 
         t = np.asarray(t_us, np.float64)
         tf = np.ascontiguousarray(t.ravel()) * 1e-6

@@ -1,4 +1,5 @@
-"""Slow, obvious numpy references for evchain.kernels.scene (vectorised over rays, no culling).
+"""Slow, obvious numpy references for the scene kernels, evchain.kernels.scene_* (vectorised
+over rays, no culling).
 
 Camera pose from explicit rotation matrices, tracing by testing every box for every ray,
 textures written as numpy ``where`` chains, flow by finite differences of the projection.
@@ -8,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from evchain.kernels.scene import TEXTURE_FOOTPRINT
+from evchain.kernels.scene_shading import TEXTURE_FOOTPRINT
 
 M32 = 0xFFFFFFFF
 
