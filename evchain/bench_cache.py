@@ -36,7 +36,8 @@ _PACKAGE = Path(__file__).resolve().parent
 SIMULATOR_SOURCES = (
     "sim", "kernels/scene_geometry.py", "kernels/scene_culling.py", "kernels/scene_shading.py",
     "kernels/scene_render.py", "kernels/scene_truth.py", "kernels/emulator.py",
-    "kernels/veclog.py", "kernels/intrinsics.py", "filters/scene.py", "filters/emulator.py")
+    "kernels/emulator_state.py", "kernels/emulator_crossings.py", "kernels/veclog.py",
+    "kernels/intrinsics.py", "filters/scene.py", "filters/emulator.py")
 
 #: layout of the stored arrays; part of every hash
 FORMAT = 1

@@ -34,6 +34,7 @@ def slope3(d1, d2, h1, h2):
         d = m if d > 0 else -m
     return d
 
+
 @njit(cache=True)
 def solve_crossing(level, la, lb, m0, m1, cubic):
     """Fraction s in [0, 1] of the interval where the (monotone) piece reaches ``level``.
@@ -87,6 +88,7 @@ def solve_crossing(level, la, lb, m0, m1, cubic):
         s = sn
     return s
 
+
 @njit(cache=True, error_model="numpy")
 def _fractions(u0, u1, cubic, lev, pa, pb, p0, p1, sv):
     """``sv[q]``: the fraction of the interval where crossing q (u0 <= q < u1) occurs, or -1
@@ -136,6 +138,7 @@ def _fractions(u0, u1, cubic, lev, pa, pb, p0, p1, sv):
         r = sn if ok else -1.0
         r = 1.0 if s0 >= 1.0 else r
         sv[q] = 0.0 if (lb == la) | (s0 <= 0.0) else r
+
 
 @njit(cache=True, error_model="numpy")
 def _times(u0, u1, cubic, t0, dt, refractory_us, ui, utf, up_, piece, rows):

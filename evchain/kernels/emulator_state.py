@@ -47,6 +47,7 @@ class Rule(NamedTuple):
     k_hi: float             #: gate factors of the tolerance (:func:`gate_factors`)
     k_lo: float
 
+
 class Pixels(NamedTuple):
     """Every pixel's state (H*W pixels, flat index y W + x)."""
 
@@ -54,6 +55,7 @@ class Pixels(NamedTuple):
     irows: np.ndarray       #: int64 [H*W, 16]: the same memory, for the counts
     hi: np.ndarray          #: float32 [H*W]: ON gate of the prefilter
     lo: np.ndarray          #: float32 [H*W]: OFF gate of the prefilter
+
 
 class FrameList(NamedTuple):
     """The frames :func:`emulate` reads: ``held`` then ``cur``, at ``times``."""
@@ -64,6 +66,7 @@ class FrameList(NamedTuple):
     j_base: int             #: global index of held[0]
     total: int              #: frames known (h + m; the cubic's look-ahead stops there)
 
+
 class Noise(NamedTuple):
     """Background noise events: those of interval j_first + k are ``[off[k]:off[k + 1]]``."""
 
@@ -72,6 +75,7 @@ class Noise(NamedTuple):
     x: np.ndarray           #: uint16 [events]
     t: np.ndarray           #: float64 [events], µs
     p: np.ndarray           #: int8 [events], polarity +-1
+
 
 class Scratch(NamedTuple):
     """Work arrays of :func:`emulate` (:func:`new_scratch`), kept between calls and grown when
@@ -95,6 +99,7 @@ class Scratch(NamedTuple):
     logs: np.ndarray
     unc: np.ndarray
 
+
 @njit(cache=True)
 def gates(e_ref, r_on, r_off, eps, k_hi, k_lo):
     """Conservative float32 gates (hi, lo) from e_ref = exp(L_ref)."""
@@ -104,16 +109,19 @@ def gates(e_ref, r_on, r_off, eps, k_hi, k_lo):
         return hi, np.float32(LO_NONE)
     return hi, np.float32(lo)
 
+
 @njit(cache=True)
 def gate_factors(tol):
     """(k_hi, k_lo): exp(-tol) and exp(tol) widened by the gate margin."""
     return np.exp(-tol) * (1.0 - GATE_MARGIN), np.exp(tol) * (1.0 + GATE_MARGIN)
+
 
 @njit(cache=True)
 def make_rule(cubic, eps, tol, refractory_us, cap):
     """The :class:`Rule` of these parameters (its gate factors computed here)."""
     k_hi, k_lo = gate_factors(tol)
     return Rule(cubic, eps, tol, refractory_us, cap, k_hi, k_lo)
+
 
 @njit(cache=True)
 def init_state(frame, rule, con_in, coff_in, pixels):
@@ -176,6 +184,7 @@ def init_state(frame, rule, con_in, coff_in, pixels):
             hi[i] = a
             lo[i] = b
     return ERR_NONE, 0, 0
+
 
 @njit(cache=True)
 def new_scratch(npix, ucap):

@@ -23,6 +23,9 @@ Array layouts (all float64 unless said otherwise; built by :mod:`evchain.sim.wor
   frequency Hz, interval between gear shifts s, pitch decay s, first shift s, pitch on (0/1),
   number of segments used.
 
+The renderer reads them as one record, :class:`WorldArrays`, and each frame's camera and
+visible boxes as another, :class:`FrameView` (named tuples: numba passes them like their fields).
+
 Camera: X right, Y down, Z forward; a ray through pixel (x, y) has camera direction
 ((x - cx)/f, (y - cy)/f, 1), so the ray parameter of a hit *is* its depth Z.
 All kernels use ``error_model='numpy'`` so that 1/0 gives inf (slab tests rely on it).
@@ -31,6 +34,7 @@ All kernels use ``error_model='numpy'`` so that 1/0 gives inf (slab tests rely o
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -39,6 +43,39 @@ _J = dict(cache=True, error_model="numpy")
 _I = dict(cache=True, error_model="numpy", inline="always")   # helpers of the hot loops
 
 INF = np.inf
+
+
+class WorldArrays(NamedTuple):
+    """The world as the kernels read it (layouts above); built from a scene's arrays."""
+
+    boxes: np.ndarray       #: float64 [N, 6], metres
+    box_mat: np.ndarray     #: int64 [N], material id
+    box_par: np.ndarray     #: float64 [N, 4], material parameters
+    segs: np.ndarray        #: float64 [M, 11], the driving line
+    ground: np.ndarray      #: float64 [9], road and ground parameters
+    light: np.ndarray       #: float64 [7], sun and sky
+    tex: np.ndarray         #: float32 [texels], the ground textures' mip levels
+    tex_inv: np.ndarray     #: float64 [3], inverse texel size of each texture's level 0, 1/m
+    tex_off: np.ndarray     #: int64 [3, levels], offset of each level in ``tex``
+
+
+class FrameView(NamedTuple):
+    """One frame's camera (:func:`camera_state` at the frame's time, the intrinsics and the
+    supersampling) and the boxes it may see (:func:`~evchain.kernels.scene_culling.frame_boxes`).
+    """
+
+    pos: np.ndarray     #: float64 [3], camera position, world metres
+    rot: np.ndarray     #: float64 [3, 3], camera-to-world rotation (columns: camera axes)
+    vc: np.ndarray      #: float64 [3], linear velocity in camera coordinates, m/s
+    wc: np.ndarray      #: float64 [3], angular velocity in camera coordinates, rad/s
+    f: float            #: focal length, px
+    cx: float           #: principal point x, px
+    cy: float           #: principal point y, px
+    k: int              #: samples per pixel along x and along y
+    vis: np.ndarray     #: int64 [nvis], the visible boxes, nearest first
+    minz: np.ndarray    #: float64 [N], lower depth bound of each visible box, m
+    bbox: np.ndarray    #: float64 [N, 4], its projection's bounding rectangle x0, x1, y0, y1
+    #                      in normalised image coordinates
 
 
 @njit(**_I)
@@ -84,10 +121,12 @@ def road_coords(x, y, segs):
             best_s = s0 + sl
     return best_s, best_d
 
+
 @njit(**_J)
 def road_coords_nrc(x, y, segs):
     """:func:`road_coords` as a plain (not inlined) call."""
     return road_coords(x, y, segs)
+
 
 @njit(**_J)
 def path_pose(s, segs):
@@ -106,6 +145,7 @@ def path_pose(s, segs):
     h = h0 + kap * u
     return (x0 + (math.sin(h) - math.sin(h0)) / kap,
             y0 - (math.cos(h) - math.cos(h0)) / kap, h, kap)
+
 
 @njit(**_J)
 def pitch_angle(t, traj):
@@ -131,6 +171,7 @@ def pitch_angle(t, traj):
         th += amp * e * math.sin(om * u)
         dth += amp * e * (om * math.cos(om * u) - math.sin(om * u) / decay)
     return th, dth
+
 
 @njit(**_J)
 def camera_state(t, segs, traj, pos, rot, vc, wc):
@@ -183,11 +224,13 @@ def camera_state(t, segs, traj, pos, rot, vc, wc):
         vc[a] = rot[0, a] * vw0 + rot[1, a] * vw1
         wc[a] = rot[0, a] * ww0 + rot[1, a] * ww1 + rot[2, a] * ww2
 
+
 @njit(**_J)
 def camera_states(t_s, segs, traj, pos, rot, vc, wc):
     """camera_state for many times: pos [n, 3], rot [n, 3, 3], vc [n, 3], wc [n, 3]."""
     for q in range(t_s.shape[0]):
         camera_state(t_s[q], segs, traj, pos[q], rot[q], vc[q], wc[q])
+
 
 @njit(**_I)
 def flow_at(xb, yb, rho, f, vc, wc):

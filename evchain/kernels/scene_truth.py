@@ -15,9 +15,8 @@ _I = dict(cache=True, error_model="numpy", inline="always")   # helpers of the h
 
 
 @njit(**_I)
-def trace(ox, oy, oz, dx, dy, dz, boxes, cand, start, stop, cand_minz):
-    """Nearest hit of the ray o + t d (t > 0) among the ground plane z = 0 and the boxes
-    cand[start:stop] (sorted by their lower depth bound cand_minz, which allows early exit).
+def trace(ox, oy, oz, dx, dy, dz, boxes):
+    """Nearest hit of the ray o + t d (t > 0) among the ground plane z = 0 and the boxes.
 
     Returns (t, kind, index, face): kind 0 sky, 1 ground, 2 box; face = 2 * axis + (1 if the
     max side of the slab)."""
@@ -28,15 +27,10 @@ def trace(ox, oy, oz, dx, dy, dz, boxes, cand, start, stop, cand_minz):
     if dz < 0.0 and oz > 0.0:
         tb = -oz / dz
         kind = 1
-    if stop <= start:
-        return tb, kind, idx, face
     ix = 1.0 / dx
     iy = 1.0 / dy
     iz = 1.0 / dz
-    for c in range(start, stop):
-        if cand_minz[c] >= tb:
-            break
-        b = cand[c]
+    for b in range(boxes.shape[0]):
         t1 = (boxes[b, 0] - ox) * ix
         t2 = (boxes[b, 3] - ox) * ix
         txn = min(t1, t2)
@@ -63,16 +57,39 @@ def trace(ox, oy, oz, dx, dy, dz, boxes, cand, start, stop, cand_minz):
                 face = 4 if dz > 0 else 5
     return tb, kind, idx, face
 
+
 @njit(**_J)
-def truth_query(x, y, t_s, f, cx, cy, boxes, segs, traj, depth, vx, vy, obj):
-    """Exact depth (m, inf for sky), motion field (px/s) and object id (int64: the index of the
-    box seen, -2 for the ground, -1 for the sky: ``OBJECT_*`` in :mod:`evchain.sim.world`) at
-    pixel positions (x, y) and times t_s (seconds), one query per element. Uses the same
-    tracing as the renderer."""
+def truth_query(x, y, t_s, f, cx, cy, boxes, segs, traj):
+    """Exact depth, motion field and object seen at pixel positions and times, one query per
+    element; the same ray tracing as the renderer.
+
+    Parameters
+    ----------
+    x, y : ndarray, float64 [n]
+        Pixel positions, px (image x right, y down; pixel centres at integers).
+    t_s : ndarray, float64 [n]
+        Times, s (runs of equal times share one camera state).
+    f, cx, cy : float
+        Focal length and principal point, px.
+    boxes, segs, traj : ndarray
+        The world's boxes and driving line, the trajectory (layouts:
+        :mod:`evchain.kernels.scene_geometry`).
+
+    Returns
+    -------
+    depth : ndarray, float64 [n]
+        Depth Z of the surface seen, m (inf: sky).
+    vx, vy : ndarray, float64 [n]
+        The motion field, px/s.
+    obj : ndarray, int64 [n]
+        The index of the box seen, -2 for the ground, -1 for the sky (``OBJECT_*`` in
+        :mod:`evchain.sim.world`).
+    """
     n = x.shape[0]
-    nb = boxes.shape[0]
-    cand = np.arange(nb)
-    minz = np.full(nb, -INF)
+    depth = np.empty(n)
+    vx = np.empty(n)
+    vy = np.empty(n)
+    obj = np.empty(n, np.int64)
     pos = np.empty(3)
     rot = np.empty((3, 3))
     vc = np.empty(3)
@@ -87,9 +104,10 @@ def truth_query(x, y, t_s, f, cx, cy, boxes, segs, traj, depth, vx, vy, obj):
         dx = rot[0, 0] * xb + rot[0, 1] * yb + rot[0, 2]
         dy = rot[1, 0] * xb + rot[1, 1] * yb + rot[1, 2]
         dz = rot[2, 0] * xb + rot[2, 1] * yb + rot[2, 2]
-        t, kind, idx, face = trace(pos[0], pos[1], pos[2], dx, dy, dz, boxes, cand, 0, nb, minz)
+        t, kind, idx, face = trace(pos[0], pos[1], pos[2], dx, dy, dz, boxes)
         depth[q] = t
         obj[q] = idx if kind == 2 else (-2 if kind == 1 else -1)
         fu, fv = flow_at(xb, yb, 1.0 / t, f, vc, wc)
         vx[q] = fu
         vy[q] = fv
+    return depth, vx, vy, obj

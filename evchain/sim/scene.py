@@ -66,10 +66,10 @@ class Scene:
         return pos, rot, vc, wc
 
     def _frame_args(self, t_s: float, out: np.ndarray, scratch: tuple) -> tuple:
-        """Kernel arguments of the frame at t_s (camera state and visible boxes written into
-        ``scratch`` = pos, rot, vc, wc, order, minz, bbox)."""
+        """Kernel arguments (FrameView, WorldArrays, out) of the frame at t_s (camera state and
+        visible boxes written into ``scratch`` = pos, rot, vc, wc, order, minz, bbox)."""
         from evchain.kernels.scene_culling import frame_boxes
-        from evchain.kernels.scene_geometry import camera_state
+        from evchain.kernels.scene_geometry import FrameView, WorldArrays, camera_state
 
         cam = self.camera
         pos, rot, vc, wc, order, minz, bbox = scratch
@@ -78,9 +78,11 @@ class Scene:
             raise RuntimeError("scene camera must not roll")
         nvis = frame_boxes(self.boxes, pos, rot, cam.f, cam.cx, cam.cy, cam.width,
                            cam.height, order, minz, bbox)
-        return (pos, rot, vc, wc, cam.f, cam.cx, cam.cy, cam.supersample, self.boxes,
-                self.box_mat, self.box_par, self.segs, self.ground, self.light, self.tex,
-                self.tex_inv, self.tex_off, order[:nvis], minz, bbox, out)
+        frame = FrameView(pos, rot, vc, wc, cam.f, cam.cx, cam.cy, cam.supersample, order[:nvis],
+                          minz, bbox)
+        world = WorldArrays(self.boxes, self.box_mat, self.box_par, self.segs, self.ground,
+                            self.light, self.tex, self.tex_inv, self.tex_off)
+        return frame, world, out
 
     def _scratch(self) -> tuple:
         nb = len(self.boxes)

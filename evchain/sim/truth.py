@@ -50,13 +50,9 @@ class SceneTruth:
         xf = np.ascontiguousarray(x.ravel())
         yf = np.ascontiguousarray(y.ravel())
         tf = np.ascontiguousarray(t.ravel()) * 1e-6
-        n = xf.size
-        depth, vx, vy = np.empty(n), np.empty(n), np.empty(n)
-        obj = np.empty(n, np.int64)
-        if n:
-            s = self._scene
-            truth_query(xf, yf, tf, self.f, self.cx, self.cy, s.boxes, s.segs, s.traj,
-                        depth, vx, vy, obj)
+        s = self._scene
+        depth, vx, vy, obj = truth_query(xf, yf, tf, self.f, self.cx, self.cy, s.boxes, s.segs,
+                                         s.traj)
         return depth.reshape(shape), vx.reshape(shape), vy.reshape(shape), obj.reshape(shape)
 
     def depth(self, x, y, t_us) -> np.ndarray:
