@@ -1,4 +1,4 @@
-"""Every scene kernel against the slow numpy reference in tests/naive/scene.py."""
+"""Every scene kernel against the slow numpy references in tests/naive/scene_kernels.py."""
 
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ from evchain.kernels.scene_shading import (
 )
 from evchain.kernels.scene_truth import trace
 from evchain.sim.scene import Scene
-from tests.naive import scene as N
+from tests.naive import scene_kernels as N
 
 SCENES = {
     "high-rise": dict(scenario="high-rise", start_m=150.0),
