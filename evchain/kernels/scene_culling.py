@@ -115,32 +115,15 @@ def _span_edge(t0, u0, t1, u1, ta, tb, lo, hi):
 
 
 @njit(**_I)
-def box_span(bx0, by0, bx1, by1, frame, r0, r1, ta, tb, ncols):
+def box_span(bx0, by0, bx1, by1, ox, oy, xh0, xh1, r0, r1, ta, tb, f, cx, k, ncols):
     """Sample columns [c0, c1] of one sample row whose rays can meet a box between the ray
     parameters ta and tb (conservative, with a margin of two samples; c0 > c1: none).
-
-    Parameters
-    ----------
-    bx0, by0, bx1, by1 : float
-        The box's extent in world x and y, m.
-    frame : FrameView
-        The frame's camera (no roll): position, rotation, f, cx (px) and k.
-    r0, r1 : float
-        World x and y of R = yb Y + Z for the row's normalised image y, yb.
-    ta, tb : float
-        The range of the ray parameter (depth, m) in which the box can be met.
-    ncols : int
-        Sample columns of the row (W k).
 
     The rays of a row are o + t (xb X + R) with X the camera's horizontal x axis (no roll) and
     R = yb Y + Z, so X is orthogonal to R: in the ground-plane projection a point q lies on the
     ray with t = (q - o).R_h / |R_h|^2 and xb = (q - o).X_h / t. The box's footprint clipped to
     ta <= t <= tb is a convex polygon, and xb (linear-fractional in q) takes its extremes at
     the polygon's vertices."""
-    ox = frame.pos[0]
-    oy = frame.pos[1]
-    xh0 = frame.rot[0, 0]
-    xh1 = frame.rot[1, 0]
     rr = r0 * r0 + r1 * r1
     if rr < 1e-12 or not (ta <= tb):
         return 0, ncols - 1
@@ -164,9 +147,6 @@ def box_span(bx0, by0, bx1, by1, frame, r0, r1, ta, tb, ncols):
         return 1, 0
     lo = max(lo, -1e6)
     hi = min(hi, 1e6)
-    f = frame.f
-    cx = frame.cx
-    k = frame.k
     c0 = int(math.floor((lo * f + cx + 0.5) * k - 0.5)) - 2
     c1 = int(math.ceil((hi * f + cx + 0.5) * k - 0.5)) + 2
     return max(c0, 0), min(c1, ncols - 1)

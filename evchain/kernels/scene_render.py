@@ -12,7 +12,6 @@ in :mod:`evchain.kernels.scene_geometry`).
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -21,35 +20,14 @@ from evchain.kernels.scene_culling import box_span
 from evchain.kernels.scene_geometry import INF
 from evchain.kernels.scene_shading import (
     TEXTURE_FOOTPRINT,
-    SampleRow,
-    TextureLevels,
     box_pass,
     face_light,
     ground_levels,
     ground_pass,
-    sky_pass,
 )
 
 _J = dict(cache=True, error_model="numpy")
 _I = dict(cache=True, error_model="numpy", inline="always")   # helpers of the hot loops
-
-
-class RowWork(NamedTuple):
-    """What the rows of one frame share besides the frame and the world (:func:`row_work`):
-    per-column constants, and scratch kept from row to row (n = W k sample columns)."""
-
-    row: SampleRow          #: the current sample row's samples
-    xbs: np.ndarray         #: float64 [n]: normalised image x of every sample column
-    tm: np.ndarray          #: float64 [5, n]: the columns' motion-field terms (flow_terms)
-    lit: np.ndarray         #: float64 [6]: the light on each box face (face_light)
-    ixs: np.ndarray         #: float64 [n]: 1 / world x of every sample's ray direction
-    iys: np.ndarray         #: float64 [n]: 1 / world y of every sample's ray direction
-    m2: np.ndarray          #: float64 [n]: scratch of row_vmax2
-    bmax: np.ndarray        #: float64 [n // 16 + 1]: farthest hit of each block of 16 samples
-    rprev: np.ndarray       #: float64 [2]: r0, r1 of the row whose directions the row holds
-    #                          (NaN: none)
-    levels: TextureLevels   #: the ground textures' levels of the current sample row
-    acc: np.ndarray         #: float64 [W]: the current pixel row's sums
 
 
 @njit(**_J)
@@ -120,241 +98,68 @@ def pixel_columns(w, k):
 
 @njit(**_J)
 def level_work(ntex):
-    """Scratch for the texture levels of ``ntex`` ground textures (:func:`ground_levels`)."""
-    return TextureLevels(np.empty(ntex), np.empty(ntex, np.int64), np.empty(ntex, np.int64))
+    """Per-row texture level scratch: inverse texel sizes, offsets, masks."""
+    return np.empty(ntex), np.empty(ntex, np.int64), np.empty(ntex, np.int64)
 
 
 @njit(**_J)
-def row_work(frame, world, w):
-    """The :class:`RowWork` of the rows of a frame W pixels wide. The sample row's arrays are
-    rows of one float64 [8, n] and one int32 [3, n] array (small enough to stay in the L1
-    cache with the rest)."""
-    k = frame.k
-    n = w * k
-    xbs = sample_columns(w, k, frame.cx, frame.f)
-    fw = np.empty((8, n))
-    iw = np.empty((3, n), np.int32)
-    row = SampleRow(iw[0], fw[0], iw[1], iw[2], fw[1], fw[2], fw[6], fw[7], pixel_columns(w, k))
-    return RowWork(row, xbs, flow_terms(xbs, frame.vc, frame.wc), face_light(world.light),
-                   fw[3], fw[4], fw[5], np.empty(n // 16 + 1), np.full(2, np.nan),
-                   level_work(world.tex_inv.shape[0]), np.empty(w))
-
-
-@njit(**_I)
-def row_directions(work, xh0, xh1, r0, r1, fscale):
-    """World x and y of the ray directions of a sample row, their inverses and the texture
-    footprints along u per unit of t (``work.row`` and ``work``), unless they are there already.
-
-    The horizontal directions depend on the row only through r0, r1, which are the same in
-    every row when the camera does not pitch: recomputed (two divisions per sample) only when
-    r0 or r1 differs from the row before, bit pattern and sign of zero included."""
-    rprev = work.rprev
-    if (r0 == rprev[0] and r1 == rprev[1]
-            and math.copysign(1.0, r0) == math.copysign(1.0, rprev[0])
-            and math.copysign(1.0, r1) == math.copysign(1.0, rprev[1])):
-        return
-    xbs = work.xbs
-    row = work.row
-    dxs = row.dxs
-    dys = row.dys
-    gxs = row.gxs
-    gys = row.gys
-    ixs = work.ixs
-    iys = work.iys
-    for c in range(xbs.shape[0]):
-        xb = xbs[c]
-        dx = xh0 * xb + r0
-        dy = xh1 * xb + r1
-        dxs[c] = dx
-        dys[c] = dy
-        ix = 1.0 / dx
-        iy = 1.0 / dy
-        ixs[c] = ix
-        iys[c] = iy
-        # texture footprints along u on faces of constant y and x, per unit of t
-        gxs[c] = abs(xh0 - dx * xh1 * iy) * fscale * TEXTURE_FOOTPRINT
-        gys[c] = abs(xh1 - dy * xh0 * ix) * fscale * TEXTURE_FOOTPRINT
-    rprev[0] = r0
-    rprev[1] = r1
-
-
-@njit(**_I)
-def _box_columns(frame, boxes, bq, r0, r1, ta, tz, n):
-    """Sample columns [c0, c1] of the row (r0, r1) whose rays can meet box bq between the ray
-    parameters ta and tz: :func:`box_span`, cut to the box's projected bounding rectangle
-    (with a margin of two samples)."""
-    f = frame.f
-    cx = frame.cx
-    k = frame.k
-    c0, c1 = box_span(boxes[bq, 0], boxes[bq, 1], boxes[bq, 3], boxes[bq, 4], frame, r0, r1,
-                      ta * (1.0 - 1e-9), tz * (1.0 + 1e-9), n)
-    bx0 = frame.bbox[bq, 0] * f + cx
-    bx1 = frame.bbox[bq, 1] * f + cx
-    if bx0 > -1e6:
-        c0 = max(c0, int(math.floor((bx0 + 0.5) * k - 0.5)) - 2)
-    if bx1 < 1e6:
-        c1 = min(c1, int(math.ceil((bx1 + 0.5) * k - 0.5)) + 2)
-    return c0, c1
-
-
-@njit(**_I)
-def _hit_block(work, lo, hi, mz, slab, dz, bq):
-    """The exact slab test of box bq for the samples lo .. hi - 1 of a row whose current hit is
-    farther than the box's nearest corner mz; a nearer hit replaces theirs. ``slab``: the box's
-    x and y extent relative to the camera and its z slab's ray parameters (ex0, ex1, ey0, ey1,
-    tzn, tzf). Returns whether any sample hit the box."""
-    ex0, ex1, ey0, ey1, tzn, tzf = slab
-    row = work.row
-    tb = row.tb
-    kd = row.kd
-    hid = row.hid
-    fc = row.fc
-    dxs = row.dxs
-    dys = row.dys
-    ixs = work.ixs
-    iys = work.iys
-    hit = False
-    for c in range(lo, hi):
-        if mz >= tb[c]:
-            continue
-        ix = ixs[c]
-        iy = iys[c]
-        u1 = ex0 * ix
-        u2 = ex1 * ix
-        txn = min(u1, u2)
-        txf = max(u1, u2)
-        u1 = ey0 * iy
-        u2 = ey1 * iy
-        tyn = min(u1, u2)
-        tyf = max(u1, u2)
-        tn = max(txn, max(tyn, tzn))
-        tf = min(txf, min(tyf, tzf))
-        if tn <= tf and tn > 0.0 and tn < tb[c]:
-            tb[c] = tn
-            kd[c] = 2
-            hid[c] = bq
-            hit = True
-            if txn >= tyn and txn >= tzn:
-                fc[c] = 0 if dxs[c] > 0 else 1
-            elif tyn >= tzn:
-                fc[c] = 2 if dys[c] > 0 else 3
-            else:
-                fc[c] = 4 if dz > 0 else 5
-    return hit
-
-
-@njit(**_I)
-def _block_max(tb, blk, n):
-    """The farthest hit of block blk (16 samples) of a row."""
-    m = 0.0
-    for c in range(blk << 4, min(n, (blk + 1) << 4)):
-        if tb[c] > m:
-            m = tb[c]
-    return m
-
-
-@njit(**_I)
-def trace_boxes(frame, boxes, work, yb, r0, r1, dz, tg):
-    """The nearest box hit of every sample of a sample row at normalised image y yb (world
-    direction of its rays: xb X + (r0, r1, dz), ground at ray parameter tg), where it is
-    nearer than the hit in ``work.row``.
-
-    Each visible box gets its exact z-slab for the row and the span of sample columns it can
-    cover (:func:`_box_columns`); boxes are visited nearest-first and only the samples of their
-    span whose current hit is farther than the box's nearest corner get the exact slab test
-    (blocks of 16 samples whose farthest current hit is nearer are skipped whole). The result
-    equals testing every box for every sample."""
-    tb = work.row.tb
-    bmax = work.bmax
-    vis = frame.vis
-    minz = frame.minz
-    bbox = frame.bbox
-    ox = frame.pos[0]
-    oy = frame.pos[1]
-    oz = frame.pos[2]
-    n = tb.shape[0]
-    nblk = (n + 15) // 16
-    for q in range(nblk):
-        bmax[q] = tg
-    iz = 1.0 / dz
-    for q in range(vis.shape[0]):
-        bq = vis[q]
-        mz = minz[bq]
-        if mz >= tg:
-            break
-        # outside the projection's bounding rectangle (with a relative margin): no hit
-        if yb < bbox[bq, 2] - 1e-9 * (1.0 + abs(bbox[bq, 2])) or \
-                yb > bbox[bq, 3] + 1e-9 * (1.0 + abs(bbox[bq, 3])):
-            continue
-        t1 = (boxes[bq, 2] - oz) * iz
-        t2 = (boxes[bq, 5] - oz) * iz
-        tzn = min(t1, t2)
-        tzf = max(t1, t2)
-        if tzf <= 0.0 or tzn >= tg:
-            continue
-        ta = max(tzn, mz, 1e-9)
-        tz = min(tzf, tg)
-        if tzn != tzn or tzf != tzf:
-            ta = 1e-9
-            tz = tg
-        c0, c1 = _box_columns(frame, boxes, bq, r0, r1, ta, tz, n)
-        slab = (boxes[bq, 0] - ox, boxes[bq, 3] - ox, boxes[bq, 1] - oy, boxes[bq, 4] - oy,
-                tzn, tzf)
-        for blk in range(c0 >> 4, (c1 >> 4) + 1 if c1 >= c0 else c0 >> 4):
-            if mz >= bmax[blk]:
-                continue
-            if _hit_block(work, max(c0, blk << 4), min(c1 + 1, (blk + 1) << 4), mz, slab, dz,
-                          bq):
-                bmax[blk] = _block_max(tb, blk, n)
+def row_work(n):
+    """Scratch arrays of one sample row of n samples: float64 [8, n], int32 [3, n] (small
+    enough to stay in the L1 cache with the rest) and the per-block depth bound of blocks of 16
+    samples; the last pair is r0, r1 of the row whose directions the scratch holds (NaN: none)."""
+    return (np.empty((8, n)), np.empty((3, n), np.int32), np.empty(n // 16 + 1),
+            np.full(2, np.nan))
 
 
 @njit(**_J)
-def render_row(j, frame, world, work, out):
+def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground, light,
+               lit, tex, tex_inv, tex_off, vis, minz, bbox, xbs, tm, pcol, fw, iw, bmax, rprev,
+               lv_inv, lv_off, lv_mask, acc, out):
     """Render image row j into out[j]; return the largest squared image speed of its first
     sample row (the time step's bound on motion: the k sample rows of a pixel row differ by
     less than a pixel).
 
     Per sample row: the ground hit is one division (no roll: every ray of a row has the same
-    world dz); the boxes by :func:`trace_boxes`; then shading in separate simple passes over
-    the row (one huge inlined loop body compiles to slower code): sky, ground, boxes.
+    world dz); each visible box gets its exact z-slab for the row and the span of sample columns
+    it can cover (:func:`box_span`); boxes are visited nearest-first and only the samples of
+    their span whose current hit is farther than the box's nearest corner get the exact slab
+    test (blocks of 16 samples whose farthest current hit is nearer are skipped whole). The
+    result equals testing every box for every sample.
 
-    Parameters
-    ----------
-    j : int
-        The image row.
-    frame : FrameView
-        The frame's camera and visible boxes.
-    world : WorldArrays
-        The world.
-    work : RowWork
-        Per-column constants and scratch (:func:`row_work`), kept between the rows of one
-        frame.
-    out : ndarray, float32 [H, W]
-        The frame; row j is written.
-    """
+    lit: :func:`face_light`; tm: :func:`flow_terms`; pcol: pixel column of every sample;
+    fw, iw, bmax, rprev: scratch (:func:`row_work`, kept between the rows of one frame);
+    acc: [W]. The arguments are those of :func:`render_rows`' records, unpacked: passed as
+    records to this per-row call they cost 5 % of the frame rate."""
     w = out.shape[1]
-    k = frame.k
-    f = frame.f
     n = w * k
     inv_k2 = 1.0 / (k * k)
     fscale = 1.0 / (f * k)
     inv_f = 1.0 / f
-    rot = frame.rot
-    ox = frame.pos[0]
-    oy = frame.pos[1]
-    oz = frame.pos[2]
-    row = work.row
-    tb = row.tb
-    kd = row.kd
-    dxs = row.dxs
-    dys = row.dys
-    levels = work.levels
-    acc = work.acc
+    ox = pos[0]
+    oy = pos[1]
+    oz = pos[2]
     vmax2 = 0.0
+    nvis = vis.shape[0]
+    nblk = (n + 15) // 16
     for i in range(w):
         acc[i] = 0.0
+    tb = fw[0]
+    dxs = fw[1]
+    dys = fw[2]
+    ixs = fw[3]
+    iys = fw[4]
+    m2s = fw[5]
+    gxs = fw[6]
+    gys = fw[7]
+    kd = iw[0]
+    hid = iw[1]
+    fc = iw[2]
+    xh0 = rot[0, 0]
+    xh1 = rot[1, 0]
+    sky0 = light[5]
+    sky1 = light[6]
     for b in range(k):
-        yb = (j + (b + 0.5) / k - 0.5 - frame.cy) * inv_f
+        yb = (j + (b + 0.5) / k - 0.5 - cy) * inv_f
         r0 = rot[0, 1] * yb + rot[0, 2]
         r1 = rot[1, 1] * yb + rot[1, 2]
         dz = rot[2, 0] * 0.0 + rot[2, 1] * yb + rot[2, 2]   # rot[2, 0] == 0: no roll
@@ -366,19 +171,122 @@ def render_row(j, frame, world, work, out):
         for c in range(n):
             tb[c] = tg
             kd[c] = kind0          # hid and fc are read only where kd == 2
-        row_directions(work, rot[0, 0], rot[1, 0], r0, r1, fscale)
-        trace_boxes(frame, world.boxes, work, yb, r0, r1, dz, tg)
+        # the horizontal directions depend on the row only through r0, r1, which are the same
+        # in every row when the camera does not pitch: recomputed (two divisions per sample)
+        # only when r0 or r1 differs from the row before, bit pattern and sign of zero included
+        if not (r0 == rprev[0] and r1 == rprev[1]
+                and math.copysign(1.0, r0) == math.copysign(1.0, rprev[0])
+                and math.copysign(1.0, r1) == math.copysign(1.0, rprev[1])):
+            for c in range(n):
+                xb = xbs[c]
+                dx = xh0 * xb + r0
+                dy = xh1 * xb + r1
+                dxs[c] = dx
+                dys[c] = dy
+                ix = 1.0 / dx
+                iy = 1.0 / dy
+                ixs[c] = ix
+                iys[c] = iy
+                # texture footprints along u on faces of constant y and x, per unit of t
+                gxs[c] = abs(xh0 - dx * xh1 * iy) * fscale * TEXTURE_FOOTPRINT
+                gys[c] = abs(xh1 - dy * xh0 * ix) * fscale * TEXTURE_FOOTPRINT
+            rprev[0] = r0
+            rprev[1] = r1
+        for q in range(nblk):
+            bmax[q] = tg
+        iz = 1.0 / dz
+        for q in range(nvis):
+            bq = vis[q]
+            mz = minz[bq]
+            if mz >= tg:
+                break
+            # outside the projection's bounding rectangle (with a relative margin): no hit
+            if yb < bbox[bq, 2] - 1e-9 * (1.0 + abs(bbox[bq, 2])) or \
+                    yb > bbox[bq, 3] + 1e-9 * (1.0 + abs(bbox[bq, 3])):
+                continue
+            t1 = (boxes[bq, 2] - oz) * iz
+            t2 = (boxes[bq, 5] - oz) * iz
+            tzn = min(t1, t2)
+            tzf = max(t1, t2)
+            if tzf <= 0.0 or tzn >= tg:
+                continue
+            ta = max(tzn, mz, 1e-9)
+            tz = min(tzf, tg)
+            if tzn != tzn or tzf != tzf:
+                ta = 1e-9
+                tz = tg
+            c0, c1 = box_span(boxes[bq, 0], boxes[bq, 1], boxes[bq, 3], boxes[bq, 4], ox, oy,
+                              xh0, xh1, r0, r1, ta * (1.0 - 1e-9), tz * (1.0 + 1e-9), f, cx,
+                              k, n)
+            bx0 = bbox[bq, 0] * f + cx
+            bx1 = bbox[bq, 1] * f + cx
+            if bx0 > -1e6:
+                c0 = max(c0, int(math.floor((bx0 + 0.5) * k - 0.5)) - 2)
+            if bx1 < 1e6:
+                c1 = min(c1, int(math.ceil((bx1 + 0.5) * k - 0.5)) + 2)
+            ex0 = boxes[bq, 0] - ox
+            ex1 = boxes[bq, 3] - ox
+            ey0 = boxes[bq, 1] - oy
+            ey1 = boxes[bq, 4] - oy
+            for blk in range(c0 >> 4, (c1 >> 4) + 1 if c1 >= c0 else c0 >> 4):
+                if mz >= bmax[blk]:
+                    continue
+                lo = max(c0, blk << 4)
+                hi = min(c1 + 1, (blk + 1) << 4)
+                hit = False
+                for c in range(lo, hi):
+                    if mz >= tb[c]:
+                        continue
+                    ix = ixs[c]
+                    iy = iys[c]
+                    u1 = ex0 * ix
+                    u2 = ex1 * ix
+                    txn = min(u1, u2)
+                    txf = max(u1, u2)
+                    u1 = ey0 * iy
+                    u2 = ey1 * iy
+                    tyn = min(u1, u2)
+                    tyf = max(u1, u2)
+                    tn = max(txn, max(tyn, tzn))
+                    tf = min(txf, min(tyf, tzf))
+                    if tn <= tf and tn > 0.0 and tn < tb[c]:
+                        tb[c] = tn
+                        kd[c] = 2
+                        hid[c] = bq
+                        hit = True
+                        if txn >= tyn and txn >= tzn:
+                            fc[c] = 0 if dxs[c] > 0 else 1
+                        elif tyn >= tzn:
+                            fc[c] = 2 if dys[c] > 0 else 3
+                        else:
+                            fc[c] = 4 if dz > 0 else 5
+                if hit:
+                    m = 0.0
+                    for c in range(blk << 4, min(n, (blk + 1) << 4)):
+                        if tb[c] > m:
+                            m = tb[c]
+                    bmax[blk] = m
         if b == 0:    # the speed bound of the time step: one sample row per pixel row is enough
-            m2 = row_vmax2(work.tm, yb, tb, f, frame.vc, frame.wc, work.m2)
+            m2 = row_vmax2(tm, yb, tb, f, vc, wc, m2s)
             if m2 > vmax2:
                 vmax2 = m2
+        # shading in separate simple passes over the row (one huge inlined loop body compiles
+        # to slower code): sky here, ground and box samples by their own kernels
         if kind0 == 1:      # texture levels for the row's largest ground footprint
             d2 = max(dxs[0] ** 2 + dys[0] ** 2, dxs[n - 1] ** 2 + dys[n - 1] ** 2) + dz * dz
-            ground_levels(tg * fscale * d2 / (-dz), world.tex_inv, world.tex_off, levels.inv,
-                          levels.off, levels.mask)
-        sky_pass(row, dz, world.light, acc)
-        ground_pass(row, tg, ox, oy, world, levels, acc)
-        box_pass(row, ox, oy, oz, dz, world.box_mat, world.box_par, work.lit, acc)
+            ground_levels(tg * fscale * d2 / (-dz), tex_inv, tex_off, lv_inv, lv_off, lv_mask)
+        for c in range(n):
+            if kd[c] == 0:
+                ddx = dxs[c]
+                ddy = dys[c]
+                e = dz / math.sqrt(ddx * ddx + ddy * ddy + dz * dz)
+                if e < 0.0:
+                    e = 0.0
+                acc[pcol[c]] += sky0 + (sky1 - sky0) * e
+        ground_pass(kd, dxs, dys, tg, ox, oy, pcol, segs, ground, light, tex, lv_inv, lv_off,
+                    lv_mask, acc)
+        box_pass(kd, tb, hid, fc, dxs, dys, gxs, gys, ox, oy, oz, dz, pcol, box_mat, box_par,
+                 lit, acc)
     for i in range(w):
         out[j, i] = acc[i] * inv_k2
     return vmax2
@@ -407,10 +315,22 @@ def render_rows(frame, world, out, j0, jstep):
         The largest motion-field magnitude (px/s) over the first sample row of each of the
         rows.
     """
-    work = row_work(frame, world, out.shape[1])
+    w = out.shape[1]
+    k = frame.k
+    xbs = sample_columns(w, k, frame.cx, frame.f)
+    tm = flow_terms(xbs, frame.vc, frame.wc)
+    pcol = pixel_columns(w, k)
+    fw, iw, bmax, rprev = row_work(w * k)
+    lv_inv, lv_off, lv_mask = level_work(world.tex_inv.shape[0])
+    acc = np.empty(w)
+    lit = face_light(world.light)
     vmax2 = 0.0
     for j in range(j0, out.shape[0], jstep):
-        m2 = render_row(j, frame, world, work, out)
+        m2 = render_row(j, frame.pos, frame.rot, frame.vc, frame.wc, frame.f, frame.cx, frame.cy,
+                        k, world.boxes, world.box_mat, world.box_par, world.segs, world.ground,
+                        world.light, lit, world.tex, world.tex_inv, world.tex_off, frame.vis,
+                        frame.minz, frame.bbox, xbs, tm, pcol, fw, iw, bmax, rprev, lv_inv,
+                        lv_off, lv_mask, acc, out)
         if m2 > vmax2:
             vmax2 = m2
     return math.sqrt(vmax2)

@@ -7,7 +7,6 @@ and the per-row shading passes of ground and box samples. Array layouts:
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -28,30 +27,6 @@ TEXTURE_FOOTPRINT = 2.0
 # zlo..zhi, the window ulo..uhi of each column and its albedo w0 + w1 * (hash in [0, 1)).
 GREY_GRID = (0.3, 0.85, 0.2, 0.8, 0.06, 0.2)        # material 1
 ORANGE_GRID = (0.15, 0.9, 0.3, 0.7, 0.1, 0.15)      # materials 2 and 3
-
-
-class SampleRow(NamedTuple):
-    """The samples of one sample row as traced, [n] each (views of the renderer's scratch):
-    what the shading passes read."""
-
-    kd: np.ndarray      #: int32: what sample c hit: 0 sky, 1 ground, 2 box
-    tb: np.ndarray      #: float64: the hit's ray parameter (its depth), m
-    hid: np.ndarray     #: int32: the box hit (where kd == 2)
-    fc: np.ndarray      #: int32: the face hit, 2 * axis + (1 on the max side)
-    dxs: np.ndarray     #: float64: world x of the ray's direction (world z: the row's dz)
-    dys: np.ndarray     #: float64: world y of the ray's direction
-    gxs: np.ndarray     #: float64: texture footprint along u on a face of constant y, per m of t
-    gys: np.ndarray     #: float64: the same on a face of constant x
-    pcol: np.ndarray    #: int64: the sample's pixel column
-
-
-class TextureLevels(NamedTuple):
-    """The mip level of each ground texture chosen for a sample row (:func:`ground_levels`),
-    [textures] each."""
-
-    inv: np.ndarray     #: float64: inverse texel size, 1/m
-    off: np.ndarray     #: int64: offset of the level in the texels
-    mask: np.ndarray    #: int64: index mask (texels per side - 1)
 
 
 @njit(**_I)
@@ -168,76 +143,16 @@ def face_light(light):
     return lit
 
 
-@njit(**_I)
-def sky_pass(row, dz, light, acc):
-    """Add the sky's intensity to the pixel sums of the samples of a row that see it
-    (``row.kd == 0``): from the horizon's to the zenith's by the ray's elevation (its world
-    direction is (dxs, dys, dz))."""
-    kd = row.kd
-    dxs = row.dxs
-    dys = row.dys
-    pcol = row.pcol
-    sky0 = light[5]
-    sky1 = light[6]
-    for c in range(kd.shape[0]):
-        if kd[c] == 0:
-            ddx = dxs[c]
-            ddy = dys[c]
-            e = dz / math.sqrt(ddx * ddx + ddy * ddy + dz * dz)
-            if e < 0.0:
-                e = 0.0
-            acc[pcol[c]] += sky0 + (sky1 - sky0) * e
-
-
-@njit(**_I)
-def _sidewalk(s, w, hw, seed3):
-    """Albedo of the sidewalk at arc length s and distance w from the road's centre (hw <= w):
-    the kerb, then square slabs of 1.2 m with dark joints."""
-    if w < hw + 0.3:
-        return 0.45
-    sl = 1.2
-    u = s - sl * math.floor(s / sl)
-    v = (w - hw) - sl * math.floor((w - hw) / sl)
-    if u < 0.05 or v < 0.05:
-        return 0.2
-    return 0.36 + 0.1 * (hash3(np.int64(math.floor(s / sl)),
-                               np.int64(math.floor((w - hw) / sl)), seed3) - 0.5)
-
-
 @njit(**_J)
-def ground_pass(row, tg, ox, oy, world, levels, acc):
-    """Add the ground's intensity to the pixel sums of the samples of a row that hit it.
+def ground_pass(kd, dxs, dys, tg, ox, oy, pcol, segs, ground, light, tex, lv_inv, lv_off,
+                lv_mask, acc):
+    """acc[pcol[c]] += ground intensity at world (ox + tg dxs[c], oy + tg dys[c]) for every
+    sample c of a row with kd[c] == 1 (texture levels given).
 
     The albedo of the ground at world (x, y): asphalt with noise, centre and edge lines,
     sidewalk slabs and kerb, grass or paving beyond, the noise from the mip levels chosen by
-    :func:`ground_levels` for the sample footprint; lit by sun and ambient light. Written out
-    with the parameters in scalars (an inlined helper taking arrays costs reference counting
-    per sample).
-
-    Parameters
-    ----------
-    row : SampleRow
-        The row's samples; those with ``kd == 1`` hit the ground at world
-        (ox + tg dxs, oy + tg dys).
-    tg : float
-        The row's ray parameter (depth, m) at the ground: the same for every sample (no roll).
-    ox, oy : float
-        The camera's world position, m.
-    world : WorldArrays
-        Its ``segs``, ``ground``, ``light`` and ``tex`` are read.
-    levels : TextureLevels
-        The texture levels chosen for the row.
-    acc : ndarray, float64 [W]
-        The row's pixel sums: ``acc[row.pcol[c]] += intensity``.
-    """
-    kd = row.kd
-    dxs = row.dxs
-    dys = row.dys
-    pcol = row.pcol
-    segs = world.segs
-    ground = world.ground
-    light = world.light
-    tex = world.tex
+    :func:`ground_levels` for the sample footprint. Written out with the parameters in scalars
+    (an inlined helper taking arrays costs reference counting per sample)."""
     lam = light[2]
     if lam < 0.0:
         lam = 0.0
@@ -252,18 +167,19 @@ def ground_pass(row, tg, ox, oy, world, levels, acc):
     seed3 = np.int64(ground[8]) + 3
     tb_ = 1 if ground[7] == 0.0 else 2
     base_b = 0.1 if ground[7] == 0.0 else 0.3
-    ia = levels.inv[0]
-    oa = levels.off[0]
-    ma = levels.mask[0]
-    ib = levels.inv[tb_]
-    ob = levels.off[tb_]
-    mb = levels.mask[tb_]
+    ia = lv_inv[0]
+    oa = lv_off[0]
+    ma = lv_mask[0]
+    ib = lv_inv[tb_]
+    ob = lv_off[tb_]
+    mb = lv_mask[tb_]
     straight = segs.shape[0] == 1 and segs[0, 4] == 0.0
     x0 = segs[0, 0]
     y0 = segs[0, 1]
     ch = segs[0, 8]
     sh = segs[0, 9]
     s0 = segs[0, 5]
+    sl = 1.2
     for c in range(kd.shape[0]):
         if kd[c] != 1:
             continue
@@ -275,10 +191,11 @@ def ground_pass(row, tg, ox, oy, world, levels, acc):
         else:
             s, d = road_coords_nrc(x, y, segs)
         w = abs(d - off)
-        if w < hw:            # the road: dashed centre line, edge lines, asphalt
+        if w < hw:
             a = -1.0
-            if w < lw and s - per * math.floor(s / per) < dash:
-                a = 0.75
+            if w < lw:
+                if s - per * math.floor(s / per) < dash:
+                    a = 0.75
             if abs(w - edge) < lw:
                 a = 0.75
             if a < 0.0:
@@ -286,38 +203,28 @@ def ground_pass(row, tg, ox, oy, world, levels, acc):
                 j = np.int64(math.floor(y * ia)) & ma
                 a = 0.16 + tex[oa + j * (ma + 1) + i]
         elif w < hw + sw:
-            a = _sidewalk(s, w, hw, seed3)
-        else:                 # grass or paving
+            if w < hw + 0.3:
+                a = 0.45
+            else:
+                u = s - sl * math.floor(s / sl)
+                v = (w - hw) - sl * math.floor((w - hw) / sl)
+                if u < 0.05 or v < 0.05:
+                    a = 0.2
+                else:
+                    a = 0.36 + 0.1 * (hash3(np.int64(math.floor(s / sl)),
+                                            np.int64(math.floor((w - hw) / sl)), seed3) - 0.5)
+        else:
             i = np.int64(math.floor(x * ib)) & mb
             j = np.int64(math.floor(y * ib)) & mb
             a = base_b + tex[ob + j * (mb + 1) + i]
         acc[pcol[c]] += a * lit
 
 
-@njit(**_I)
-def _windows_mean(su, wn, grid, wall, fi, idx):
-    """Mean albedo over the footprint [su - wn / 2, su + wn / 2] (in window columns, at most
-    64 of them) of floor fi's window band on box idx, whose windows have the albedo of
-    ``grid`` over the wall's ``wall``."""
-    _, _, ulo, uhi, w0, w1 = grid
-    if wn > 64.0:
-        wn = 64.0
-    s0 = su - 0.5 * wn
-    s1 = s0 + wn
-    c0 = math.floor(s0)
-    c1 = math.floor(s1 - ulo)
-    sw = 0.0
-    so = 0.0
-    for ci in range(np.int64(c0), np.int64(c1) + 1):
-        ov = max(min(s1, ci + uhi) - max(s0, ci + ulo), 0.0)
-        sw += ov * hash3(ci, np.int64(fi), idx)
-        so += ov
-    return wall + ((w0 - wall) * so + w1 * sw) / wn
-
-
 @njit(**_J)
-def box_pass(row, ox, oy, oz, dz, box_mat, box_par, lit, acc):
-    """Add the boxes' intensity to the pixel sums of the samples of a row that hit a box.
+def box_pass(kd, tb, hid, fc, dxs, dys, gxs, gys, ox, oy, oz, dz, pcol, box_mat, box_par, lit,
+             acc):
+    """acc[pcol[c]] += intensity of the box hit by sample c of a row, for every c with
+    kd[c] == 2 (box hid[c], face fc[c], ray parameter tb[c], direction (dxs, dys, dz)[c]).
 
     Side faces are textured by :func:`box_albedo` over the sample's footprint along u times
     :data:`TEXTURE_FOOTPRINT`, t gxs[c] on a face of constant world y (u = world x), t gys[c] on
@@ -326,33 +233,7 @@ def box_pass(row, ox, oy, oz, dz, box_mat, box_par, lit, acc):
 
     Window grids (materials 1 and 2) are :func:`box_albedo` written out, with values kept
     while neighbouring samples stay on the same box (inverse column width and floor height,
-    the material's grid), floor (wall albedo) and window column (window albedo).
-
-    Parameters
-    ----------
-    row : SampleRow
-        The row's samples; those with ``kd == 2`` hit box ``hid`` on face ``fc`` at ray
-        parameter ``tb`` along the direction (dxs, dys, dz).
-    ox, oy, oz : float
-        The camera's world position, m.
-    dz : float
-        World z of the row's ray directions.
-    box_mat, box_par : ndarray
-        Materials (int64 [N]) and their parameters (float64 [N, 4]) of the boxes.
-    lit : ndarray, float64 [6]
-        Light on each face (:func:`face_light`).
-    acc : ndarray, float64 [W]
-        The row's pixel sums: ``acc[row.pcol[c]] += intensity``.
-    """
-    kd = row.kd
-    tb = row.tb
-    hid = row.hid
-    fc = row.fc
-    dxs = row.dxs
-    dys = row.dys
-    gxs = row.gxs
-    gys = row.gys
-    pcol = row.pcol
+    the material's grid), floor (wall albedo) and window column (window albedo)."""
     pb = -1          # box, floor and column of the cached values
     pf = 0.0
     pc = 0.0
@@ -361,66 +242,82 @@ def box_pass(row, ox, oy, oz, dz, box_mat, box_par, lit, acc):
     wall0 = 0.0
     icw = 1.0
     ifh = 1.0
-    grid = GREY_GRID
+    zlo, zhi, ulo, uhi, w0, w1 = GREY_GRID
     for c in range(kd.shape[0]):
         if kd[c] != 2:
             continue
         t = tb[c]
         face = fc[c]
         idx = hid[c]
-        mat = box_mat[idx]
-        if face >= 4:          # top and bottom: plain
+        if face >= 4:
             a = 0.8 * box_par[idx, 0]
-        elif mat == 0:
-            a = box_par[idx, 0]
-        elif mat == 1 or mat == 2:
-            if idx != pb:
-                icw = 1.0 / box_par[idx, 2]
-                ifh = 1.0 / box_par[idx, 1]
-                grid = GREY_GRID if mat == 1 else ORANGE_GRID
-                pb = idx
-                pf = -1.5      # no floor: the hashes are stale
-            zlo, zhi, ulo, uhi, w0, w1 = grid
-            z = oz + t * dz
-            zf = z * ifh
-            fi = math.floor(zf)
-            fz = zf - fi
-            if fi != pf:
-                wall0 = box_par[idx, 0] + 0.06 * (hash3(np.int64(fi), idx, 77) - 0.5)
-                pf = fi
-                pc = -1.5
-            wall = wall0
-            if mat == 2:
-                wall = orange_wall(box_par[idx, 0], z)
-            a = wall
-            if (fz > zlo) & (fz < zhi):
-                if face < 2:
-                    su = (oy + t * dys[c]) * icw
-                    wn = t * gys[c] * icw
-                else:
-                    su = (ox + t * dxs[c]) * icw
-                    wn = t * gxs[c] * icw
-                s0 = su - 0.5 * wn          # footprint [s0, s1] in window columns
-                s1 = s0 + wn
-                c0 = math.floor(s0)
-                if s1 <= c0 + 1.0 + ulo:    # no window but column c0's: its share
-                    ov = min(s1, c0 + uhi) - max(s0, c0 + ulo)
-                    if ov >= 0.0:           # it touches the window
-                        if c0 != pc:
-                            win = w0 + w1 * hash3(np.int64(c0), np.int64(fi), idx)
-                            pc = c0
-                        # within it (also a point sample: wn 0), else across an edge (s1 > s0)
-                        a = win if (s0 >= c0 + ulo) & (s1 <= c0 + uhi) else \
-                            wall + (win - wall) * (ov / wn)
-                else:                       # the windows of columns c0 to c1
-                    a = _windows_mean(su, wn, grid, wall, fi, idx)
         else:
-            if face < 2:
-                u = oy + t * dys[c]
-                wu = t * gys[c]
+            mat = box_mat[idx]
+            if mat == 1 or mat == 2:
+                if idx != pb:
+                    icw = 1.0 / box_par[idx, 2]
+                    ifh = 1.0 / box_par[idx, 1]
+                    if mat == 1:
+                        zlo, zhi, ulo, uhi, w0, w1 = GREY_GRID
+                    else:
+                        zlo, zhi, ulo, uhi, w0, w1 = ORANGE_GRID
+                    pb = idx
+                    pf = -1.5      # no floor: the hashes are stale
+                z = oz + t * dz
+                zf = z * ifh
+                fi = math.floor(zf)
+                fz = zf - fi
+                if fi != pf:
+                    wall0 = box_par[idx, 0] + 0.06 * (hash3(np.int64(fi), idx, 77) - 0.5)
+                    pf = fi
+                    pc = -1.5
+                wall = wall0
+                if mat == 2:
+                    wall = orange_wall(box_par[idx, 0], z)
+                a = wall
+                if (fz > zlo) & (fz < zhi):
+                    if face < 2:
+                        su = (oy + t * dys[c]) * icw
+                        wn = t * gys[c] * icw
+                    else:
+                        su = (ox + t * dxs[c]) * icw
+                        wn = t * gxs[c] * icw
+                    s0 = su - 0.5 * wn          # footprint [s0, s1] in window columns
+                    s1 = s0 + wn
+                    c0 = math.floor(s0)
+                    if s1 <= c0 + 1.0 + ulo:    # no window but column c0's: its share
+                        ov = min(s1, c0 + uhi) - max(s0, c0 + ulo)
+                        if ov >= 0.0:           # it touches the window
+                            if c0 != pc:
+                                win = w0 + w1 * hash3(np.int64(c0), np.int64(fi), idx)
+                                pc = c0
+                            if (s0 >= c0 + ulo) & (s1 <= c0 + uhi):
+                                a = win         # within it (also a point sample: wn 0)
+                            else:               # across an edge: then s1 > s0
+                                a = wall + (win - wall) * (ov / wn)
+                    else:                       # the windows of columns c0 to c1
+                        if wn > 64.0:           # at most 64 columns
+                            wn = 64.0
+                            s0 = su - 0.5 * wn
+                            s1 = s0 + wn
+                            c0 = math.floor(s0)
+                        c1 = math.floor(s1 - ulo)
+                        sw = 0.0
+                        so = 0.0
+                        for ci in range(np.int64(c0), np.int64(c1) + 1):
+                            ov = max(min(s1, ci + uhi) - max(s0, ci + ulo), 0.0)
+                            sw += ov * hash3(ci, np.int64(fi), idx)
+                            so += ov
+                        a = wall + ((w0 - wall) * so + w1 * sw) / wn
+            elif mat == 0:
+                a = box_par[idx, 0]
             else:
-                u = ox + t * dxs[c]
-                wu = t * gxs[c]
-            a = box_albedo(mat, box_par[idx, 0], box_par[idx, 1], box_par[idx, 2],
-                           box_par[idx, 3], idx, u, oz + t * dz, wu)
+                if face < 2:
+                    u = oy + t * dys[c]
+                    wu = t * gys[c]
+                else:
+                    u = ox + t * dxs[c]
+                    wu = t * gxs[c]
+                a = box_albedo(mat, box_par[idx, 0], box_par[idx, 1], box_par[idx, 2],
+                               box_par[idx, 3], idx, u, oz + t * dz, wu)
         acc[pcol[c]] += a * lit[face]

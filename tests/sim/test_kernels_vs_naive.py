@@ -9,7 +9,7 @@ import pytest
 from numba import njit
 
 from evchain.kernels.scene_culling import box_span
-from evchain.kernels.scene_geometry import FrameView, WorldArrays, road_coords
+from evchain.kernels.scene_geometry import road_coords
 from evchain.kernels.scene_render import (
     flow_terms,
     level_work,
@@ -18,7 +18,6 @@ from evchain.kernels.scene_render import (
     sample_columns,
 )
 from evchain.kernels.scene_shading import (
-    SampleRow,
     box_albedo,
     box_pass,
     ground_levels,
@@ -40,18 +39,6 @@ SCENES = {
 
 def tiny(name, **kw):
     return Scene.from_params(width=16, height=12, supersample=2, **{**SCENES[name], **kw})
-
-
-def _world(sc):
-    return WorldArrays(sc.boxes, sc.box_mat, sc.box_par, sc.segs, sc.ground, sc.light, sc.tex,
-                       sc.tex_inv, sc.tex_off)
-
-
-def _sample_row(kd, dxs, dys, pcol):
-    """A SampleRow with the fields the ground and sky passes read; the rest zero."""
-    n = len(kd)
-    zi, zf = np.zeros(n, np.int32), np.zeros(n)
-    return SampleRow(kd, zf, zi, zi, dxs, dys, zf, zf, pcol)
 
 
 def test_hash():
@@ -113,9 +100,7 @@ def test_road_coords_and_ground(name):
     s, d = N.road_coords(x, y, sc.segs)
     np.testing.assert_allclose(got[:, 0], s, atol=1e-9)
     np.testing.assert_allclose(got[:, 1], d, atol=1e-9)
-    levels = level_work(3)
-    lv_inv, lv_off, lv_mask = levels
-    row = _sample_row(kd=np.ones(400, np.int32), dxs=x, dys=y, pcol=np.arange(400))
+    lv_inv, lv_off, lv_mask = level_work(3)
     lit = sc.light[4] + sc.light[3] * max(sc.light[2], 0.0)
     for fp in (0.0, 0.05, 0.3, 2.0, 1e3):
         ground_levels(fp, sc.tex_inv, sc.tex_off, lv_inv, lv_off, lv_mask)
@@ -125,7 +110,8 @@ def test_road_coords_and_ground(name):
                for a, b in zip(x, y, strict=True)]
         np.testing.assert_allclose(got, want, atol=1e-12)
         acc = np.zeros(400)
-        ground_pass(row, 1.0, 0.0, 0.0, _world(sc), levels, acc)
+        ground_pass(np.ones(400, np.int32), x, y, 1.0, 0.0, 0.0, np.arange(400), sc.segs,
+                    sc.ground, sc.light, sc.tex, lv_inv, lv_off, lv_mask, acc)
         np.testing.assert_allclose(acc / lit, want, atol=1e-12)
 
 
@@ -206,8 +192,8 @@ def test_box_pass_vs_naive_albedo():
     ox, oy, oz, dz = 3.0, -7.0, 1.2, 0.05
     lit = rng.uniform(0.3, 1.0, 6)
     acc = np.zeros(n)
-    row = SampleRow(kd, tb, hid, fc, dxs, dys, gxs, gys, np.arange(n))
-    box_pass(row, ox, oy, oz, dz, box_mat, box_par, lit, acc)
+    box_pass(kd, tb, hid, fc, dxs, dys, gxs, gys, ox, oy, oz, dz, np.arange(n), box_mat,
+             box_par, lit, acc)
     side = fc < 4
     u = np.where(fc < 2, oy + tb * dys, ox + tb * dxs)
     z = oz + tb * dz
@@ -417,10 +403,8 @@ def test_box_span_covers_every_hit():
             tz = sorted(((box[2] - o[2]) / dz, (box[5] - o[2]) / dz)) if dz else [1e-9, np.inf]
             r0 = rot[0, 1] * yb + rot[0, 2]
             r1 = rot[1, 1] * yb + rot[1, 2]
-            frame = FrameView(o, rot, np.zeros(3), np.zeros(3), f, cx, 0.0, k,
-                              np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 4)))
-            c0, c1 = box_span(box[0], box[1], box[3], box[4], frame, r0, r1, max(tz[0], 1e-9),
-                              tz[1], n)
+            c0, c1 = box_span(box[0], box[1], box[3], box[4], o[0], o[1], rot[0, 0],
+                              rot[1, 0], r0, r1, max(tz[0], 1e-9), tz[1], f, cx, k, n)
             if len(hit):
                 assert c0 <= hit.min() and hit.max() <= c1, (trial, yb, c0, c1, hit)
 
