@@ -24,14 +24,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from evchain.sim.scene import Scene
+from evchain.sim.drive import Scene
 from evchain.sim.world import OBJECT_GROUND, OBJECT_SKY
 
 __all__ = ["OBJECT_GROUND", "OBJECT_SKY", "SceneTruth"]
 
 
 class SceneTruth:
-    """Ground-truth provider of a :class:`~evchain.sim.scene.Scene`: a ``FlowTruth``,
+    """Ground-truth provider of a :class:`~evchain.sim.drive.Scene`: a ``FlowTruth``,
     ``FoeTruth``, ``TtcTruth``, ``DepthTruth`` and ``ObjectTruth``."""
 
     def __init__(self, scene: Scene):

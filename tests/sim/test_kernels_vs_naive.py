@@ -25,7 +25,7 @@ from evchain.kernels.scene_shading import (
     hash3,
 )
 from evchain.kernels.scene_truth import trace
-from evchain.sim.scene import Scene
+from evchain.sim.drive import Scene
 from tests.naive import scene_kernels as N
 
 SCENES = {
