@@ -33,8 +33,11 @@ from evchain.io.atomic import AtomicFile
 _PACKAGE = Path(__file__).resolve().parent
 
 #: the sources that make the simulator's events
-SIMULATOR_SOURCES = ("sim", "kernels/scene.py", "kernels/emulator.py", "kernels/veclog.py",
-                     "kernels/intrinsics.py", "filters/scene.py", "filters/emulator.py")
+SIMULATOR_SOURCES = (
+    "sim", "kernels/scene_geometry.py", "kernels/scene_culling.py", "kernels/scene_shading.py",
+    "kernels/scene_render.py", "kernels/scene_truth.py", "kernels/emulator.py",
+    "kernels/emulator_state.py", "kernels/emulator_crossings.py", "kernels/veclog.py",
+    "kernels/intrinsics.py", "filters/scene.py", "filters/emulator.py")
 
 #: layout of the stored arrays; part of every hash
 FORMAT = 1

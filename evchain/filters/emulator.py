@@ -94,7 +94,7 @@ class Emulator(Filter):
 
     # -- state -------------------------------------------------------------------------------
     def _init(self, packet: FramePacket) -> None:
-        from evchain.kernels import emulator as K
+        from evchain.kernels import emulator_state as K
 
         g = packet.geometry
         h, w = g.height, g.width
@@ -125,18 +125,15 @@ class Emulator(Filter):
             "last_t": aos[:, K.S_LAST], "n_on": counts[:, K.S_NON], "n_off": counts[:, K.S_NOFF],
             "hi": np.zeros(npix, np.float32), "lo": np.zeros(npix, np.float32),
         }
-        # log cache: (interval j, slope at frame j+1, L of frames j+1, j+2), see
-        # kernels/emulator.py
-        self._lcache = aos[:, K.S_LC:K.S_LC + 4]
         # the kernel reads the rows whole (one 2-D array: one address computation per pixel
         # for all fields, instead of one per strided view)
         self._rows, self._irows = aos, counts
         first = np.ascontiguousarray(frames[0], dtype=np.float32)
-        s2 = {k: v.reshape(h, w) for k, v in st.items()}
-        err, y, x = K.init_state(first, eps, self.params.tie_tolerance, con, coff, s2["l0"],
-                                 s2["n_on"], s2["n_off"], s2["c_on"], s2["c_off"], s2["r_on"],
-                                 s2["r_off"], s2["e_ref"], s2["hi"], s2["lo"], s2["last_t"],
-                                 self._lcache)
+        p = self.params
+        rule = K.make_rule(p.interpolation == "cubic", eps, p.tie_tolerance,
+                           float(p.refractory_us), -1)    # init_state reads eps and the gates
+        err, y, x = K.init_state(first, rule, con, coff,
+                                 K.Pixels(aos, counts, st["hi"], st["lo"]))
         self._raise_pixel(err, packet, 0, y, x)
         self._geometry = g
         self._state = st
@@ -210,7 +207,8 @@ class Emulator(Filter):
 
     def _run(self, frames, t, seen_new, j_stop, packet) -> None:
         """Process intervals ``self._next_j .. j_stop - 1`` (global indices)."""
-        from evchain.kernels import emulator as K
+        from evchain.kernels.emulator import emulate
+        from evchain.kernels.emulator_state import FrameList, Noise, Pixels, make_rule
 
         if j_stop <= self._next_j:
             return
@@ -234,10 +232,11 @@ class Emulator(Filter):
         else:
             cx, cy, ct, cp, ctf = self._carry
             carry = (cx, cy, ct, ctf, cp)
-        x, y, tt, tf, pol, n, err, ef, ey, ex, self._scratch = K.emulate(
-            self._held, frames, times, j0, j1, total, cubic, self._eps, p.tie_tolerance,
-            float(p.refractory_us), cap, self._rows, self._irows, st["hi"], st["lo"], base,
-            *nf, self._cap_hint, carry, keep_tf, self._scratch)
+        rule = make_rule(cubic, self._eps, p.tie_tolerance, float(p.refractory_us), cap)
+        x, y, tt, tf, pol, n, err, ef, ey, ex, self._scratch = emulate(
+            FrameList(self._held, frames, times, base, total), j0, j1, rule,
+            Pixels(self._rows, self._irows, st["hi"], st["lo"]), Noise(*nf), self._cap_hint,
+            carry, keep_tf, self._scratch)
         if err:
             self._raise_pixel(err, packet, ef - nh, ey, ex)
         self._cap_hint = max(4096, int((n - len(carry[0])) * 1.25))

@@ -50,8 +50,8 @@ class SceneSource(Filter):
             return self
 
     def setup(self, params, context) -> None:
+        from evchain.sim.drive import Scene
         from evchain.sim.renderer import SceneRenderer
-        from evchain.sim.scene import Scene
         from evchain.sim.truth import SceneTruth
 
         self.scene = Scene(params, threads=params.threads)

@@ -37,7 +37,7 @@ class SceneEvents(Filter):
 
     def setup(self, params, context) -> None:
         from evchain.io.aedat2 import AedatSource
-        from evchain.sim.scene import Scene
+        from evchain.sim.drive import Scene
         from evchain.sim.truth import SceneTruth
 
         scene = Scene(params)

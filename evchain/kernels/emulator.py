@@ -1,14 +1,6 @@
 """Numba kernels of the DVS emulator (filter ``emulator``); see ``docs/explanation/emulator.md``.
-
-Per pixel state (all ``[H, W]``): ``l0`` (float64 log level of the first frame), ``n_on``,
-``n_off`` (int64 counts of reference moves), ``c_on``, ``c_off`` (float64 thresholds in natural
-log units), ``last_t`` (float64 µs of the last emitted event, for the refractory period),
-``e_ref`` (float64 exp of the reference, kept by multiplication), ``r_on = exp(c_on)``,
-``r_off = exp(-c_off)`` and the float32 intensity gates ``hi``/``lo``; all but the gates are
-columns ``S_*`` of one 128-byte row per pixel, which ``emulate`` reads as the 2-D ``rows``
-(``irows``: its int64 view for the counts). The reference level is always
-recomputed from the integer state, ``L_ref = l0 + (n_on*c_on - n_off*c_off)``, so it never
-drifts.
+The pixels' state, its layout and the records the kernels take:
+:mod:`evchain.kernels.emulator_state`; crossing times: :mod:`evchain.kernels.emulator_crossings`.
 
 Firing rule (non-strict, tie tolerance ``tol`` in log units): with ``L1 = ln(float64(I1) + eps)``
 an ON event fires when ``L1 >= L_ref + c_on - tol``, an OFF event when
@@ -37,161 +29,54 @@ on these shortcuts.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit
 
+from evchain.kernels.emulator_crossings import _times, slope3
+from evchain.kernels.emulator_state import (
+    ERR_NEGATIVE,
+    ERR_NONE,
+    ERR_NONFINITE,
+    NO_CACHE,
+    S_COFF,
+    S_CON,
+    S_EREF,
+    S_L0,
+    S_LAST,
+    S_LC,
+    S_NOFF,
+    S_NON,
+    S_ROFF,
+    S_RON,
+    Scratch,
+    gates,
+)
 from evchain.kernels.intrinsics import cttz, prefetch
-from evchain.kernels.veclog import ln, log_pass
+from evchain.kernels.veclog import log_pass
 
-ERR_NONE = 0
-ERR_NONFINITE = 1
-ERR_NEGATIVE = 2
-#: relative margin of the prefilter gates (covers float32 rounding and e_ref drift)
-GATE_MARGIN = 1e-6
 #: pixels per chunk of the candidate scan
 CHUNK = 64
-#: lcache interval index meaning "nothing cached"
-NO_CACHE = -10.0
-#: minus the smallest normal float32: the OFF gate when no OFF level is reachable
-LO_NONE = -1.1754944e-38
 #: pixels ahead of the scan whose frame values are prefetched (4 KiB)
 PREFETCH_AHEAD = 1024
-#: bound on the cubic crossing solve's error, in fractions of the frame interval
-SOLVE_TOL = 1e-13
-#: Newton steps run over all crossings of an interval together before the checked step
-NEWTON_LOCKSTEP = 2
-#: columns of a pixel's state row (``rows``: float64 [H*W, 16]; ``irows``: its int64 view):
-#: l0, c_on, c_off, r_on, r_off, e_ref, last_t, n_on, n_off (int64), the log cache (4 columns)
-S_L0, S_CON, S_COFF, S_RON, S_ROFF, S_EREF, S_LAST, S_NON, S_NOFF, S_LC = range(10)
 
 
-@njit(cache=True)
-def gates(e_ref, r_on, r_off, eps, k_hi, k_lo):
-    """Conservative float32 gates (hi, lo) from e_ref = exp(L_ref)."""
-    hi = np.float32(e_ref * r_on * k_hi - eps)
-    lo = e_ref * r_off * k_lo - eps
-    if lo < 0:
-        return hi, np.float32(LO_NONE)
-    return hi, np.float32(lo)
+class Interval(NamedTuple):
+    """One frame interval as :func:`_interval` reads it: frames flat [H*W] (``f0`` at its start,
+    ``f1`` at its end, ``fm`` before, ``fp`` after; the cubic's neighbours) and times (µs)."""
 
-
-@njit(cache=True)
-def gate_factors(tol):
-    """(k_hi, k_lo): exp(-tol) and exp(tol) widened by the gate margin."""
-    return np.exp(-tol) * (1.0 - GATE_MARGIN), np.exp(tol) * (1.0 + GATE_MARGIN)
-
-
-@njit(cache=True)
-def init_state(frame, eps, tol, con_in, coff_in, l0, n_on, n_off, c_on, c_off, r_on, r_off,
-               e_ref, hi, lo, last_t, lcache):
-    """Initialise every pixel's state from ``frame`` and the thresholds ``con_in``/``coff_in``
-    (``[H, W]``, may be broadcast), in one pass; ``lcache`` is ``[H*W, 4]``. Returns
-    (err, y, x)."""
-    h, w = frame.shape
-    k_hi, k_lo = gate_factors(tol)
-    # exp of the thresholds only where they change (all pixels share them without mismatch)
-    con = np.nan
-    coff = np.nan
-    ron = 1.0
-    roff = 1.0
-    for y in range(h):
-        for x in range(w):
-            v = frame[y, x]
-            if not np.isfinite(v):
-                return ERR_NONFINITE, y, x
-            if v < 0:
-                return ERR_NEGATIVE, y, x
-            l0[y, x] = ln(np.float64(v) + eps)
-            n_on[y, x] = 0
-            n_off[y, x] = 0
-            last_t[y, x] = -1e300
-            if con_in[y, x] != con:
-                con = con_in[y, x]
-                ron = np.exp(con)
-            if coff_in[y, x] != coff:
-                coff = coff_in[y, x]
-                roff = np.exp(-coff)
-            c_on[y, x] = con
-            c_off[y, x] = coff
-            lcache[y * w + x, 0] = NO_CACHE
-            r_on[y, x] = ron
-            r_off[y, x] = roff
-            e_ref[y, x] = np.float64(v) + eps
-            a, b = gates(e_ref[y, x], r_on[y, x], r_off[y, x], eps, k_hi, k_lo)
-            hi[y, x] = a
-            lo[y, x] = b
-    return ERR_NONE, 0, 0
-
-
-@njit(cache=True, error_model="numpy")
-def slope3(d1, d2, h1, h2):
-    """Limited three-point slope at a node between secants d1 (width h1) and d2 (width h2).
-
-    Exact for quadratics; zero at extrema; clipped to 3*min(|d1|, |d2|) (Fritsch-Carlson), so
-    the cubic Hermite pieces on both sides stay monotone. (numpy error model, as in
-    ``_interval``: no zero-divisor test per division; h1 + h2 > 0 as frame times increase.)
-    """
-    if d1 * d2 <= 0.0:
-        return 0.0
-    d = (h2 * d1 + h1 * d2) / (h1 + h2)
-    m = 3.0 * min(abs(d1), abs(d2))
-    if abs(d) > m:
-        d = m if d > 0 else -m
-    return d
-
-
-@njit(cache=True)
-def solve_crossing(level, la, lb, m0, m1, cubic):
-    """Fraction s in [0, 1] of the interval where the (monotone) piece reaches ``level``.
-
-    Linear: (level - la) / (lb - la). Cubic: safeguarded Newton on the monotone Hermite piece
-    in power form (Horner), started at the linear solution; bisection whenever Newton leaves
-    the bracket. A Newton step d from s lands within (|p''(s)| d^2 / 2 + |p'''| |d|^3 / 6)
-    / |p'(s)| of the root (Taylor), so it stops as soon as that bound is below ``SOLVE_TOL``
-    (or the step below 1e-10), without a further step to confirm convergence. Levels outside
-    [la, lb] clip to 0 or 1 (a level within the tie tolerance just beyond lb gives s = 1; a
-    carried-over crossing gives 0).
-    """
-    if lb == la:
-        return 0.0
-    s = (level - la) / (lb - la)
-    if s <= 0.0:
-        return 0.0
-    if s >= 1.0:
-        return 1.0
-    if not cubic:
-        return s
-    d = lb - la
-    # p(s) - level = g + s (m0 + s (c2 + s c3))
-    c2 = 3.0 * d - 2.0 * m0 - m1
-    c3 = m0 + m1 - 2.0 * d
-    g = la - level
-    ac3 = 2.0 * abs(c3)
-    up = d > 0.0
-    a = 0.0
-    b = 1.0
-    for _ in range(100):
-        f = g + s * (m0 + s * (c2 + s * c3))
-        if f == 0.0:
-            return s
-        if (f < 0.0) == up:
-            a = s
-        else:
-            b = s
-        df = m0 + s * (2.0 * c2 + 3.0 * c3 * s)
-        sn = 0.5 * (a + b)
-        if df != 0.0:
-            st = f / df
-            if a < s - st < b:
-                sn = s - st
-                ast = abs(st)
-                ddf = 2.0 * c2 + 6.0 * c3 * s
-                if ast < 1e-10 or (abs(ddf) + ac3 * ast) * ast * ast < 2.0 * SOLVE_TOL * abs(df):
-                    return sn
-        if b - a < 1e-15:
-            return sn
-        s = sn
-    return s
+    f0: np.ndarray
+    f1: np.ndarray
+    fm: np.ndarray
+    fp: np.ndarray
+    t0: float               #: start
+    dt: float               #: length
+    hprev: float            #: length of the interval before (1 without one)
+    hnext: float            #: length of the interval after (1 without one)
+    has_prev: bool          #: fm is a real frame (cubic only)
+    has_next: bool          #: fp is a real frame (cubic only)
+    jg: int                 #: global index of the interval (its first frame)
 
 
 @njit(cache=True)
@@ -218,129 +103,17 @@ def _chunk_mask(f, hi, lo):
 
 
 @njit(cache=True, error_model="numpy")
-def _fractions(u0, u1, cubic, lev, pa, pb, p0, p1, sv):
-    """``sv[q]``: the fraction of the interval where crossing q (u0 <= q < u1) occurs, or -1
-    where the cubic needs the safeguarded solver.
+def _candidates(f1, fp, hi, lo, first, cand):
+    """Pass 1: the pixels ``first ..`` outside their gates in frame f1, in pixel order, into
+    ``cand``; returns (their number, the first pixel whose value is not finite or negative, or
+    -1).
 
-    Linear: the clipped linear solution. Cubic: ``NEWTON_LOCKSTEP`` plain Newton steps from
-    the linear solution, then one step with the error bound of ``solve_crossing``; -1 when it
-    fails the bound or leaves (0, 1). Levels outside [la, lb] clip to 0 or 1 as in
-    ``solve_crossing``. Branch-free over separate 1-D rows, writing only ``sv``, with an
-    unsigned index (numba then emits no wraparound test per load), so that it vectorises
-    (vdivpd) with the same operations per value as the scalar code: no crossing waits on
-    another's divisions. (Loops over rows of the 2-D ``piece`` array updating a row in place
-    do not vectorise.)
-    """
-    if not cubic:
-        for q in range(np.uint64(u0), np.uint64(u1)):
-            la = pa[q]
-            lb = pb[q]
-            s0 = (lev[q] - la) / (lb - la)
-            r = 1.0 if s0 >= 1.0 else s0
-            sv[q] = 0.0 if (lb == la) | (s0 <= 0.0) else r
-        return
-    for q in range(np.uint64(u0), np.uint64(u1)):
-        la = pa[q]
-        lb = pb[q]
-        s0 = (lev[q] - la) / (lb - la)
-        d = lb - la
-        m0 = p0[q]
-        m1 = p1[q]
-        c2 = 3.0 * d - 2.0 * m0 - m1
-        c3 = m0 + m1 - 2.0 * d
-        g = la - lev[q]
-        s = s0
-        for _ in range(NEWTON_LOCKSTEP):
-            f = g + s * (m0 + s * (c2 + s * c3))
-            df = m0 + s * (2.0 * c2 + 3.0 * c3 * s)
-            s = s - f / df
-        # the checked step
-        f = g + s * (m0 + s * (c2 + s * c3))
-        df = m0 + s * (2.0 * c2 + 3.0 * c3 * s)
-        st = f / df
-        sn = s - st
-        ast = abs(st)
-        ddf = 2.0 * c2 + 6.0 * c3 * s
-        bound = (abs(ddf) + 2.0 * abs(c3) * ast) * ast * ast
-        ok = (sn > 0.0) & (sn < 1.0) & (bound < 2.0 * SOLVE_TOL * abs(df))
-        r = sn if ok else -1.0
-        r = 1.0 if s0 >= 1.0 else r
-        sv[q] = 0.0 if (lb == la) | (s0 <= 0.0) else r
-
-
-@njit(cache=True, error_model="numpy")
-def _times(u0, u1, cubic, t0, dt, refractory_us, ui, utf, up_, piece, rows):
-    """Times of the crossings ``u0 .. u1 - 1`` (``piece`` rows: level, la, lb, m0, m1, the
-    pixel's ``last_t`` when listed; row 5 is scratch), then the refractory period; returns the
-    new end of the event list.
-
-    The fractions come from ``_fractions`` (all crossings together); the few the cubic's
-    checked step rejects are solved again by ``solve_crossing``. Events of one pixel are
-    consecutive and in time order, so the refractory test runs in list order, against the
-    pixel's ``last_t`` copied into the list by the rule (its row is in the cache there, not
-    here) or the previous accepted event of the same pixel. (numpy error model: a division by
-    zero gives inf or NaN, which the checked step rejects, instead of raising.)
-    """
-    lev = piece[0]
-    pa = piece[1]
-    pb = piece[2]
-    p0 = piece[3]
-    p1 = piece[4]
-    sv = piece[5]
-    plast = piece[6]
-    _fractions(u0, u1, cubic, lev, pa, pb, p0, p1, sv)
-    w = np.uint64(u0)                      # unsigned indices: no wraparound tests
-    prev = -1
-    last = 0.0
-    for q in range(np.uint64(u0), np.uint64(u1)):
-        s = sv[q]
-        if s < 0.0:
-            s = solve_crossing(lev[q], pa[q], pb[q], p0[q], p1[q], True)
-        tf = t0 + s * dt
-        i = ui[q]
-        if i != prev:
-            prev = i
-            last = plast[q]
-        if tf - last < refractory_us:
-            continue
-        last = tf
-        rows[np.uint64(i), S_LAST] = tf
-        ui[w] = i
-        utf[w] = tf
-        up_[w] = up_[q]
-        w += np.uint64(1)
-    return np.int64(w)
-
-
-@njit(cache=True, error_model="numpy")
-def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, eps, tol,
-              k_hi, k_lo, refractory_us, cap, rows, irows, hi, lo, jg, first, cand, g0, gm, gp, ui,
-              utf, up_, piece, u, logs, unc):
-    """Events of one frame interval for pixels ``first ..``, appended to ``ui`` (flat pixel
-    index), ``utf``, ``up_`` from position ``u``. A pixel's state is committed only when all
-    its events fit, so on a full buffer the call stops before that pixel. ``jg`` is the global
-    index of the interval (its first frame); the log cache (row columns ``S_LC`` ..
-    ``S_LC + 3``) holds (jg, slope at frame jg+1 [cubic], L of frames jg+1, jg+2 [cubic]) of
-    the last interval jg in which the pixel was examined. The state is read through the 2-D
-    ``rows`` with an unsigned row index: one address computation per pixel for all fields
-    (strided 1-D views per field cost one multiply, a wraparound test and, with so many
-    arrays, stack reloads of their pointers and strides per access).
-
-    Crossings are listed first (``piece`` rows: level, la, lb, m0, m1; row 6 the pixel's
-    ``last_t``) and timed together by ``_times``, which also applies the refractory period.
-
-    Returns ``(u, resume, err, err_pixel)``: ``resume`` is -1 when done, else the pixel to
-    restart from after growing the buffers. (numpy error model: every divisor here is a frame
-    interval > 0, so the python model's zero test per division only cost time, ~2 %.)
-    """
+    Chunks of ``CHUNK`` pixels are scanned with a branch-free, vectorised bit mask, the frame
+    (and the look-ahead frame fp, which the gather reads at every candidate) prefetched
+    ``PREFETCH_AHEAD`` pixels ahead. A pixel's gates change only when the pixel itself is
+    processed, so the set is the same as when scanning and processing in one pass."""
     npix = hi.shape[0]
-    cap_u = ui.shape[0]
-    u_in = u
     c_start = first - (first % CHUNK)
-    jm = np.float64(jg - 1)
-    # pass 1: candidates (pixels outside their gates), in pixel order. A pixel's gates change
-    # only when the pixel itself is processed, so the set is the same as when scanning and
-    # processing in one pass.
     nc = 0
     bad = -1
     for c0 in range(c_start, npix, CHUNK):
@@ -381,9 +154,21 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
                 nc += 1
         if bad >= 0:
             break
-    # pass 2: gather the candidates' other frame values and touch their state rows; these
-    # loads are independent, so their cache misses overlap (one pass per interval instead of
-    # one miss after another inside the event loop)
+    return nc, bad
+
+
+@njit(cache=True, error_model="numpy")
+def _gather(iv, sc, rows, nc):
+    """Pass 2: the candidates' values of the interval's other frames, and their state rows
+    touched; these loads are independent, so their cache misses overlap (one pass per interval
+    instead of one miss after another inside the event loop)."""
+    cand = sc.cand
+    g0 = sc.g0
+    gm = sc.gm
+    gp = sc.gp
+    f0 = iv.f0
+    fm = iv.fm
+    fp = iv.fp
     touch = 0.0
     for k in range(np.uint64(nc)):
         r = np.uint64(cand[k])
@@ -393,17 +178,33 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
         touch += rows[r, S_L0] + rows[r, S_LC]
     if touch == 1e308:
         g0[0] = 0.0                      # never: keeps the loads
-    # pass 2b: the logarithms the rule needs, in vectorised passes (``log_pass``; ~3x the
-    # libm calls' throughput): the look-ahead frame's log of every candidate (cubic), the
-    # current frame's of every candidate (linear: its cache keeps only la), then for the
-    # candidates without cached logs (listed branch-free, their values compacted into ``lx``)
-    # those of the interval's other frames, indexed by their rank q among the uncached
+
+
+@njit(cache=True, error_model="numpy")
+def _logs(iv, rule, sc, rows, nc):
+    """Pass 2b: the logarithms the rule needs, in vectorised passes (``log_pass``; ~3x the
+    libm calls' throughput) into ``sc.logs`` rows (lb, la, lm, lp, scratch): the look-ahead
+    frame's log of every candidate (cubic), the current frame's of every candidate (linear:
+    its cache keeps only la), then for the candidates without cached logs (listed
+    branch-free in ``sc.unc``, their values compacted into the scratch row) those of the
+    interval's other frames, indexed by their rank q among the uncached. Returns their
+    number."""
+    cubic = rule.cubic
+    eps = rule.eps
+    cand = sc.cand
+    unc = sc.unc
+    logs = sc.logs
+    f1 = iv.f1
+    gm = sc.gm
+    g0 = sc.g0
+    gp = sc.gp
+    jm = np.float64(iv.jg - 1)
     llb = logs[0]
     lla = logs[1]
     llm = logs[2]
     llp = logs[3]
     lx = logs[4]
-    if has_next:
+    if iv.has_next:
         for k in range(np.uint64(nc)):
             lx[k] = np.float64(gp[k]) + eps
         log_pass(lx, llp, nc)
@@ -419,13 +220,71 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
         for q in range(nu):
             lx[q] = np.float64(f1[np.uint64(cand[np.uint64(unc[q])])]) + eps
         log_pass(lx, llb, nu)
-    if has_prev:
+    if iv.has_prev:
         for q in range(nu):
             lx[q] = np.float64(gm[np.uint64(unc[q])]) + eps
         log_pass(lx, llm, nu)
     for q in range(nu):
         lx[q] = np.float64(g0[np.uint64(unc[q])]) + eps
     log_pass(lx, lla, nu)
+
+
+@njit(cache=True, error_model="numpy")
+def _interval(iv, rule, pixels, first, sc, u):
+    """Events of one frame interval ``iv`` for pixels ``first ..``, appended to the scratch's
+    ``ui`` (flat pixel index), ``utf``, ``up_`` from position ``u``. A pixel's state is
+    committed only when all its events fit, so on a full buffer the call stops before that
+    pixel. The log cache (row columns ``S_LC`` .. ``S_LC + 3``) holds (jg, slope at frame jg+1
+    [cubic], L of frames jg+1, jg+2 [cubic]) of the last interval jg in which the pixel was
+    examined. The state is read through the 2-D ``rows`` with an unsigned row index: one
+    address computation per pixel for all fields (strided 1-D views per field cost one
+    multiply, a wraparound test and, with so many arrays, stack reloads of their pointers and
+    strides per access).
+
+    Passes: :func:`_candidates`, :func:`_gather`, :func:`_logs`, then the exact rule per
+    candidate, written out here (as an inlined helper its interpolation piece ran 1.5x
+    slower): crossings are listed first (``piece`` rows: level, la, lb, m0, m1; row 6 the
+    pixel's ``last_t``) and timed together by ``_times``, which also applies the refractory
+    period.
+
+    Returns ``(u, resume, err, err_pixel)``: ``resume`` is -1 when done, else the pixel to
+    restart from after growing the buffers. (numpy error model: every divisor here is a frame
+    interval > 0, so the python model's zero test per division only cost time, ~2 %.)
+    """
+    rows = pixels.rows
+    irows = pixels.irows
+    hi = pixels.hi
+    lo = pixels.lo
+    cand = sc.cand
+    ui = sc.ui
+    utf = sc.utf
+    up_ = sc.up_
+    piece = sc.piece
+    logs = sc.logs
+    cubic = rule.cubic
+    eps = rule.eps
+    tol = rule.tol
+    k_hi = rule.k_hi
+    k_lo = rule.k_lo
+    cap = rule.cap
+    t0 = iv.t0
+    dt = iv.dt
+    f1 = iv.f1
+    cap_u = ui.shape[0]
+    u_in = u
+    jg = iv.jg
+    jm = np.float64(jg - 1)
+    has_prev = iv.has_prev
+    has_next = iv.has_next
+    hprev = iv.hprev
+    hnext = iv.hnext
+    llb = logs[0]
+    lla = logs[1]
+    llm = logs[2]
+    llp = logs[3]
+    nc, bad = _candidates(f1, iv.fp, hi, lo, first, cand)
+    _gather(iv, sc, rows, nc)
+    _logs(iv, rule, sc, rows, nc)
     q = np.uint64(0)
     # pass 3: the candidates' events
     for k in range(nc):
@@ -512,7 +371,7 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
             lev = lev - tol if pol > 0 else lev + tol
             if uu >= cap_u:
                 # pixel i not committed
-                return _times(u_in, u, cubic, t0, dt, refractory_us, ui, utf, up_,
+                return _times(u_in, u, cubic, t0, dt, rule.refractory_us, ui, utf, up_,
                               piece, rows), i, ERR_NONE, 0
             v = np.uint64(uu)
             ui[v] = i
@@ -529,7 +388,7 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
         irows[r, S_NOFF] = k_off
         rows[r, S_EREF] = e
         hi[r], lo[r] = gates(e, ron, roff, eps, k_hi, k_lo)
-    u = _times(u_in, u, cubic, t0, dt, refractory_us, ui, utf, up_, piece, rows)
+    u = _times(u_in, u, cubic, t0, dt, rule.refractory_us, ui, utf, up_, piece, rows)
     if bad >= 0:
         v1 = f1[bad]
         return u, -1, (ERR_NONFINITE if not np.isfinite(v1) else ERR_NEGATIVE), bad
@@ -537,41 +396,118 @@ def _interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, e
 
 
 @njit(cache=True)
-def new_scratch(npix, ucap):
-    """Work arrays of ``emulate`` for ``npix`` pixels and ``ucap`` events per interval: (cand,
-    g0, gm, gp, ui, utf, up_, ub, piece, perm, buckets, logs, unc). The filter keeps them
-    between calls (fresh memory costs a page fault per 4 KiB, ~2.7 µs each on the benchmark
-    machine)."""
-    return (np.empty(npix, np.int64), np.empty(npix, np.float32), np.empty(npix, np.float32),
-            np.empty(npix, np.float32), np.empty(ucap, np.int64), np.empty(ucap, np.float64),
-            np.empty(ucap, np.int8), np.empty(ucap, np.int64), np.empty((7, ucap)),
-            np.empty(ucap, np.int64), np.zeros(1, np.int64), np.empty((5, npix)),
-            np.empty(npix, np.int64))
+def _frame(frames, j):
+    """Frame j of ``held`` + ``cur``, flat."""
+    nh = frames.held.shape[0]
+    return (frames.held[j] if j < nh else frames.cur[j - nh]).ravel()
+
+
+@njit(cache=True)
+def _interval_of(frames, j, cubic):
+    """The :class:`Interval` from frame j to frame j + 1 (j: an index into the frame list)."""
+    times = frames.times
+    f0 = _frame(frames, j)
+    f1 = _frame(frames, j + 1)
+    has_prev = cubic and j >= 1
+    has_next = cubic and j + 2 < frames.total
+    fm = f0
+    fp = f1
+    if has_prev:
+        fm = _frame(frames, j - 1)
+    if has_next:
+        fp = _frame(frames, j + 2)
+    t0 = np.float64(times[j])
+    t1 = np.float64(times[j + 1])
+    dt = t1 - t0
+    hprev = t0 - np.float64(times[j - 1]) if has_prev else 1.0
+    hnext = np.float64(times[j + 2]) - t1 if has_next else 1.0
+    return Interval(f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, frames.j_base + j)
+
+
+@njit(cache=True)
+def _grow_events(sc, n):
+    """``sc`` with room for at least n events per interval."""
+    ui = _grow(sc.ui, n)
+    piece = np.empty((sc.piece.shape[0], ui.shape[0]))
+    piece[:, :sc.piece.shape[1]] = sc.piece
+    return Scratch(sc.cand, sc.g0, sc.gm, sc.gp, ui, _grow(sc.utf, n), _grow(sc.up_, n),
+                   _grow(sc.ub, n), piece, sc.perm, sc.buckets, sc.logs, sc.unc)
+
+
+@njit(cache=True)
+def _sort_order(sc, u, it0, nb):
+    """The order of the interval's u events by rounded time ``sc.ub`` (relative to it0, in
+    [0, nb)): a stable counting sort over the generation order, or a stable merge sort when
+    the interval is long next to its events. Returns (``sc`` with its ``perm`` and
+    ``buckets`` grown if needed, the order)."""
+    ub = sc.ub
+    perm = sc.perm
+    buckets = sc.buckets
+    if nb <= 4 * u + 4096:
+        if buckets.shape[0] < nb + 1:
+            buckets = np.zeros(nb + 1, np.int64)
+        else:
+            buckets[:nb + 1] = 0
+        for q in range(u):
+            buckets[ub[q] + 1] += 1
+        for b in range(nb):
+            buckets[b + 1] += buckets[b]
+        if perm.shape[0] < u:
+            perm = np.empty(sc.ui.shape[0], np.int64)
+        for q in range(u):
+            b = ub[q]
+            perm[buckets[b]] = q
+            buckets[b] += 1
+    else:
+        perm = np.argsort(ub[:u], kind="mergesort")
+    return Scratch(sc.cand, sc.g0, sc.gm, sc.gp, sc.ui, sc.utf, sc.up_, ub, sc.piece, perm,
+                   buckets, sc.logs, sc.unc), perm
 
 
 @njit(cache=True, nogil=True)    # renders of the scene source's threads go on meanwhile
-def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractory_us,
-            cap, rows, irows, hi, lo, j_base, noise_off, noise_y, noise_x, noise_t, noise_p,
-            cap_hint, carry, keep_tf, scratch):
-    """Emit the events of frame intervals ``j_first .. j_last - 1`` (indices into the frame list
-    ``held`` + ``cur`` whose times are ``times``; interval j runs from frame j to frame j + 1).
+def emulate(frames, j_first, j_last, rule, pixels, noise, cap_hint, carry, keep_tf, scratch):
+    """Emit the events of frame intervals ``j_first .. j_last - 1`` (interval j runs from frame
+    j to frame j + 1 of the frame list).
 
-    The per-pixel state is ``rows`` (float64 ``[H*W, 16]``, columns ``S_*``; ``irows`` is its
-    int64 view for the counts) and the flat float32 gates ``hi``, ``lo``; the log cache
-    (columns ``S_LC`` ..; log values reused between consecutive intervals; ``NO_CACHE``
-    initially) is part of the row. ``j_base`` is the global index of frame 0 of ``held``.
-    ``total`` is the number of frames known (look-ahead for the cubic; a missing neighbour
-    falls back to the interval's secant slope). Noise events of interval ``j_first + k`` are
-    ``noise_*[noise_off[k]:noise_off[k+1]]`` (times float µs). Events of each interval are
-    ordered by rounded time (stable counting sort over the generation order: row, column, then
-    time order at one pixel; noise last). The output starts with the events ``carry`` = (x, y,
-    t, tf, p) held from the previous call; float times are kept only if ``keep_tf`` (else
-    ``tf`` is empty). ``scratch`` is ``new_scratch``'s tuple, returned grown if needed. Returns
-    ``(x, y, t, tf, p, n, err, err_frame, err_y, err_x, scratch)``; ``t = floor(tf + 0.5)``.
+    Events of each interval are ordered by rounded time (stable counting sort over the
+    generation order: row, column, then time order at one pixel; noise last).
+
+    Parameters
+    ----------
+    frames : FrameList
+        The frames (float32 linear intensity) and their times (µs); ``total`` frames are
+        known (look-ahead for the cubic; a missing neighbour falls back to the interval's
+        secant slope).
+    j_first, j_last : int
+        The intervals, as indices into the frame list.
+    rule : Rule
+        The parameters (:func:`make_rule`).
+    pixels : Pixels
+        Every pixel's state (rows, columns ``S_*``; the log cache, columns ``S_LC`` .., holds
+        log values reused between consecutive intervals, ``NO_CACHE`` initially) and its
+        float32 gates; updated.
+    noise : Noise
+        Noise events of interval ``j_first + k``: ``[noise.off[k]:noise.off[k + 1]]``.
+    cap_hint : int
+        Expected number of output events (the output grows beyond it when needed).
+    carry : tuple of ndarray
+        (x, y, t, tf, p): events held from the previous call, which start the output.
+    keep_tf : bool
+        Keep the float times (else ``tf`` is empty).
+    scratch : Scratch
+        :func:`new_scratch`'s work arrays; returned grown if needed.
+
+    Returns
+    -------
+    tuple
+        ``(x, y, t, tf, p, n, err, err_frame, err_y, err_x, scratch)``: the first n entries of
+        uint16 x, y, int64 t (µs, ``floor(tf + 0.5)``), float64 tf and int8 p are the events;
+        ``err`` (``ERR_*``) names the first bad pixel value, at (err_y, err_x) of frame
+        err_frame.
     """
-    nh = held.shape[0]
-    w = held.shape[2] if nh > 0 else cur.shape[2]
-    k_hi, k_lo = gate_factors(tol)
+    nh = frames.held.shape[0]
+    w = frames.held.shape[2] if nh > 0 else frames.cur.shape[2]
+    times = frames.times
     cx, cy, ct, ctf, cp = carry
     nc0 = cx.shape[0]
     cap_n = max(cap_hint, nc0 + 16)
@@ -586,53 +522,31 @@ def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractor
     op[:nc0] = cp
     if keep_tf:
         otf[:nc0] = ctf
-    cand, g0, gm, gp, ui, utf, up_, ub, piece, perm, buckets, logs, unc = scratch
+    sc = scratch
     n = nc0
     for j in range(j_first, j_last):
-        f0 = (held[j] if j < nh else cur[j - nh]).ravel()
-        f1 = (held[j + 1] if j + 1 < nh else cur[j + 1 - nh]).ravel()
-        has_prev = cubic and j >= 1
-        has_next = cubic and j + 2 < total
-        fm = f0
-        fp = f1
-        if has_prev:
-            fm = (held[j - 1] if j - 1 < nh else cur[j - 1 - nh]).ravel()
-        if has_next:
-            fp = (held[j + 2] if j + 2 < nh else cur[j + 2 - nh]).ravel()
-        t0 = np.float64(times[j])
-        t1 = np.float64(times[j + 1])
-        dt = t1 - t0
-        hprev = t0 - np.float64(times[j - 1]) if has_prev else 1.0
-        hnext = np.float64(times[j + 2]) - t1 if has_next else 1.0
+        iv = _interval_of(frames, j, rule.cubic)
         k = j - j_first
-        nnoise = noise_off[k + 1] - noise_off[k]
+        nnoise = noise.off[k + 1] - noise.off[k]
         u = 0
         resume = 0
         while resume >= 0:
-            u, resume, err, ep = _interval(
-                f0, f1, fm, fp, t0, dt, hprev, hnext, has_prev, has_next, cubic, eps, tol,
-                k_hi, k_lo, refractory_us, cap, rows, irows, hi, lo, j_base + j, resume, cand,
-                g0, gm, gp, ui, utf,
-                up_, piece, u, logs, unc)
+            u, resume, err, ep = _interval(iv, rule, pixels, resume, sc, u)
             if err != ERR_NONE:
-                return (ox, oy, ot, otf, op, n, err, j + 1, ep // w, ep % w,
-                        (cand, g0, gm, gp, ui, utf, up_, ub, piece, perm, buckets, logs, unc))
-            if resume >= 0 or u + nnoise > ui.shape[0]:
-                ui = _grow(ui, u + nnoise + 1)
-                utf = _grow(utf, u + nnoise + 1)
-                up_ = _grow(up_, u + nnoise + 1)
-                ub = _grow(ub, u + nnoise + 1)
-                grown = np.empty((piece.shape[0], ui.shape[0]))
-                grown[:, :piece.shape[1]] = piece
-                piece = grown
-        for q in range(noise_off[k], noise_off[k + 1]):
-            ui[u] = np.int64(noise_y[q]) * w + noise_x[q]
-            utf[u] = noise_t[q]
-            up_[u] = noise_p[q]
+                return ox, oy, ot, otf, op, n, err, j + 1, ep // w, ep % w, sc
+            if resume >= 0 or u + nnoise > sc.ui.shape[0]:
+                sc = _grow_events(sc, u + nnoise + 1)
+        ui = sc.ui
+        utf = sc.utf
+        up_ = sc.up_
+        ub = sc.ub
+        for q in range(noise.off[k], noise.off[k + 1]):
+            ui[u] = np.int64(noise.y[q]) * w + noise.x[q]
+            utf[u] = noise.t[q]
+            up_[u] = noise.p[q]
             u += 1
         if u == 0:
             continue
-        # stable counting sort of this interval's events by rounded time
         it0 = np.int64(times[j])
         nb = np.int64(times[j + 1]) - it0 + 2
         for q in range(u):
@@ -644,23 +558,7 @@ def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractor
             if keep_tf:
                 otf = _grow(otf, n + u)
             op = _grow(op, n + u)
-        if nb <= 4 * u + 4096:
-            if buckets.shape[0] < nb + 1:
-                buckets = np.zeros(nb + 1, np.int64)
-            else:
-                buckets[:nb + 1] = 0
-            for q in range(u):
-                buckets[ub[q] + 1] += 1
-            for b in range(nb):
-                buckets[b + 1] += buckets[b]
-            if perm.shape[0] < u:
-                perm = np.empty(ui.shape[0], np.int64)
-            for q in range(u):
-                b = ub[q]
-                perm[buckets[b]] = q
-                buckets[b] += 1
-        else:
-            perm = np.argsort(ub[:u], kind="mergesort")
+        sc, perm = _sort_order(sc, u, it0, nb)
         for r in range(np.uint64(u)):        # unsigned indices: no wraparound tests
             q = np.uint64(perm[r])
             pos = np.uint64(n) + r
@@ -672,5 +570,4 @@ def emulate(held, cur, times, j_first, j_last, total, cubic, eps, tol, refractor
                 otf[pos] = utf[q]
             op[pos] = up_[q]
         n += u
-    return (ox, oy, ot, otf, op, n, ERR_NONE, 0, 0, 0,
-            (cand, g0, gm, gp, ui, utf, up_, ub, piece, perm, buckets, logs, unc))
+    return ox, oy, ot, otf, op, n, ERR_NONE, 0, 0, 0, sc

@@ -40,11 +40,6 @@ EMPTY_T = -(1 << 62)
 BACKWARD, CENTRAL, CENTRAL2, SAVITZKY_GOLAY = 0, 1, 2, 3
 
 
-def stencil_margin(gradient: int) -> int:
-    """Extra border (beyond the search distance) the gradient stencil reads."""
-    return (1, 1, 2, 0)[gradient]
-
-
 def new_state(height: int, width: int, depth: int):
     """Fresh state arrays (last, second, fifo, speed_state) for ``depth`` timestamps per pixel
     and polarity."""

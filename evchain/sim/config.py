@@ -17,7 +17,6 @@ from evchain.core.filter import FilterParams
 from evchain.errors import ConfigError
 
 Scenario = Literal["high-rise", "high-rise-orange", "open-field", "curves"]
-SCENARIOS: tuple[str, ...] = ("high-rise", "high-rise-orange", "open-field", "curves")
 
 #: Straight-route length in metres of each straight scenario (thesis 4.2).
 STRAIGHT_ROUTE_M = {"high-rise": 280.0, "high-rise-orange": 280.0, "open-field": 70.0}

@@ -11,12 +11,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from evchain.sim.scene import Scene
+from evchain.sim.drive import Scene
 from evchain.sim.truth import SceneTruth
 
 
 class SceneRenderer:
-    """Renders a :class:`~evchain.sim.scene.Scene` at any time; ``name`` is its scenario."""
+    """Renders a :class:`~evchain.sim.drive.Scene` at any time; ``name`` is its scenario."""
 
     def __init__(self, scene: Scene):
         self._scene = scene

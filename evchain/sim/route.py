@@ -2,7 +2,7 @@
 
 The ego car's driving line is a chain of segments starting at (0, lane_offset) heading along
 world x; the road centre lies at a fixed lateral offset from it. The kernels use the table
-returned by :func:`segment_table` (see :mod:`evchain.kernels.scene`).
+returned by :func:`segment_table` (see :mod:`evchain.kernels.scene_geometry`).
 """
 
 from __future__ import annotations

@@ -129,7 +129,7 @@ def _open_field(world: World, cfg: SceneConfig, rng) -> None:
 
 
 def _curves(world: World, cfg: SceneConfig, rng) -> None:
-    from evchain.kernels.scene import road_coords
+    from evchain.kernels.scene_geometry import road_coords
 
     segs = world.segs
     centre = world.ground[0]

@@ -24,14 +24,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from evchain.sim.scene import Scene
+from evchain.sim.drive import Scene
 from evchain.sim.world import OBJECT_GROUND, OBJECT_SKY
 
 __all__ = ["OBJECT_GROUND", "OBJECT_SKY", "SceneTruth"]
 
 
 class SceneTruth:
-    """Ground-truth provider of a :class:`~evchain.sim.scene.Scene`: a ``FlowTruth``,
+    """Ground-truth provider of a :class:`~evchain.sim.drive.Scene`: a ``FlowTruth``,
     ``FoeTruth``, ``TtcTruth``, ``DepthTruth`` and ``ObjectTruth``."""
 
     def __init__(self, scene: Scene):
@@ -42,7 +42,7 @@ class SceneTruth:
 
     # -- per pixel ------------------------------------------------------------------------
     def _query(self, x, y, t_us):
-        from evchain.kernels.scene import truth_query
+        from evchain.kernels.scene_truth import truth_query
 
         x, y, t = np.broadcast_arrays(np.asarray(x, np.float64), np.asarray(y, np.float64),
                                       np.asarray(t_us, np.float64))
@@ -50,13 +50,9 @@ class SceneTruth:
         xf = np.ascontiguousarray(x.ravel())
         yf = np.ascontiguousarray(y.ravel())
         tf = np.ascontiguousarray(t.ravel()) * 1e-6
-        n = xf.size
-        depth, vx, vy = np.empty(n), np.empty(n), np.empty(n)
-        obj = np.empty(n, np.int64)
-        if n:
-            s = self._scene
-            truth_query(xf, yf, tf, self.f, self.cx, self.cy, s.boxes, s.segs, s.traj,
-                        depth, vx, vy, obj)
+        s = self._scene
+        depth, vx, vy, obj = truth_query(xf, yf, tf, self.f, self.cx, self.cy, s.boxes, s.segs,
+                                         s.traj)
         return depth.reshape(shape), vx.reshape(shape), vy.reshape(shape), obj.reshape(shape)
 
     def depth(self, x, y, t_us) -> np.ndarray:
@@ -79,7 +75,7 @@ class SceneTruth:
 
     # -- per time ----------------------------------------------------------------------------
     def _states(self, t_us):
-        from evchain.kernels.scene import camera_states
+        from evchain.kernels.scene_geometry import camera_states
 
         t = np.asarray(t_us, np.float64)
         tf = np.ascontiguousarray(t.ravel()) * 1e-6

@@ -1,7 +1,7 @@
 """The world model: ground plane with a road, axis-aligned boxes with materials, sun and sky.
 
-Everything the kernels need is a few numpy arrays (layouts in :mod:`evchain.kernels.scene`).
-:mod:`evchain.sim.scenarios` fills them for each scenario.
+Everything the kernels need is a few numpy arrays (layouts in
+:mod:`evchain.kernels.scene_geometry`). :mod:`evchain.sim.scenarios` fills them for each scenario.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 MAT_PLAIN, MAT_WINDOWS, MAT_ORANGE, MAT_ORANGE_LINES, MAT_CAR = 0, 1, 2, 3, 4
-# Object ids of what a ray sees (truth_query in evchain.kernels.scene): a box's index in
+# Object ids of what a ray sees (truth_query in evchain.kernels.scene_truth): a box's index in
 # World.boxes (>= 0), or one of these.
 OBJECT_SKY = -1
 OBJECT_GROUND = -2
@@ -84,7 +84,7 @@ GROUND_TEXTURES = (
 
 
 def hash3_np(i, j, s) -> np.ndarray:
-    """numpy twin of :func:`evchain.kernels.scene.hash3` (integers to [0, 1))."""
+    """numpy twin of :func:`evchain.kernels.scene_shading.hash3` (integers to [0, 1))."""
     i, j, s = (np.asarray(v, np.int64) for v in (i, j, s))
     h = ((i * 374761393) ^ (j * 668265263) ^ (s * 1442695041)) & 0xFFFFFFFF
     h = ((h ^ (h >> 13)) * 1274126177) & 0xFFFFFFFF

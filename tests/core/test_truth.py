@@ -26,7 +26,7 @@ from evchain.filters.flow_scorer import FlowScorer
 from evchain.filters.scene_events import SceneEvents
 from evchain.io.dvsflow16 import DVSFLOW16Truth
 from evchain.sim.bar import Bar, BarTruth
-from evchain.sim.scene import Scene
+from evchain.sim.drive import Scene
 from evchain.sim.truth import SceneTruth
 from evchain.testing.contract import ContractError, check_filter, check_source
 from evchain.testing.synthetic import ExpansionTruth, expansion_stream, random_events

@@ -156,7 +156,7 @@ def _pieces(rng, n):
 
 def test_solve_crossing_matches_bisection():
     # the cubic crossing solve (Newton with an error-bound stop) against plain bisection
-    from evchain.kernels.emulator import solve_crossing
+    from evchain.kernels.emulator_crossings import solve_crossing
     from tests.naive.emulator import _hermite, _solve
 
     rng = np.random.default_rng(4)
@@ -208,7 +208,8 @@ def test_many_crossings_in_one_interval_match_naive(interpolation):
 
 def test_batched_times_match_bisection():
     # _times (lockstep Newton over all crossings, checked step, fallback) against bisection
-    from evchain.kernels.emulator import S_LAST, _times
+    from evchain.kernels.emulator_crossings import _times
+    from evchain.kernels.emulator_state import S_LAST
     from tests.naive.emulator import _hermite, _solve
 
     rng = np.random.default_rng(5)
@@ -242,7 +243,8 @@ def test_chunk_mask_and_bits_match_scalar_test():
     # negative values, LO_NONE gates, all-clear and all-set chunks
     from numba import njit
 
-    from evchain.kernels.emulator import CHUNK, LO_NONE, _chunk_mask
+    from evchain.kernels.emulator import CHUNK, _chunk_mask
+    from evchain.kernels.emulator_state import LO_NONE
     from evchain.kernels.intrinsics import cttz
 
     @njit

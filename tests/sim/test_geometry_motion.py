@@ -7,9 +7,9 @@ import pytest
 from scipy.ndimage import gaussian_filter, map_coordinates
 
 from evchain.sim.camera import focal_from_fov
-from evchain.sim.scene import Scene
+from evchain.sim.drive import Scene
 from evchain.sim.truth import OBJECT_GROUND, OBJECT_SKY, SceneTruth
-from tests.naive import scene as N
+from tests.naive import scene_kernels as N
 
 
 def test_focal_length_from_fov():

@@ -1,13 +1,32 @@
-"""Every scene kernel against the slow numpy reference in tests/naive/scene.py."""
+"""Every scene kernel against the slow numpy references in tests/naive/scene_kernels.py."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
+from numba import njit
 
-from evchain.kernels import scene as K
-from evchain.sim.scene import Scene
-from tests.naive import scene as N
+from evchain.kernels.scene_culling import box_span
+from evchain.kernels.scene_geometry import road_coords
+from evchain.kernels.scene_render import (
+    flow_terms,
+    level_work,
+    render_rows,
+    row_vmax2,
+    sample_columns,
+)
+from evchain.kernels.scene_shading import (
+    box_albedo,
+    box_pass,
+    ground_levels,
+    ground_pass,
+    hash3,
+)
+from evchain.kernels.scene_truth import trace
+from evchain.sim.drive import Scene
+from tests.naive import scene_kernels as N
 
 SCENES = {
     "high-rise": dict(scenario="high-rise", start_m=150.0),
@@ -22,16 +41,53 @@ def tiny(name, **kw):
     return Scene.from_params(width=16, height=12, supersample=2, **{**SCENES[name], **kw})
 
 
-def test_hash_and_noise():
+def test_hash():
     rng = np.random.default_rng(1)
     i = rng.integers(-10**6, 10**6, 200)
     j = rng.integers(-10**6, 10**6, 200)
     for a, b in zip(i, j, strict=True):
-        assert K.hash3(a, b, 7) == N.hash3(a, b, 7)
-    x, y = rng.uniform(-500, 500, (2, 200))
-    for fp in (0.0, 0.3, 5.0):
-        got = [K.cellnoise(a, b, 0.5, 3, fp) for a, b in zip(x, y, strict=True)]
-        np.testing.assert_allclose(got, N.cellnoise(x, y, 0.5, 3, fp), atol=1e-15)
+        assert hash3(a, b, 7) == N.hash3(a, b, 7)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _tex_lookup(tex, x, y, inv, off, mask):
+    """Nearest texel of a repeating texture level at world (x, y)."""
+    i = np.int64(math.floor(x * inv)) & mask
+    j = np.int64(math.floor(y * inv)) & mask
+    return tex[off + j * (mask + 1) + i]
+
+
+@njit(cache=True, error_model="numpy")
+def ground_albedo_at(x, y, segs, ground, tex, lv_inv, lv_off, lv_mask):
+    """The ground's albedo at one point, as the renderer's ``ground_pass`` computes it for a
+    row of samples (the noise from the mip levels chosen by ``ground_levels``)."""
+    s, d = road_coords(x, y, segs)
+    w = abs(d - ground[0])
+    seed = np.int64(ground[8])
+    hw = ground[1]
+    lw = ground[2] * 0.5
+    if w < hw:
+        if w < lw:
+            per = ground[6]
+            if s - per * math.floor(s / per) < ground[5]:
+                return 0.75
+        if abs(w - ground[3]) < lw:
+            return 0.75
+        return 0.16 + _tex_lookup(tex, x, y, lv_inv[0], lv_off[0], lv_mask[0])
+    sw = ground[4]
+    if w < hw + sw:
+        if w < hw + 0.3:
+            return 0.45
+        sl = 1.2
+        u = s - sl * math.floor(s / sl)
+        v = (w - hw) - sl * math.floor((w - hw) / sl)
+        if u < 0.05 or v < 0.05:
+            return 0.2
+        return 0.36 + 0.1 * (hash3(np.int64(math.floor(s / sl)),
+                                     np.int64(math.floor((w - hw) / sl)), seed + 3) - 0.5)
+    if ground[7] == 0.0:
+        return 0.1 + _tex_lookup(tex, x, y, lv_inv[1], lv_off[1], lv_mask[1])
+    return 0.3 + _tex_lookup(tex, x, y, lv_inv[2], lv_off[2], lv_mask[2])
 
 
 @pytest.mark.parametrize("name", ["high-rise", "curves"])
@@ -40,22 +96,22 @@ def test_road_coords_and_ground(name):
     rng = np.random.default_rng(2)
     x = rng.uniform(-50, 300, 400)
     y = rng.uniform(-80, 250, 400)
-    got = np.array([K.road_coords(a, b, sc.segs) for a, b in zip(x, y, strict=True)])
+    got = np.array([road_coords(a, b, sc.segs) for a, b in zip(x, y, strict=True)])
     s, d = N.road_coords(x, y, sc.segs)
     np.testing.assert_allclose(got[:, 0], s, atol=1e-9)
     np.testing.assert_allclose(got[:, 1], d, atol=1e-9)
-    lv_inv, lv_off, lv_mask = K.level_work(3)
+    lv_inv, lv_off, lv_mask = level_work(3)
     lit = sc.light[4] + sc.light[3] * max(sc.light[2], 0.0)
     for fp in (0.0, 0.05, 0.3, 2.0, 1e3):
-        K.ground_levels(fp, sc.tex_inv, sc.tex_off, lv_inv, lv_off, lv_mask)
+        ground_levels(fp, sc.tex_inv, sc.tex_off, lv_inv, lv_off, lv_mask)
         want = N.ground_albedo(x, y, np.full(400, fp), sc.segs, sc.ground, sc.tex, sc.tex_inv,
                                sc.tex_off)
-        got = [K.ground_albedo(a, b, sc.segs, sc.ground, sc.tex, lv_inv, lv_off, lv_mask)
+        got = [ground_albedo_at(a, b, sc.segs, sc.ground, sc.tex, lv_inv, lv_off, lv_mask)
                for a, b in zip(x, y, strict=True)]
         np.testing.assert_allclose(got, want, atol=1e-12)
         acc = np.zeros(400)
-        K.ground_pass(np.ones(400, np.int32), x, y, 1.0, 0.0, 0.0, np.arange(400), sc.segs,
-                      sc.ground, sc.light, sc.tex, lv_inv, lv_off, lv_mask, acc)
+        ground_pass(np.ones(400, np.int32), x, y, 1.0, 0.0, 0.0, np.arange(400), sc.segs,
+                    sc.ground, sc.light, sc.tex, lv_inv, lv_off, lv_mask, acc)
         np.testing.assert_allclose(acc / lit, want, atol=1e-12)
 
 
@@ -90,7 +146,7 @@ def test_box_albedo_all_materials():
         # point values, footprints within a column, across a few and across many columns
         wu = np.concatenate([np.zeros(75), rng.uniform(0, 1, 75), rng.uniform(1, 10, 75),
                              rng.uniform(10, 300, 75)])
-        got = [K.box_albedo(mat, *par, 5, a, b, w) for a, b, w in zip(u, z, wu, strict=True)]
+        got = [box_albedo(mat, *par, 5, a, b, w) for a, b, w in zip(u, z, wu, strict=True)]
         want = N.box_albedo(np.full(300, mat), np.tile(par, (300, 1)), 5, u, z, wu)
         np.testing.assert_allclose(got, want, atol=1e-12, err_msg=f"material {mat}")
 
@@ -102,16 +158,16 @@ def test_box_albedo_footprint_limits():
     z = 3.1 * 4 + 0.5 * 3.1                    # a window row of floor 4
     for u in (2.3 * 7 + 0.5 * 2.3, 2.3 * 7 + 0.05 * 2.3):   # a window's middle, the wall
         # lengths in the footprint round to eps |u|, relative to it eps |u| / wu ~ 1e-9
-        assert K.box_albedo(1, *par, 5, u, z, 1e-6) == pytest.approx(
-            K.box_albedo(1, *par, 5, u, z, 0.0), abs=1e-8)
+        assert box_albedo(1, *par, 5, u, z, 1e-6) == pytest.approx(
+            box_albedo(1, *par, 5, u, z, 0.0), abs=1e-8)
     c0, c1 = 3, 11
-    mean = K.box_albedo(1, *par, 5, (c0 + c1 + 1) * 2.3 / 2, z, (c1 + 1 - c0) * 2.3)
-    wall = 0.5 + 0.06 * (K.hash3(4, 5, 77) - 0.5)
-    wins = [0.06 + 0.2 * K.hash3(c, 4, 5) for c in range(c0, c1 + 1)]
+    mean = box_albedo(1, *par, 5, (c0 + c1 + 1) * 2.3 / 2, z, (c1 + 1 - c0) * 2.3)
+    wall = 0.5 + 0.06 * (hash3(4, 5, 77) - 0.5)
+    wins = [0.06 + 0.2 * hash3(c, 4, 5) for c in range(c0, c1 + 1)]
     assert mean == pytest.approx(0.4 * wall + 0.6 * np.mean(wins), abs=1e-12)
     rng = np.random.default_rng(4)
     for mat in (1, 2, 3):
-        v = [K.box_albedo(mat, *par, 5, u, z, w)
+        v = [box_albedo(mat, *par, 5, u, z, w)
              for u, w in zip(rng.uniform(-50, 50, 200), rng.uniform(0, 100, 200), strict=True)]
         assert min(v) >= 0.06 - 1e-12 and max(v) <= 0.5 * 1.03 + 1e-12
 
@@ -136,8 +192,8 @@ def test_box_pass_vs_naive_albedo():
     ox, oy, oz, dz = 3.0, -7.0, 1.2, 0.05
     lit = rng.uniform(0.3, 1.0, 6)
     acc = np.zeros(n)
-    K.box_pass(kd, tb, hid, fc, dxs, dys, gxs, gys, ox, oy, oz, dz, np.arange(n), box_mat,
-               box_par, lit, acc)
+    box_pass(kd, tb, hid, fc, dxs, dys, gxs, gys, ox, oy, oz, dz, np.arange(n), box_mat,
+             box_par, lit, acc)
     side = fc < 4
     u = np.where(fc < 2, oy + tb * dys, ox + tb * dxs)
     z = oz + tb * dz
@@ -150,10 +206,7 @@ def test_box_pass_vs_naive_albedo():
     assert (np.abs(acc - want)[wu > 0.1] <= 1e-12).all()
 
 def _trace_all(o, d, boxes):
-    n = len(boxes)
-    cand = np.arange(n)
-    minz = np.full(n, -np.inf)
-    return np.array([K.trace(o[0], o[1], o[2], *r, boxes, cand, 0, n, minz) for r in d])
+    return np.array([trace(o[0], o[1], o[2], *r, boxes) for r in d])
 
 
 def test_trace_random_and_axis_rays():
@@ -334,7 +387,7 @@ def test_box_span_covers_every_hit():
     rng = np.random.default_rng(6)
     f, cx, k, w = 300.0, 31.5, 2, 64
     n = w * k
-    xbs = K.sample_columns(w, k, cx, f)
+    xbs = sample_columns(w, k, cx, f)
     for trial in range(40):
         psi = rng.uniform(-0.6, 0.6)
         theta = rng.uniform(-0.1, 0.1)
@@ -350,8 +403,8 @@ def test_box_span_covers_every_hit():
             tz = sorted(((box[2] - o[2]) / dz, (box[5] - o[2]) / dz)) if dz else [1e-9, np.inf]
             r0 = rot[0, 1] * yb + rot[0, 2]
             r1 = rot[1, 1] * yb + rot[1, 2]
-            c0, c1 = K.box_span(box[0], box[1], box[3], box[4], o[0], o[1], rot[0, 0],
-                                rot[1, 0], r0, r1, max(tz[0], 1e-9), tz[1], f, cx, k, n)
+            c0, c1 = box_span(box[0], box[1], box[3], box[4], o[0], o[1], rot[0, 0],
+                              rot[1, 0], r0, r1, max(tz[0], 1e-9), tz[1], f, cx, k, n)
             if len(hit):
                 assert c0 <= hit.min() and hit.max() <= c1, (trial, yb, c0, c1, hit)
 
@@ -421,7 +474,7 @@ def test_row_speed_maximum_vs_naive():
             vc[:2] = 0.0
             wc[:] = 0.0
             tb[:] = 0.0
-        got = K.row_vmax2(K.flow_terms(xbs, vc, wc), yb, tb, 300.0, vc, wc, np.empty(n))
+        got = row_vmax2(flow_terms(xbs, vc, wc), yb, tb, 300.0, vc, wc, np.empty(n))
         want = N.row_speed2_max(xbs, yb, tb, 300.0, vc, wc)
         assert got == want, (trial, got, want)
 
@@ -457,6 +510,6 @@ def test_rows_reusing_directions_equal_rows_alone(name):
         vmax = 0.0
         for j in range(whole.shape[0]):
             args = sc._frame_args(t, alone, sc._scratch())
-            vmax = max(vmax, K.render_rows(*args, j, whole.shape[0]))
+            vmax = max(vmax, render_rows(*args, j, whole.shape[0]))
         np.testing.assert_array_equal(alone, whole)
         assert vmax == sc.render(t)[1]

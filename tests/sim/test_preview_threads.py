@@ -7,7 +7,7 @@ import numpy as np
 
 from evchain.core.renderer import FrameRenderer
 from evchain.filters.scene import SceneSource
-from evchain.sim.scene import Scene
+from evchain.sim.drive import Scene
 from evchain.testing.contract import make_context
 
 # adaptive steps change at almost every frame, so the source thread renders most frames itself

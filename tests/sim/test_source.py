@@ -12,7 +12,7 @@ from evchain.core.registry import make_registry
 from evchain.errors import ConfigError
 from evchain.filters.scene import SceneSource
 from evchain.sim.config import SceneConfig, make_config
-from evchain.sim.scene import Scene
+from evchain.sim.drive import Scene
 from evchain.testing.contract import check_source, make_context
 
 SMALL = dict(width=48, height=36, supersample=1, start_m=200.0, duration_s=0.03)

@@ -59,16 +59,17 @@ class Scene:
     def state(self, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(position, camera-to-world rotation, camera velocity, angular velocity) at t_s;
         velocities in camera coordinates (m/s, rad/s)."""
-        from evchain.kernels.scene import camera_state
+        from evchain.kernels.scene_geometry import camera_state
 
         pos, rot, vc, wc = np.zeros(3), np.zeros((3, 3)), np.zeros(3), np.zeros(3)
         camera_state(float(t_s), self.segs, self.traj, pos, rot, vc, wc)
         return pos, rot, vc, wc
 
     def _frame_args(self, t_s: float, out: np.ndarray, scratch: tuple) -> tuple:
-        """Kernel arguments of the frame at t_s (camera state and visible boxes written into
-        ``scratch`` = pos, rot, vc, wc, order, minz, bbox)."""
-        from evchain.kernels.scene import camera_state, frame_boxes
+        """Kernel arguments (FrameView, WorldArrays, out) of the frame at t_s (camera state and
+        visible boxes written into ``scratch`` = pos, rot, vc, wc, order, minz, bbox)."""
+        from evchain.kernels.scene_culling import frame_boxes
+        from evchain.kernels.scene_geometry import FrameView, WorldArrays, camera_state
 
         cam = self.camera
         pos, rot, vc, wc, order, minz, bbox = scratch
@@ -77,9 +78,11 @@ class Scene:
             raise RuntimeError("scene camera must not roll")
         nvis = frame_boxes(self.boxes, pos, rot, cam.f, cam.cx, cam.cy, cam.width,
                            cam.height, order, minz, bbox)
-        return (pos, rot, vc, wc, cam.f, cam.cx, cam.cy, cam.supersample, self.boxes,
-                self.box_mat, self.box_par, self.segs, self.ground, self.light, self.tex,
-                self.tex_inv, self.tex_off, order[:nvis], minz, bbox, out)
+        frame = FrameView(pos, rot, vc, wc, cam.f, cam.cx, cam.cy, cam.supersample, order[:nvis],
+                          minz, bbox)
+        world = WorldArrays(self.boxes, self.box_mat, self.box_par, self.segs, self.ground,
+                            self.light, self.tex, self.tex_inv, self.tex_off)
+        return frame, world, out
 
     def _scratch(self) -> tuple:
         nb = len(self.boxes)
@@ -97,7 +100,7 @@ class Scene:
         (px/s) at that time over the first sample row of every pixel row (drives the adaptive
         time step). Thread-safe: each call has scratch of its own, so a picture sink may render
         while :meth:`frames` renders on other threads."""
-        from evchain.kernels.scene import render, render_rows
+        from evchain.kernels.scene_render import render, render_rows
 
         cam = self.camera
         if out is None:
@@ -114,7 +117,7 @@ class Scene:
 
     def _render_alone(self, t_s: float) -> tuple[np.ndarray, float]:
         """:meth:`render` on the calling thread only, with scratch of its own (thread-safe)."""
-        from evchain.kernels.scene import render
+        from evchain.kernels.scene_render import render
 
         cam = self.camera
         out = np.empty((cam.height, cam.width), np.float32)

@@ -1,4 +1,5 @@
-"""Slow, obvious numpy references for evchain.kernels.scene (vectorised over rays, no culling).
+"""Slow, obvious numpy references for the scene kernels, evchain.kernels.scene_* (vectorised
+over rays, no culling).
 
 Camera pose from explicit rotation matrices, tracing by testing every box for every ray,
 textures written as numpy ``where`` chains, flow by finite differences of the projection.
@@ -8,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from evchain.kernels.scene import TEXTURE_FOOTPRINT
+from evchain.kernels.scene_shading import TEXTURE_FOOTPRINT
 
 M32 = 0xFFFFFFFF
 
@@ -19,13 +20,6 @@ def hash3(i, j, s):
     h = ((h ^ (h >> 13)) * 1274126177) & M32
     h = h ^ (h >> 16)
     return (h & 0xFFFFFF) / 16777216.0
-
-
-def cellnoise(x, y, cell, seed, fp):
-    a = np.maximum(1.0 - 2.0 * fp / cell, 0.0)
-    i = np.floor(x / cell).astype(np.int64)
-    j = np.floor(y / cell).astype(np.int64)
-    return np.where(a > 0, (hash3(i, j, seed) - 0.5) * a, 0.0)
 
 
 def road_coords(x, y, segs):

@@ -29,12 +29,12 @@ def _naive_error() -> float | None:
     import sys
 
     root = Path(__file__).resolve().parents[2]
-    if not (root / "tests" / "naive" / "scene.py").exists():
+    if not (root / "tests" / "naive" / "scene_kernels.py").exists():
         return None          # installed without the tests folder
     if str(root) not in sys.path:
         sys.path.insert(0, str(root))
-    from evchain.sim.scene import Scene
-    from tests.naive import scene as naive
+    from evchain.sim.drive import Scene
+    from tests.naive import scene_kernels as naive
 
     sc = Scene.from_params(scenario="high-rise", width=16, height=12, start_m=150.0)
     return float(np.abs(sc.render(0.7)[0] - naive.render(sc, 0.7)).max())
@@ -42,7 +42,7 @@ def _naive_error() -> float | None:
 
 def _render_rate(threads: int, n: int) -> tuple[float, float]:
     """(wall frames/s, CPU-time frames/s) over n frames spread over the reference drive."""
-    from evchain.sim.scene import Scene
+    from evchain.sim.drive import Scene
 
     sc = Scene.from_params(threads=threads, scenario="high-rise", width=320, height=240,
                            supersample=2)
