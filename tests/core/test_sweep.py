@@ -100,7 +100,7 @@ def test_sweep_errors_new_keys(tmp_path, text, pattern):
         load_sweep(write(tmp_path, text))
 
 
-RECORD = """chain:
+SCENE_EMULATOR = """chain:
   - use: scene
     scenario: high-rise
     width: 32
@@ -112,25 +112,9 @@ RECORD = """chain:
   - use: emulator
     threshold_on: 0.3
     threshold_off: 0.3
-  - use: aedat_writer
-    path: events.aedat
 """
-
-REPLAYED = """chain:
-  - use: scene
-    scenario: high-rise
-    width: 32
-    height: 24
-    supersample: 1
-    start_m: 200
-    duration_s: 0.05
-    max_motion_px: 1.0
-  - use: emulator
-    threshold_on: 0.3
-    threshold_off: 0.3
-  - use: {flow}
-  - use: flow_scorer
-"""
+RECORD = SCENE_EMULATOR + "  - use: aedat_writer\n    path: events.aedat\n"
+REPLAYED = SCENE_EMULATOR + "  - use: {flow}\n  - use: flow_scorer\n"
 
 
 def test_record_renders_each_variation_once_and_every_base_replays_it(tmp_path):
