@@ -75,3 +75,45 @@ def test_filters_shows_series(capsys):
             "  adds ttc (t, tau_s, cluster, x, y, support)\n"
             "  adds ttc_clusters (t, cluster, x, y, size_px, tau_s, support, ground_ratio)\n"
             in out)
+
+
+def test_debug_after_the_subcommand(pipeline, capsys):
+    assert cli.main(["validate", str(pipeline), "--debug"]) == 2
+    assert "Traceback" in capsys.readouterr().err
+    assert cli.main(["validate", "--debug", str(pipeline)]) == 2
+    assert "Traceback" in capsys.readouterr().err
+
+
+def test_version_and_python_m_evchain():
+    from evchain import __version__
+
+    for cmd in (["-m", "evchain", "--version"], ["-m", "evchain.cli", "--version"]):
+        out = subprocess.run([sys.executable, *cmd], capture_output=True, text=True, check=True)
+        assert out.stdout.strip() == f"evchain {__version__}"
+    out = subprocess.run([sys.executable, "-m", "evchain", "plugins"], capture_output=True,
+                         text=True, check=True).stdout
+    assert out.startswith("evchain")
+
+
+def test_closed_stdout_is_no_traceback():
+    """`evchain filters | head -1`: the reader went away; no BrokenPipe traceback."""
+    import os
+
+    read, write = os.pipe()
+    os.close(read)  # every write to the pipe fails with EPIPE
+    try:
+        proc = subprocess.run([sys.executable, "-m", "evchain", "filters"], stdout=write,
+                              stderr=subprocess.PIPE, text=True)
+    finally:
+        os.close(write)
+    assert proc.stderr == "" and proc.returncode == 141
+
+
+def test_package_ships_license_and_py_typed():
+    from pathlib import Path
+
+    import evchain
+
+    assert (Path(evchain.__file__).parent / "py.typed").is_file()
+    text = (Path(evchain.__file__).parents[1] / "LICENSE").read_text()
+    assert text.startswith("MIT License") and "evchain developers" in text
