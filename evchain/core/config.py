@@ -102,12 +102,49 @@ def _child_nodes(node: yaml.MappingNode) -> dict[Any, tuple[yaml.Node, yaml.Node
     return {k.value: (k, v) for k, v in node.value if isinstance(k, yaml.ScalarNode)}
 
 
+class _Loader(yaml.SafeLoader):
+    """Safe loading without aliases (``*name``): an alias repeats a value, and nested aliases
+    expand a file of a few hundred bytes into gigabytes ("billion laughs")."""
+
+    def compose_node(self, parent, index):
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise ConfigError(f"YAML alias *{event.anchor}: aliases are not allowed in evchain "
+                              "files; write the value out", file=self.name,
+                              line=event.start_mark.line + 1, column=event.start_mark.column + 1)
+        return super().compose_node(parent, index)
+
+
+def _check_duplicate_keys(root: yaml.Node | None, file: str) -> None:
+    """A key given twice in one mapping is an error (YAML loaders keep the last silently)."""
+    todo = [root] if root is not None else []
+    while todo:
+        node = todo.pop()
+        if isinstance(node, yaml.MappingNode):
+            seen: dict[Any, yaml.Node] = {}
+            for k, v in node.value:
+                if isinstance(k, yaml.ScalarNode):
+                    first = seen.get(k.value)
+                    if first is not None:
+                        raise ConfigError(f"given twice (first on line "
+                                          f"{first.start_mark.line + 1}); keep one",
+                                          file=file, line=k.start_mark.line + 1,
+                                          column=k.start_mark.column + 1, key=str(k.value))
+                    seen[k.value] = k
+                todo += [k, v]
+        elif isinstance(node, yaml.SequenceNode):
+            todo += node.value
+
+
 def parse_yaml(text: str, file: str) -> tuple[Any, yaml.Node | None]:
-    """Safe-load ``text`` keeping the node tree for line numbers."""
+    """Safe-load ``text`` keeping the node tree for line numbers; refuses aliases and keys
+    given twice."""
     try:
-        loader = yaml.SafeLoader(text)
+        loader = _Loader(text)
+        loader.name = file
         try:
             node = loader.get_single_node()
+            _check_duplicate_keys(node, file)
             data = loader.construct_document(node) if node is not None else None
         finally:
             loader.dispose()

@@ -181,3 +181,50 @@ def test_two_stages_of_one_filter_need_ids(registry):
     ok = text.replace("id: toy_scorer\n", "id: flow\n") + "    id: second\n"
     assert [s.id for s in load(ok, registry).stages] == [
         "toy_source", "toy_scorer", "flow", "second"]
+
+
+def _laughs() -> str:
+    lines, item = [], '"lol"'
+    for name in "abcdefghi":
+        lines.append(f"{name}: &{name} [{', '.join([item] * 9)}]")
+        item = f"*{name}"
+    return "\n".join([*lines, "chain: [{use: x, y: *i}]", ""])
+
+
+BILLION_LAUGHS = _laughs()
+
+
+def test_yaml_aliases_are_refused(registry):
+    """Nested aliases expand a few hundred bytes into gigabytes: aliases are refused while the
+    file is parsed, before any value is built."""
+    assert len(BILLION_LAUGHS) < 600
+    with pytest.raises(ConfigError, match=r"p.yaml:2:\d+: YAML alias \*a: aliases are not "
+                                          "allowed"):
+        load(BILLION_LAUGHS, registry)
+
+
+def test_billion_laughs_fails_fast_on_the_command_line(tmp_path):
+    import subprocess
+    import sys
+
+    p = tmp_path / "lol.yaml"
+    p.write_text(BILLION_LAUGHS)
+    # the timeout only guards the suite against the old hang; it measures nothing
+    proc = subprocess.run([sys.executable, "-m", "evchain", "validate", str(p)],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "aliases are not allowed" in proc.stderr
+
+
+def test_duplicate_key_is_an_error(registry):
+    text = "chain:\n  - use: toy_source\n    packets: 2\n    packets: 3\n"
+    with pytest.raises(ConfigError, match=r"p.yaml:4:5: packets: given twice \(first on line 3\)"):
+        load(text, registry)
+    with pytest.raises(ConfigError, match=r"p.yaml:2:1: seed: given twice"):
+        load("seed: 1\nseed: 2\nchain:\n  - use: toy_source\n", registry)
+
+
+@pytest.mark.parametrize("value", [".inf", "-.inf", ".nan"])
+def test_non_finite_parameters_are_errors(value):
+    text = f"chain:\n  - use: scene\n  - use: emulator\n    threshold_on: {value}\n"
+    with pytest.raises(ConfigError, match=r"p.yaml:4:\d+: emulator.threshold_on: .*finite"):
+        load(text, make_registry())
