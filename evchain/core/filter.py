@@ -45,9 +45,10 @@ class GroundTruth(Protocol):
 
 
 class FilterParams(BaseModel):
-    """Base for every filter's ``Params``: unknown keys are errors; values are immutable."""
+    """Base for every filter's ``Params``: unknown keys are errors, numbers are finite (``.inf``
+    and ``.nan`` are errors), values are immutable."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 @dataclass
