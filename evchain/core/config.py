@@ -16,11 +16,17 @@ by a stage before it) and that every stage has its own name (two stages of one f
 ``id:`` keys). Every error names ``file:line:column``, the key and what is allowed. Overrides
 ``STAGE.PARAM=VALUE`` address a stage by ``id`` or ``use`` name; the value is parsed as YAML
 (``0.3``, ``true``, ``[1, 2]``).
+
+Files: a stage's input files (its filter's ``input_paths``) are made absolute, relative to the
+pipeline file's folder (``--set`` values: to the current folder), and must exist; its output
+files (``output_paths``) must lie inside the run folder.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -158,8 +164,11 @@ def parse_yaml(text: str, file: str) -> tuple[Any, yaml.Node | None]:
     return data, node
 
 
-def load_pipeline(path: str | Path, registry: Registry, overrides: list[str] = ()) -> PipelineSpec:
-    """Read, validate and wire a pipeline file, applying ``--set`` overrides."""
+def load_pipeline(path: str | Path, registry: Registry, overrides: list[str] = (),
+                  set_dir: str | Path | None = None) -> PipelineSpec:
+    """Read, validate and wire a pipeline file, applying ``--set`` overrides; input files are
+    relative to the file's folder (those of ``overrides``: to ``set_dir``, default the current
+    folder)."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
@@ -167,11 +176,16 @@ def load_pipeline(path: str | Path, registry: Registry, overrides: list[str] = (
         raise ConfigError("pipeline file not found", file=str(path)) from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(f"cannot read pipeline file: {exc}", file=str(path)) from None
-    return pipeline_from_text(text, str(path), registry, overrides)
+    return pipeline_from_text(text, str(path), registry, overrides, base_dir=path.parent,
+                              set_dir=set_dir)
 
 
-def pipeline_from_text(text: str, file: str, registry: Registry,
-                       overrides: list[str] = ()) -> PipelineSpec:
+def pipeline_from_text(text: str, file: str, registry: Registry, overrides: list[str] = (),
+                       base_dir: str | Path | None = None,
+                       set_dir: str | Path | None = None) -> PipelineSpec:
+    """A validated pipeline from YAML text; relative input files in the text are resolved
+    against ``base_dir`` and those of ``overrides`` against ``set_dir`` (both default: the
+    current folder)."""
     data, node = parse_yaml(text, file)
     raw_stages, name, seed, description = _check_shape(data, node, file)
     for item in overrides:
@@ -186,6 +200,7 @@ def pipeline_from_text(text: str, file: str, registry: Registry,
         raise _all_of(problems)
     check_wiring(stages, registry)
     _check_ids(stages)
+    stages = _check_files(stages, Path(base_dir or "."), Path(set_dir or "."))
     return PipelineSpec(name=name or Path(file).stem, seed=seed, stages=stages, file=file,
                         description=description)
 
@@ -263,6 +278,55 @@ def _validate_stage(raw: _RawStage, registry: Registry) -> StageSpec:
                        for err in exc.errors()]) from None
     return StageSpec(use=use, id=stage_id, cls=cls, params=params, mark=raw.mark,
                      key_marks=raw.key_marks)
+
+
+def _check_files(stages: list[StageSpec], base_dir: Path, set_dir: Path) -> list[StageSpec]:
+    """Stages with their input files made absolute; every missing or unreadable input and
+    every output outside the run folder is a problem, all reported at once."""
+    problems, out = [], []
+    for s in stages:
+        updates = {}
+        for key in s.cls.input_paths:
+            value = getattr(s.params, key)
+            if value is None:
+                continue
+            mark = s.key_marks.get(key, s.mark)
+            from_set = mark.file.startswith("--set")
+            given = Path(os.path.expanduser(value))
+            path = Path(os.path.abspath((set_dir if from_set else base_dir) / given))
+            updates[key] = str(path)
+            if given.is_absolute():
+                relative = ""
+            elif from_set:
+                relative = " (relative to the current folder)"
+            else:
+                relative = f" (relative to the folder of {mark.file})"
+            if not path.exists():
+                problems.append(ConfigError(f"input not found: {path}{relative}", file=mark.file,
+                                            line=mark.line, column=mark.column,
+                                            key=f"{s.id}.{key}"))
+            elif not os.access(path, os.R_OK):
+                problems.append(ConfigError(f"input not readable (permission denied): {path}",
+                                            file=mark.file, line=mark.line, column=mark.column,
+                                            key=f"{s.id}.{key}"))
+        for key in s.cls.output_paths:
+            value = getattr(s.params, key)
+            if value is None:
+                continue
+            norm = os.path.normpath(value)
+            if os.path.isabs(norm) or norm == ".." or norm.startswith(".." + os.sep) or norm == ".":
+                mark = s.key_marks.get(key, s.mark)
+                problems.append(ConfigError(
+                    f"{value!r} must name a file or folder inside the run folder (outputs are "
+                    "written there; choose the run folder with --out): give a relative path "
+                    f"such as {Path(value).name or 'out'!r}", file=mark.file, line=mark.line,
+                    column=mark.column, key=f"{s.id}.{key}"))
+        if updates:
+            s = dataclasses.replace(s, params=s.params.model_copy(update=updates))
+        out.append(s)
+    if problems:
+        raise _all_of(problems)
+    return out
 
 
 def _param_error(err, cls: type[Filter], raw: _RawStage, use: str, stage_id: str) -> ConfigError:

@@ -89,6 +89,12 @@ class Filter:
     ``needs_series`` must be added by an earlier stage (validation rejects the chain
     otherwise), ``optional_series`` are read when an earlier stage adds them, ``adds_series``
     are attached to the output packets (:meth:`series_added` when a parameter names them).
+
+    Files: ``input_paths`` names the parameters that are files (or folders) the stage reads;
+    validation makes them absolute (relative to the pipeline file's folder, or to the current
+    folder for ``--set``) and checks that they exist. ``output_paths`` names the parameters
+    that are files (or folders) the stage writes in the run folder: they must stay inside it,
+    and a run removes them before it starts, so that no earlier run's file looks current.
     """
 
     name: ClassVar[str] = ""
@@ -97,6 +103,8 @@ class Filter:
     needs_series: ClassVar[tuple[SeriesDef, ...]] = ()
     optional_series: ClassVar[tuple[SeriesDef, ...]] = ()
     adds_series: ClassVar[tuple[SeriesDef, ...]] = ()
+    input_paths: ClassVar[tuple[str, ...]] = ()
+    output_paths: ClassVar[tuple[str, ...]] = ()
     Params: ClassVar[type[FilterParams]] = FilterParams
 
     params: Any

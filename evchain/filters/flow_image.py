@@ -25,6 +25,7 @@ class FlowImage(Filter):
     name = "flow_image"
     consumes = FlowPacket
     produces = None
+    output_paths = ("path", "save_npz")
 
     class Params(FilterParams):
         path: str = Field("flow.png", description="PNG file (relative to the output folder)")

@@ -155,6 +155,7 @@ class FlowScorer(Filter):
     produces = None
     optional_series = (FLOW_DENSITY,)
     adds_series = (FLOW_ERROR,)
+    input_paths = ("ground_truth",)
 
     class Params(FilterParams):
         ground_truth: str | None = Field(

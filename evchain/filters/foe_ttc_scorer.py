@@ -92,6 +92,7 @@ class FoeTtcScorer(Filter):
     produces = None
     optional_series = (FOE, TTC, TTC_CLUSTERS)
     adds_series = (FOE_ERROR, TTC_ERROR)
+    output_paths = ("plot_dir",)
 
     class Params(FilterParams):
         warmup_s: float = Field(1.0, ge=0, description="FOE errors before this (from the "

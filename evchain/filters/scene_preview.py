@@ -24,6 +24,7 @@ class ScenePreview(Filter):
     name = "scene_preview"
     consumes = FramePacket
     produces = None
+    output_paths = ("out",)
 
     class Params(FilterParams):
         times_s: list[float] = Field([0.0], description="times (s) to picture")

@@ -28,6 +28,7 @@ class Video(Filter):
     name = "video"
     consumes = EventPacket
     optional_series = (FOE, TTC)
+    output_paths = ("path",)
 
     class Params(FilterParams):
         path: str = Field("events.gif", description="output file (.gif or .mp4), in the run folder")

@@ -510,6 +510,7 @@ class AedatSource(Filter):
     name = "aedat"
     consumes = None
     produces = EventPacket
+    input_paths = ("path",)
 
     class Params(FilterParams):
         path: str = Field(description="AEDAT 2.0 file to read")
@@ -617,6 +618,7 @@ class AedatWriter(Filter):
     name = "aedat_writer"
     consumes = EventPacket
     produces = None
+    output_paths = ("path",)
 
     class Params(FilterParams):
         path: str = Field("events.aedat", description="output file, relative to the run's "

@@ -41,6 +41,7 @@ class Hdf5Source(Filter):
 
     name = "hdf5"
     produces = EventPacket
+    input_paths = ("path",)
 
     class Params(FilterParams):
         path: str = Field(description="HDF5 file")
@@ -123,6 +124,7 @@ class Hdf5Writer(Filter):
 
     name = "hdf5_writer"
     consumes = EventPacket
+    output_paths = ("path",)
 
     class Params(FilterParams):
         path: str = Field("events.h5", description="output file, relative to the run folder")
