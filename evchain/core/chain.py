@@ -207,6 +207,7 @@ def run_pipeline(spec: PipelineSpec, registry: Registry, out_dir: str | Path,
             "seed": spec.seed,
             "filters": [s.as_dict() for s in chain.stats],
             "metrics": _jsonable(context.metrics),
+            "warnings": list(context.warnings),
             "series": {k: len(v) for k, v in series.items()},
             "wall_s": time.perf_counter() - t0,
         }

@@ -56,7 +56,8 @@ class Context:
     """What the filters of one run share.
 
     ``geometry`` and ``truth`` are set by the source during its ``setup``; ``metrics`` is filled
-    by scorers (it becomes ``report.json``'s ``metrics``); ``out_dir`` is where sinks write.
+    by scorers (it becomes ``report.json``'s ``metrics``); ``out_dir`` is where sinks write;
+    ``warnings`` (:meth:`warn`) become ``report.json``'s ``warnings``.
     """
 
     seed: int = 0
@@ -65,6 +66,15 @@ class Context:
     truth: Any = None
     metrics: dict[str, Any] = field(default_factory=dict)
     debug: bool = False
+    warnings: list[str] = field(default_factory=list)
+
+    def warn(self, message: str) -> None:
+        """Something the run accepted but the user should know (in ``report.json`` and on the
+        ``evchain`` logger)."""
+        import logging
+
+        self.warnings.append(message)
+        logging.getLogger("evchain").warning("warning: %s", message)
 
     def rng(self, stream: str) -> np.random.Generator:
         """A generator for ``stream`` (e.g. the filter's id), fixed by the run's seed.

@@ -43,7 +43,7 @@ class SceneEvents(Filter):
         self.reader.id = f"{self.id}.reader"
         self.reader.setup(AedatSource.Params(path=params.path, packet_us=params.packet_us),
                           Context(seed=context.seed, out_dir=context.out_dir,
-                                  metrics=context.metrics))
+                                  metrics=context.metrics, warnings=context.warnings))
         chip = self.reader.chip.geometry
         self.geometry = scene.geometry
         if (chip.width, chip.height) != (self.geometry.width, self.geometry.height):
