@@ -24,7 +24,7 @@ from evchain.core.config import PipelineSpec
 from evchain.core.filter import Context, Filter
 from evchain.core.packets import FramePacket, Packet
 from evchain.core.registry import Registry
-from evchain.errors import EvchainError, FilterError
+from evchain.errors import ConfigError, EvchainError, FilterError
 from evchain.io.atomic import atomic_write_text
 
 
@@ -136,6 +136,11 @@ def _guard(f: Filter, packet: Packet | None, what: str, fn, *args):
         raise
     except EvchainError as exc:
         raise FilterError(_where(f, packet, what) + str(exc)) from exc
+    except OSError as exc:
+        if exc.filename is None:  # not about a file the user named
+            raise FilterError(_where(f, packet, what) + f"{type(exc).__name__}: {exc}",
+                              internal=True) from exc
+        raise FilterError(_where(f, packet, what) + f"{exc.filename}: {exc.strerror}") from exc
     except Exception as exc:
         raise FilterError(_where(f, packet, what) + f"{type(exc).__name__}: {exc}",
                           internal=True) from exc
@@ -177,7 +182,7 @@ def run_pipeline(spec: PipelineSpec, registry: Registry, out_dir: str | Path,
     """Run ``spec`` writing into ``out_dir``; returns the report. Raises on failure after
     closing every filter and writing a report marked ``"status": "failed"``."""
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    _make_run_folder(out)
     context = Context(seed=spec.seed, out_dir=out, debug=debug)
     resolved = spec.resolved()
     atomic_write_text(out / "pipeline.resolved.yaml", yaml.safe_dump(resolved, sort_keys=False))
@@ -217,6 +222,23 @@ def run_pipeline(spec: PipelineSpec, registry: Registry, out_dir: str | Path,
     for name, entries in series.items():
         write_series_csv(out / "series" / f"{name}.csv", entries)
     return RunResult(report=report, out_dir=out, series=series)
+
+
+def _make_run_folder(out: Path) -> None:
+    """Create the run folder; one that cannot be (a file there, no permission) is a ConfigError."""
+    import os
+
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{out} exists and is not a folder: choose another run folder",
+                          file="--out")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"cannot create the run folder {out}: {exc.strerror}",
+                          file="--out") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise ConfigError(f"cannot write into the run folder {out}: permission denied",
+                          file="--out")
 
 
 def write_series_csv(path: Path, entries: np.ndarray) -> None:
