@@ -1,8 +1,10 @@
 """Running a chain: packets stream from the source through every filter in bounded memory.
 
 The chain times each filter and counts what goes in and out (``len(packet)``: events, or frames
-for frame packets), collects the series of the last stage's packets, shows a progress bar over
-the source's time span, and writes ``report.json`` and the resolved pipeline atomically. On any
+for frame packets), streams the series of the last stage's packets to CSV files as they come
+(memory does not grow with the recording), shows a progress bar over the source's time span,
+and writes ``report.json`` and the resolved pipeline atomically. A run first marks its folder as
+in progress (``report.json`` says ``running``; the files it will write are removed). On any
 error every filter's ``close()`` still runs and the message names the filter and the slice.
 """
 
@@ -10,10 +12,11 @@ from __future__ import annotations
 
 import json
 import platform
+import shutil
 import sys
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +28,8 @@ from evchain.core.filter import Context, Filter
 from evchain.core.packets import FramePacket, Packet
 from evchain.core.registry import Registry
 from evchain.errors import ConfigError, EvchainError, FilterError
-from evchain.io.atomic import atomic_write_text
+from evchain.io.atomic import atomic_write_text, partial_path
+from evchain.io.series_csv import SeriesCsvWriter, remove_series
 
 
 @dataclass
@@ -46,11 +50,11 @@ class StageStats:
 
 @dataclass
 class RunResult:
-    """What a run produced: the report (also written to ``out_dir/report.json``)."""
+    """What a run produced: the report (also written to ``out_dir/report.json``); the series
+    are in ``out_dir/series/NAME.csv``."""
 
     report: dict[str, Any]
     out_dir: Path
-    series: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 class Chain:
@@ -179,22 +183,24 @@ def versions(registry: Registry) -> dict[str, Any]:
 
 def run_pipeline(spec: PipelineSpec, registry: Registry, out_dir: str | Path,
                  progress: bool = False, debug: bool = False) -> RunResult:
-    """Run ``spec`` writing into ``out_dir``; returns the report. Raises on failure after
-    closing every filter and writing a report marked ``"status": "failed"``."""
+    """Run ``spec`` writing into ``out_dir``; returns the report. The folder is marked as in
+    progress first (:func:`start_run_folder`); series are written as they come. Raises on
+    failure after closing every filter and writing a report marked ``"status": "failed"``."""
     out = Path(out_dir)
     _make_run_folder(out)
-    context = Context(seed=spec.seed, out_dir=out, debug=debug)
     resolved = spec.resolved()
+    start_run_folder(spec, out, {"pipeline": resolved, "versions": versions(registry),
+                                 "seed": spec.seed})
     atomic_write_text(out / "pipeline.resolved.yaml", yaml.safe_dump(resolved, sort_keys=False))
+    context = Context(seed=spec.seed, out_dir=out, debug=debug)
     chain = Chain(spec, context)
-    collected: dict[str, list[np.ndarray]] = {}
+    series = SeriesCsvWriter(out / "series")
     t0 = time.perf_counter()
     status, error = "ok", None
     try:
         chain.setup()
         for packet in chain.stream(progress=progress):
-            for name, entries in packet.series.items():
-                collected.setdefault(name, []).append(entries)
+            series.append(packet.series)
     except BaseException as exc:
         status, error = "failed", f"{type(exc).__name__}: {exc}"
         raise
@@ -203,7 +209,10 @@ def run_pipeline(spec: PipelineSpec, registry: Registry, out_dir: str | Path,
         if close_errors and status == "ok":
             status = "failed"
             error = "; ".join(f"{type(e).__name__}: {e}" for e in close_errors)
-        series = {k: np.concatenate(v) for k, v in collected.items()}
+        if status == "ok":
+            series.commit()
+        else:
+            series.abort()
         report = {
             "status": status,
             "error": error,
@@ -213,15 +222,32 @@ def run_pipeline(spec: PipelineSpec, registry: Registry, out_dir: str | Path,
             "filters": [s.as_dict() for s in chain.stats],
             "metrics": _jsonable(context.metrics),
             "warnings": list(context.warnings),
-            "series": {k: len(v) for k, v in series.items()},
+            "series": dict(series.counts),
             "wall_s": time.perf_counter() - t0,
         }
         atomic_write_text(out / "report.json", json.dumps(report, indent=2))
     if close_errors:
         raise FilterError(f"closing filters failed: {error}")
-    for name, entries in series.items():
-        write_series_csv(out / "series" / f"{name}.csv", entries)
-    return RunResult(report=report, out_dir=out, series=series)
+    return RunResult(report=report, out_dir=out)
+
+
+def start_run_folder(spec: PipelineSpec, out: Path, report: dict[str, Any]) -> None:
+    """Mark ``out`` as holding a run in progress before anything runs: ``report.json`` is
+    rewritten with ``"status": "running"`` (and ``report``'s fields), then every file this run
+    will write is removed (the series, each stage's ``output_files`` and their ``.partial``
+    files), so nothing an earlier run left there looks current, even after a crash."""
+    atomic_write_text(out / "report.json",
+                      json.dumps({"status": "running", "error": None, **report}, indent=2))
+    remove_series(out / "series")
+    root = out.resolve()
+    for stage in spec.stages:
+        for rel in stage.cls.output_files(stage.params):
+            for path in (out / rel, partial_path(out / rel)):
+                inside = root in path.resolve().parents  # never the folder itself or above
+                if inside and path.is_dir() and not path.is_symlink():
+                    shutil.rmtree(path)
+                elif inside and (path.exists() or path.is_symlink()):
+                    path.unlink()
 
 
 def _make_run_folder(out: Path) -> None:
@@ -239,18 +265,6 @@ def _make_run_folder(out: Path) -> None:
     if not os.access(out, os.W_OK | os.X_OK):
         raise ConfigError(f"cannot write into the run folder {out}: permission denied",
                           file="--out")
-
-
-def write_series_csv(path: Path, entries: np.ndarray) -> None:
-    """A series (structured array) as CSV with a header row, written atomically."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    names = entries.dtype.names
-    lines = [",".join(names)]
-    cols = [entries[n] for n in names]
-    for row in zip(*cols, strict=True):
-        lines.append(",".join(repr(float(v)) if isinstance(v, np.floating) else str(v)
-                              for v in row))
-    atomic_write_text(path, "\n".join(lines) + "\n")
 
 
 def _jsonable(value):

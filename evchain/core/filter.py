@@ -152,6 +152,12 @@ class Filter:
         """Release resources; runs on success and on error (after flush on success)."""
 
     @classmethod
+    def output_files(cls, params: FilterParams) -> list[str]:
+        """The files and folders (relative to the run folder) a stage with ``params`` writes:
+        the values of its ``output_paths``. A run removes them before it starts."""
+        return [v for v in (getattr(params, k) for k in cls.output_paths) if v is not None]
+
+    @classmethod
     def series_added(cls, params: FilterParams) -> tuple[SeriesDef, ...]:
         """The series a stage with ``params`` adds: ``adds_series`` unless a parameter renames
         them."""
