@@ -77,8 +77,10 @@ class Chain:
 
     def stream(self, progress: bool = False) -> Iterator[Packet]:
         """Yield the last stage's packets; the chain's flush packets come last."""
+        from evchain.core.progress import RunProgress
+
         source, rest = self.filters[0], self.filters[1:]
-        bar = _progress_bar(source, progress)
+        bar = RunProgress(source.id, source.time_span_us(), progress)
         it = source.packets()
         try:
             while True:
@@ -90,8 +92,7 @@ class Chain:
                 if self.context.debug:
                     packet.validate(f"output of {source.id!r}")
                 self.stats[0].events_out += len(packet)
-                if bar is not None:
-                    bar.update(max(0, packet.t_end - bar.n))
+                bar.update(packet.t_end)
                 out = self._through(packet, 1)
                 if out is not None:
                     yield out
@@ -105,8 +106,7 @@ class Chain:
                     if out is not None:
                         yield out
         finally:
-            if bar is not None:
-                bar.close()
+            bar.close()
 
     def _through(self, packet: Packet, start: int) -> Packet:
         for i in range(start, len(self.filters)):
@@ -155,20 +155,6 @@ def _where(f: Filter, packet: Packet | None, what: str) -> str:
     if packet is not None:
         where += f" on the slice [{packet.t_start}, {packet.t_end}) us"
     return where + ": "
-
-
-def _progress_bar(source: Filter, enabled: bool):
-    if not enabled:
-        return None
-    span = source.time_span_us()
-    from tqdm import tqdm
-
-    total = (span[1] - span[0]) if span else None
-    bar = tqdm(total=total, unit="us", unit_scale=True, desc=source.id, leave=False,
-               file=sys.stderr, dynamic_ncols=True, mininterval=0.5, disable=None)
-    bar.n = span[0] if span else 0
-    bar.total = span[1] if span else None
-    return bar
 
 
 def versions(registry: Registry) -> dict[str, Any]:
