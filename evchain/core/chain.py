@@ -30,6 +30,7 @@ from evchain.core.registry import Registry
 from evchain.errors import ConfigError, EvchainError, FilterError
 from evchain.io.atomic import atomic_write_text, partial_path
 from evchain.io.series_csv import SeriesCsvWriter, remove_series
+from evchain.provenance import input_digests, source_stamps
 
 
 @dataclass
@@ -164,19 +165,23 @@ def versions(registry: Registry) -> dict[str, Any]:
 
     return {"evchain": __version__, "python": platform.python_version(),
             "numpy": np.__version__, "numba": sys.modules["numba"].__version__,
-            "plugins": {d: v for d, v in registry.distributions.items() if d != "evchain"}}
+            "plugins": {d: v for d, v in registry.distributions.items() if d != "evchain"},
+            "source": source_stamps(registry)}
 
 
 def run_pipeline(spec: PipelineSpec, registry: Registry, out_dir: str | Path,
                  progress: bool = False, debug: bool = False) -> RunResult:
-    """Run ``spec`` writing into ``out_dir``; returns the report. The folder is marked as in
-    progress first (:func:`start_run_folder`); series are written as they come. Raises on
-    failure after closing every filter and writing a report marked ``"status": "failed"``."""
+    """Run ``spec`` writing into ``out_dir``; returns the report (with what made the run: the
+    resolved pipeline, each input file's SHA-256 and the versions and source hashes of the
+    code). The folder is marked as in progress first (:func:`start_run_folder`); series are
+    written as they come. Raises on failure after closing every filter and writing a report
+    marked ``"status": "failed"``."""
     out = Path(out_dir)
     _make_run_folder(out)
     resolved = spec.resolved()
-    start_run_folder(spec, out, {"pipeline": resolved, "versions": versions(registry),
-                                 "seed": spec.seed})
+    made_by = {"pipeline": resolved, "inputs": input_digests(spec), "versions": versions(registry),
+               "seed": spec.seed}
+    start_run_folder(spec, out, made_by)
     atomic_write_text(out / "pipeline.resolved.yaml", yaml.safe_dump(resolved, sort_keys=False))
     context = Context(seed=spec.seed, out_dir=out, debug=debug)
     chain = Chain(spec, context)
@@ -202,9 +207,7 @@ def run_pipeline(spec: PipelineSpec, registry: Registry, out_dir: str | Path,
         report = {
             "status": status,
             "error": error,
-            "pipeline": resolved,
-            "versions": versions(registry),
-            "seed": spec.seed,
+            **made_by,
             "filters": [s.as_dict() for s in chain.stats],
             "metrics": _jsonable(context.metrics),
             "warnings": list(context.warnings),
