@@ -4,8 +4,8 @@ compiles kernels.
 The first run on a machine compiles the numba kernels (later runs load them from numba's
 cache); that takes a while in the first packet and would otherwise show as a stuck bar with an
 absurd remaining time. While a compilation runs, the bar says ``compiling kernels (first run
-only)`` and the ``evchain`` logger says so once; the time spent compiling is left out of the
-bar's rate and remaining time.
+only)`` and the ``evchain`` logger says so once (at DEBUG level when no bar is shown); the
+time spent compiling is left out of the bar's rate and remaining time.
 """
 
 from __future__ import annotations
@@ -72,8 +72,11 @@ class RunProgress:
             _announced = True
             if self.bar is not None:
                 self.bar.clear()  # the notice on a line of its own, not after the bar
-            log.info("%s: numba compiles the kernels once; later runs load them from its cache",
-                     COMPILING)
+            # without a bar (sweep workers, --no-progress) only with --debug: a sweep's
+            # workers would each print it over the sweep's own lines
+            log.log(logging.INFO if self.bar is not None else logging.DEBUG,
+                    "%s: numba compiles the kernels once; later runs load them from its cache",
+                    COMPILING)
         if self.bar is not None:
             self.bar.set_description_str(COMPILING)
 
