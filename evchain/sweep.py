@@ -328,31 +328,32 @@ def validate_sweep(sweep: SweepSpec, registry: Registry | None = None) -> int:
     return len(records) + len(jobs)
 
 
-def reusable_report(spec: PipelineSpec, registry: Registry, out_dir: Path) -> dict | None:
-    """The report in ``out_dir`` if it is of the same run: status ``ok``, the same resolved
-    pipeline, the same contents of every input file and the same code (versions and source
-    hashes of evchain and the plugins); else None."""
+def reusable_report(spec: PipelineSpec, registry: Registry,
+                    out_dir: Path) -> tuple[dict | None, str | None]:
+    """(the report in ``out_dir`` if it is of the same run, else None; why not, if a finished
+    run is there). The same run: status ``ok``, the same resolved pipeline, the same contents
+    of every input file and the same code (versions and source hashes of evchain and the
+    plugins)."""
     from evchain.core.chain import versions
     from evchain.provenance import input_digests
 
     try:
         old = json.loads((out_dir / "report.json").read_text())
     except (OSError, ValueError):
-        return None
+        return None, None
     if old.get("status") != "ok" or old.get("pipeline") != spec.resolved():
-        return None
+        return None, None
     if old.get("inputs") != input_digests(spec):
-        log.info("%s: an input file changed since this run; running it again", out_dir)
-        return None
+        return None, "an input file changed"
     if old.get("versions") != versions(registry):
-        log.info("%s: the code changed since this run; running it again", out_dir)
-        return None
-    return old
+        return None, "the code changed"
+    return old, None
 
 
 def _run_one(job: _Job, registry: Registry | None = None) -> dict[str, Any]:
     """Run ``job`` unless its folder holds the same run. A failed run does not raise: it is
-    ``{"report": None, "error": MESSAGE}``, a row of the table."""
+    ``{"report": None, "error": MESSAGE}``, a row of the table. ``again``: why a finished run
+    in the folder was not reused."""
     from evchain.core.chain import run_pipeline
 
     try:
@@ -360,11 +361,11 @@ def _run_one(job: _Job, registry: Registry | None = None) -> dict[str, Any]:
         spec = load_pipeline(job.base, registry, job.overrides, set_dir=job.set_dir)
         if job.replay is not None:
             spec = _replayed(spec, job.replay)
-        old = reusable_report(spec, registry, Path(job.out_dir))
+        old, again = reusable_report(spec, registry, Path(job.out_dir))
         if old is not None:
             return {"report": old, "cached": True, "error": None}
         return {"report": run_pipeline(spec, registry, job.out_dir).report, "cached": False,
-                "error": None}
+                "error": None, "again": again}
     except Exception as exc:  # noqa: BLE001 - every failure becomes the run's row
         text = str(exc) if isinstance(exc, EvchainError) else f"{type(exc).__name__}: {exc}"
         return {"report": None, "cached": False, "error": text}
@@ -477,7 +478,9 @@ def run_sweep(sweep: SweepSpec, out_dir: str | Path, workers: int = 2,
                     failed_records[records[i].out_dir] = outcome["error"]
                     progress.line(f"{name} FAILED: {_first_line(outcome['error'])}")
                 else:
-                    progress.line(f"{name} {'(cached)' if outcome['cached'] else 'recorded'}")
+                    again = f" (run again: {outcome['again']})" if outcome.get("again") else ""
+                    progress.line(f"{name} {'(cached)' if outcome['cached'] else 'recorded'}"
+                                  f"{again}")
 
             _run_all(records, workers, scheduler, registry, recorded)
         outcomes: list[dict[str, Any]] = []
@@ -499,6 +502,7 @@ def run_sweep(sweep: SweepSpec, out_dir: str | Path, workers: int = 2,
             v, _, label, _ = runs[i]
             what = (f"FAILED: {_first_line(outcome['error'])}" if outcome["error"] else
                     ("(cached) " if outcome["cached"] else "") +
+                    (f"(run again: {outcome['again']}) " if outcome.get("again") else "") +
                     " ".join(f"{key}={_fmt(lookup(outcome['report'], key))}"
                              for key in sweep.report))
             progress.line(f"{v.label:28s} {label:6s} {what}")

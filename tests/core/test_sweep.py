@@ -210,8 +210,10 @@ def test_changed_input_file_is_not_answered_from_the_cache(tmp_path, monkeypatch
     again = run_sweep(load_sweep(p), tmp_path / "out", workers=1, echo=lambda s: None)
     assert all(r["cached"] for r in again)
     file_sweep(tmp_path, n_events=900)  # same file name, other events
-    changed = run_sweep(load_sweep(p), tmp_path / "out", workers=1, echo=lambda s: None)
+    lines = []
+    changed = run_sweep(load_sweep(p), tmp_path / "out", workers=1, echo=lines.append)
     assert not any(r["cached"] for r in changed)
+    assert all("(run again: an input file changed)" in line for line in lines)
     assert changed[0]["aedat_writer.events"] > rows[0]["aedat_writer.events"]
     rep = json.loads((tmp_path / "out" / changed[0]["run"] / "report.json").read_text())
     assert rep["inputs"]["aedat.path"]["path"] == str(tmp_path / "data" / "ev.aedat")
@@ -231,8 +233,10 @@ def test_changed_code_is_not_answered_from_the_cache(tmp_path, monkeypatch):
         return {**out, "evchain": out["evchain"] + "-edited"}
 
     monkeypatch.setattr(chain, "source_stamps", edited)
-    again = run_sweep(load_sweep(p), tmp_path / "out", workers=1, echo=lambda s: None)
+    lines = []
+    again = run_sweep(load_sweep(p), tmp_path / "out", workers=1, echo=lines.append)
     assert not any(r["cached"] for r in again)
+    assert all("(run again: the code changed)" in line for line in lines)
 
 
 def test_source_stamps_follow_the_files(tmp_path, monkeypatch):
