@@ -1,12 +1,16 @@
 """The ``evchain`` command: run, validate, filters, plugins, sweep, bench, results, docs.
 
-User mistakes (an :class:`EvchainError`) print one line and exit with code 2; ``--debug`` shows
-the traceback. Unexpected errors are bugs: they exit with code 1.
+User mistakes (an :class:`EvchainError`) print one line and exit with code 2; ``--debug`` (before
+or after the subcommand) shows the traceback. Unexpected errors are bugs: they exit with code 1.
+Notices that are not the result (kernels compiling, runs taken from a sweep's cache) go to the
+``evchain`` logger, shown on stderr.
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
+import os
 import sys
 import traceback
 from pathlib import Path
@@ -169,12 +173,25 @@ def cmd_docs(args) -> int:
     return 0
 
 
+DEBUG_HELP = "show tracebacks and debug messages; check every packet"
+
+
 def build_parser() -> argparse.ArgumentParser:
+    from evchain import __version__
+
     p = argparse.ArgumentParser(prog="evchain", description=__doc__.splitlines()[0])
-    p.add_argument("--debug", action="store_true", help="show tracebacks; check every packet")
+    p.add_argument("--debug", action="store_true", help=DEBUG_HELP)
+    p.add_argument("--version", action="version", version=f"evchain {__version__}")
+    # --debug after the subcommand too; SUPPRESS keeps a --debug given before it
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                        help=DEBUG_HELP)
     sub = p.add_subparsers(dest="command", required=True)
 
-    r = sub.add_parser("run", help="run a pipeline")
+    def add(name: str, **kw) -> argparse.ArgumentParser:
+        return sub.add_parser(name, parents=[common], **kw)
+
+    r = add("run", help="run a pipeline")
     r.add_argument("pipeline")
     r.add_argument("--set", action="append", default=[], metavar="STAGE.PARAM=VALUE",
                    help="override a parameter (stage by 'use' name or 'id'); repeatable")
@@ -186,20 +203,20 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
     r.set_defaults(fn=cmd_run)
 
-    v = sub.add_parser("validate", help="check pipelines (or sweeps: every run) without "
+    v = add("validate", help="check pipelines (or sweeps: every run) without "
                        "running them")
     v.add_argument("pipeline", nargs="+")
     v.add_argument("--set", action="append", default=[], metavar="STAGE.PARAM=VALUE")
     v.set_defaults(fn=cmd_validate)
 
-    f = sub.add_parser("filters", help="list filters, or show one filter's parameters")
+    f = add("filters", help="list filters, or show one filter's parameters")
     f.add_argument("name", nargs="?")
     f.set_defaults(fn=cmd_filters)
 
-    pl = sub.add_parser("plugins", help="list plugin distributions and versions")
+    pl = add("plugins", help="list plugin distributions and versions")
     pl.set_defaults(fn=cmd_plugins)
 
-    sw = sub.add_parser("sweep", help="run variations of a pipeline, cached, as one table")
+    sw = add("sweep", help="run variations of a pipeline, cached, as one table")
     sw.add_argument("sweep")
     sw.add_argument("--out", help="output folder (default out/sweeps/NAME)")
     sw.add_argument("--workers", type=int, default=2, help="local processes (1: in-process)")
@@ -209,11 +226,11 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("--scheduler", help="Dask scheduler address (needs evchain[dask])")
     sw.set_defaults(fn=cmd_sweep)
 
-    d = sub.add_parser("docs", help="generate the reference docs (filters, hooks)")
+    d = add("docs", help="generate the reference docs (filters, hooks)")
     d.add_argument("--out", default="docs/reference")
     d.set_defaults(fn=cmd_docs)
 
-    rs = sub.add_parser("results", help="docs/results.md from the saved results (--run: "
+    rs = add("results", help="docs/results.md from the saved results (--run: "
                         "measure them first)")
     rs.add_argument("--run", nargs="*", metavar="NAME",
                     help="run the manifest's sweeps and benchmarks (all, or those named) and "
@@ -224,7 +241,7 @@ def build_parser() -> argparse.ArgumentParser:
     rs.add_argument("--root", default=".", help="repository folder (default: here)")
     rs.set_defaults(fn=cmd_results)
 
-    b = sub.add_parser(
+    b = add(
         "bench", help="benchmarks: throughput next to error",
         description="Run benchmark workloads; each row is a throughput next to the error it "
                     "reached and says what it ran on. Rows on the simulated reference drive "
@@ -248,10 +265,28 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _setup_logging(debug: bool) -> None:
+    """The ``evchain`` logger on stderr: notices at INFO, everything with ``--debug``."""
+    logger = logging.getLogger("evchain")
+    if not any(getattr(h, "_evchain_cli", False) for h in logger.handlers):
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("evchain: %(message)s"))
+        handler._evchain_cli = True
+        logger.addHandler(handler)
+    logger.setLevel(logging.DEBUG if debug else logging.INFO)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    _setup_logging(args.debug)
     try:
-        return args.fn(args)
+        rc = args.fn(args)
+        sys.stdout.flush()  # a closed pipe shows here, not at exit
+        return rc
+    except BrokenPipeError:  # e.g. `evchain filters | head`: the reader has all it wants
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())  # nothing more to write at exit
+        return 141  # 128 + SIGPIPE, as a process killed by the signal
     except EvchainError as exc:
         if args.debug:
             traceback.print_exc()

@@ -20,6 +20,21 @@ def cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
+def available_memory_bytes() -> int | None:
+    """Memory a new allocation can get without swapping (Linux ``MemAvailable``), else the
+    physical memory; None when neither is known."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
 def git_commit(path: Path | None = None) -> str | None:
     """Short commit of the checkout holding ``path`` (default: this package), with ``+`` when
     the working tree has changes; None outside a git checkout."""

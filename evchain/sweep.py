@@ -29,10 +29,23 @@ variation, each a separate run (e.g. a drive started a fraction of a metre later
 carry ``repeat`` and ``evchain results`` reports the spread over them.
 
 Each run writes into ``OUT/<hash of the resolved pipeline>/`` (recordings into
-``OUT/record-<hash>/``); a run whose folder already holds an ``ok`` report of the same resolved
-pipeline is not repeated. Runs go to a local process pool, or to a Dask cluster when a scheduler
-address is given (``pip install 'evchain[dask]'``). The table is printed and written as
-``OUT/sweep.csv``, ``OUT/sweep.md`` and ``OUT/sweep.json`` (rows, the machine, wall time).
+``OUT/record-<hash>/``). A run is not repeated when its folder holds an ``ok`` report of the same
+run: the same resolved pipeline, the same contents (SHA-256) of every input file it reads (a
+recording, a file source's ``path``, DVSFLOW16 ground truth), and the same code (the versions
+of evchain, the plugins, Python, numpy and numba, and a hash of the source files of evchain and
+of the plugins): a changed input or a changed kernel runs again.
+
+Paths resolve before any work is sent: the sweep's ``base``/``bases``/``record``/``replay``
+relative to the sweep file, a pipeline's input files relative to the pipeline file, input files
+in the sweep's overrides relative to the sweep file, and ``OUT`` relative to the current folder;
+jobs carry them absolute. Runs go to a local process pool, or to a Dask cluster when a scheduler
+address is given (``pip install 'evchain[dask]'``); a cluster's workers must see the same files
+at the same paths (a shared file system, with ``OUT`` on it). A line is printed as each run
+finishes (and a bar over the runs on a terminal). A failed run does not stop the others: its
+row says ``failed: <the error's first line>`` in the ``status`` column, and once the table is
+written :class:`SweepFailed` names the failed runs (``evchain sweep`` exits with code 2). The
+table is written as ``OUT/sweep.csv``, ``OUT/sweep.md`` and ``OUT/sweep.json``
+(rows, the machine, wall time).
 
 With ``replay`` (relative to the sweep file, or ``evchain sweep --replay FILE``) every run reads
 the recorded events of one earlier ``scene`` -> ``emulator`` run instead of rendering.
@@ -40,11 +53,15 @@ the recorded events of one earlier ``scene`` -> ``emulator`` run instead of rend
 
 from __future__ import annotations
 
+import concurrent.futures
 import csv
 import hashlib
 import io
 import itertools
 import json
+import logging
+import os
+import sys
 import time
 from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
@@ -54,8 +71,10 @@ from typing import Any
 
 from evchain.core.config import PipelineSpec, load_pipeline, parse_yaml
 from evchain.core.registry import Registry, make_registry
-from evchain.errors import ConfigError
+from evchain.errors import ConfigError, EvchainError
 from evchain.io.atomic import atomic_write_text
+
+log = logging.getLogger("evchain")
 
 SWEEP_KEYS = {"name", "base", "bases", "mode", "set", "vary", "cells", "report", "description",
               "replay", "record", "repeat"}
@@ -237,20 +256,31 @@ def events_file(record: PipelineSpec) -> str:
 
 @dataclass
 class _Job:
-    """One pipeline run: the pipeline file, its overrides, an optional recording to replay."""
+    """One pipeline run, every path absolute (a Dask worker may run in any folder): the
+    pipeline file, its overrides, the run folder, an optional recording to replay, and the
+    folder that relative input files in the overrides are relative to (the sweep file's)."""
 
     base: str
     overrides: list[str]
     out_dir: str
     replay: str | None = None
+    set_dir: str | None = None
+
+
+def _absolute(path: str | Path) -> str:
+    return os.path.abspath(path)
 
 
 def plan(sweep: SweepSpec, out: Path, registry: Registry,
          check_recordings: bool = True) -> tuple[list[_Job], list[_Job]]:
     """(recording jobs, one job per run of ``sweep.runs()``), every pipeline validated first;
-    ``check_recordings``: also that a given ``replay`` recording is this sweep's."""
-    plain = {str(p): load_pipeline(p, registry)
+    ``check_recordings``: also that a given ``replay`` recording is this sweep's. Every path
+    in the jobs is absolute."""
+    out = Path(_absolute(out))
+    set_dir = _absolute(Path(sweep.file).parent)
+    files = {str(p): _absolute(p)
              for p in [*sweep.bases.values(), *([sweep.record] if sweep.record else [])]}
+    plain = {f: load_pipeline(f, registry, set_dir=set_dir) for f in files.values()}
     known = set().union(*(_stage_names(s) for s in plain.values())) | {"seed"}
     for v in sweep.variations:
         for r in range(len(sweep.repeats)):
@@ -259,22 +289,29 @@ def plan(sweep: SweepSpec, out: Path, registry: Registry,
                     raise ConfigError(f"{v.label}: override {o!r} addresses no stage of the "
                                       f"sweep's pipelines; stages: {', '.join(sorted(known))}",
                                       file=sweep.file)
+    replay = None if sweep.replay is None else _absolute(sweep.replay)
+    if replay is not None and not Path(replay).is_file():
+        raise ConfigError(f"recording not found: {replay}", file=sweep.file, key="replay")
+    record = None if sweep.record is None else files[str(sweep.record)]
     records: dict[str, _Job] = {}
     jobs = []
     for v, r, _label, base in sweep.runs():
-        overrides = overrides_for(plain[str(base)], sweep.overrides(v, r))
-        replay = None if sweep.replay is None else str(sweep.replay)
-        if sweep.record is not None:
-            rec_over = overrides_for(plain[str(sweep.record)], sweep.overrides(v, r))
-            rec = load_pipeline(sweep.record, registry, rec_over)
+        base = files[str(base)]
+        overrides = overrides_for(plain[base], sweep.overrides(v, r))
+        run_replay = replay
+        if record is not None:
+            rec_over = overrides_for(plain[record], sweep.overrides(v, r))
+            rec = load_pipeline(record, registry, rec_over, set_dir=set_dir)
             rec_dir = out / f"record-{config_hash(rec.resolved())}"
-            records.setdefault(str(rec_dir), _Job(str(sweep.record), rec_over, str(rec_dir)))
-            replay = str(rec_dir / events_file(rec))
-        spec = load_pipeline(base, registry, overrides)
-        if replay is not None:  # a recording still to be made is checked when it is replayed
-            spec = _replayed(spec, replay,
-                             check_recording=check_recordings and sweep.record is None)
-        jobs.append(_Job(str(base), overrides, str(out / config_hash(spec.resolved())), replay))
+            records.setdefault(str(rec_dir), _Job(record, rec_over, str(rec_dir),
+                                                  set_dir=set_dir))
+            run_replay = str(rec_dir / events_file(rec))
+        spec = load_pipeline(base, registry, overrides, set_dir=set_dir)
+        if run_replay is not None:  # a recording still to be made is checked when replayed
+            spec = _replayed(spec, run_replay,
+                             check_recording=check_recordings and record is None)
+        jobs.append(_Job(base, overrides, str(out / config_hash(spec.resolved())), run_replay,
+                         set_dir))
     return list(records.values()), jobs
 
 
@@ -291,38 +328,91 @@ def validate_sweep(sweep: SweepSpec, registry: Registry | None = None) -> int:
     return len(records) + len(jobs)
 
 
-def _run_one(job: _Job, registry: Registry | None = None):
+def reusable_report(spec: PipelineSpec, registry: Registry,
+                    out_dir: Path) -> tuple[dict | None, str | None]:
+    """(the report in ``out_dir`` if it is of the same run, else None; why not, if a finished
+    run is there). The same run: status ``ok``, the same resolved pipeline, the same contents
+    of every input file and the same code (versions and source hashes of evchain and the
+    plugins)."""
+    from evchain.core.chain import versions
+    from evchain.provenance import input_digests
+
+    try:
+        old = json.loads((out_dir / "report.json").read_text())
+    except (OSError, ValueError):
+        return None, None
+    if old.get("status") != "ok" or old.get("pipeline") != spec.resolved():
+        return None, None
+    if old.get("inputs") != input_digests(spec):
+        return None, "an input file changed"
+    if old.get("versions") != versions(registry):
+        return None, "the code changed"
+    return old, None
+
+
+def _run_one(job: _Job, registry: Registry | None = None) -> dict[str, Any]:
+    """Run ``job`` unless its folder holds the same run. A failed run does not raise: it is
+    ``{"report": None, "error": MESSAGE}``, a row of the table. ``again``: why a finished run
+    in the folder was not reused."""
     from evchain.core.chain import run_pipeline
 
-    registry = registry or make_registry()
-    spec = load_pipeline(job.base, registry, job.overrides)
-    if job.replay is not None:
-        spec = _replayed(spec, job.replay)
-    report_path = Path(job.out_dir) / "report.json"
-    if report_path.exists():
-        old = json.loads(report_path.read_text())
-        if old.get("status") == "ok" and old.get("pipeline") == spec.resolved():
-            return old, True
-    return run_pipeline(spec, registry, job.out_dir).report, False
+    try:
+        registry = registry or make_registry()
+        spec = load_pipeline(job.base, registry, job.overrides, set_dir=job.set_dir)
+        if job.replay is not None:
+            spec = _replayed(spec, job.replay)
+        old, again = reusable_report(spec, registry, Path(job.out_dir))
+        if old is not None:
+            return {"report": old, "cached": True, "error": None}
+        return {"report": run_pipeline(spec, registry, job.out_dir).report, "cached": False,
+                "error": None, "again": again}
+    except Exception as exc:  # noqa: BLE001 - every failure becomes the run's row
+        text = str(exc) if isinstance(exc, EvchainError) else f"{type(exc).__name__}: {exc}"
+        return {"report": None, "cached": False, "error": text}
 
 
 def _run_all(jobs: list[_Job], workers: int, scheduler: str | None,
-             registry: Registry | None) -> list[tuple[dict, bool]]:
+             registry: Registry | None,
+             on_done: Callable[[int, dict[str, Any]], object]) -> list[dict[str, Any]]:
+    """Every job's outcome, in job order; ``on_done(index, outcome)`` as each finishes."""
+    results: list[dict[str, Any]] = [{}] * len(jobs)
+
+    def done(i: int, get: Callable[[], dict[str, Any]]) -> None:
+        try:
+            results[i] = get()
+        except Exception as exc:  # noqa: BLE001 - a lost worker fails its run, not the sweep
+            results[i] = {"report": None, "cached": False,
+                          "error": f"{type(exc).__name__}: {exc}"}
+        on_done(i, results[i])
+
     if not jobs:
-        return []
+        return results
     if scheduler is None and workers <= 1:
-        return [_run_one(j, registry) for j in jobs]
+        for i, job in enumerate(jobs):
+            done(i, lambda job=job: _run_one(job, registry))
+        return results
     if scheduler is not None:
         try:
-            from dask.distributed import Client
+            from dask.distributed import Client, as_completed
         except ImportError:
             raise ConfigError("a Dask scheduler needs 'pip install evchain[dask]'",
                               file="--scheduler") from None
-        with Client(scheduler) as client:
-            return client.gather([client.submit(_run_one, j, pure=False) for j in jobs])
+        try:
+            client = Client(scheduler, timeout=30)
+        except (OSError, TimeoutError) as exc:
+            raise ConfigError(f"cannot reach the Dask scheduler at {scheduler}: {exc}",
+                              file="--scheduler") from None
+        with client:
+            futures = [client.submit(_run_one, job, pure=False) for job in jobs]
+            index = {f.key: i for i, f in enumerate(futures)}
+            for future in as_completed(futures):
+                done(index[future.key], future.result)
+        return results
     with ProcessPoolExecutor(max_workers=workers) as pool:
-        futures = [pool.submit(_run_one, j) for j in jobs]
-        return [f.result() for f in futures]
+        futures = {pool.submit(_run_one, job): i for i, job in enumerate(jobs)}
+        for future in concurrent.futures.as_completed(futures):
+            done(futures[future], future.result)
+    return results
 
 
 def lookup(report: dict[str, Any], dotted: str):
@@ -334,35 +424,110 @@ def lookup(report: dict[str, Any], dotted: str):
     return value
 
 
+class SweepFailed(EvchainError):
+    """Some runs of a sweep failed (the table was still written; it marks them)."""
+
+
+class _Progress:
+    """One line per finished run, and a bar over the runs on a terminal."""
+
+    def __init__(self, total: int, echo: Callable[[str], object]):
+        from tqdm import tqdm
+
+        self.echo, self.total, self.done = echo, total, 0
+        self.bar = tqdm(total=total, unit="run", desc="sweep", leave=False, file=sys.stderr,
+                        dynamic_ncols=True, disable=None)
+
+    def line(self, text: str) -> None:
+        self.done += 1
+        self.bar.clear()
+        self.echo(f"  [{self.done}/{self.total}] {text}")
+        self.bar.update(1)
+
+    def close(self) -> None:
+        self.bar.close()
+
+
+def _first_line(text: str) -> str:
+    return text.strip().splitlines()[0] if text.strip() else text
+
+
 def run_sweep(sweep: SweepSpec, out_dir: str | Path, workers: int = 2,
               scheduler: str | None = None, registry: Registry | None = None,
               echo: Callable[[str], object] = print) -> list[dict[str, Any]]:
-    """Run every variation (skipping cached ones) and return one table row per run."""
+    """Run every variation (skipping those whose folder holds the same run) and return one
+    table row per run, printing a line as each run finishes. The table is written even when
+    runs fail; then :class:`SweepFailed` names them."""
     from evchain.machine import machine_info
 
-    out = Path(out_dir)
+    out = Path(_absolute(out_dir))
     started = time.perf_counter()
     load_before = machine_info()["load"]
     records, jobs = plan(sweep, out, registry or make_registry())  # fails before any run
-    if records:
-        echo(f"  recording {len(records)} drives")
-        _run_all(records, workers, scheduler, registry)
-    results = _run_all(jobs, workers, scheduler, registry)
-    rows = []
+    runs = sweep.runs()
     multi = len(sweep.bases) > 1 or next(iter(sweep.bases)) != ""
-    for (v, r, label, _), job, (report, cached) in zip(sweep.runs(), jobs, results,
-                                                        strict=True):
+    progress = _Progress(len(records) + len(jobs), echo)
+    try:
+        failed_records: dict[str, str] = {}
+        if records:
+            echo(f"  recording {len(records)} drives")
+
+            def recorded(i: int, outcome: dict[str, Any]) -> None:
+                name = Path(records[i].out_dir).name
+                if outcome["error"]:
+                    failed_records[records[i].out_dir] = outcome["error"]
+                    progress.line(f"{name} FAILED: {_first_line(outcome['error'])}")
+                else:
+                    again = f" (run again: {outcome['again']})" if outcome.get("again") else ""
+                    progress.line(f"{name} {'(cached)' if outcome['cached'] else 'recorded'}"
+                                  f"{again}")
+
+            _run_all(records, workers, scheduler, registry, recorded)
+        outcomes: list[dict[str, Any]] = []
+        todo = []
+        for i, job in enumerate(jobs):
+            error = failed_records.get(str(Path(job.replay).parent)) if job.replay else None
+            outcomes.append({"report": None, "cached": False,
+                             "error": f"its recording failed: {_first_line(error)}"}
+                            if error else {})
+            if error:
+                progress.line(f"{runs[i][0].label:28s} {runs[i][2]:6s} FAILED: "
+                              f"{outcomes[i]['error']}")
+            else:
+                todo.append(i)
+
+        def finished(k: int, outcome: dict[str, Any]) -> None:
+            i = todo[k]
+            outcomes[i] = outcome
+            v, _, label, _ = runs[i]
+            what = (f"FAILED: {_first_line(outcome['error'])}" if outcome["error"] else
+                    ("(cached) " if outcome["cached"] else "") +
+                    (f"(run again: {outcome['again']}) " if outcome.get("again") else "") +
+                    " ".join(f"{key}={_fmt(lookup(outcome['report'], key))}"
+                             for key in sweep.report))
+            progress.line(f"{v.label:28s} {label:6s} {what}")
+
+        _run_all([jobs[i] for i in todo], workers, scheduler, registry, finished)
+    finally:
+        progress.close()
+    rows = []
+    for (v, r, label, _), job, outcome in zip(runs, jobs, outcomes, strict=True):
+        report = outcome["report"] or {}
         row: dict[str, Any] = {"variation": v.label}
         if multi:
             row["base"] = label
         if len(sweep.repeats) > 1:
             row["repeat"] = r
-        row.update({"run": Path(job.out_dir).name, "cached": cached,
-                    "wall_s": round(report["wall_s"], 3)})
-        row.update({key: lookup(report, key) for key in sweep.report})
+        row.update({"run": Path(job.out_dir).name,
+                    "status": "ok" if report else f"failed: {_first_line(outcome['error'])}",
+                    "cached": outcome["cached"],
+                    "wall_s": round(report["wall_s"], 3) if report else None})
+        row.update({key: lookup(report, key) if report else None for key in sweep.report})
         rows.append(row)
-        echo(f"  {v.label:28s} {label:6s} {'(cached) ' if cached else ''}" +
-             " ".join(f"{k}={_fmt(row[k])}" for k in sweep.report))
+    cached = sum(1 for o in outcomes if o["cached"])
+    if cached:
+        log.info("%d of %d runs taken from %s (same pipeline, input files and code)", cached,
+                 len(outcomes), out)
     write_table(rows, out)
     machine = machine_info()
     machine["load_before"] = load_before
@@ -372,6 +537,14 @@ def run_sweep(sweep: SweepSpec, out_dir: str | Path, workers: int = 2,
                "wall_s": round(time.perf_counter() - started, 1), "machine": machine,
                "rows": rows}
     atomic_write_text(out / "sweep.json", json.dumps(summary, indent=2))
+    failed = [(row, r) for row, r in zip(rows, runs, strict=True) if row["status"] != "ok"]
+    if failed:
+        names = [row["variation"] + (f" ({row['base']})" if multi else "") +
+                 (f" repeat {row['repeat']}" if "repeat" in row else "") + f" [{row['run']}]"
+                 for row, _ in failed]
+        raise SweepFailed(f"{len(failed)} of {len(rows)} runs failed: {'; '.join(names)}; the "
+                          f"table ({out / 'sweep.md'}) marks them, and each run folder's "
+                          "report.json has the error")
     return rows
 
 

@@ -1,8 +1,10 @@
 """Running a chain: packets stream from the source through every filter in bounded memory.
 
 The chain times each filter and counts what goes in and out (``len(packet)``: events, or frames
-for frame packets), collects the series of the last stage's packets, shows a progress bar over
-the source's time span, and writes ``report.json`` and the resolved pipeline atomically. On any
+for frame packets), streams the series of the last stage's packets to CSV files as they come
+(memory does not grow with the recording), shows a progress bar over the source's time span,
+and writes ``report.json`` and the resolved pipeline atomically. A run first marks its folder as
+in progress (``report.json`` says ``running``; the files it will write are removed). On any
 error every filter's ``close()`` still runs and the message names the filter and the slice.
 """
 
@@ -10,10 +12,11 @@ from __future__ import annotations
 
 import json
 import platform
+import shutil
 import sys
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -24,8 +27,10 @@ from evchain.core.config import PipelineSpec
 from evchain.core.filter import Context, Filter
 from evchain.core.packets import FramePacket, Packet
 from evchain.core.registry import Registry
-from evchain.errors import EvchainError, FilterError
-from evchain.io.atomic import atomic_write_text
+from evchain.errors import ConfigError, EvchainError, FilterError
+from evchain.io.atomic import atomic_write_text, partial_path
+from evchain.io.series_csv import SeriesCsvWriter, remove_series
+from evchain.provenance import input_digests, source_stamps
 
 
 @dataclass
@@ -46,11 +51,11 @@ class StageStats:
 
 @dataclass
 class RunResult:
-    """What a run produced: the report (also written to ``out_dir/report.json``)."""
+    """What a run produced: the report (also written to ``out_dir/report.json``); the series
+    are in ``out_dir/series/NAME.csv``."""
 
     report: dict[str, Any]
     out_dir: Path
-    series: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 class Chain:
@@ -73,8 +78,10 @@ class Chain:
 
     def stream(self, progress: bool = False) -> Iterator[Packet]:
         """Yield the last stage's packets; the chain's flush packets come last."""
+        from evchain.core.progress import RunProgress
+
         source, rest = self.filters[0], self.filters[1:]
-        bar = _progress_bar(source, progress)
+        bar = RunProgress(source.id, source.time_span_us(), progress)
         it = source.packets()
         try:
             while True:
@@ -86,8 +93,7 @@ class Chain:
                 if self.context.debug:
                     packet.validate(f"output of {source.id!r}")
                 self.stats[0].events_out += len(packet)
-                if bar is not None:
-                    bar.update(max(0, packet.t_end - bar.n))
+                bar.update(packet.t_end)
                 out = self._through(packet, 1)
                 if out is not None:
                     yield out
@@ -101,8 +107,7 @@ class Chain:
                     if out is not None:
                         yield out
         finally:
-            if bar is not None:
-                bar.close()
+            bar.close()
 
     def _through(self, packet: Packet, start: int) -> Packet:
         for i in range(start, len(self.filters)):
@@ -136,6 +141,11 @@ def _guard(f: Filter, packet: Packet | None, what: str, fn, *args):
         raise
     except EvchainError as exc:
         raise FilterError(_where(f, packet, what) + str(exc)) from exc
+    except OSError as exc:
+        if exc.filename is None:  # not about a file the user named
+            raise FilterError(_where(f, packet, what) + f"{type(exc).__name__}: {exc}",
+                              internal=True) from exc
+        raise FilterError(_where(f, packet, what) + f"{exc.filename}: {exc.strerror}") from exc
     except Exception as exc:
         raise FilterError(_where(f, packet, what) + f"{type(exc).__name__}: {exc}",
                           internal=True) from exc
@@ -148,20 +158,6 @@ def _where(f: Filter, packet: Packet | None, what: str) -> str:
     return where + ": "
 
 
-def _progress_bar(source: Filter, enabled: bool):
-    if not enabled:
-        return None
-    span = source.time_span_us()
-    from tqdm import tqdm
-
-    total = (span[1] - span[0]) if span else None
-    bar = tqdm(total=total, unit="us", unit_scale=True, desc=source.id, leave=False,
-               file=sys.stderr, dynamic_ncols=True, mininterval=0.5, disable=None)
-    bar.n = span[0] if span else 0
-    bar.total = span[1] if span else None
-    return bar
-
-
 def versions(registry: Registry) -> dict[str, Any]:
     import numba  # noqa: F401  (report the kernel compiler's version)
 
@@ -169,27 +165,33 @@ def versions(registry: Registry) -> dict[str, Any]:
 
     return {"evchain": __version__, "python": platform.python_version(),
             "numpy": np.__version__, "numba": sys.modules["numba"].__version__,
-            "plugins": {d: v for d, v in registry.distributions.items() if d != "evchain"}}
+            "plugins": {d: v for d, v in registry.distributions.items() if d != "evchain"},
+            "source": source_stamps(registry)}
 
 
 def run_pipeline(spec: PipelineSpec, registry: Registry, out_dir: str | Path,
                  progress: bool = False, debug: bool = False) -> RunResult:
-    """Run ``spec`` writing into ``out_dir``; returns the report. Raises on failure after
-    closing every filter and writing a report marked ``"status": "failed"``."""
+    """Run ``spec`` writing into ``out_dir``; returns the report (with what made the run: the
+    resolved pipeline, each input file's SHA-256 and the versions and source hashes of the
+    code). The folder is marked as in progress first (:func:`start_run_folder`); series are
+    written as they come. Raises on failure after closing every filter and writing a report
+    marked ``"status": "failed"``."""
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    context = Context(seed=spec.seed, out_dir=out, debug=debug)
+    _make_run_folder(out)
     resolved = spec.resolved()
+    made_by = {"pipeline": resolved, "inputs": input_digests(spec), "versions": versions(registry),
+               "seed": spec.seed}
+    start_run_folder(spec, out, made_by)
     atomic_write_text(out / "pipeline.resolved.yaml", yaml.safe_dump(resolved, sort_keys=False))
+    context = Context(seed=spec.seed, out_dir=out, debug=debug)
     chain = Chain(spec, context)
-    collected: dict[str, list[np.ndarray]] = {}
+    series = SeriesCsvWriter(out / "series")
     t0 = time.perf_counter()
     status, error = "ok", None
     try:
         chain.setup()
         for packet in chain.stream(progress=progress):
-            for name, entries in packet.series.items():
-                collected.setdefault(name, []).append(entries)
+            series.append(packet.series)
     except BaseException as exc:
         status, error = "failed", f"{type(exc).__name__}: {exc}"
         raise
@@ -198,36 +200,60 @@ def run_pipeline(spec: PipelineSpec, registry: Registry, out_dir: str | Path,
         if close_errors and status == "ok":
             status = "failed"
             error = "; ".join(f"{type(e).__name__}: {e}" for e in close_errors)
-        series = {k: np.concatenate(v) for k, v in collected.items()}
+        if status == "ok":
+            series.commit()
+        else:
+            series.abort()
         report = {
             "status": status,
             "error": error,
-            "pipeline": resolved,
-            "versions": versions(registry),
-            "seed": spec.seed,
+            **made_by,
             "filters": [s.as_dict() for s in chain.stats],
             "metrics": _jsonable(context.metrics),
-            "series": {k: len(v) for k, v in series.items()},
+            "warnings": list(context.warnings),
+            "series": dict(series.counts),
             "wall_s": time.perf_counter() - t0,
         }
         atomic_write_text(out / "report.json", json.dumps(report, indent=2))
     if close_errors:
         raise FilterError(f"closing filters failed: {error}")
-    for name, entries in series.items():
-        write_series_csv(out / "series" / f"{name}.csv", entries)
-    return RunResult(report=report, out_dir=out, series=series)
+    return RunResult(report=report, out_dir=out)
 
 
-def write_series_csv(path: Path, entries: np.ndarray) -> None:
-    """A series (structured array) as CSV with a header row, written atomically."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    names = entries.dtype.names
-    lines = [",".join(names)]
-    cols = [entries[n] for n in names]
-    for row in zip(*cols, strict=True):
-        lines.append(",".join(repr(float(v)) if isinstance(v, np.floating) else str(v)
-                              for v in row))
-    atomic_write_text(path, "\n".join(lines) + "\n")
+def start_run_folder(spec: PipelineSpec, out: Path, report: dict[str, Any]) -> None:
+    """Mark ``out`` as holding a run in progress before anything runs: ``report.json`` is
+    rewritten with ``"status": "running"`` (and ``report``'s fields), then every file this run
+    will write is removed (the series, each stage's ``output_files`` and their ``.partial``
+    files), so nothing an earlier run left there looks current, even after a crash."""
+    atomic_write_text(out / "report.json",
+                      json.dumps({"status": "running", "error": None, **report}, indent=2))
+    remove_series(out / "series")
+    root = out.resolve()
+    for stage in spec.stages:
+        for rel in stage.cls.output_files(stage.params):
+            for path in (out / rel, partial_path(out / rel)):
+                inside = root in path.resolve().parents  # never the folder itself or above
+                if inside and path.is_dir() and not path.is_symlink():
+                    shutil.rmtree(path)
+                elif inside and (path.exists() or path.is_symlink()):
+                    path.unlink()
+
+
+def _make_run_folder(out: Path) -> None:
+    """Create the run folder; one that cannot be (a file there, no permission) is a ConfigError."""
+    import os
+
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{out} exists and is not a folder: choose another run folder",
+                          file="--out")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"cannot create the run folder {out}: {exc.strerror}",
+                          file="--out") from None
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise ConfigError(f"cannot write into the run folder {out}: permission denied",
+                          file="--out")
 
 
 def _jsonable(value):

@@ -16,11 +16,17 @@ by a stage before it) and that every stage has its own name (two stages of one f
 ``id:`` keys). Every error names ``file:line:column``, the key and what is allowed. Overrides
 ``STAGE.PARAM=VALUE`` address a stage by ``id`` or ``use`` name; the value is parsed as YAML
 (``0.3``, ``true``, ``[1, 2]``).
+
+Files: a stage's input files (its filter's ``input_paths``) are made absolute, relative to the
+pipeline file's folder (``--set`` values: to the current folder), and must exist; its output
+files (``output_paths``) must lie inside the run folder.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -102,12 +108,49 @@ def _child_nodes(node: yaml.MappingNode) -> dict[Any, tuple[yaml.Node, yaml.Node
     return {k.value: (k, v) for k, v in node.value if isinstance(k, yaml.ScalarNode)}
 
 
+class _Loader(yaml.SafeLoader):
+    """Safe loading without aliases (``*name``): an alias repeats a value, and nested aliases
+    expand a file of a few hundred bytes into gigabytes ("billion laughs")."""
+
+    def compose_node(self, parent, index):
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise ConfigError(f"YAML alias *{event.anchor}: aliases are not allowed in evchain "
+                              "files; write the value out", file=self.name,
+                              line=event.start_mark.line + 1, column=event.start_mark.column + 1)
+        return super().compose_node(parent, index)
+
+
+def _check_duplicate_keys(root: yaml.Node | None, file: str) -> None:
+    """A key given twice in one mapping is an error (YAML loaders keep the last silently)."""
+    todo = [root] if root is not None else []
+    while todo:
+        node = todo.pop()
+        if isinstance(node, yaml.MappingNode):
+            seen: dict[Any, yaml.Node] = {}
+            for k, v in node.value:
+                if isinstance(k, yaml.ScalarNode):
+                    first = seen.get(k.value)
+                    if first is not None:
+                        raise ConfigError(f"given twice (first on line "
+                                          f"{first.start_mark.line + 1}); keep one",
+                                          file=file, line=k.start_mark.line + 1,
+                                          column=k.start_mark.column + 1, key=str(k.value))
+                    seen[k.value] = k
+                todo += [k, v]
+        elif isinstance(node, yaml.SequenceNode):
+            todo += node.value
+
+
 def parse_yaml(text: str, file: str) -> tuple[Any, yaml.Node | None]:
-    """Safe-load ``text`` keeping the node tree for line numbers."""
+    """Safe-load ``text`` keeping the node tree for line numbers; refuses aliases and keys
+    given twice."""
     try:
-        loader = yaml.SafeLoader(text)
+        loader = _Loader(text)
+        loader.name = file
         try:
             node = loader.get_single_node()
+            _check_duplicate_keys(node, file)
             data = loader.construct_document(node) if node is not None else None
         finally:
             loader.dispose()
@@ -121,8 +164,11 @@ def parse_yaml(text: str, file: str) -> tuple[Any, yaml.Node | None]:
     return data, node
 
 
-def load_pipeline(path: str | Path, registry: Registry, overrides: list[str] = ()) -> PipelineSpec:
-    """Read, validate and wire a pipeline file, applying ``--set`` overrides."""
+def load_pipeline(path: str | Path, registry: Registry, overrides: list[str] = (),
+                  set_dir: str | Path | None = None) -> PipelineSpec:
+    """Read, validate and wire a pipeline file, applying ``--set`` overrides; input files are
+    relative to the file's folder (those of ``overrides``: to ``set_dir``, default the current
+    folder)."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
@@ -130,11 +176,16 @@ def load_pipeline(path: str | Path, registry: Registry, overrides: list[str] = (
         raise ConfigError("pipeline file not found", file=str(path)) from None
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(f"cannot read pipeline file: {exc}", file=str(path)) from None
-    return pipeline_from_text(text, str(path), registry, overrides)
+    return pipeline_from_text(text, str(path), registry, overrides, base_dir=path.parent,
+                              set_dir=set_dir)
 
 
-def pipeline_from_text(text: str, file: str, registry: Registry,
-                       overrides: list[str] = ()) -> PipelineSpec:
+def pipeline_from_text(text: str, file: str, registry: Registry, overrides: list[str] = (),
+                       base_dir: str | Path | None = None,
+                       set_dir: str | Path | None = None) -> PipelineSpec:
+    """A validated pipeline from YAML text; relative input files in the text are resolved
+    against ``base_dir`` and those of ``overrides`` against ``set_dir`` (both default: the
+    current folder)."""
     data, node = parse_yaml(text, file)
     raw_stages, name, seed, description = _check_shape(data, node, file)
     for item in overrides:
@@ -149,6 +200,7 @@ def pipeline_from_text(text: str, file: str, registry: Registry,
         raise _all_of(problems)
     check_wiring(stages, registry)
     _check_ids(stages)
+    stages = _check_files(stages, Path(base_dir or "."), Path(set_dir or "."))
     return PipelineSpec(name=name or Path(file).stem, seed=seed, stages=stages, file=file,
                         description=description)
 
@@ -226,6 +278,55 @@ def _validate_stage(raw: _RawStage, registry: Registry) -> StageSpec:
                        for err in exc.errors()]) from None
     return StageSpec(use=use, id=stage_id, cls=cls, params=params, mark=raw.mark,
                      key_marks=raw.key_marks)
+
+
+def _check_files(stages: list[StageSpec], base_dir: Path, set_dir: Path) -> list[StageSpec]:
+    """Stages with their input files made absolute; every missing or unreadable input and
+    every output outside the run folder is a problem, all reported at once."""
+    problems, out = [], []
+    for s in stages:
+        updates = {}
+        for key in s.cls.input_paths:
+            value = getattr(s.params, key)
+            if value is None:
+                continue
+            mark = s.key_marks.get(key, s.mark)
+            from_set = mark.file.startswith("--set")
+            given = Path(os.path.expanduser(value))
+            path = Path(os.path.abspath((set_dir if from_set else base_dir) / given))
+            updates[key] = str(path)
+            if given.is_absolute():
+                relative = ""
+            elif from_set:
+                relative = " (relative to the current folder)"
+            else:
+                relative = f" (relative to the folder of {mark.file})"
+            if not path.exists():
+                problems.append(ConfigError(f"input not found: {path}{relative}", file=mark.file,
+                                            line=mark.line, column=mark.column,
+                                            key=f"{s.id}.{key}"))
+            elif not os.access(path, os.R_OK):
+                problems.append(ConfigError(f"input not readable (permission denied): {path}",
+                                            file=mark.file, line=mark.line, column=mark.column,
+                                            key=f"{s.id}.{key}"))
+        for key in s.cls.output_paths:
+            value = getattr(s.params, key)
+            if value is None:
+                continue
+            norm = os.path.normpath(value)
+            if os.path.isabs(norm) or norm == ".." or norm.startswith(".." + os.sep) or norm == ".":
+                mark = s.key_marks.get(key, s.mark)
+                problems.append(ConfigError(
+                    f"{value!r} must name a file or folder inside the run folder (outputs are "
+                    "written there; choose the run folder with --out): give a relative path "
+                    f"such as {Path(value).name or 'out'!r}", file=mark.file, line=mark.line,
+                    column=mark.column, key=f"{s.id}.{key}"))
+        if updates:
+            s = dataclasses.replace(s, params=s.params.model_copy(update=updates))
+        out.append(s)
+    if problems:
+        raise _all_of(problems)
+    return out
 
 
 def _param_error(err, cls: type[Filter], raw: _RawStage, use: str, stage_id: str) -> ConfigError:

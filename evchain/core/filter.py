@@ -33,9 +33,10 @@ from evchain.core.truth import Truth
 
 
 class FilterParams(BaseModel):
-    """Base for every filter's ``Params``: unknown keys are errors; values are immutable."""
+    """Base for every filter's ``Params``: unknown keys are errors, numbers are finite (``.inf``
+    and ``.nan`` are errors), values are immutable."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 @dataclass
@@ -46,7 +47,8 @@ class Context:
     ``truth`` is the ground-truth provider (protocols in :mod:`evchain.core.truth`), read by
     scorers and picture sinks only; ``renderer`` renders the source's frames at any time, for
     picture sinks (:mod:`evchain.core.renderer`). ``metrics`` is filled by scorers (it becomes
-    ``report.json``'s ``metrics``); ``out_dir`` is where sinks write.
+    ``report.json``'s ``metrics``); ``out_dir`` is where sinks write; ``warnings``
+    (:meth:`warn`) become ``report.json``'s ``warnings``.
     """
 
     seed: int = 0
@@ -56,6 +58,15 @@ class Context:
     renderer: FrameRenderer | None = None
     metrics: dict[str, Any] = field(default_factory=dict)
     debug: bool = False
+    warnings: list[str] = field(default_factory=list)
+
+    def warn(self, message: str) -> None:
+        """Something the run accepted but the user should know (in ``report.json`` and on the
+        ``evchain`` logger)."""
+        import logging
+
+        self.warnings.append(message)
+        logging.getLogger("evchain").warning("warning: %s", message)
 
     def rng(self, stream: str) -> np.random.Generator:
         """A generator for ``stream`` (e.g. the filter's id), fixed by the run's seed.
@@ -80,6 +91,12 @@ class Filter:
     ``needs_series`` must be added by an earlier stage (validation rejects the chain
     otherwise), ``optional_series`` are read when an earlier stage adds them, ``adds_series``
     are attached to the output packets (:meth:`series_added` when a parameter names them).
+
+    Files: ``input_paths`` names the parameters that are files (or folders) the stage reads;
+    validation makes them absolute (relative to the pipeline file's folder, or to the current
+    folder for ``--set``) and checks that they exist. ``output_paths`` names the parameters
+    that are files (or folders) the stage writes in the run folder: they must stay inside it,
+    and a run removes them before it starts, so that no earlier run's file looks current.
     """
 
     name: ClassVar[str] = ""
@@ -88,6 +105,8 @@ class Filter:
     needs_series: ClassVar[tuple[SeriesDef, ...]] = ()
     optional_series: ClassVar[tuple[SeriesDef, ...]] = ()
     adds_series: ClassVar[tuple[SeriesDef, ...]] = ()
+    input_paths: ClassVar[tuple[str, ...]] = ()
+    output_paths: ClassVar[tuple[str, ...]] = ()
     Params: ClassVar[type[FilterParams]] = FilterParams
     #: ground truth (protocols of :mod:`evchain.core.truth`) this stage cannot work without;
     #: :meth:`setup` checks it and stores the truth as ``self.truth``
@@ -144,6 +163,12 @@ class Filter:
 
     def close(self) -> None:
         """Release resources; runs on success and on error (after flush on success)."""
+
+    @classmethod
+    def output_files(cls, params: FilterParams) -> list[str]:
+        """The files and folders (relative to the run folder) a stage with ``params`` writes:
+        the values of its ``output_paths``. A run removes them before it starts."""
+        return [v for v in (getattr(params, k) for k in cls.output_paths) if v is not None]
 
     @classmethod
     def series_added(cls, params: FilterParams) -> tuple[SeriesDef, ...]:

@@ -64,6 +64,11 @@ class Registry:
             if not (isinstance(value, tuple) and all(isinstance(v, SeriesDef) for v in value)):
                 raise PluginError(f"filter {cls.name!r} of {dist!r}: {attr} must be a tuple of "
                                   f"evchain.core.series.SeriesDef, got {value!r}")
+        for attr in ("input_paths", "output_paths"):
+            value = getattr(cls, attr)
+            if not (isinstance(value, tuple) and set(value) <= set(cls.Params.model_fields)):
+                raise PluginError(f"filter {cls.name!r} of {dist!r}: {attr} must be a tuple of "
+                                  f"names of its parameters, got {value!r}")
         if cls.name in self.filters:
             other = self.filters[cls.name].distribution
             raise PluginError(f"filter name {cls.name!r} is claimed by both {other!r} and "

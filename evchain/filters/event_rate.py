@@ -25,6 +25,7 @@ class EventRatePlot(Filter):
     consumes = EventPacket
     produces = None
     adds_series = (EVENT_RATE,)
+    output_paths = ("path",)
 
     class Params(FilterParams):
         column: int = Field(0, ge=0, description="pixel column x to observe")

@@ -25,6 +25,7 @@ class FlowImage(Filter):
     name = "flow_image"
     consumes = FlowPacket
     produces = None
+    output_paths = ("path", "save_npz")
 
     class Params(FilterParams):
         path: str = Field("flow.png", description="PNG file (relative to the output folder)")
@@ -48,6 +49,15 @@ class FlowImage(Filter):
             if not self.path.lower().endswith(".png"):
                 raise ValueError(f"path must end in .png, got {self.path!r}")
             return self
+
+    @classmethod
+    def output_files(cls, params) -> list[str]:
+        """The PNG(s) (one per time of ``times_us``) and the ``save_npz`` file."""
+        files = [params.path]
+        if params.times_us is not None:
+            p = Path(params.path)
+            files = [str(p.with_name(f"{p.stem}_{t}us{p.suffix}")) for t in params.times_us]
+        return files + ([params.save_npz] if params.save_npz else [])
 
     def _windows(self) -> list[tuple[Path, int | None, int | None]]:
         q = self.params

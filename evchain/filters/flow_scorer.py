@@ -160,6 +160,7 @@ class FlowScorer(Filter):
     needs_truth = (FlowTruth,)
     uses_truth = (FoeTruth,)
     truth_hint = "or give the parameter ground_truth: path/to/gt.mat (DVSFLOW16)"
+    input_paths = ("ground_truth",)
 
     class Params(FilterParams):
         ground_truth: str | None = Field(

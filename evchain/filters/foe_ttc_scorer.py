@@ -99,6 +99,7 @@ class FoeTtcScorer(Filter):
     adds_series = (FOE_ERROR, TTC_ERROR)
     needs_truth = (FoeTruth, TtcTruth)
     uses_truth = (ObjectTruth,)
+    output_paths = ("plot_dir",)
 
     class Params(FilterParams):
         warmup_s: float = Field(1.0, ge=0, description="FOE errors before this (from the "

@@ -54,6 +54,7 @@ class SceneSource(Filter):
         from evchain.sim.renderer import SceneRenderer
         from evchain.sim.truth import SceneTruth
 
+        check_memory(params)
         self.scene = Scene(params, threads=params.threads)
         self.truth = SceneTruth(self.scene)
         self.duration_us = int(round(self.scene.duration_s * 1e6))
@@ -64,6 +65,14 @@ class SceneSource(Filter):
 
     def reset(self) -> None:
         self.frames_emitted = 0
+
+    @staticmethod
+    def frame_memory_bytes(params) -> int:
+        """Peak bytes of the frames the source holds: a packet's frames twice (rendered one by
+        one, then stacked; float32), for four packets when rendering ahead (two queued, one
+        being rendered, one being consumed)."""
+        packets = 1 if params.threads == 1 else 4
+        return params.width * params.height * 4 * 2 * params.max_frames_per_packet * packets
 
     def time_span_us(self) -> tuple[int, int]:
         return (0, self.duration_us)
@@ -164,3 +173,21 @@ class SceneSource(Filter):
             "speed_mps": p.speed_mps,
             "f_px": geom.f,
         }
+
+
+def check_memory(params) -> None:
+    """Refuse a camera whose frames alone would not fit in the memory available (before any
+    rendering, instead of running out of memory minutes later)."""
+    from evchain.errors import ConfigError
+    from evchain.machine import available_memory_bytes
+
+    need = SceneSource.frame_memory_bytes(params)
+    have = available_memory_bytes()
+    if have is not None and need > have:
+        ahead = "" if params.threads == 1 else ", x4 for the packets rendered ahead (threads)"
+        raise ConfigError(
+            f"a {params.width}x{params.height} camera needs about {need / 2**30:.1f} GiB for the "
+            f"frames of one packet (max_frames_per_packet {params.max_frames_per_packet} "
+            f"float32 frames, rendered and stacked{ahead}), more than the "
+            f"{have / 2**30:.1f} GiB of memory available; lower width and height, or "
+            "max_frames_per_packet", key="scene.width")

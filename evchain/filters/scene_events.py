@@ -30,6 +30,7 @@ class SceneEvents(Filter):
     consumes = None
     produces = EventPacket
     provides_truth = (FlowTruth, FoeTruth, TtcTruth, DepthTruth, ObjectTruth)
+    input_paths = ("path",)
 
     class Params(SceneConfig):
         path: str = Field(description="AEDAT 2.0 file written by a run of this scene")
@@ -45,7 +46,7 @@ class SceneEvents(Filter):
         self.reader.id = f"{self.id}.reader"
         self.reader.setup(AedatSource.Params(path=params.path, packet_us=params.packet_us),
                           Context(seed=context.seed, out_dir=context.out_dir,
-                                  metrics=context.metrics))
+                                  metrics=context.metrics, warnings=context.warnings))
         chip = self.reader.chip.geometry
         self.geometry = scene.geometry
         if (chip.width, chip.height) != (self.geometry.width, self.geometry.height):
@@ -79,7 +80,10 @@ def replay_spec(spec, events_path: str | Path, check_recording: bool = True):
 
     That run's ``pipeline.resolved.yaml`` (beside the file) must show the same scene and
     emulator parameters, else the events would not be the ones this pipeline makes.
-    ``check_recording`` False skips that check, for a recording still to be made."""
+    ``check_recording`` False skips that check, for a recording still to be made. The path is
+    made absolute (relative to the current folder)."""
+    import os
+
     from evchain.core.config import StageSpec
     from evchain.errors import ConfigError
 
@@ -87,8 +91,11 @@ def replay_spec(spec, events_path: str | Path, check_recording: bool = True):
     if len(stages) < 2 or (stages[0].use, stages[1].use) != ("scene", "emulator"):
         raise ConfigError("--replay needs a pipeline that starts with scene -> emulator",
                           file=spec.file)
-    recorded = Path(events_path).parent / "pipeline.resolved.yaml"
+    events_path = Path(os.path.abspath(events_path))
+    recorded = events_path.parent / "pipeline.resolved.yaml"
     if check_recording:
+        if not events_path.is_file():
+            raise ConfigError(f"recording not found: {events_path}", file=spec.file)
         _check_recording(spec, recorded)
     scene = stages[0].params
     params = SceneEvents.Params(path=str(events_path), packet_us=scene.packet_us,

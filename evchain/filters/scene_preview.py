@@ -27,6 +27,7 @@ class ScenePreview(Filter):
     consumes = FramePacket
     produces = None
     uses_truth = (DepthTruth, FlowTruth)
+    output_paths = ("out",)
 
     class Params(FilterParams):
         times_s: list[float] = Field([0.0], description="times (s) to picture")

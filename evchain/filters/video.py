@@ -30,6 +30,7 @@ class Video(Filter):
     consumes = EventPacket
     optional_series = (FOE, TTC)
     uses_truth = (FoeTruth,)
+    output_paths = ("path",)
 
     class Params(FilterParams):
         path: str = Field("events.gif", description="output file (.gif or .mp4), in the run folder")

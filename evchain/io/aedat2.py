@@ -13,9 +13,10 @@ timestamp in µs)``. The address layout depends on the chip:
   written format description says the opposite; jAER is what wrote the files).
 
 Timestamps are unsigned 32-bit µs on disk and unwrapped into int64: a backward step of more than
-2**31 µs is a wrap (+2**32), a backward step to a raw time below :data:`RESET_WINDOW_US` is a
-timestamp reset (time continues from the last event), backward steps up to
-``backstep_tolerance_us`` are clamped; anything else is a :class:`DataError`.
+2**31 µs is a wrap (+2**32), a backward step to a raw time below :data:`RESET_WINDOW_US` and
+nearer to 0 than to the time before it is a timestamp reset (time continues from the last
+event), backward steps up to ``backstep_tolerance_us`` are clamped; anything else is a
+:class:`DataError`.
 
 Everything is vectorised numpy over chunks of records; nothing runs per event in Python.
 """
@@ -41,7 +42,8 @@ VERSION_LINE = b"#!AER-DAT2.0"
 RECORD_BYTES = 8
 WRAP = 1 << 32
 HALF = 1 << 31
-#: a backward timestamp step landing below this raw time (µs) is read as a timestamp reset
+#: a backward timestamp step landing below this raw time (µs), nearer to 0 than to the time
+#: before it, is read as a timestamp reset
 RESET_WINDOW_US = 1_000_000
 #: DAVIS external-input ("special") event address, written before a first record that would
 #: start with the byte ``#`` (see :func:`encode_records`)
@@ -178,8 +180,17 @@ def header_bytes(chip: Chip, extra: list[str] = ()) -> bytes:
 
 
 def resolve_chip(header: Header, chip: str | None) -> Chip:
-    """The chip named by parameter, else by the header; DataError if neither names one."""
+    """The chip named by parameter, else by the header; DataError if neither names one, or if
+    both do and differ."""
     if chip is not None:
+        if header.chip is not None and header.chip.name != chip:
+            named = next((line.strip() for line in header.lines
+                          if line.strip().lower().startswith(("aechip:", "evchain-sensor:"))),
+                         header.chip.name)
+            raise DataError(f"{header.path}: the parameter chip is {chip!r} but the header says "
+                            f"'{named}' ({header.chip.name}, {header.chip.width}x"
+                            f"{header.chip.height}); remove the parameter to read the header's "
+                            "chip")
         return CHIPS[chip]
     if header.chip is None:
         raise DataError(f"{header.path}: the header names no chip (no '# AEChip:' line); set the "
@@ -212,6 +223,7 @@ class Decoder:
     non_dvs: Literal["skip", "error"] = "skip"
     backstep_tolerance_us: int = 0
     stats: DecodeStats = field(default_factory=DecodeStats)
+    first_reset_record: int | None = None
     _last_raw: int | None = None
     _last_t: int = 0
     _offset: int = 0
@@ -315,7 +327,13 @@ class Decoder:
             d[0] = d0
             np.subtract(t[1:], t[:-1], out=d[1:])
             wrap = d < -HALF
-            reset = (d < -self.backstep_tolerance_us) & ~wrap & (t < RESET_WINDOW_US)
+            # a reset restarts the counter near 0: below the window, and nearer to 0 than to
+            # the time before (a step back from 500 ms to 495 ms is no reset)
+            reset = ((d < -self.backstep_tolerance_us) & ~wrap & (t < RESET_WINDOW_US)
+                     & (t < -d))
+            if self.first_reset_record is None and reset.any():
+                i = int(np.argmax(reset))
+                self.first_reset_record = first_record + (i if index is None else int(index[i]))
             inc = np.where(wrap, WRAP, 0) + np.where(reset, -d, 0)
             self.stats.wraps += int(np.count_nonzero(wrap))
             self.stats.resets += int(np.count_nonzero(reset))
@@ -336,7 +354,8 @@ class Decoder:
                         f"{self._where(rec)}: timestamp goes back from {before} to {int(ts[i])} "
                         f"us (raw), by {-int(step[i])} us: not a 32-bit wrap (a backward step "
                         f"of more than 2^31 us), not a timestamp reset (a restart below "
-                        f"{RESET_WINDOW_US} us); raise backstep_tolerance_us to clamp such steps")
+                        f"{RESET_WINDOW_US} us, nearer to 0 than to the time before); raise "
+                        "backstep_tolerance_us to clamp such steps")
                 self.stats.clamped += int(np.count_nonzero(step < 0))
                 t[0] = max(int(t[0]), self._last_t)
                 np.maximum.accumulate(t, out=t)
@@ -510,6 +529,7 @@ class AedatSource(Filter):
     name = "aedat"
     consumes = None
     produces = EventPacket
+    input_paths = ("path",)
 
     class Params(FilterParams):
         path: str = Field(description="AEDAT 2.0 file to read")
@@ -550,6 +570,17 @@ class AedatSource(Filter):
         self.stats = DecodeStats()
         prm = self.params
         dec = Decoder(self.header, self.chip, prm.non_dvs, prm.backstep_tolerance_us, self.stats)
+        yield from self._packets(dec)
+        if self.stats.resets:
+            self.context.warn(
+                f"{self.id}: {self.header.path}: the timestamps were reset {self.stats.resets} "
+                f"time(s) (first at record {dec.first_reset_record}); time continues from the "
+                "event before each reset, the pause at a reset is unknown and counted as 0")
+        self.context.metrics[self.id] = {"file": str(self.header.path), "chip": self.chip.name,
+                                         **self.stats.as_dict()}
+
+    def _packets(self, dec: Decoder) -> Iterator[EventPacket]:
+        prm = self.params
         geom = self.chip.geometry
         P = prm.packet_us
         pending: list[tuple[np.ndarray, ...]] = []
@@ -582,8 +613,6 @@ class AedatSource(Filter):
             x, y, t, p = (np.concatenate(c) for c in zip(*pending, strict=True))
             end = int(t[-1]) + 1 if len(t) else start + 1
             yield EventPacket(geometry=geom, t_start=start, t_end=end, x=x, y=y, t=t, p=p)
-        self.context.metrics[self.id] = {"file": str(self.header.path), "chip": self.chip.name,
-                                         **self.stats.as_dict()}
 
     def _slices(self, geom, x, y, t, p, start: int, stop: int, t0: int):
         """Packets for ``[start, stop)`` cut every ``packet_us`` from ``t0``; runs of empty
@@ -617,6 +646,7 @@ class AedatWriter(Filter):
     name = "aedat_writer"
     consumes = EventPacket
     produces = None
+    output_paths = ("path",)
 
     class Params(FilterParams):
         path: str = Field("events.aedat", description="output file, relative to the run's "

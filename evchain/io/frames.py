@@ -82,6 +82,7 @@ class FramesSource(Filter):
     name = "frames"
     consumes = None
     produces = FramePacket
+    input_paths = ("path", "timestamps_path")
 
     class Params(FilterParams):
         path: str = Field(..., description="image folder, video file, .npz or .npy")

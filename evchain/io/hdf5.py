@@ -41,6 +41,7 @@ class Hdf5Source(Filter):
 
     name = "hdf5"
     produces = EventPacket
+    input_paths = ("path",)
 
     class Params(FilterParams):
         path: str = Field(description="HDF5 file")
@@ -65,7 +66,13 @@ class Hdf5Source(Filter):
         missing = [c for c in COLUMNS if c not in self.group]
         if missing:
             raise DataError(f"{self.path}: group {params.group!r} lacks datasets {missing}")
-        lengths = {c: len(self.group[c]) for c in COLUMNS}
+        shapes = {c: self.group[c].shape for c in COLUMNS}
+        flat = {c: shape for c, shape in shapes.items() if len(shape) != 1}
+        if flat:
+            raise DataError(f"{self.path}: datasets {params.group}/{', '.join(flat)} must be 1-D "
+                            f"(one value per event), got shapes "
+                            f"{', '.join(f'{c} {shape}' for c, shape in flat.items())}")
+        lengths = {c: shape[0] for c, shape in shapes.items()}
         if len(set(lengths.values())) != 1:
             raise DataError(f"{self.path}: datasets differ in length: {lengths}")
         attrs = dict(self.group.attrs)
@@ -123,6 +130,7 @@ class Hdf5Writer(Filter):
 
     name = "hdf5_writer"
     consumes = EventPacket
+    output_paths = ("path",)
 
     class Params(FilterParams):
         path: str = Field("events.h5", description="output file, relative to the run folder")

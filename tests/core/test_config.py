@@ -181,3 +181,113 @@ def test_two_stages_of_one_filter_need_ids(registry):
     ok = text.replace("id: toy_scorer\n", "id: flow\n") + "    id: second\n"
     assert [s.id for s in load(ok, registry).stages] == [
         "toy_source", "toy_scorer", "flow", "second"]
+
+
+def _laughs() -> str:
+    lines, item = [], '"lol"'
+    for name in "abcdefghi":
+        lines.append(f"{name}: &{name} [{', '.join([item] * 9)}]")
+        item = f"*{name}"
+    return "\n".join([*lines, "chain: [{use: x, y: *i}]", ""])
+
+
+BILLION_LAUGHS = _laughs()
+
+
+def test_yaml_aliases_are_refused(registry):
+    """Nested aliases expand a few hundred bytes into gigabytes: aliases are refused while the
+    file is parsed, before any value is built."""
+    assert len(BILLION_LAUGHS) < 600
+    with pytest.raises(ConfigError, match=r"p.yaml:2:\d+: YAML alias \*a: aliases are not "
+                                          "allowed"):
+        load(BILLION_LAUGHS, registry)
+
+
+def test_billion_laughs_fails_fast_on_the_command_line(tmp_path):
+    import subprocess
+    import sys
+
+    p = tmp_path / "lol.yaml"
+    p.write_text(BILLION_LAUGHS)
+    # the timeout only guards the suite against the old hang; it measures nothing
+    proc = subprocess.run([sys.executable, "-m", "evchain", "validate", str(p)],
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "aliases are not allowed" in proc.stderr
+
+
+def test_duplicate_key_is_an_error(registry):
+    text = "chain:\n  - use: toy_source\n    packets: 2\n    packets: 3\n"
+    with pytest.raises(ConfigError, match=r"p.yaml:4:5: packets: given twice \(first on line 3\)"):
+        load(text, registry)
+    with pytest.raises(ConfigError, match=r"p.yaml:2:1: seed: given twice"):
+        load("seed: 1\nseed: 2\nchain:\n  - use: toy_source\n", registry)
+
+
+@pytest.mark.parametrize("value", [".inf", "-.inf", ".nan"])
+def test_non_finite_parameters_are_errors(value):
+    text = f"chain:\n  - use: scene\n  - use: emulator\n    threshold_on: {value}\n"
+    with pytest.raises(ConfigError, match=r"p.yaml:4:\d+: emulator.threshold_on: .*finite"):
+        load(text, make_registry())
+
+
+def test_input_files_are_relative_to_the_pipeline_file_and_must_exist(tmp_path, monkeypatch):
+    from evchain.core.config import load_pipeline
+    from evchain.io.aedat2 import write_aedat2
+    from evchain.testing.synthetic import random_events
+
+    (tmp_path / "data").mkdir()
+    (tmp_path / "pipes").mkdir()
+    write_aedat2(tmp_path / "data" / "ev.aedat", random_events(10, seed=1), chip="davis240")
+    p = tmp_path / "pipes" / "p.yaml"
+    p.write_text("chain:\n  - use: aedat\n    path: ../data/ev.aedat\n")
+    monkeypatch.chdir(tmp_path / "data")  # another folder: the file's folder counts
+    spec = load_pipeline(p, make_registry())
+    assert spec.stages[0].params.path == str(tmp_path / "data" / "ev.aedat")
+    assert spec.resolved()["chain"][0]["path"] == str(tmp_path / "data" / "ev.aedat")
+    # --set values are relative to the current folder
+    spec = load_pipeline(p, make_registry(), ["aedat.path=ev.aedat"])
+    assert spec.stages[0].params.path == str(tmp_path / "data" / "ev.aedat")
+    p.write_text("chain:\n  - use: aedat\n    path: ev.aedat\n")
+    with pytest.raises(ConfigError, match=r"p.yaml:3:11: aedat.path: input not found: "
+                                          rf"{tmp_path}/pipes/ev.aedat \(relative to the folder"):
+        load_pipeline(p, make_registry())
+    with pytest.raises(ConfigError, match=r"--set aedat.path=nope.aedat: aedat.path: input not "
+                                          r"found: .*nope.aedat \(relative to the current"):
+        load_pipeline(p, make_registry(), ["aedat.path=nope.aedat"])
+
+
+def test_validate_reports_a_missing_input_file(tmp_path, capsys):
+    from evchain import cli
+
+    p = tmp_path / "p.yaml"
+    p.write_text("chain:\n  - use: aedat\n    path: missing.aedat\n  - use: lk_flow\n"
+                 "  - use: flow_scorer\n    ground_truth: gt.mat\n")
+    assert cli.main(["validate", str(p)]) == 2
+    err = capsys.readouterr().err
+    assert "2 problems" in err and "aedat.path: input not found" in err
+    assert "flow_scorer.ground_truth: input not found" in err
+
+
+@pytest.mark.parametrize("path", ["../../escape.aedat", "/tmp/abs.aedat", "..", "."])
+def test_outputs_must_stay_inside_the_run_folder(path):
+    text = f"chain:\n  - use: scene\n  - use: emulator\n  - use: aedat_writer\n    path: {path}\n"
+    with pytest.raises(ConfigError, match=r"p.yaml:5:11: aedat_writer.path: .* must name a file "
+                                          "or folder inside the run folder"):
+        load(text, make_registry())
+    ok = text.replace(f"path: {path}", "path: a/../b.aedat")
+    assert load(ok, make_registry()).stages[2].params.path == "a/../b.aedat"
+
+
+def test_path_declarations_name_parameters():
+    class Bad(Filter):
+        name = "bad_paths"
+        produces = EventPacket
+        input_paths = ("file",)
+
+    class Plugin:
+        @hookimpl
+        def evchain_filters(self):
+            return [Bad]
+
+    with pytest.raises(PluginError, match="input_paths must be a tuple of names of its"):
+        make_registry(discover=False, plugins=(Plugin(),))

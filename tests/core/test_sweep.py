@@ -162,3 +162,126 @@ def test_override_of_no_stage_is_an_error(tmp_path, registry):
     p = write(tmp_path, "base: base.yaml\ncells: {x: [toy_sorce.packets=1]}\n")
     with pytest.raises(ConfigError, match="toy_sorce.packets=1.*addresses no stage"):
         run_sweep(load_sweep(p), tmp_path / "out", workers=1, registry=registry)
+
+
+# -- cache keys, paths, failures, progress ----------------------------------------------------
+
+FILE_BASE = ("chain:\n  - use: aedat\n    path: ../data/ev.aedat\n  - use: refractory\n"
+             "  - use: aedat_writer\n    path: kept.aedat\n")
+
+
+def file_sweep(tmp_path, n_events=400):
+    """A sweep in sweeps/ over a pipeline in pipes/ reading data/ev.aedat (all relative)."""
+    from evchain.io.aedat2 import write_aedat2
+    from evchain.testing.synthetic import random_events
+
+    for d in ("data", "pipes", "sweeps"):
+        (tmp_path / d).mkdir(exist_ok=True)
+    write_aedat2(tmp_path / "data" / "ev.aedat", random_events(n_events, seed=n_events),
+                 chip="davis240")
+    (tmp_path / "pipes" / "p.yaml").write_text(FILE_BASE)
+    p = tmp_path / "sweeps" / "s.yaml"
+    p.write_text("base: ../pipes/p.yaml\nvary:\n  refractory.period_us: [100, 1000000]\n"
+                 "report: [aedat_writer.events]\n")
+    return p
+
+
+def test_changed_input_file_is_not_answered_from_the_cache(tmp_path, monkeypatch):
+    p = file_sweep(tmp_path)
+    monkeypatch.chdir(tmp_path / "data")  # paths are relative to the files, not to here
+    rows = run_sweep(load_sweep(p), tmp_path / "out", workers=1, echo=lambda s: None)
+    assert not any(r["cached"] for r in rows) and rows[0]["aedat_writer.events"] > 0
+    again = run_sweep(load_sweep(p), tmp_path / "out", workers=1, echo=lambda s: None)
+    assert all(r["cached"] for r in again)
+    file_sweep(tmp_path, n_events=900)  # same file name, other events
+    lines = []
+    changed = run_sweep(load_sweep(p), tmp_path / "out", workers=1, echo=lines.append)
+    assert not any(r["cached"] for r in changed)
+    assert all("(run again: an input file changed)" in line for line in lines)
+    assert changed[0]["aedat_writer.events"] > rows[0]["aedat_writer.events"]
+    rep = json.loads((tmp_path / "out" / changed[0]["run"] / "report.json").read_text())
+    assert rep["inputs"]["aedat.path"]["path"] == str(tmp_path / "data" / "ev.aedat")
+
+
+def test_changed_code_is_not_answered_from_the_cache(tmp_path, monkeypatch):
+    """A changed kernel (any source file of evchain or a plugin) means another source hash in
+    the report's versions: the run is repeated."""
+    import evchain.core.chain as chain
+
+    p = file_sweep(tmp_path)
+    run_sweep(load_sweep(p), tmp_path / "out", workers=1, echo=lambda s: None)
+    stamps = chain.source_stamps
+
+    def edited(registry):
+        out = stamps(registry)
+        return {**out, "evchain": out["evchain"] + "-edited"}
+
+    monkeypatch.setattr(chain, "source_stamps", edited)
+    lines = []
+    again = run_sweep(load_sweep(p), tmp_path / "out", workers=1, echo=lines.append)
+    assert not any(r["cached"] for r in again)
+    assert all("(run again: the code changed)" in line for line in lines)
+
+
+def test_source_stamps_follow_the_files(tmp_path, monkeypatch):
+    from evchain.bench_cache import source_stamp
+    from evchain.core.registry import make_registry
+    from evchain.provenance import source_stamps, tree_stamp
+
+    assert source_stamps(make_registry(discover=False))["evchain"] == source_stamp(".")
+    pkg = tmp_path / "some_plugin"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "kernel.py").write_text("def f(x):\n    return x + 1\n")
+    before = tree_stamp(pkg)
+    (pkg / "kernel.py").write_text("def f(x):\n    return x + 2\n")
+    assert tree_stamp(pkg) != before
+
+
+def test_failed_runs_are_marked_and_named(tmp_path, registry):
+    p = write(tmp_path, "base: base.yaml\nvary:\n  toy_source.fail_at_packet: [null, 1, 5]\n"
+                        "report: [toy.count]\n")
+    from evchain.sweep import SweepFailed
+
+    lines = []
+    with pytest.raises(SweepFailed, match=r"1 of 3 runs failed: toy_source.fail_at_packet=1 "
+                                          r"\[\w+\]; the table .*sweep.md\) marks them"):
+        run_sweep(load_sweep(p), tmp_path / "out", workers=1, registry=registry,
+                  echo=lines.append)
+    rows = json.loads((tmp_path / "out" / "sweep.json").read_text())["rows"]
+    assert [r["status"] for r in rows] == [
+        "ok", "failed: filter 'toy_source' (toy_source) failed in packets: ValueError: boom",
+        "ok"]
+    assert [r["toy.count"] for r in rows] == [300, None, 300]
+    assert "| failed: filter 'toy_source'" in (tmp_path / "out" / "sweep.md").read_text()
+    assert [s.split("]")[0] for s in lines] == ["  [1/3", "  [2/3", "  [3/3"]
+    assert "FAILED: filter 'toy_source'" in lines[1]
+
+
+def test_a_line_per_run_as_it_finishes(tmp_path, registry):
+    """Each run's line is printed when it finishes, before the next run starts."""
+    p = write(tmp_path, "base: base.yaml\nvary:\n  toy_source.packets: [1, 2, 3]\n"
+                        "report: [toy.count]\n")
+    seen = []
+    out = tmp_path / "out"
+
+    def echo(line):  # what is on disk when the line comes
+        seen.append((line, sorted(d.name for d in out.iterdir() if d.is_dir())))
+
+    rows = run_sweep(load_sweep(p), out, workers=1, registry=registry, echo=echo)
+    assert [len(folders) for _, folders in seen] == [1, 2, 3]
+    assert [line.split()[0] for line, _ in seen] == ["[1/3]", "[2/3]", "[3/3]"]
+    assert "toy.count=100" in seen[0][0] and [r["toy.count"] for r in rows] == [100, 200, 300]
+
+
+def test_cli_sweep_exits_non_zero_naming_failed_runs(tmp_path, capsys):
+    from evchain import cli
+
+    p = file_sweep(tmp_path)
+    p.write_text("base: ../pipes/p.yaml\nvary:\n  refractory.period_us: [100]\n"
+                 "  aedat.packet_us: [1000]\nreport: [aedat_writer.events]\n")
+    (tmp_path / "data" / "ev.aedat").write_bytes(b"#!AER-DAT2.0\r\n" + bytes(7))  # truncated
+    assert cli.main(["sweep", str(p), "--out", str(tmp_path / "out"), "--workers", "1"]) == 2
+    captured = capsys.readouterr()
+    assert "evchain: error: 2 of 2 runs failed: refractory.period_us=100 [" in captured.err
+    assert captured.out.count("FAILED: ") == 2 and "truncated last record" in captured.out

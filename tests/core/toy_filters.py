@@ -84,6 +84,7 @@ class ToyWriter(Filter):
 
     name = "toy_writer"
     consumes = EventPacket
+    output_paths = ("path",)
 
     class Params(FilterParams):
         path: str = "count.txt"

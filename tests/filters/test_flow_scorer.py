@@ -166,7 +166,7 @@ def test_dvsflow16_pipelines(name, tmp_path, monkeypatch):
     from evchain.core.config import load_pipeline
     from evchain.core.registry import make_registry
 
-    monkeypatch.chdir(ROOT)  # the pipelines name the data relative to the repository
+    monkeypatch.chdir(tmp_path)  # the pipelines name the data relative to their own folder
     spec = load_pipeline(ROOT / "pipelines" / f"{name}.yaml", make_registry())
     run_pipeline(spec, make_registry(), tmp_path / "out")
     report = json.loads((tmp_path / "out" / "report.json").read_text())

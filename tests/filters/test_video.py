@@ -54,7 +54,8 @@ def test_bad_suffix_is_a_config_error(tmp_path):
 
 def test_failed_run_leaves_no_video(tmp_path):
     registry = make_registry()
-    text = ("chain:\n  - use: hdf5\n    path: /nonexistent.h5\n  - use: video\n")
+    (tmp_path / "x.h5").write_text("not HDF5")  # the source fails in setup
+    text = f"chain:\n  - use: hdf5\n    path: {tmp_path / 'x.h5'}\n  - use: video\n"
     with pytest.raises(FilterError):
         run_pipeline(pipeline_from_text(text, "p.yaml", registry), registry, tmp_path)
     assert not (tmp_path / "events.gif").exists()

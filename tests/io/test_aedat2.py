@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -200,6 +201,55 @@ def test_reset_continues_time(tmp_path):
     assert stats.resets == 1
 
 
+def test_short_step_back_below_the_reset_window_is_no_reset(tmp_path):
+    """500 ms then 495 ms: below 1 s, but nearer to the time before than to 0: an error (or
+    clamped with a tolerance), not a reset that would hide it."""
+    ts = [400_000, 500_000, 495_000, 510_000]
+    path = raw_file(tmp_path / "s.aedat", davis([1] * 4, [1] * 4, [0] * 4), ts)
+    with pytest.raises(DataError, match=r"s\.aedat: record 2 .*goes back from 500000 to "
+                                        r"495000 us \(raw\), by 5000 us"):
+        read_aedat2(path)
+    stats = DecodeStats()
+    ev = read_aedat2(path, backstep_tolerance_us=5000, stats=stats)
+    assert ev.t.tolist() == [400_000, 500_000, 500_000, 510_000]
+    assert stats.resets == 0 and stats.clamped == 1
+    # a restart near 0 from only 500 ms is still a reset
+    ts = [400_000, 500_000, 20, 30]
+    stats = DecodeStats()
+    ev = read_aedat2(raw_file(tmp_path / "r.aedat", davis([1] * 4, [1] * 4, [0] * 4), ts),
+                     stats=stats)
+    assert ev.t.tolist() == [400_000, 500_000, 500_000, 500_010] and stats.resets == 1
+
+
+def test_reset_is_a_warning_in_the_report(tmp_path):
+    from evchain.core.chain import run_pipeline
+    from evchain.core.config import pipeline_from_text
+    from evchain.core.registry import make_registry
+
+    path = raw_file(tmp_path / "r.aedat", davis([1] * 4, [1] * 4, [0] * 4),
+                    [4_000_000, 5_000_000, 10, 60])
+    registry = make_registry(discover=False)
+    text = f"chain:\n  - use: aedat\n    path: {path}\n    chip: davis240\n"
+    rep = run_pipeline(pipeline_from_text(text, "t.yaml", registry), registry,
+                       tmp_path / "run").report
+    assert rep["status"] == "ok" and rep["metrics"]["aedat"]["resets"] == 1
+    assert rep["warnings"] == [f"aedat: {path}: the timestamps were reset 1 time(s) (first at "
+                               "record 2); time continues from the event before each reset, the "
+                               "pause at a reset is unknown and counted as 0"]
+    assert json.loads((tmp_path / "run" / "report.json").read_text())["warnings"] == \
+        rep["warnings"]
+
+
+def test_chip_parameter_that_contradicts_the_header_is_an_error(tmp_path):
+    ev = random_events(20, Geometry(240, 180), seed=2)
+    path = write_aedat2(tmp_path / "d240.aedat", ev)  # header: AEChip ... DAVIS240C
+    with pytest.raises(DataError, match=r"d240\.aedat: the parameter chip is 'davis346' but the "
+                                        r"header says 'AEChip: eu.seebetter.ini.chips.davis."
+                                        r"DAVIS240C' \(davis240, 240x180\)"):
+        read_aedat2(path, chip="davis346")
+    assert len(read_aedat2(path, chip="davis240")) == 20
+
+
 def test_backwards_beyond_a_wrap_is_an_error(tmp_path):
     ts = [3_000_000, 5_000_000, 4_000_000, 6_000_000]
     path = raw_file(tmp_path / "b.aedat", davis([1] * 4, [1] * 4, [0] * 4), ts)
@@ -259,8 +309,8 @@ def test_address_outside_sensor(tmp_path):
     path = raw_file(tmp_path / "y.aedat", davis([1], [200], [0]), [1])
     with pytest.raises(DataError, match=r"y\.aedat: record 0 .*outside"):
         read_aedat2(path)
-    # a DAVIS file read as DVS128
-    path = raw_file(tmp_path / "c.aedat", davis([1], [2], [0]), [1])
+    # a DAVIS file whose header names no chip, read as DVS128
+    path = raw_file(tmp_path / "c.aedat", davis([1], [2], [0]), [1], chip=None)
     with pytest.raises(DataError, match=r"c\.aedat: record 0 .*DVS128 layout"):
         read_aedat2(path, chip="dvs128")
 

@@ -92,6 +92,8 @@ def registry_cls(name):
 @pytest.mark.parametrize("mutate, pattern", [
     (lambda g: g.__delitem__("p"), "lacks datasets \\['p'\\]"),
     (lambda g: g.attrs.__delitem__("width"), "no width/height"),
+    (lambda g: (g.__delitem__("x"), g.create_dataset("x", data=np.zeros((10, 2), np.uint16))),
+     r"datasets events/x must be 1-D \(one value per event\), got shapes x \(10, 2\)"),
 ])
 def test_bad_files(tmp_path, mutate, pattern):
     ev = random_events(10, seed=3)

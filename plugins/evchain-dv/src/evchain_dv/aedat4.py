@@ -66,6 +66,7 @@ class Aedat4Source(Filter):
 
     name = "aedat4"
     produces = EventPacket
+    input_paths = ("path",)
 
     class Params(FilterParams):
         path: str = Field(description="AEDAT 4.0 file (.aedat4)")
@@ -161,6 +162,7 @@ class Aedat4Writer(Filter):
 
     name = "aedat4_writer"
     consumes = EventPacket
+    output_paths = ("path",)
 
     class Params(FilterParams):
         path: str = Field("events.aedat4", description="output file (must end in .aedat4), "

@@ -46,6 +46,7 @@ class RosbagSource(Filter):
 
     name = "rosbag"
     produces = EventPacket
+    input_paths = ("path",)
 
     class Params(FilterParams):
         path: str = Field(description="ROS 1 .bag file or ROS 2 bag folder")
@@ -154,6 +155,7 @@ class RosbagWriter(Filter):
 
     name = "rosbag_writer"
     consumes = EventPacket
+    output_paths = ("path",)
 
     class Params(FilterParams):
         path: str = Field("events.bag", description="output .bag file (ros1) or bag folder "

@@ -1,0 +1,7 @@
+"""``python -m evchain``: the ``evchain`` command."""
+
+import sys
+
+from evchain.cli import main
+
+sys.exit(main())
