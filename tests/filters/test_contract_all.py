@@ -30,6 +30,7 @@ PARAMS = {
     "aedat": {"path": str(Path(__file__).resolve().parents[1] / "data" /
                           "moving_edge_davis240.aedat")},
     "aedat_writer": lambda tmp: {"path": str(tmp / "out.aedat")},
+    "aps": {"rate_hz": 500, "exposure_us": 1500, "read_noise_e": 10.0},
     "scene": {"width": 64, "height": 48, "supersample": 1, "duration_s": 0.04},
 }
 
