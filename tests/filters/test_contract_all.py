@@ -53,6 +53,10 @@ def frame_stream() -> list[FramePacket]:
                                                                          t_end=16000)]
 
 
+# filters of optional extras: the module they need
+NEEDS_MODULE = {"frame_flow": "cv2"}
+
+
 def params_for(name, tmp_path):
     p = PARAMS.get(name, {})
     return p(tmp_path) if callable(p) else p
@@ -62,6 +66,8 @@ def params_for(name, tmp_path):
 def test_contract(name, tmp_path):
     cls = REGISTRY.get(name)
     params = params_for(name, tmp_path)
+    if name in NEEDS_MODULE:
+        pytest.importorskip(NEEDS_MODULE[name])
     if cls.is_source():
         if name in SOURCE_SKIP:
             pytest.skip(SOURCE_SKIP[name])
