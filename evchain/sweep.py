@@ -11,6 +11,9 @@ A sweep file::
       emulator.threshold_on,emulator.threshold_off: [[10, 10], [20, 20], [40, 40]]
     report: [foe.dx_mean_px, foe.dy_mean_px, ttc.median_rel_error_last3s]
 
+``report`` keys name metrics (``GROUP.NAME`` of ``report.json``'s ``metrics``) or the run's CPU
+time after the sensor (``cpu.cpu_s_per_simulated_s``, ``cpu.cpu_s``: ``report.json``'s ``cpu``).
+
 A key naming several parameters, separated by commas, sets them together from a list per value.
 ``one_at_a_time`` varies one key while the others keep the base's values (as the thesis's
 tables do); ``grid`` runs every combination. Instead of (or beside) ``vary``, ``cells`` names
@@ -325,8 +328,16 @@ def _run_all(jobs: list[_Job], workers: int, scheduler: str | None,
         return [f.result() for f in futures]
 
 
+#: report keys read from the run's report rather than its metrics (``cpu.cpu_s_per_simulated_s``)
+RUN_KEYS = ("cpu",)
+
+
 def lookup(report: dict[str, Any], dotted: str):
+    """A report key's value: a metric (``foe.dx_mean_px``) or, for ``cpu.*``, the run's CPU
+    time after the sensor; None if the run has none."""
     value: Any = report.get("metrics", {})
+    if dotted.split(".", 1)[0] in RUN_KEYS and dotted.split(".", 1)[0] not in value:
+        value = report
     for part in dotted.split("."):
         if not isinstance(value, dict) or part not in value:
             return None

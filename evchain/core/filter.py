@@ -97,6 +97,9 @@ class Filter:
     optional_series: ClassVar[tuple[SeriesDef, ...]] = ()
     adds_series: ClassVar[tuple[SeriesDef, ...]] = ()
     Params: ClassVar[type[FilterParams]] = FilterParams
+    #: the stage that turns the scene into sensor data (emulator, aps): the report's CPU time
+    #: per simulated second counts the stages after the last sensor (or after the source)
+    sensor: ClassVar[bool] = False
 
     params: Any
     context: Context

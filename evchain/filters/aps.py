@@ -52,6 +52,7 @@ class Aps(Filter):
     name = "aps"
     consumes = FramePacket
     produces = ApsFramePacket
+    sensor = True
 
     class Params(FilterParams):
         rate_hz: float = Field(25.0, gt=0, le=100_000, description="frames per second (frame "

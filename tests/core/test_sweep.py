@@ -178,3 +178,14 @@ def test_override_of_no_stage_is_an_error(tmp_path, registry):
     p = write(tmp_path, "base: base.yaml\ncells: {x: [toy_sorce.packets=1]}\n")
     with pytest.raises(ConfigError, match="toy_sorce.packets=1.*addresses no stage"):
         run_sweep(load_sweep(p), tmp_path / "out", workers=1, registry=registry)
+
+
+def test_lookup_reads_metrics_and_the_runs_cpu():
+    from evchain.sweep import lookup
+
+    report = {"metrics": {"foe": {"dx_mean_px": 1.5}},
+              "cpu": {"cpu_s_per_simulated_s": 0.25, "after": "emulator"}}
+    assert lookup(report, "foe.dx_mean_px") == 1.5
+    assert lookup(report, "cpu.cpu_s_per_simulated_s") == 0.25
+    assert lookup(report, "foe.missing") is None
+    assert lookup({"metrics": {}}, "cpu.cpu_s_per_simulated_s") is None
