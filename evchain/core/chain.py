@@ -3,9 +3,9 @@
 The chain times each filter (wall time, and CPU time of the calling thread) and counts what goes
 in and out (``len(packet)``: events, or frames for frame packets), collects the series of the last
 stage's packets, shows a progress bar over the source's time span, and writes ``report.json``
-(with the CPU time of the stages after the sensor per simulated second, ``cpu``) and the resolved
-pipeline atomically. On any error every filter's ``close()`` still runs and the message names the
-filter and the slice.
+(with the CPU time of the stages after the sensor, scorers left out, per simulated second:
+``cpu``) and the resolved pipeline atomically. On any error every filter's ``close()`` still runs
+and the message names the filter and the slice.
 """
 
 from __future__ import annotations
@@ -130,11 +130,14 @@ class Chain:
 
     def cpu_after_sensor(self) -> dict[str, Any]:
         """CPU time of the stages after the sensor (the last stage that is the source or
-        declares ``sensor``: the emulator, aps), in all and per simulated second."""
+        declares ``sensor``: the emulator, aps), scorers left out, in all and per simulated
+        second."""
         last = max(i for i, f in enumerate(self.filters) if i == 0 or f.sensor)
-        cpu = sum(s.cpu_s for s in self.stats[last + 1:])
+        counted = [i for i in range(last + 1, len(self.filters)) if not self.filters[i].scorer]
+        cpu = sum(self.stats[i].cpu_s for i in counted)
         sim_s = (self.span_us[1] - self.span_us[0]) * 1e-6 if self.span_us else 0.0
-        return {"after": self.stats[last].id, "cpu_s": cpu, "simulated_s": sim_s,
+        return {"after": self.stats[last].id, "stages": [self.stats[i].id for i in counted],
+                "cpu_s": cpu, "simulated_s": sim_s,
                 "cpu_s_per_simulated_s": cpu / sim_s if sim_s > 0 else None}
 
     def close(self) -> list[BaseException]:

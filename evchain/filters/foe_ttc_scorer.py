@@ -146,6 +146,7 @@ class FoeTtcScorer(Filter):
     """
 
     name = "foe_ttc_scorer"
+    scorer = True
     consumes = FlowPacket
     produces = None
     optional_series = (FOE, TTC, TTC_CLUSTERS)

@@ -49,6 +49,10 @@ def test_cpu_counts_the_stages_after_the_sensor(registry, tmp_path, monkeypatch)
     rep = run(PIPE, registry, tmp_path).report
     assert rep["cpu"]["after"] == "toy_writer"
     assert rep["cpu"]["cpu_s"] == rep["filters"][2]["cpu_s"]
+    assert rep["cpu"]["stages"] == ["toy_flow"]
+    monkeypatch.setattr(toy_filters.ToyFlow, "scorer", True)   # scorers are left out
+    rep = run(PIPE, registry, tmp_path).report
+    assert rep["cpu"]["stages"] == [] and rep["cpu"]["cpu_s"] == 0
 
 
 def test_failure_closes_all_and_leaves_no_complete_output(registry, tmp_path):
