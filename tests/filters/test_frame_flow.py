@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from evchain.core.packets import FlowPacket, FramePacket, Geometry
+from evchain.filters.foe_lines import FoeLines
 from evchain.filters.foe_map import FoeMap
 from evchain.filters.frame_flow import FrameFlow
 from evchain.filters.ttc import Ttc
@@ -88,6 +89,12 @@ def test_expansion_flow_foe_and_ttc():
     late = est[est["t"] > 300_000]
     assert np.median(np.abs(late["x"] - foe[0])) < 1.0
     assert np.median(np.abs(late["y"] - foe[1])) < 1.0
+    # FOE where the full flow's lines meet
+    lines = run(FoeLines, {}, flow)
+    est = np.concatenate([p.series["foe"] for p in lines])
+    assert len(est) > 90 and np.all(est["t"] >= FPS_US)
+    assert np.median(np.abs(est["x"] - foe[0])) < 0.6
+    assert np.median(np.abs(est["y"] - foe[1])) < 0.6
     # TTC on the full flow: per-event tau from the flow (baseline_px 0), clustered
     ttc = run(Ttc, {"baseline_px": 0, "region_b_half_width_px": 40}, votes, truth)
     tau = np.concatenate([p.series["ttc"] for p in ttc])
@@ -105,3 +112,10 @@ def test_gradient_mask_and_contract():
     assert 0 < len(masked["x"]) < len(every["x"])
     assert np.all(masked["x"] >= 63)        # the flat left half has no gradient
     check_filter(FrameFlow, {"method": "farneback", "grid_px": 8}, packets)
+
+
+def test_foe_lines_contract():
+    foe, tau0 = (70.0, 40.0), 2.0
+    flow = run(FrameFlow, {}, [stream(expansion(foe, tau0), 8)])
+    out = check_filter(FoeLines, {"window_ms": 50}, recut(flow, [70_000, 70_001, 150_000]))
+    assert len(out["series:foe"]) > 10
