@@ -24,9 +24,11 @@ each variation and lists its overrides::
       640x480: [scene.width=640, scene.height=480]
 
 Several pipelines over the same variations: ``bases`` maps a label to each pipeline (the
-table gets a ``base`` column). With ``record`` (a pipeline that runs ``scene`` -> ``emulator``
--> ``aedat_writer``), each variation's events are rendered once, with the overrides that address
-the record pipeline's stages, and every base replays them (``evchain run --replay``): two flow
+table gets a ``base`` column), or to ``{file: PIPELINE, set: [overrides]}`` (one pipeline at two
+settings, e.g. frames at 30 and 100 fps; the cells' overrides come after the base's). With
+``record`` (a pipeline that runs ``scene`` -> ``emulator`` -> ``aedat_writer``), each
+variation's events are rendered once, with the overrides that address the record pipeline's
+stages, and every base replays them (``evchain run --replay``): two flow
 chains over one drive cost one render. ``repeat`` lists override sets applied on top of every
 variation, each a separate run (e.g. a drive started a fraction of a metre later): the rows
 carry ``repeat`` and ``evchain results`` reports the spread over them.
@@ -81,6 +83,7 @@ class SweepSpec:
     record: Path | None = None
     repeats: list[list[str]] = field(default_factory=lambda: [[]])
     description: str = ""
+    base_sets: dict[str, list[str]] = field(default_factory=dict)
 
     @property
     def base(self) -> Path:
@@ -133,13 +136,21 @@ def load_sweep(path: str | Path) -> SweepSpec:
     if "bases" in data:
         bases = data["bases"]
         if not isinstance(bases, dict) or not bases or not all(
-                isinstance(v, str) for v in bases.values()):
-            fail("must map a label to each pipeline file", "bases")
-        bases = {str(k): path.parent / v for k, v in bases.items()}
+                isinstance(v, str) or (isinstance(v, dict) and set(v) <= {"file", "set"}
+                                       and isinstance(v.get("file"), str)
+                                       and isinstance(v.get("set", []), list))
+                for v in bases.values()):
+            fail("must map a label to each pipeline file, or to {file, set: [overrides]}",
+                 "bases")
+        base_sets = {str(k): [str(o) for o in v.get("set", [])] for k, v in bases.items()
+                     if isinstance(v, dict)}
+        bases = {str(k): path.parent / (v if isinstance(v, str) else v["file"])
+                 for k, v in bases.items()}
     else:
         if not isinstance(data["base"], str):
             fail("must be a pipeline file", "base")
         bases = {"": path.parent / data["base"]}
+        base_sets = {}
     mode = data.get("mode", "one_at_a_time")
     if mode not in ("one_at_a_time", "grid"):
         fail(f"must be 'one_at_a_time' or 'grid', got {mode!r}", "mode")
@@ -180,7 +191,8 @@ def load_sweep(path: str | Path) -> SweepSpec:
                      replay=None if data.get("replay") is None else path.parent / data["replay"],
                      record=None if data.get("record") is None else path.parent / data["record"],
                      repeats=[[str(o) for o in r] for r in repeats],
-                     description=str(data.get("description") or "").strip())
+                     description=str(data.get("description") or "").strip(),
+                     base_sets=base_sets)
 
 
 def _overrides(key: str, value: Any) -> list[str]:
@@ -262,10 +274,17 @@ def plan(sweep: SweepSpec, out: Path, registry: Registry,
                     raise ConfigError(f"{v.label}: override {o!r} addresses no stage of the "
                                       f"sweep's pipelines; stages: {', '.join(sorted(known))}",
                                       file=sweep.file)
+    for label, sets in sweep.base_sets.items():
+        names = _stage_names(plain[str(sweep.bases[label])]) | {"seed"}
+        for o in sets:
+            if _target(o) not in names:
+                raise ConfigError(f"base {label}: override {o!r} addresses no stage of "
+                                  f"{sweep.bases[label]}", file=sweep.file)
     records: dict[str, _Job] = {}
     jobs = []
-    for v, r, _label, base in sweep.runs():
-        overrides = overrides_for(plain[str(base)], sweep.overrides(v, r))
+    for v, r, label, base in sweep.runs():
+        overrides = sweep.base_sets.get(label, []) + overrides_for(plain[str(base)],
+                                                                   sweep.overrides(v, r))
         replay = None if sweep.replay is None else str(sweep.replay)
         if sweep.record is not None:
             rec_over = overrides_for(plain[str(sweep.record)], sweep.overrides(v, r))
