@@ -31,7 +31,8 @@ def import_cv2():
 class FrameFlow(Filter):
     """Full optical flow between consecutive frames (DIS or Farnebäck), as flow events on a grid.
 
-    For each frame after the first, the flow from it back to the previous frame is computed on
+    For each frame after the first, the flow from it back to the previous frame (with
+    ``baseline_ms``: the latest one at least that much older) is computed on
     the frames scaled to 8 bit (``255 * value``, clipped: frames as fractions of full scale, or
     linear intensity with white at 1) and negated, so each vector sits at its pixel in the
     later frame; divided by the frames' time difference it is in px/s. One flow event per grid
@@ -57,6 +58,9 @@ class FrameFlow(Filter):
         min_gradient: float = Field(0.0, ge=0, description="only where the later frame's "
                                     "gradient magnitude (central differences, full scale per "
                                     "px) reaches this; 0: everywhere")
+        baseline_ms: float = Field(0.0, ge=0, description="flow from the latest frame at "
+                                   "least this much older (0: the previous frame): a longer "
+                                   "baseline measures slow motion more precisely, and later")
         threads: int = Field(1, ge=1, le=64, description="OpenCV threads")
         dis_preset: Literal["ultrafast", "fast", "medium"] = Field(
             "medium", description="DIS preset; the dis_* parameters below override it")
@@ -83,7 +87,7 @@ class FrameFlow(Filter):
 
     def reset(self) -> None:
         self._geometry: Geometry | None = None
-        self._prev: tuple[int, np.ndarray] | None = None
+        self._past: list[tuple[int, np.ndarray]] = []   # earlier frames (t, 8-bit image)
         self._dis = None
         self._grid = None
 
@@ -131,10 +135,11 @@ class FrameFlow(Filter):
         cols: dict[str, list[np.ndarray]] = {k: [] for k in ("x", "y", "t", "vx", "vy")}
         for t, frame in zip(packet.t.tolist(), packet.frames, strict=True):
             img = np.clip(np.rint(frame * 255.0), 0, 255).astype(np.uint8)
-            if self._prev is not None:
-                t0, prev = self._prev
+            base = self._baseline(int(t))
+            if base is not None:
+                t0, prev = base
                 self._emit(cols, int(t), (t - t0) * 1e-6, img, prev, frame)
-            self._prev = (int(t), img)
+            self._past.append((int(t), img))
         n = sum(len(c) for c in cols["x"])
         out = {k: (np.concatenate(v) if v else np.zeros(0)) for k, v in cols.items()}
         return FlowPacket(geometry=packet.geometry, t_start=packet.t_start, t_end=packet.t_end,
@@ -142,6 +147,16 @@ class FrameFlow(Filter):
                           y=out["y"].astype(np.uint16), t=out["t"].astype(np.int64),
                           p=np.ones(n, np.int8), vx=out["vx"].astype(np.float32),
                           vy=out["vy"].astype(np.float32))
+
+    def _baseline(self, t: int) -> tuple[int, np.ndarray] | None:
+        """The latest earlier frame at least ``baseline_ms`` before ``t`` (older ones are
+        dropped), or None."""
+        reach = t - int(round(self.params.baseline_ms * 1000))
+        usable = [i for i, (tp, _) in enumerate(self._past) if tp <= reach]
+        if not usable:
+            return None
+        del self._past[:usable[-1]]
+        return self._past[0]
 
     def _emit(self, cols, t: int, dt_s: float, img: np.ndarray, prev: np.ndarray,
               frame: np.ndarray) -> None:

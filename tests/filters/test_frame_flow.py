@@ -119,3 +119,13 @@ def test_foe_lines_contract():
     flow = run(FrameFlow, {}, [stream(expansion(foe, tau0), 8)])
     out = check_filter(FoeLines, {"window_ms": 50}, recut(flow, [70_000, 70_001, 150_000]))
     assert len(out["series:foe"]) > 10
+
+
+def test_baseline_measures_over_several_frames():
+    v = (12.0, 3.0)   # slow: 0.4 px per frame at 30 fps, 1.2 px over 100 ms
+    pk = stream(lambda xs, ys, t: texture(xs - v[0] * t, ys - v[1] * t), 9)
+    out = FlowPacket.concat(run(FrameFlow, {"baseline_ms": 99}, recut([pk], [50_000])))
+    assert set(np.unique(out.t)) == set(pk.t[3:].tolist())   # from frame 3 (99.999 ms) on
+    err = np.hypot(out.vx - v[0], out.vy - v[1])
+    assert np.median(err) < 0.02 * np.hypot(*v)
+    check_filter(FrameFlow, {"baseline_ms": 60}, recut([pk], [120_000, 120_001]))
