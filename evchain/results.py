@@ -35,7 +35,7 @@ from evchain.io.atomic import atomic_write_text
 MANIFEST = Path("results") / "results.yaml"
 OUTPUT = Path("docs") / "results.md"
 MIN_REPEATS = 3
-MANIFEST_KEYS = {"sweeps", "bench", "metrics", "goals", "evaluation"}
+MANIFEST_KEYS = {"sweeps", "bench", "metrics", "goals", "evaluation", "comparison"}
 GOAL_KEYS = {"name", "source", "select", "metric", "goal"}
 
 
@@ -60,6 +60,7 @@ class Manifest:
     metrics: dict[str, dict[str, Any]]
     goals: list[Goal]
     evaluation: dict[str, Any]
+    comparison: dict[str, Any] | None = None
 
     def results_dir(self) -> Path:
         return self.root / "results"
@@ -115,10 +116,19 @@ def load_manifest(root: Path = Path(".")) -> Manifest:
                  line)
         goals.append(Goal(str(g["name"]), src, dict(g.get("select") or {}), str(g["metric"]),
                           op, target))
+    comparison = data.get("comparison")
+    if comparison is not None:
+        chains = comparison.get("chains") if isinstance(comparison, dict) else None
+        if not isinstance(chains, list) or not chains or not all(
+                isinstance(c, dict) and {"label", "sweep", "base"} <= set(c)
+                and c["sweep"] in sweeps for c in chains):
+            fail("must hold chains: [{label, sweep, base}] of listed sweeps, and metrics",
+                 "comparison")
     return Manifest(root=root, sweeps={k: root / v for k, v in sweeps.items()}, titles=titles,
                     bench=bench,
                     metrics=dict(data.get("metrics") or {}), goals=goals,
-                    evaluation=dict(data.get("evaluation") or {}))
+                    evaluation=dict(data.get("evaluation") or {}),
+                    comparison=dict(comparison) if comparison else None)
 
 
 def _list_nodes(node, key: str) -> list:
@@ -345,6 +355,7 @@ def render(m: Manifest) -> str:
     out += _goals_section(m, src)
     out += _sweep_sections(m, src)
     out += _evaluation_section(m, src)
+    out += _comparison_section(m, src)
     out += _bench_section(m, src)
     return "\n".join(out).rstrip() + "\n"
 
@@ -407,7 +418,7 @@ def _sweep_sections(m: Manifest, src: _Sources) -> list[str]:
     """One section per sweep other than the evaluation set's."""
     out = []
     for name in m.sweeps:
-        if name == m.evaluation.get("sweep"):
+        if name == m.evaluation.get("sweep") or name in _comparison_only(m):
             continue
         doc = src.sweeps.get(name)
         out += [f"## {m.titles[name]}", ""]
@@ -462,6 +473,79 @@ def _evaluation_section(m: Manifest, src: _Sources) -> list[str]:
         out.append("| " + " | ".join(cells_txt) + " |")
     out += ["", "### Every cell", ""]
     return out + _sweep_table(m, rows, doc["report"], ([ref] if ref else []) + cells) + [""]
+
+
+def _comparison_only(m: Manifest) -> set[str]:
+    """Sweeps shown in the comparison section only (not the evaluation sweep)."""
+    if not m.comparison:
+        return set()
+    return {c["sweep"] for c in m.comparison["chains"]} - {m.evaluation.get("sweep")}
+
+
+def _comparison_section(m: Manifest, src: _Sources) -> list[str]:
+    """One table: each chain of the manifest's ``comparison`` on every evaluation cell, the
+    median over the cells every chain ran beside it; then the full tables of the sweeps shown
+    only here."""
+    cfg = m.comparison
+    if not cfg:
+        return []
+    chains, keys = cfg["chains"], list(cfg.get("metrics") or [])
+    ref = m.evaluation.get("reference_cell")
+    out = [f"## {cfg.get('title', 'Comparison')}", ""]
+    if cfg.get("description"):
+        out += [str(cfg["description"]).strip(), ""]
+    docs = {c["sweep"]: src.sweeps.get(c["sweep"]) for c in chains}
+    missing = [name for name, doc in docs.items() if not doc]
+    if missing:
+        out += ["Not measured yet: " + ", ".join(f"`evchain results --run {n}`"
+                                                 for n in missing) + ".", ""]
+    cells: list[str] = []
+    for doc in docs.values():
+        for r in (doc or {}).get("rows", []):
+            if r["variation"] not in cells:
+                cells.append(r["variation"])
+    if ref in cells:
+        cells = [ref] + [c for c in cells if c != ref]
+
+    def rows_of(c):
+        doc = docs[c["sweep"]]
+        return doc["rows"] if doc else []
+
+    ran = {c["label"]: {r["variation"] for r in rows_of(c) if r.get("base") == c["base"]}
+           for c in chains}
+    common = [c for c in cells if c != ref and all(c in v for v in ran.values())]
+    for doc in docs.values():
+        if doc:
+            out.append(f"`{doc['file']}`: {doc['wall_s']:g} s wall on "
+                       f"{_machine_text(doc.get('machine'))}; reproduce: `{doc['command']}`.")
+    out += ["", f"Median over the {len(common)} evaluation cells every chain ran:", ""]
+    head = ["chain"] + [_metric_meta(m, k)["label"] for k in keys]
+    out += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for c in chains:
+        vals = []
+        for k in keys:
+            per = [collect(rows_of(c), {"variation": cell, "base": c["base"]}, k).median
+                   for cell in common]
+            per = [v for v in per if v is not None]
+            vals.append(_fmt(statistics.median(per) if per else None,
+                             _metric_meta(m, k)["format"]))
+        out.append("| " + " | ".join([_cell(c["label"]), *vals]) + " |")
+    out += ["", "Every cell (- where a chain's sweep has no such cell or the metric is not "
+            "defined there):", ""]
+    head = ["cell", "chain"] + [_metric_meta(m, k)["label"] for k in keys]
+    out += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for cell in cells:
+        for c in chains:
+            vals = [_value_text(collect(rows_of(c), {"variation": cell, "base": c["base"]}, k),
+                                _metric_meta(m, k)["format"]) for k in keys]
+            out.append("| " + " | ".join([cell, _cell(c["label"]), *vals]) + " |")
+    out.append("")
+    for name in sorted(_comparison_only(m)):
+        doc = src.sweeps.get(name)
+        if doc:
+            out += [f"### {m.titles[name]}", "", doc.get("description", ""), ""]
+            out += _sweep_table(m, doc["rows"], doc["report"]) + [""]
+    return out
 
 
 def _bench_section(m: Manifest, src: _Sources) -> list[str]:

@@ -11,6 +11,9 @@ A sweep file::
       emulator.threshold_on,emulator.threshold_off: [[10, 10], [20, 20], [40, 40]]
     report: [foe.dx_mean_px, foe.dy_mean_px, ttc.median_rel_error_last3s]
 
+``report`` keys name metrics (``GROUP.NAME`` of ``report.json``'s ``metrics``) or the run's CPU
+time after the sensor (``cpu.cpu_s_per_simulated_s``, ``cpu.cpu_s``: ``report.json``'s ``cpu``).
+
 A key naming several parameters, separated by commas, sets them together from a list per value.
 ``one_at_a_time`` varies one key while the others keep the base's values (as the thesis's
 tables do); ``grid`` runs every combination. Instead of (or beside) ``vary``, ``cells`` names
@@ -21,9 +24,11 @@ each variation and lists its overrides::
       640x480: [scene.width=640, scene.height=480]
 
 Several pipelines over the same variations: ``bases`` maps a label to each pipeline (the
-table gets a ``base`` column). With ``record`` (a pipeline that runs ``scene`` -> ``emulator``
--> ``aedat_writer``), each variation's events are rendered once, with the overrides that address
-the record pipeline's stages, and every base replays them (``evchain run --replay``): two flow
+table gets a ``base`` column), or to ``{file: PIPELINE, set: [overrides]}`` (one pipeline at two
+settings, e.g. frames at 30 and 100 fps; the cells' overrides come after the base's). With
+``record`` (a pipeline that runs ``scene`` -> ``emulator`` -> ``aedat_writer``), each
+variation's events are rendered once, with the overrides that address the record pipeline's
+stages, and every base replays them (``evchain run --replay``): two flow
 chains over one drive cost one render. ``repeat`` lists override sets applied on top of every
 variation, each a separate run (e.g. a drive started a fraction of a metre later): the rows
 carry ``repeat`` and ``evchain results`` reports the spread over them.
@@ -97,6 +102,7 @@ class SweepSpec:
     record: Path | None = None
     repeats: list[list[str]] = field(default_factory=lambda: [[]])
     description: str = ""
+    base_sets: dict[str, list[str]] = field(default_factory=dict)
 
     @property
     def base(self) -> Path:
@@ -149,13 +155,21 @@ def load_sweep(path: str | Path) -> SweepSpec:
     if "bases" in data:
         bases = data["bases"]
         if not isinstance(bases, dict) or not bases or not all(
-                isinstance(v, str) for v in bases.values()):
-            fail("must map a label to each pipeline file", "bases")
-        bases = {str(k): path.parent / v for k, v in bases.items()}
+                isinstance(v, str) or (isinstance(v, dict) and set(v) <= {"file", "set"}
+                                       and isinstance(v.get("file"), str)
+                                       and isinstance(v.get("set", []), list))
+                for v in bases.values()):
+            fail("must map a label to each pipeline file, or to {file, set: [overrides]}",
+                 "bases")
+        base_sets = {str(k): [str(o) for o in v.get("set", [])] for k, v in bases.items()
+                     if isinstance(v, dict)}
+        bases = {str(k): path.parent / (v if isinstance(v, str) else v["file"])
+                 for k, v in bases.items()}
     else:
         if not isinstance(data["base"], str):
             fail("must be a pipeline file", "base")
         bases = {"": path.parent / data["base"]}
+        base_sets = {}
     mode = data.get("mode", "one_at_a_time")
     if mode not in ("one_at_a_time", "grid"):
         fail(f"must be 'one_at_a_time' or 'grid', got {mode!r}", "mode")
@@ -196,7 +210,8 @@ def load_sweep(path: str | Path) -> SweepSpec:
                      replay=None if data.get("replay") is None else path.parent / data["replay"],
                      record=None if data.get("record") is None else path.parent / data["record"],
                      repeats=[[str(o) for o in r] for r in repeats],
-                     description=str(data.get("description") or "").strip())
+                     description=str(data.get("description") or "").strip(),
+                     base_sets=base_sets)
 
 
 def _overrides(key: str, value: Any) -> list[str]:
@@ -289,15 +304,22 @@ def plan(sweep: SweepSpec, out: Path, registry: Registry,
                     raise ConfigError(f"{v.label}: override {o!r} addresses no stage of the "
                                       f"sweep's pipelines; stages: {', '.join(sorted(known))}",
                                       file=sweep.file)
+    for label, sets in sweep.base_sets.items():
+        names = _stage_names(plain[files[str(sweep.bases[label])]]) | {"seed"}
+        for o in sets:
+            if _target(o) not in names:
+                raise ConfigError(f"base {label}: override {o!r} addresses no stage of "
+                                  f"{sweep.bases[label]}", file=sweep.file)
     replay = None if sweep.replay is None else _absolute(sweep.replay)
     if replay is not None and not Path(replay).is_file():
         raise ConfigError(f"recording not found: {replay}", file=sweep.file, key="replay")
     record = None if sweep.record is None else files[str(sweep.record)]
     records: dict[str, _Job] = {}
     jobs = []
-    for v, r, _label, base in sweep.runs():
+    for v, r, label, base in sweep.runs():
         base = files[str(base)]
-        overrides = overrides_for(plain[base], sweep.overrides(v, r))
+        overrides = sweep.base_sets.get(label, []) + overrides_for(plain[base],
+                                                                   sweep.overrides(v, r))
         run_replay = replay
         if record is not None:
             rec_over = overrides_for(plain[record], sweep.overrides(v, r))
@@ -415,8 +437,16 @@ def _run_all(jobs: list[_Job], workers: int, scheduler: str | None,
     return results
 
 
+#: report keys read from the run's report rather than its metrics (``cpu.cpu_s_per_simulated_s``)
+RUN_KEYS = ("cpu",)
+
+
 def lookup(report: dict[str, Any], dotted: str):
+    """A report key's value: a metric (``foe.dx_mean_px``) or, for ``cpu.*``, the run's CPU
+    time after the sensor; None if the run has none."""
     value: Any = report.get("metrics", {})
+    if dotted.split(".", 1)[0] in RUN_KEYS and dotted.split(".", 1)[0] not in value:
+        value = report
     for part in dotted.split("."):
         if not isinstance(value, dict) or part not in value:
             return None

@@ -1,11 +1,13 @@
 """Running a chain: packets stream from the source through every filter in bounded memory.
 
-The chain times each filter and counts what goes in and out (``len(packet)``: events, or frames
-for frame packets), streams the series of the last stage's packets to CSV files as they come
-(memory does not grow with the recording), shows a progress bar over the source's time span,
-and writes ``report.json`` and the resolved pipeline atomically. A run first marks its folder as
-in progress (``report.json`` says ``running``; the files it will write are removed). On any
-error every filter's ``close()`` still runs and the message names the filter and the slice.
+The chain times each filter (wall time, and CPU time of the calling thread) and counts what goes
+in and out (``len(packet)``: events, or frames for frame packets), streams the series of the
+last stage's packets to CSV files as they come (memory does not grow with the recording), shows
+a progress bar over the source's time span, and writes ``report.json`` (with the CPU time of the
+stages after the sensor, scorers left out, per simulated second: ``cpu``) and the resolved
+pipeline atomically. A run first marks its folder as in progress (``report.json`` says
+``running``; the files it will write are removed). On any error every filter's ``close()``
+still runs and the message names the filter and the slice.
 """
 
 from __future__ import annotations
@@ -40,13 +42,14 @@ class StageStats:
     events_in: int = 0
     events_out: int = 0
     wall_s: float = 0.0
+    cpu_s: float = 0.0       # CPU time of the thread that called the filter
     unit_in: str = "events"  # what events_in counts: "events" or "frames"
 
     def as_dict(self) -> dict[str, Any]:
         eps = self.events_in / self.wall_s if self.wall_s > 0 else None
         return {"name": self.name, "id": self.id, "events_in": self.events_in,
                 "events_out": self.events_out, "unit_in": self.unit_in, "wall_s": self.wall_s,
-                "throughput_eps": eps}
+                "cpu_s": self.cpu_s, "throughput_eps": eps}
 
 
 @dataclass
@@ -66,6 +69,7 @@ class Chain:
         self.context = context
         self.filters: list[Filter] = []
         self.stats: list[StageStats] = []
+        self.span_us: list[int] | None = None  # first and last time the source covered
         for stage in spec.stages:
             f = stage.cls()
             f.id = stage.id
@@ -85,11 +89,15 @@ class Chain:
         it = source.packets()
         try:
             while True:
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.thread_time()
                 packet = _guard(source, None, "packets", next, it, None)
                 self.stats[0].wall_s += time.perf_counter() - t0
+                self.stats[0].cpu_s += time.thread_time() - c0
                 if packet is None:
                     break
+                if self.span_us is None:
+                    self.span_us = [packet.t_start, packet.t_end]
+                self.span_us[1] = packet.t_end
                 if self.context.debug:
                     packet.validate(f"output of {source.id!r}")
                 self.stats[0].events_out += len(packet)
@@ -98,9 +106,10 @@ class Chain:
                 if out is not None:
                     yield out
             for i, f in enumerate(rest, start=1):
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.thread_time()
                 packet = _guard(f, None, "flush", f.flush)
                 self.stats[i].wall_s += time.perf_counter() - t0
+                self.stats[i].cpu_s += time.thread_time() - c0
                 if packet is not None:
                     self.stats[i].events_out += len(packet)
                     out = self._through(packet, i + 1)
@@ -115,13 +124,26 @@ class Chain:
             st.events_in += len(packet)
             if isinstance(packet, FramePacket):
                 st.unit_in = "frames"
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.thread_time()
             packet = _guard(f, packet, "process", f.process, packet)
             st.wall_s += time.perf_counter() - t0
+            st.cpu_s += time.thread_time() - c0
             if self.context.debug:
                 packet.validate(f"output of {f.id!r}")
             st.events_out += len(packet)
         return packet
+
+    def cpu_after_sensor(self) -> dict[str, Any]:
+        """CPU time of the stages after the sensor (the last stage that is the source or
+        declares ``sensor``: the emulator, aps), scorers left out, in all and per simulated
+        second."""
+        last = max(i for i, f in enumerate(self.filters) if i == 0 or f.sensor)
+        counted = [i for i in range(last + 1, len(self.filters)) if not self.filters[i].scorer]
+        cpu = sum(self.stats[i].cpu_s for i in counted)
+        sim_s = (self.span_us[1] - self.span_us[0]) * 1e-6 if self.span_us else 0.0
+        return {"after": self.stats[last].id, "stages": [self.stats[i].id for i in counted],
+                "cpu_s": cpu, "simulated_s": sim_s,
+                "cpu_s_per_simulated_s": cpu / sim_s if sim_s > 0 else None}
 
     def close(self) -> list[BaseException]:
         errors = []
@@ -209,6 +231,7 @@ def run_pipeline(spec: PipelineSpec, registry: Registry, out_dir: str | Path,
             "error": error,
             **made_by,
             "filters": [s.as_dict() for s in chain.stats],
+            "cpu": chain.cpu_after_sensor(),
             "metrics": _jsonable(context.metrics),
             "warnings": list(context.warnings),
             "series": dict(series.counts),

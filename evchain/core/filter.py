@@ -117,6 +117,12 @@ class Filter:
     truth_hint: ClassVar[str] = ""
     #: sources: the ground truth they set as ``context.truth``
     provides_truth: ClassVar[tuple[type, ...]] = ()
+    #: the stage that turns the scene into sensor data (emulator, aps): the report's CPU time
+    #: per simulated second counts the stages after the last sensor (or after the source)
+    sensor: ClassVar[bool] = False
+    #: scores against the ground truth (flow_scorer, foe_ttc_scorer): measurement, not part of
+    #: the chain, so left out of the report's CPU time per simulated second
+    scorer: ClassVar[bool] = False
 
     params: Any
     context: Context

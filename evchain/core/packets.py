@@ -5,7 +5,8 @@ Invariants (checked by :meth:`Packet.validate`, at sources and between filters i
 * every packet carries the sensor :class:`Geometry` and its slice ``[t_start, t_end)`` in integer
   microseconds, ``t_start <= t_end``;
 * ``FramePacket``: ``frames`` float32 ``[n, H, W]``, finite and ``>= 0`` (linear intensity, HDR
-  allowed); ``t`` int64 ``[n]``, strictly increasing, inside the slice;
+  allowed); ``t`` int64 ``[n]``, strictly increasing, inside the slice; ``ApsFramePacket`` adds
+  ``t_exposure_start`` int64 ``[n]`` (``<= t``, the exposure's end);
 * ``EventPacket``: ``x``, ``y`` uint16 (``x < width``, ``y < height``, top-left origin), ``t``
   int64 µs non-decreasing and inside the slice, ``p`` int8 in {+1 ON, -1 OFF}; all the same length;
 * ``FlowPacket``: an ``EventPacket`` plus ``vx``, ``vy`` float32 in px/s, finite;
@@ -164,6 +165,31 @@ class FramePacket(Packet):
     def empty(cls, geometry: Geometry, t_start: int, t_end: int) -> FramePacket:
         return cls(geometry=geometry, t_start=t_start, t_end=t_end,
                    frames=np.zeros((0, *geometry.shape), np.float32), t=np.zeros(0, np.int64))
+
+
+@dataclass(frozen=True, eq=False)
+class ApsFramePacket(FramePacket):
+    """Frames of an exposure (the ``aps`` sensor): ``t`` is when each frame's exposure ended
+    (its last row's, with a rolling shutter: when the frame is complete), ``t_exposure_start``
+    (int64 µs) when it began (its first row's). ``frames`` hold digital numbers as a fraction
+    of full scale, in [0, 1]."""
+
+    t_exposure_start: np.ndarray = None  # type: ignore[assignment]
+
+    columns: ClassVar[dict[str, type]] = {**FramePacket.columns, "t_exposure_start": np.int64}
+
+    def _validate_more(self, where: str) -> None:
+        super()._validate_more(where)
+        s = self.t_exposure_start
+        if s.shape != self.t.shape or np.any(s > self.t):
+            raise DataError(f"{where}: t_exposure_start must have one entry per frame, none "
+                            "after the frame's t (the end of its exposure)")
+
+    @classmethod
+    def empty(cls, geometry: Geometry, t_start: int, t_end: int) -> ApsFramePacket:
+        return cls(geometry=geometry, t_start=t_start, t_end=t_end,
+                   frames=np.zeros((0, *geometry.shape), np.float32), t=np.zeros(0, np.int64),
+                   t_exposure_start=np.zeros(0, np.int64))
 
 
 @dataclass(frozen=True, eq=False)

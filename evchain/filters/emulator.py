@@ -39,6 +39,7 @@ class Emulator(Filter):
     name = "emulator"
     consumes = FramePacket
     produces = EventPacket
+    sensor = True
 
     class Params(FilterParams):
         threshold_on: float = Field(0.2, gt=0, description="ON threshold, natural log units "

@@ -153,6 +153,7 @@ class FlowScorer(Filter):
     """
 
     name = "flow_scorer"
+    scorer = True
     consumes = FlowPacket
     produces = None
     optional_series = (FLOW_DENSITY,)

@@ -64,6 +64,63 @@ def foe_angle_deg(x, y, xt, yt, f: float | None, cx: float, cy: float) -> np.nda
     return np.degrees(np.arctan2(cross, dot))
 
 
+#: the FOE's lag is searched up to this far (ms)
+LAG_MAX_MS = 500.0
+#: ... and defined only where the true FOE coordinate varies by at least this (std, px)
+LAG_MIN_STD_PX = 1.0
+
+
+def foe_lag_ms(t_us: np.ndarray, est: np.ndarray, true: np.ndarray,
+               max_lag_ms: float = LAG_MAX_MS, min_std_px: float = LAG_MIN_STD_PX
+               ) -> float | None:
+    """How late an estimated FOE coordinate follows the true one: the lag (ms, positive =
+    the estimate is late) that maximises the correlation of ``est(t)`` with ``true(t - lag)``.
+
+    Both are resampled on a uniform grid (the median spacing of ``t_us``); lags are searched
+    in whole grid steps up to ``max_lag_ms`` either way and refined by a parabola through the
+    best three. None where the truth varies too little to tell (std below ``min_std_px``), or
+    with too few finite samples.
+    """
+    ok = np.isfinite(est) & np.isfinite(true)
+    t, est, true = t_us[ok].astype(np.float64), est[ok], true[ok]
+    if len(t) < 8 or np.std(true) < min_std_px:
+        return None
+    step = float(np.median(np.diff(t)))
+    if step <= 0:
+        return None
+    grid = np.arange(t[0], t[-1] + step / 2, step)
+    a = np.interp(grid, t, est)
+    b = np.interp(grid, t, true)
+    k_max = min(int(max_lag_ms * 1000.0 / step), len(grid) // 2)
+    lags = np.arange(-k_max, k_max + 1)
+    corr = np.full(len(lags), -np.inf)
+    for i, k in enumerate(lags):
+        x, y = (a[k:], b[:len(b) - k]) if k >= 0 else (a[:k], b[-k:])
+        if len(x) > 2 and np.std(x) > 0 and np.std(y) > 0:
+            corr[i] = float(np.corrcoef(x, y)[0, 1])
+    i = int(np.argmax(corr))
+    if not np.isfinite(corr[i]):
+        return None
+    shift = 0.0
+    if 0 < i < len(lags) - 1 and np.all(np.isfinite(corr[i - 1:i + 2])):
+        c0, c1, c2 = corr[i - 1:i + 2]
+        den = c0 - 2 * c1 + c2
+        shift = 0.5 * (c0 - c2) / den if den < 0 else 0.0
+    return float((lags[i] + shift) * step / 1000.0)
+
+
+def foe_lag_metrics(foe: np.ndarray) -> dict:
+    """``lag_ms`` of the FOE coordinate whose truth varies more (``lag_axis`` x or y) over the
+    ``foe_error`` entries given; None each where the truth is about constant."""
+    if not len(foe):
+        return {"lag_ms": None, "lag_axis": None}
+    sx, sy = (float(np.nanstd(foe[c])) if np.isfinite(foe[c]).any() else 0.0
+              for c in ("x_true", "y_true"))
+    axis = "y" if sy >= sx else "x"
+    lag = foe_lag_ms(foe["t"], foe[axis], foe[f"{axis}_true"])
+    return {"lag_ms": lag, "lag_axis": axis if lag is not None else None}
+
+
 class FoeTtcScorer(Filter):
     """Scores FOE (|dx|, |dy|, ray angle) and TTC (relative error) against the ground truth.
 
@@ -71,7 +128,8 @@ class FoeTtcScorer(Filter):
     entry: the cluster's centre x, y and ``on_obstacle``: 1 if it lies on the obstacle at that
     tick, 0 if not, -1 if the truth cannot tell). At the end writes ``metrics.foe`` (``dx_mean_px``,
     ``dx_std_px``, ``dy_mean_px``, ``dy_std_px``, ``angle_mean_deg`` after ``warmup_s``;
-    thesis eq. 4.1) and ``metrics.ttc`` over the last ``last_window_s`` before collision,
+    thesis eq. 4.1; ``lag_ms``: how late the estimate follows the true FOE where that moves,
+    :func:`foe_lag_ms`) and ``metrics.ttc`` over the last ``last_window_s`` before collision,
     sampled every ``sample_every_us`` (a time without an estimate of at most ``max_age_us``
     counts as a miss):
 
@@ -93,6 +151,7 @@ class FoeTtcScorer(Filter):
     """
 
     name = "foe_ttc_scorer"
+    scorer = True
     consumes = FlowPacket
     produces = None
     optional_series = (FOE, TTC, TTC_CLUSTERS)
@@ -216,7 +275,8 @@ class FoeTtcScorer(Filter):
                 "dy_mean_px": float(ady.mean()), "dy_std_px": float(ady.std()),
                 "angle_mean_deg": float(np.nanmean(ang)) if np.isfinite(ang).any() else None,
                 "angle_std_deg": float(np.nanstd(ang)) if np.isfinite(ang).any() else None,
-                "n": int(k.sum()), "warmup_s": self.params.warmup_s}
+                "n": int(k.sum()), "warmup_s": self.params.warmup_s,
+                **foe_lag_metrics(foe[k])}
 
     def _ttc_metrics(self, ttc: np.ndarray) -> tuple[dict, dict]:
         p = self.params

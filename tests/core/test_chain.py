@@ -33,11 +33,26 @@ def test_report_and_outputs(registry, tmp_path):
     assert [f["name"] for f in rep["filters"]] == ["toy_source", "toy_writer", "toy_flow"]
     assert rep["filters"][0]["events_out"] == 300 and rep["filters"][1]["unit_in"] == "events"
     assert rep["filters"][1]["events_in"] == 300 and rep["filters"][2]["events_out"] == 300
-    assert all(f["wall_s"] >= 0 for f in rep["filters"])
+    assert all(f["wall_s"] >= 0 and f["cpu_s"] >= 0 for f in rep["filters"])
+    cpu = rep["cpu"]  # no sensor stage: the stages after the source
+    assert cpu["after"] == "toy_source" and cpu["simulated_s"] == pytest.approx(0.03)
+    assert cpu["cpu_s"] == pytest.approx(sum(f["cpu_s"] for f in rep["filters"][1:]))
+    assert cpu["cpu_s_per_simulated_s"] == pytest.approx(cpu["cpu_s"] / 0.03)
     assert rep["metrics"] == {"toy": {"count": 300}}
     assert (tmp_path / "out" / "count.txt").read_text() == "300"
     assert (tmp_path / "pipeline.resolved.yaml").exists()
     assert result.report == rep
+
+
+def test_cpu_counts_the_stages_after_the_sensor(registry, tmp_path, monkeypatch):
+    monkeypatch.setattr(toy_filters.ToyWriter, "sensor", True)
+    rep = run(PIPE, registry, tmp_path).report
+    assert rep["cpu"]["after"] == "toy_writer"
+    assert rep["cpu"]["cpu_s"] == rep["filters"][2]["cpu_s"]
+    assert rep["cpu"]["stages"] == ["toy_flow"]
+    monkeypatch.setattr(toy_filters.ToyFlow, "scorer", True)   # scorers are left out
+    rep = run(PIPE, registry, tmp_path).report
+    assert rep["cpu"]["stages"] == [] and rep["cpu"]["cpu_s"] == 0
 
 
 def test_failure_closes_all_and_leaves_no_complete_output(registry, tmp_path):

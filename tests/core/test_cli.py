@@ -63,7 +63,7 @@ def test_validate_rejects_ttc_without_foe(tmp_path, capsys):
     assert cli.main(["validate", str(p)]) == 2
     err = capsys.readouterr().err.strip()
     assert err == (f"evchain: error: {p}:5:5: stage 'ttc' needs series 'foe' (added by foe_fit "
-                   "or foe_map) but no stage before it adds it")
+                   "or foe_lines or foe_map) but no stage before it adds it")
     p.write_text(p.read_text().replace("  - use: ttc\n", "  - use: foe_map\n  - use: ttc\n"))
     assert cli.main(["validate", str(p)]) == 0
     assert "ok (6 stages" in capsys.readouterr().out

@@ -112,8 +112,8 @@ def test_unmet_series_need_names_stage_series_and_adders(registry):
     with pytest.raises(WiringError) as info:
         load(text, registry)
     assert str(info.value) == (
-        "p.yaml:4:5: stage 'toy_foe_reader' needs series 'foe' (added by foe_fit or foe_map or "
-        "toy_foe) but no stage before it adds it")
+        "p.yaml:4:5: stage 'toy_foe_reader' needs series 'foe' (added by foe_fit or foe_lines or "
+        "foe_map or toy_foe) but no stage before it adds it")
     assert info.value.line == 4
 
 

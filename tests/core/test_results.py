@@ -123,3 +123,25 @@ def test_unknown_name_to_run(root):
         from evchain.results import run_and_save
 
         run_and_save(load_manifest(root), ["nope"])
+
+
+def test_comparison_table(root):
+    (root / "results" / "results.yaml").write_text(
+        MANIFEST.replace("  ev: ev.yaml\n", "  ev: ev.yaml\n  fr: fr.yaml\n") +
+        "comparison:\n  title: Events and frames\n  metrics: [foe.dx_mean_px, ttc.share]\n"
+        "  chains:\n    - {label: events lk, sweep: ev, base: lk}\n"
+        "    - {label: frames 30, sweep: fr, base: f30}\n")
+    before = render(load_manifest(root))
+    assert "## Events and frames" in before and "`evchain results --run fr`" in before
+    fr = [{"variation": c, "base": "f30", "foe.dx_mean_px": dx, "ttc.share": 0.4}
+          for c, dx in (("reference", 0.5), ("a", 1.0), ("c", 3.0))]
+    (root / "results" / "sweeps" / "fr.json").write_text(json.dumps(sweep_doc(fr)))
+    text = render(load_manifest(root))
+    # the median over the cells both chains ran (a and c; b has no frames run)
+    assert "Median over the 2 evaluation cells every chain ran" in text
+    assert "| events lk | 3.50 | 60.0% |" in text and "| frames 30 | 2.00 | 40.0% |" in text
+    assert "| b | frames 30 | - | - |" in text and "| reference | frames 30 | 0.50 | 40.0% |" \
+        in text
+    # the existing sections are unchanged, the frames sweep is shown in the comparison only
+    assert text.startswith(before.split("## Events and frames")[0])
+    assert "\n## fr\n" not in text and "\n### fr\n" in text

@@ -285,3 +285,29 @@ def test_cli_sweep_exits_non_zero_naming_failed_runs(tmp_path, capsys):
     captured = capsys.readouterr()
     assert "evchain: error: 2 of 2 runs failed: refractory.period_us=100 [" in captured.err
     assert captured.out.count("FAILED: ") == 2 and "truncated last record" in captured.out
+
+
+def test_lookup_reads_metrics_and_the_runs_cpu():
+    from evchain.sweep import lookup
+
+    report = {"metrics": {"foe": {"dx_mean_px": 1.5}},
+              "cpu": {"cpu_s_per_simulated_s": 0.25, "after": "emulator"}}
+    assert lookup(report, "foe.dx_mean_px") == 1.5
+    assert lookup(report, "cpu.cpu_s_per_simulated_s") == 0.25
+    assert lookup(report, "foe.missing") is None
+    assert lookup({"metrics": {}}, "cpu.cpu_s_per_simulated_s") is None
+
+
+def test_one_pipeline_as_two_bases_with_their_own_overrides(tmp_path, registry):
+    p = write(tmp_path, "bases:\n  one: {file: base.yaml, set: [toy_source.packets=1]}\n"
+                        "  three: {file: base.yaml, set: [toy_source.packets=3]}\n"
+                        "report: [toy.count]\n"
+                        "cells:\n  plain: []\n  few: [toy_source.events_per_packet=2]\n")
+    sweep = load_sweep(p)
+    rows = run_sweep(sweep, tmp_path / "out", workers=1, registry=registry, echo=lambda s: None)
+    assert [(r["variation"], r["base"], r["toy.count"]) for r in rows] == [
+        ("plain", "one", 100), ("plain", "three", 300), ("few", "one", 2), ("few", "three", 6)]
+    bad = write(tmp_path, "bases:\n  a: {file: base.yaml, set: [nope.x=1]}\ncells: {c: []}\n")
+    with pytest.raises(ConfigError, match="base a: override 'nope.x=1' addresses no stage"):
+        run_sweep(load_sweep(bad), tmp_path / "out2", workers=1, registry=registry,
+                  echo=lambda s: None)

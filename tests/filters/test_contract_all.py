@@ -30,6 +30,7 @@ PARAMS = {
     "aedat": {"path": str(Path(__file__).resolve().parents[1] / "data" /
                           "moving_edge_davis240.aedat")},
     "aedat_writer": lambda tmp: {"path": str(tmp / "out.aedat")},
+    "aps": {"rate_hz": 500, "exposure_us": 1500, "read_noise_e": 10.0},
     "scene": {"width": 64, "height": 48, "supersample": 1, "duration_s": 0.04},
 }
 
@@ -52,6 +53,10 @@ def frame_stream() -> list[FramePacket]:
                                                                          t_end=16000)]
 
 
+# filters of optional extras: the module they need
+NEEDS_MODULE = {"frame_flow": "cv2"}
+
+
 def params_for(name, tmp_path):
     p = PARAMS.get(name, {})
     return p(tmp_path) if callable(p) else p
@@ -61,6 +66,8 @@ def params_for(name, tmp_path):
 def test_contract(name, tmp_path):
     cls = REGISTRY.get(name)
     params = params_for(name, tmp_path)
+    if name in NEEDS_MODULE:
+        pytest.importorskip(NEEDS_MODULE[name])
     if cls.is_source():
         if name in SOURCE_SKIP:
             pytest.skip(SOURCE_SKIP[name])

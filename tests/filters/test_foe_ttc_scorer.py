@@ -9,7 +9,7 @@ import pytest
 
 from evchain.core.filter import Context
 from evchain.core.packets import FlowPacket, Geometry
-from evchain.core.series import TTC
+from evchain.core.series import FOE_ERROR, TTC
 from evchain.errors import ConfigError
 from evchain.filters.foe_map import FoeMap, foe_series
 from evchain.filters.foe_ttc_scorer import FoeTtcScorer, foe_angle_deg
@@ -243,3 +243,28 @@ def test_ttc_plot_on_and_off_the_obstacle(tmp_path):
     packets, _ = stream(t_collision=1.0, at=on_car)
     check_filter(FoeTtcScorer, {"plots": False}, packets, truth=ObjectTruth(1.0),
                  out_dir=tmp_path)
+
+
+@pytest.mark.parametrize("delay_ms", [0.0, 70.0, 133.0, -40.0])
+def test_foe_lag_finds_the_delay_of_a_delayed_series(delay_ms):
+    from evchain.filters.foe_ttc_scorer import foe_lag_ms
+
+    t = np.arange(0, 6_000_000, 10_000, dtype=np.int64)
+    true = lambda tt: 120 + 5 * np.sin(2 * np.pi * tt * 1e-6 / 1.3) \
+        + 2 * np.sin(2 * np.pi * tt * 1e-6 / 0.37)  # noqa: E731
+    rng = np.random.default_rng(3)
+    est = true(t - delay_ms * 1000) + rng.normal(0, 0.5, len(t))
+    assert foe_lag_ms(t, est, true(t)) == pytest.approx(delay_ms, abs=3.0)
+
+
+def test_foe_lag_is_undefined_where_the_truth_does_not_move():
+    from evchain.filters.foe_ttc_scorer import foe_lag_metrics, foe_lag_ms
+
+    t = np.arange(0, 3_000_000, 10_000, dtype=np.int64)
+    rng = np.random.default_rng(4)
+    assert foe_lag_ms(t, 100 + rng.normal(0, 2, len(t)), np.full(len(t), 100.0)) is None
+    foe = np.zeros(len(t), FOE_ERROR.dtype)
+    foe["t"], foe["x_true"], foe["y_true"] = t, 80.0, 60 + 4 * np.sin(t * 1e-6 * 5)
+    foe["x"], foe["y"] = 80.5, 60 + 4 * np.sin((t - 50_000) * 1e-6 * 5)
+    m = foe_lag_metrics(foe)
+    assert m["lag_axis"] == "y" and m["lag_ms"] == pytest.approx(50.0, abs=2.0)
