@@ -34,9 +34,9 @@ reports the median over the seeds with their range, as for ``repeat`` below::
 Several pipelines over the same variations: ``bases`` maps a label to each pipeline (the
 table gets a ``base`` column), or to ``{file: PIPELINE, set: [overrides]}`` (one pipeline at two
 settings, e.g. frames at 30 and 100 fps; the cells' overrides come after the base's). With
-``record`` (a pipeline that runs ``scene`` -> ``emulator`` -> ``aedat_writer``), each
-variation's events are rendered once, with the overrides that address the record pipeline's
-stages, and every base replays them (``evchain run --replay``): two flow
+``record`` (a pipeline that runs ``scene`` -> ``emulator``, optionally ``sensor_noise``, and
+``aedat_writer``), each variation's events are rendered once, with the overrides that address
+the record pipeline's stages, and every base replays them (``evchain run --replay``): two flow
 chains over one drive cost one render. ``repeat`` lists override sets applied on top of every
 variation, each a separate run (e.g. a drive started a fraction of a metre later): the rows
 carry ``repeat`` and ``evchain results`` reports the spread over them.
