@@ -63,7 +63,7 @@ class SensorNoise(Filter):
     class Params(FilterParams):
         leak_rate_hz: float = Field(0.0, ge=0, le=100, description="mean leak (ON) event rate "
                                     "per pixel, Hz (DAVIS-class at room temperature ~0.1)")
-        leak_spread_decades: float = Field(0.1, ge=0, le=2, description="pixel-to-pixel spread "
+        leak_spread_decades: float = Field(0.1, ge=0, le=0.5, description="pixel-to-pixel spread "
                                            "of the leak rate: standard deviation of its log10 "
                                            "(v2e: 0.1)")
         leak_jitter: float = Field(0.1, ge=0, le=1, description="standard deviation of a leak "

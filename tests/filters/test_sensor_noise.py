@@ -201,7 +201,7 @@ def test_flow_packets_come_out_as_events():
 
 @pytest.mark.parametrize("bad", [{"leak_rate_hz": -1}, {"hot_pixel_fraction": 0.5},
                                  {"hot_pixel_rate_hz": 0}, {"shot_rate_hz": 1e6},
-                                 {"leak_jitter": 2}])
+                                 {"leak_jitter": 2}, {"leak_spread_decades": 1}])
 def test_bad_parameters_are_refused(bad):
     from pydantic import ValidationError
 
