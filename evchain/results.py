@@ -10,11 +10,13 @@ FILE}``), benchmark rows (``bench: [{prefix, repeat, quick}]``), how metrics rea
 * ``evchain results`` writes ``docs/results.md`` from the saved JSON alone (nothing is run);
   ``--check`` exits 1 when the file differs from what the saved results give.
 
-A value is the median over its repeats (a sweep's ``repeat`` runs, or a benchmark run
-``repeat`` times); its spread is max - min over them. A goal's margin is how far the value is
-on the good side of the goal. Verdict: ``met`` when every repeat meets the goal and the margin
-exceeds the spread, ``not met`` when no repeat meets it, else ``borderline``; a value measured
-fewer than three times gets ``unrepeated`` instead of a verdict.
+A value is the median over its repeats (a sweep's ``repeat`` runs or a cell's ``seeds``, or a
+benchmark run ``repeat`` times); its spread is max - min over them. The evaluation summary's
+per-cell value is that median, so a cell run over seeds enters it once. A goal's margin is
+how far the value is on the good side of the goal. Verdict: ``met`` when every repeat meets the
+goal and the margin exceeds the spread, ``not met`` when no repeat meets it, else
+``borderline``; a value measured fewer than three times gets ``unrepeated`` instead of a
+verdict.
 """
 
 from __future__ import annotations
@@ -445,8 +447,12 @@ def _evaluation_section(m: Manifest, src: _Sources) -> list[str]:
     keys = list(cfg.get("summary") or doc["report"])
     rows = doc["rows"]
     cells = [v for v in dict.fromkeys(r["variation"] for r in rows) if v != ref]
+    seeded = _seeded_cells(rows)
+    each = "each rendered once" if not seeded else (
+        f"each rendered once ({', '.join(seeded)}: once per seed, "
+        f"{'its' if len(seeded) == 1 else 'their'} value the median over the seeds)")
     out += [doc.get("description", ""), "",
-            f"Sweep `{doc['file']}`: {len(cells)} cells, each rendered once and replayed "
+            f"Sweep `{doc['file']}`: {len(cells)} cells, {each} and replayed "
             f"through both flows; {doc['wall_s']:g} s wall on "
             f"{_machine_text(doc.get('machine'))}. Reproduce: `{doc['command']}`.", "",
             "### Summary", "",
@@ -473,6 +479,15 @@ def _evaluation_section(m: Manifest, src: _Sources) -> list[str]:
         out.append("| " + " | ".join(cells_txt) + " |")
     out += ["", "### Every cell", ""]
     return out + _sweep_table(m, rows, doc["report"], ([ref] if ref else []) + cells) + [""]
+
+
+def _seeded_cells(rows: list[dict[str, Any]]) -> list[str]:
+    """The cells that ran with several seeds (rows with a ``seed``), in row order."""
+    seeds: dict[str, set] = {}
+    for r in rows:
+        if r.get("seed") is not None:
+            seeds.setdefault(r["variation"], set()).add(r["seed"])
+    return [c for c, s in seeds.items() if len(s) > 1]
 
 
 def _comparison_only(m: Manifest) -> set[str]:

@@ -23,12 +23,20 @@ each variation and lists its overrides::
       open-field: [scene.scenario=open-field, scene.start_m=0]
       640x480: [scene.width=640, scene.height=480]
 
+A cell may also be a mapping ``{set: [overrides], seeds: [0, 1, 2]}``: it runs once per
+pipeline seed (``seed=N`` after its overrides), for results that depend on the seed (threshold
+mismatch, sensor noise); its rows carry ``repeat`` (and ``seed``), and ``evchain results``
+reports the median over the seeds with their range, as for ``repeat`` below::
+
+    cells:
+      mismatch-3pct: {set: [emulator.mismatch_sigma=0.03], seeds: [0, 1, 2]}
+
 Several pipelines over the same variations: ``bases`` maps a label to each pipeline (the
 table gets a ``base`` column), or to ``{file: PIPELINE, set: [overrides]}`` (one pipeline at two
 settings, e.g. frames at 30 and 100 fps; the cells' overrides come after the base's). With
-``record`` (a pipeline that runs ``scene`` -> ``emulator`` -> ``aedat_writer``), each
-variation's events are rendered once, with the overrides that address the record pipeline's
-stages, and every base replays them (``evchain run --replay``): two flow
+``record`` (a pipeline that runs ``scene`` -> ``emulator``, optionally ``sensor_noise``, and
+``aedat_writer``), each variation's events are rendered once, with the overrides that address
+the record pipeline's stages, and every base replays them (``evchain run --replay``): two flow
 chains over one drive cost one render. ``repeat`` lists override sets applied on top of every
 variation, each a separate run (e.g. a drive started a fraction of a metre later): the rows
 carry ``repeat`` and ``evchain results`` reports the spread over them.
@@ -89,6 +97,13 @@ SWEEP_KEYS = {"name", "base", "bases", "mode", "set", "vary", "cells", "report",
 class Variation:
     label: str
     overrides: list[str]
+    #: pipeline seeds to run the variation with, one run each (None: the pipeline's seed)
+    seeds: list[int] | None = None
+
+    @property
+    def seed_overrides(self) -> list[list[str]]:
+        """One override list per seed run (``[[]]`` without seeds)."""
+        return [[]] if self.seeds is None else [[f"seed={s}"] for s in self.seeds]
 
 
 @dataclass
@@ -109,13 +124,29 @@ class SweepSpec:
         """The first (or only) base pipeline."""
         return next(iter(self.bases.values()))
 
+    def repeat_count(self, v: Variation) -> int:
+        """How often variation ``v`` runs on each base: every ``repeat`` times every seed."""
+        return len(self.repeats) * len(v.seed_overrides)
+
+    @property
+    def repeated(self) -> bool:
+        """Whether some variation runs more than once (the rows then carry ``repeat``)."""
+        return any(self.repeat_count(v) > 1 for v in self.variations)
+
     def runs(self) -> list[tuple[Variation, int, str, Path]]:
         """Every run: (variation, repeat index, base label, base file)."""
         return [(v, r, label, path) for v in self.variations
-                for r in range(len(self.repeats)) for label, path in self.bases.items()]
+                for r in range(self.repeat_count(v)) for label, path in self.bases.items()]
 
     def overrides(self, v: Variation, repeat: int) -> list[str]:
-        return v.overrides + self.repeats[repeat]
+        """The overrides of run ``repeat`` of ``v``: the variation's, the sweep's repeat,
+        then the seed."""
+        seeds = v.seed_overrides
+        return v.overrides + self.repeats[repeat // len(seeds)] + seeds[repeat % len(seeds)]
+
+    def seed(self, v: Variation, repeat: int) -> int | None:
+        """The seed run ``repeat`` of ``v`` sets (None: the pipeline's own)."""
+        return None if v.seeds is None else v.seeds[repeat % len(v.seeds)]
 
 
 def looks_like_sweep(path: str | Path) -> bool:
@@ -186,10 +217,10 @@ def load_sweep(path: str | Path) -> SweepSpec:
         variations += _variations(vary, mode, common)
     if "cells" in data:
         cells = data["cells"]
-        if not isinstance(cells, dict) or not cells or not all(
-                isinstance(v, list) for v in (cells.values())):
-            fail("must map a label to a list of STAGE.PARAM=VALUE overrides", "cells")
-        variations += [Variation(str(k), common + [str(o) for o in v]) for k, v in cells.items()]
+        if not isinstance(cells, dict) or not cells:
+            fail("must map a label to a list of STAGE.PARAM=VALUE overrides, or to "
+                 "{set: [overrides], seeds: [N, ...]}", "cells")
+        variations += [_cell(str(k), v, common, fail) for k, v in cells.items()]
     labels = [v.label for v in variations]
     if len(set(labels)) != len(labels):
         fail(f"two variations share a label: {sorted({x for x in labels if labels.count(x) > 1})}")
@@ -212,6 +243,26 @@ def load_sweep(path: str | Path) -> SweepSpec:
                      repeats=[[str(o) for o in r] for r in repeats],
                      description=str(data.get("description") or "").strip(),
                      base_sets=base_sets)
+
+
+def _cell(label: str, value: Any, common: list[str], fail: Callable) -> Variation:
+    """A cell: a list of overrides, or ``{set: [overrides], seeds: [N, ...]}``."""
+    if isinstance(value, list):
+        return Variation(label, common + [str(o) for o in value])
+    if not isinstance(value, dict) or not set(value) <= {"set", "seeds"} or \
+            not isinstance(value.get("set", []), list):
+        fail(f"cell {label!r} must be a list of STAGE.PARAM=VALUE overrides, or "
+             "{set: [overrides], seeds: [N, ...]}", "cells")
+    seeds = value.get("seeds")
+    if seeds is not None and (
+            not isinstance(seeds, list) or not seeds or len(set(map(str, seeds))) != len(seeds)
+            or not all(isinstance(s, int) and not isinstance(s, bool) and s >= 0
+                       for s in seeds)):
+        fail(f"cell {label!r}: seeds must be a non-empty list of distinct integers >= 0, got "
+             f"{seeds!r}", "cells")
+    if any(str(o).split("=", 1)[0].strip() == "seed" for o in value.get("set", [])) and seeds:
+        fail(f"cell {label!r} sets seed= and seeds: give one of them", "cells")
+    return Variation(label, common + [str(o) for o in value.get("set", [])], seeds)
 
 
 def _overrides(key: str, value: Any) -> list[str]:
@@ -298,7 +349,7 @@ def plan(sweep: SweepSpec, out: Path, registry: Registry,
     plain = {f: load_pipeline(f, registry, set_dir=set_dir) for f in files.values()}
     known = set().union(*(_stage_names(s) for s in plain.values())) | {"seed"}
     for v in sweep.variations:
-        for r in range(len(sweep.repeats)):
+        for r in range(sweep.repeat_count(v)):
             for o in sweep.overrides(v, r):
                 if _target(o) not in known:
                     raise ConfigError(f"{v.label}: override {o!r} addresses no stage of the "
@@ -529,7 +580,9 @@ def run_sweep(sweep: SweepSpec, out_dir: str | Path, workers: int = 2,
         def finished(k: int, outcome: dict[str, Any]) -> None:
             i = todo[k]
             outcomes[i] = outcome
-            v, _, label, _ = runs[i]
+            v, r, label, _ = runs[i]
+            seed = sweep.seed(v, r)
+            label += "" if seed is None else f" seed {seed}"
             what = (f"FAILED: {_first_line(outcome['error'])}" if outcome["error"] else
                     ("(cached) " if outcome["cached"] else "") +
                     (f"(run again: {outcome['again']}) " if outcome.get("again") else "") +
@@ -541,13 +594,16 @@ def run_sweep(sweep: SweepSpec, out_dir: str | Path, workers: int = 2,
     finally:
         progress.close()
     rows = []
+    seeded = any(v.seeds is not None for v in sweep.variations)
     for (v, r, label, _), job, outcome in zip(runs, jobs, outcomes, strict=True):
         report = outcome["report"] or {}
         row: dict[str, Any] = {"variation": v.label}
         if multi:
             row["base"] = label
-        if len(sweep.repeats) > 1:
+        if sweep.repeated:
             row["repeat"] = r
+        if seeded:
+            row["seed"] = sweep.seed(v, r)
         row.update({"run": Path(job.out_dir).name,
                     "status": "ok" if report else f"failed: {_first_line(outcome['error'])}",
                     "cached": outcome["cached"],
@@ -570,7 +626,9 @@ def run_sweep(sweep: SweepSpec, out_dir: str | Path, workers: int = 2,
     failed = [(row, r) for row, r in zip(rows, runs, strict=True) if row["status"] != "ok"]
     if failed:
         names = [row["variation"] + (f" ({row['base']})" if multi else "") +
-                 (f" repeat {row['repeat']}" if "repeat" in row else "") + f" [{row['run']}]"
+                 (f" repeat {row['repeat']}" if "repeat" in row else "") +
+                 (f" seed {row['seed']}" if row.get("seed") is not None else "") +
+                 f" [{row['run']}]"
                  for row, _ in failed]
         raise SweepFailed(f"{len(failed)} of {len(rows)} runs failed: {'; '.join(names)}; the "
                           f"table ({out / 'sweep.md'}) marks them, and each run folder's "

@@ -145,3 +145,25 @@ def test_comparison_table(root):
     # the existing sections are unchanged, the frames sweep is shown in the comparison only
     assert text.startswith(before.split("## Events and frames")[0])
     assert "\n## fr\n" not in text and "\n### fr\n" in text
+
+
+def test_cells_over_seeds_show_the_median_and_range(root):
+    path = root / "results" / "sweeps" / "ev.json"
+    doc = json.loads(path.read_text())
+    rows = [{**r, "repeat": 0, "seed": None} for r in doc["rows"]]
+    # cell d over three seeds: 2, 6 and 3 (median 3); its TTC share only on two seeds
+    rows += [{"variation": "d", "base": b, "repeat": k, "seed": seed, "foe.dx_mean_px": dx,
+              "ttc.share": sh}
+             for b in ("lk", "plane")
+             for k, (seed, dx, sh) in enumerate(((0, 2.0, 0.2), (1, 6.0, None), (2, 3.0, 0.4)))]
+    doc["rows"] = rows
+    path.write_text(json.dumps(doc))
+    text = render(load_manifest(root))
+    assert "| d | lk | 3.00 (2.00-6.00, x3) | 30.0% (20.0%-40.0%, x2) |" in text
+    assert "| a | lk | 3.00 | 50.0% |" in text                        # one run: no range
+    # the summary takes d's median (3.00) as one cell: median of a 3, b 5, c 4, d 3 = 3.5;
+    # the worst share is d's median 30 %
+    assert "| FOE \\|dx\\| px | 2.00 | 3.50 | 5.00 (b) |" in text
+    assert "| TTC share | 90.0% | 50.0% | 30.0% (d) |" in text
+    assert "4 cells, each rendered once (d: once per seed, its value the median over the " \
+           "seeds)" in text

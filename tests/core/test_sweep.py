@@ -88,11 +88,64 @@ def test_cells_bases_and_repeats(tmp_path, registry):
     assert summary["rows"] == rows and summary["machine"]["cores"] >= 1
 
 
+def test_cells_repeated_over_seeds(tmp_path, registry):
+    p = write(tmp_path, "base: base.yaml\nreport: [toy.count]\n"
+                        "repeat: [[], [toy_source.events_per_packet=3]]\n"
+                        "cells:\n  plain: [toy_source.packets=1]\n"
+                        "  seeded: {set: [toy_source.packets=2], seeds: [0, 3]}\n")
+    sweep = load_sweep(p)
+    seeded = sweep.variations[1]
+    assert seeded.seeds == [0, 3] and sweep.repeat_count(seeded) == 4
+    rows = run_sweep(sweep, tmp_path / "out", workers=1, registry=registry, echo=lambda s: None)
+    got = [(r["variation"], r["repeat"], r["seed"], r["toy.count"]) for r in rows]
+    # every sweep repeat times every seed, the seed after the cell's and the repeat's overrides
+    assert got == [("plain", 0, None, 100), ("plain", 1, None, 3),
+                   ("seeded", 0, 0, 200), ("seeded", 1, 3, 200), ("seeded", 2, 0, 6),
+                   ("seeded", 3, 3, 6)]
+    seeds = [json.loads((tmp_path / "out" / r["run"] / "report.json").read_text())["seed"]
+             for r in rows]
+    assert seeds == [0, 0, 0, 3, 0, 3]                  # the base's seed is 0
+    assert len({r["run"] for r in rows}) == 6           # each seed its own run
+    assert sweep.overrides(seeded, 3) == ["toy_source.packets=2",
+                                          "toy_source.events_per_packet=3", "seed=3"]
+
+
+def test_seeds_render_once_per_seed_with_record(tmp_path):
+    (tmp_path / "record.yaml").write_text(RECORD)
+    (tmp_path / "lk.yaml").write_text(REPLAYED.format(flow="lk_flow"))
+    p = tmp_path / "s.yaml"
+    p.write_text("base: lk.yaml\nrecord: record.yaml\nreport: [flow.n_scored]\ncells:\n"
+                 "  mm: {set: [emulator.mismatch_sigma=0.05], seeds: [1, 2]}\n")
+    rows = run_sweep(load_sweep(p), tmp_path / "out", workers=1, echo=lambda s: None)
+    records = sorted((tmp_path / "out").glob("record-*"))
+    assert len(records) == 2                             # one recording per seed
+    assert sorted(yaml.safe_load((r / "pipeline.resolved.yaml").read_text())["seed"]
+                  for r in records) == [1, 2]
+    assert [(r["repeat"], r["seed"]) for r in rows] == [(0, 1), (1, 2)]
+    events = [(r / "events.aedat").read_bytes() for r in records]
+    assert events[0] != events[1]                        # the mismatch follows the seed
+
+
+@pytest.mark.parametrize("cell, pattern", [
+    ("{set: [a.b=1], seeds: []}", "seeds must be a non-empty list"),
+    ("{set: [a.b=1], seeds: [1, 1]}", "distinct"),
+    ("{set: [a.b=1], seeds: [-1]}", "integers >= 0"),
+    ("{set: [a.b=1], seeds: [1.5]}", "integers >= 0"),
+    ("{set: [a.b=1], seeds: 3}", "non-empty list"),
+    ("{set: [seed=4], seeds: [1]}", "sets seed= and seeds"),
+    ("{sets: [a.b=1]}", "cell 'x' must be a list"),
+    ("{set: a.b=1}", "cell 'x' must be a list"),
+])
+def test_seeded_cell_errors(tmp_path, cell, pattern):
+    with pytest.raises(ConfigError, match=pattern):
+        load_sweep(write(tmp_path, f"base: base.yaml\ncells:\n  x: {cell}\n"))
+
+
 @pytest.mark.parametrize("text, pattern", [
     ("base: base.yaml\nbases: {a: base.yaml}\nvary: {a.b: [1]}\n", "needs 'base'"),
     ("bases: [base.yaml]\nvary: {a.b: [1]}\n", "bases: must map"),
     ("base: base.yaml\ncells: {x: [a.b=1]}\nvary: {c.d: [2]}\nrepeat: []\n", "repeat: must"),
-    ("base: base.yaml\ncells: {x: a.b=1}\n", "cells: must map"),
+    ("base: base.yaml\ncells: {x: a.b=1}\n", "cells: cell 'x' must be a list"),
     ("base: base.yaml\nrecord: r.yaml\nreplay: e.aedat\ncells: {x: []}\n", "not both"),
 ])
 def test_sweep_errors_new_keys(tmp_path, text, pattern):

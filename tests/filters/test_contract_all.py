@@ -32,6 +32,9 @@ PARAMS = {
     "aedat_writer": lambda tmp: {"path": str(tmp / "out.aedat")},
     "aps": {"rate_hz": 500, "exposure_us": 1500, "read_noise_e": 10.0},
     "scene": {"width": 64, "height": 48, "supersample": 1, "duration_s": 0.04},
+    # every noise process on (off by default: the contract would see the identity)
+    "sensor_noise": {"leak_rate_hz": 20.0, "shot_rate_hz": 10.0, "hot_pixel_fraction": 0.01,
+                     "hot_pixel_rate_hz": 500.0},
 }
 
 
