@@ -42,6 +42,8 @@ class RunProgress:
                 disable=None, bar_format="{desc}: " + ("{percentage:3.0f}%|{bar}| " if span
                                                        else "") +
                 seconds + " [{elapsed}" + remaining + ", {rate_noinv_fmt}]")
+            if self.bar.disable:  # not a terminal (disable=None): no bar to move or annotate
+                self.bar = None
         self._lock = threading.Lock()
         self._depth = 0
         self._started = 0.0

@@ -81,3 +81,19 @@ def test_run_without_a_bar_logs_compilation_for_debug(tmp_path, caplog, monkeypa
         run_pipeline(spec, registry, tmp_path)
     notices = [r for r in caplog.records if COMPILING in r.getMessage()]
     assert [r.levelno for r in notices] == [logging.DEBUG]
+
+
+def test_bar_asked_for_but_no_terminal_compiles_without_error(monkeypatch):
+    """A run with progress on whose stderr is not a terminal (a log file, CI) gets no bar, and
+    a kernel compiled meanwhile must not touch one."""
+    monkeypatch.setattr("sys.stderr", io.StringIO())
+    bar = RunProgress("scene", (0, 1_000_000), bar=True)
+    assert bar.bar is None
+
+    @numba.njit(cache=False)
+    def kernel(x):
+        return x + 3
+
+    assert kernel(np.int64(1)) == 4          # compile_started / compile_ended ran
+    bar.update(500_000)
+    bar.close()
