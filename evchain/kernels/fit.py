@@ -135,7 +135,7 @@ def plane_fit_raw(U, W, FV, keep, m):
     return c, gx, gy, True
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _jacobi_sweep(A, V):
     """One cyclic Jacobi sweep over the off-diagonal entries (0, 1), (0, 2), (1, 2) of the
     symmetric 3x3 ``A`` (in place), accumulating the rotations in ``V``."""
@@ -167,7 +167,7 @@ def _jacobi_sweep(A, V):
                 V[k, q] = s * vkp + c * vkq
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _smallest_diagonal(A):
     """Index of the smallest diagonal entry of the diagonalised ``A``, and whether it is
     separated from the next one by more than :data:`EIG_EPS` times the largest magnitude."""

@@ -519,19 +519,6 @@ def _calibrated_speed(mean, started, vx, vy, prm):
     return mean, started, not v > mean * prm.max_factor
 
 
-@njit(cache=True)
-def _scratch(S):
-    """Scratch arrays for a window of side S: faithful counts N (int64 [S, S]); calibrated
-    onset image F and its validity V (float64 [S, S]); the active pixels' indices LI, LJ
-    (int64 [S^2]), offsets PU, PW and F there FV (float64 [S^2]); the fits' kept rows keep
-    (bool [S^2]) and finite differences GX, GY (float64 [S^2])."""
-    n = S * S
-    return (np.zeros((S, S), np.int64), np.zeros((S, S), np.float64),
-            np.zeros((S, S), np.float64), np.zeros(n, np.int64), np.zeros(n, np.int64),
-            np.zeros(n, np.float64), np.zeros(n, np.float64), np.zeros(n, np.float64),
-            np.zeros(n, np.bool_), np.zeros(n, np.float64), np.zeros(n, np.float64))
-
-
 @njit(cache=True, inline="always")
 def _memory_window(prm, adaptive):
     """The oldest age (µs) the memory must keep countable."""
@@ -607,8 +594,21 @@ def lk_flow_run(x, y, t, p, state, prm, out_idx, out_vx, out_vy):
     deep = fifo.shape[3]
     gradient = prm.gradient
     d, R, S = _stencil(gradient, prm.r)
-    # locals, not a tuple: a tuple of arrays passed on costs reference counts per event
-    N, F, V, LI, LJ, PU, PW, FV, keep, GX, GY = _scratch(S)
+    # scratch, allocated here (fresh allocations: the compiler knows they alias nothing) and
+    # passed one by one (a tuple of arrays costs reference counts per event): faithful counts
+    # N; calibrated onset image F and its validity V; the active pixels' indices LI, LJ,
+    # offsets PU, PW and F there FV; the fits' kept rows and finite differences GX, GY
+    N = np.zeros((S, S), np.int64)
+    F = np.zeros((S, S), np.float64)
+    V = np.zeros((S, S), np.float64)
+    GX = np.zeros(S * S, np.float64)
+    GY = np.zeros(S * S, np.float64)
+    FV = np.zeros(S * S, np.float64)
+    keep = np.zeros(S * S, np.bool_)
+    LI = np.zeros(S * S, np.int64)
+    LJ = np.zeros(S * S, np.int64)
+    PU = np.zeros(S * S, np.float64)
+    PW = np.zeros(S * S, np.float64)
     adaptive = not prm.faithful and prm.max_window_us > prm.window_us
     wlim = _memory_window(prm, adaptive)
     w_inv = 1.0 / prm.window_us

@@ -273,17 +273,6 @@ MAX_REFITS = 4
 
 
 @njit(cache=True)
-def _scratch(size):
-    """Scratch arrays for a window of side ``size`` (n = size^2 entries): the points X, Y (px),
-    T (s) and their flags use; the window's times wt (µs) and validity wv; the validity masks
-    per row and column."""
-    n = size * size
-    return (np.empty(n, np.float64), np.empty(n, np.float64), np.empty(n, np.float64),
-            np.empty(n, np.bool_), np.empty(n, np.float64), np.empty(n, np.float64),
-            np.zeros(size, np.int64), np.zeros(size, np.int64))
-
-
-@njit(cache=True)
 def _mask_counts(n_masks, size, r):
     """Per validity mask of a line of ``size`` pixels: its number of valid pixels and the sum of
     their offsets from the centre (int64[n_masks] each)."""
@@ -358,7 +347,7 @@ def _window_moments(wv, size, r, spread2):
     return sxx, syy, sxy
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _gather_masks(ts, pi, xi, yi, ti, w, r, wt, rowmask, colmask, popcount, bitsum, spread2):
     """Savitzky-Golay with the mask tables: the window's times ``wt`` (µs before the event) and
     validity masks per row and column. Returns (n, st, sx, sy, sxx, syy, sxy): the number of
@@ -370,10 +359,11 @@ def _gather_masks(ts, pi, xi, yi, ti, w, r, wt, rowmask, colmask, popcount, bits
     sx = 0
     sy = 0
     for dy in range(-r, r + 1):
+        row = ts[pi, yi + dy]
         k0 = (dy + r) * size + r
         rm = 0
         for dx in range(-r, r + 1):
-            age = ti - ts[pi, yi + dy, xi + dx]
+            age = ti - row[xi + dx]
             # invalid times stay in wt: the tables give them weight 0
             wt[k0 + dx] = -age
             valid = np.int64(age <= w)  # branch-free: validity is unpredictable
@@ -392,7 +382,7 @@ def _gather_masks(ts, pi, xi, yi, ti, w, r, wt, rowmask, colmask, popcount, bits
     return n, st, sx, sy, sxx, syy, sxy
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _gather_window(ts, pi, xi, yi, ti, w, r, wt, wv, spread2):
     """Savitzky-Golay on a window too wide for the tables: its times ``wt`` (µs before the
     event, 0 where invalid) and validity ``wv``; returns as :func:`_gather_masks`."""
@@ -402,9 +392,10 @@ def _gather_window(ts, pi, xi, yi, ti, w, r, wt, wv, spread2):
     sx = 0
     sy = 0
     for dy in range(-r, r + 1):
+        row = ts[pi, yi + dy]
         k0 = (dy + r) * size + r
         for dx in range(-r, r + 1):
-            age = ti - ts[pi, yi + dy, xi + dx]
+            age = ti - row[xi + dx]
             valid = 1 if age <= w else 0
             wv[k0 + dx] = valid
             wt[k0 + dx] = -age * valid
@@ -416,7 +407,7 @@ def _gather_window(ts, pi, xi, yi, ti, w, r, wt, wv, spread2):
     return n, st, sx, sy, sxx, syy, sxy
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _gather_points(ts, pi, xi, yi, ti, w, r, X, Y, T, use):
     """The valid neighbours as points (the event itself included; branch-free): the first n
     entries of ``X``, ``Y`` (px), ``T`` (s, <= 0). Returns as :func:`_gather_masks` (st 0)."""
@@ -432,11 +423,12 @@ def _gather_points(ts, pi, xi, yi, ti, w, r, X, Y, T, use):
         yy = yi + dy
         if yy < 0 or yy >= height:
             continue
+        row = ts[pi, yy]
         for dx in range(-r, r + 1):
             xx = xi + dx
             if xx < 0 or xx >= width:
                 continue
-            age = ti - ts[pi, yy, xx]
+            age = ti - row[xx]
             valid = 1 if age <= w else 0
             X[n] = dx
             Y[n] = dy
@@ -511,18 +503,29 @@ def _gather_mode(variant, r):
 
 @njit(cache=True, inline="always")
 def event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, adaptive, gather):
-    """The loop of :func:`plane_flow_kernel`; the speed-adaptive window's refits with
-    ``adaptive`` (inlined into each kernel with ``adaptive`` a constant, so that the fixed
-    window's loop compiles without the refits). A fit gathers its window as ``gather`` says
-    (:func:`_gather_mode`; the gathers are calls, not inlined: inlined side by side, their
-    work arrays' reference counts stay in the loop), checks the spread and fits."""
+    """The loop of :func:`plane_flow_kernel`: the speed-adaptive window's refits with
+    ``adaptive``, the fits' gather ``gather`` (:func:`_gather_mode`). Inlined into the kernels
+    with both constant, so that each copy of the loop compiles only its own gather and fits
+    (and the fixed window's copies no refits): a loop choosing among inlined gathers per event
+    kept their work arrays' reference counts in the loop; called gathers cost a call per fit."""
     height = ts.shape[1]
     width = ts.shape[2]
     variant = prm.variant
     r = prm.r
     size = 2 * r + 1
-    # locals, not a tuple: a tuple of arrays passed on costs reference counts per event
-    X, Y, T, use, wt, wv, rowmask, colmask = _scratch(size)
+    # scratch, allocated here (fresh allocations: the compiler knows they alias nothing) and
+    # passed one by one (a tuple of arrays costs reference counts per event): the points X,
+    # Y (px), T (s) and their flags use; the window's times wt (µs) and validity wv; the
+    # validity masks per row and column
+    cap = size * size
+    X = np.empty(cap, np.float64)
+    Y = np.empty(cap, np.float64)
+    T = np.empty(cap, np.float64)
+    use = np.empty(cap, np.bool_)
+    wt = np.empty(cap, np.float64)
+    wv = np.empty(cap, np.float64)
+    rowmask = np.zeros(size, np.int64)
+    colmask = np.zeros(size, np.int64)
     coef, pairs = sg_tables(size if gather == MASKS else 1)
     popcount, bitsum = _mask_counts(coef.shape[0], size, r)
     g_min2 = 1.0 / (prm.max_speed * prm.max_speed)
@@ -632,8 +635,12 @@ _KERNEL_DOC = """
 @njit(cache=True)
 def plane_flow_adaptive_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy):
     """:func:`plane_flow_kernel` with the speed-adaptive window (the loop with the refits)."""
-    return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, True,
-                      _gather_mode(prm.variant, prm.r))
+    gather = _gather_mode(prm.variant, prm.r)
+    if gather == MASKS:
+        return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, True, MASKS)
+    if gather == WINDOW:
+        return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, True, WINDOW)
+    return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, True, POINTS)
 
 
 @njit(cache=True)
@@ -660,8 +667,12 @@ def plane_flow_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy):
     """
     if prm.max_window_us > prm.window_us and prm.variant != ORIGINAL:
         return plane_flow_adaptive_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy)
-    return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, False,
-                      _gather_mode(prm.variant, prm.r))
+    gather = _gather_mode(prm.variant, prm.r)
+    if gather == MASKS:
+        return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, False, MASKS)
+    if gather == WINDOW:
+        return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, False, WINDOW)
+    return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, False, POINTS)
 
 
 plane_flow_kernel.__doc__ += _KERNEL_DOC
