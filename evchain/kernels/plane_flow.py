@@ -513,10 +513,8 @@ def event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, adaptive, gather):
     variant = prm.variant
     r = prm.r
     size = 2 * r + 1
-    # scratch, allocated here (fresh allocations: the compiler knows they alias nothing) and
-    # passed one by one (a tuple of arrays costs reference counts per event): the points X,
-    # Y (px), T (s) and their flags use; the window's times wt (µs) and validity wv; the
-    # validity masks per row and column
+    # scratch (allocated here: the compiler then knows they alias nothing): the points X, Y
+    # (px), T (s) and their flags; the window's times (µs) and validity; its masks per line
     cap = size * size
     X = np.empty(cap, np.float64)
     Y = np.empty(cap, np.float64)
@@ -539,20 +537,14 @@ def event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, adaptive, gather):
         ti = t[i]
         pi = 1 if p[i] > 0 else 0
         prev = ts[pi, yi, xi]
-        if prev != NO_EVENT and ti - prev < prm.refractory_us:
-            if prm.refractory_updates:
-                ts[pi, yi, xi] = ti
-            continue
-        ts[pi, yi, xi] = ti
-        if not _gets_flow(xi, yi, width, height, prm.margin, r, variant):
+        refractory = prev != NO_EVENT and ti - prev < prm.refractory_us
+        if not refractory or prm.refractory_updates:
+            ts[pi, yi, xi] = ti
+        if refractory or not _gets_flow(xi, yi, width, height, prm.margin, r, variant):
             continue
         # fits with window w (µs) and residual / centre check limit lim (s); a failed fit
         # continues with the next, whose start decides whether to refit
-        w = prm.window_us
-        lim = prm.th2
-        ok = False
-        gx = 0.0
-        gy = 0.0
+        w, lim, ok, gx, gy = prm.window_us, prm.th2, False, 0.0, 0.0
         for k in range(fits):
             if k > 0:  # adaptive: refit when the last fit asks for a longer window
                 w_new = _next_window(ok, gx, gy, w, prm.window_us, prm.max_window_us,
