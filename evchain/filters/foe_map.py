@@ -118,7 +118,6 @@ class FoeMap(Filter):
 
     def _allocate(self, geometry: Geometry) -> None:
         from evchain.kernels import foe_map as k
-        from evchain.kernels.records import record
 
         p = self.params
         self._geometry = geometry
@@ -126,20 +125,21 @@ class FoeMap(Filter):
         x0, y0, lo, hi, clo, chi = region_cells(cg, radius)
         self._x0, self._y0 = x0, y0
         self._state = k.new_state(lo, hi, clo, chi)
+        self._state_arrays = tuple(self._state)  # numba types a plain tuple faster per call
         if radius is None:
             cx, cy, r = ((cg.width - 1) / 2.0, (cg.height - 1) / 2.0,
                          0.5 * math.hypot(cg.width, cg.height))
         else:
             cx, cy, r = float(cg.cx), float(cg.cy), float(radius)
         gate_on = p.max_angle_deg is not None
-        self._prm = record(
-            k.FoeMapParams, tau_us=p.tau_ms * 1000.0, min_speed_pxs=p.min_speed_pxs,
+        self._prm = k.new_params(
+            tau_us=p.tau_ms * 1000.0, min_speed_pxs=p.min_speed_pxs,
             cos_gate=math.cos(math.radians(p.max_angle_deg)) if gate_on else -1.0,
             gate_on=gate_on, period_us=p.estimate_every_us, refine_fraction=p.refine_fraction,
             min_support=p.min_support, speed_w0=p.speed_weight_pxs or 0.0, cx=cx, cy=cy,
             radius=r, x0=x0, y0=y0)
         self._period = int(p.estimate_every_us)
-        self._kernel = k.process
+        self._kernel = k
 
     def process(self, packet: FlowPacket) -> FlowPacket:
         if not isinstance(packet, FlowPacket):
@@ -149,8 +149,7 @@ class FoeMap(Filter):
         elif packet.geometry is not self._geometry and packet.geometry != self._geometry:
             raise DataError(f"foe_map: sensor geometry changed from {self._geometry} to "
                             f"{packet.geometry}")
-        from evchain.kernels import foe_map as k
-
+        k = self._kernel
         period = self._period
         if not self._started:
             k.start(self._state, -(-packet.t_start // period) * period)
@@ -162,8 +161,8 @@ class FoeMap(Filter):
             x, y = packet.x, packet.y
         else:
             x, y = to_cells(packet.x, cell), to_cells(packet.y, cell)
-        n = self._kernel(x, y, packet.t, packet.vx, packet.vy, self._state, self._prm,
-                         int(packet.t_end), out)
+        n = k.process(x, y, packet.t, packet.vx, packet.vy, self._state_arrays, self._prm,
+                      int(packet.t_end), out)
         if n < n_max:
             out = out[:n]
         if cell != 1:

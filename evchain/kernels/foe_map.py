@@ -17,7 +17,7 @@ brute-force sum cell by cell.
 Weights grow as ``exp((t - t_ref) / tau)`` (lazy decay); the map is rescaled and ``t_ref`` reset
 before overflow.
 
-State (:class:`FoeMapState`, from :func:`new_state`; constants in :class:`FoeMapParams`):
+State (:class:`FoeMapState`, from :func:`new_state`; constants: :func:`new_params`):
 
 * the maps: ``diffR`` [rows, cols + 1], ``diffC`` [rows + 1, cols], ``constC`` [cols + 1] and
   ``rowv`` [3, rows + 1]: ``constR`` (row :data:`CONST_R`) and two difference arrays over rows
@@ -56,22 +56,28 @@ CARRY = np.dtype([("t_ref", "i8"), ("next_read", "i8"), ("has_estimate", "i8"), 
                   ("total", "f8")])
 
 
-class FoeMapParams(NamedTuple):
-    """Constants of :func:`process`; build with :func:`evchain.kernels.records.record`."""
+#: the constants of :func:`process`, one record (an array, not a named tuple: a packet's votes
+#: are cheap, and numba types a record array several times faster per call): the votes' decay
+#: time constant (µs), the slowest flow that votes (px/s), the angular gate (on, and the cosine
+#: of its largest deviation from p - estimate), the reads' period (µs), the refinement
+#: fraction, the support an estimate needs, the speed weight s0 (px/s, 0: every vote weighs 1),
+#: region A's disc (centre and radius, cells) and the map's first column and row (cells)
+PARAMS = np.dtype([("tau_us", "f8"), ("min_speed_pxs", "f8"), ("gate_on", "?"),
+                   ("cos_gate", "f8"), ("period_us", "i8"), ("refine_fraction", "f8"),
+                   ("min_support", "f8"), ("speed_w0", "f8"), ("cx", "f8"), ("cy", "f8"),
+                   ("radius", "f8"), ("x0", "i8"), ("y0", "i8")])
 
-    tau_us: float          #: decay time constant of the votes, µs
-    min_speed_pxs: float   #: ignore slower flow
-    cos_gate: float        #: angular gate: cos of the largest deviation from p - estimate
-    gate_on: bool
-    period_us: int         #: reads at multiples of this, µs
-    refine_fraction: float
-    min_support: float     #: emit an estimate only with this much support
-    speed_w0: float        #: vote weight s0 / (s0 + speed), px/s (0: every vote weighs 1)
-    cx: float              #: region A's disc: centre and radius (map cells)
-    cy: float
-    radius: float
-    x0: int                #: the map's first column and row (map cells)
-    y0: int
+
+def new_params(**values) -> np.ndarray:
+    """The constants of :func:`process` as one :data:`PARAMS` record; every field is needed."""
+    names = PARAMS.names
+    if set(values) != set(names):
+        raise TypeError(f"foe_map params: missing {sorted(set(names) - set(values))}, "
+                        f"unknown {sorted(set(values) - set(names))}")
+    prm = np.zeros(1, PARAMS)
+    for name, v in values.items():
+        prm[name] = v
+    return prm
 
 
 class FoeMapState(NamedTuple):
@@ -592,10 +598,11 @@ def process(x, y, t, vx, vy, state, prm, t_end, out):
         Their times, µs, non-decreasing.
     vx, vy : float32 ndarray, shape (n,)
         Their flow, px/s (cells/s).
-    state : FoeMapState
-        Updated in place (:func:`new_state`, :func:`start`).
-    prm : FoeMapParams
-        The constants.
+    state : tuple
+        The arrays of a :class:`FoeMapState` (:func:`new_state`, :func:`start`), updated in
+        place; best as a plain tuple (``tuple(state)``): numba types it faster per call.
+    prm : PARAMS ndarray, shape (1,)
+        The constants (:func:`new_params`).
     t_end : int
         End of the packet's time slice, µs.
     out : structured ndarray (t, x, y, support, total)
@@ -606,10 +613,13 @@ def process(x, y, t, vx, vy, state, prm, t_end, out):
     int
         The number of estimates written into ``out``.
     """
-    diffR, diffC, constC, rowv, lo, hi, clo, chi, _, carry, _ = state
+    diffR, diffC, constC, rowv, lo, hi, clo, chi, rows, carry, mbuf = state
+    st = FoeMapState(diffR, diffC, constC, rowv, lo, hi, clo, chi, rows, carry, mbuf)
     g = carry[0]
-    tau_us = prm.tau_us
-    rr = prm.radius + MARGIN_PX
+    p = prm[0]
+    tau_us = p.tau_us
+    cx, cy, x0, y0 = p.cx, p.cy, p.x0, p.y0
+    rr = p.radius + MARGIN_PX
     rr2 = rr * rr
     n_out = 0
     n = t.shape[0]
@@ -628,14 +638,14 @@ def process(x, y, t, vx, vy, state, prm, t_end, out):
         t_next = t[i] if i < n else t_end
         # reads due before this event (or before the end of the slice)
         while t_read < t_next or (i < n and t_read == t_next):
-            if _read(state, prm, t_read, whole, total, dirty):
+            if _read(st, p, t_read, whole, total, dirty):
                 scale = math.exp(-(t_read - t_ref) / tau_us)
                 sup = g.est_max * scale
-                if sup >= prm.min_support and n_out < out.shape[0]:
+                if sup >= p.min_support and n_out < out.shape[0]:
                     _emit(out, n_out, t_read, g.est_x, g.est_y, sup, total * scale)
                     n_out += 1
             dirty = 0
-            t_read = t_read + prm.period_us
+            t_read = t_read + p.period_us
         if i >= n:
             break
         fvx = np.float64(vx[i])
@@ -643,13 +653,13 @@ def process(x, y, t, vx, vy, state, prm, t_end, out):
         s2 = fvx * fvx + fvy * fvy
         px = float(x[i])
         py = float(y[i])
-        if _accepted(px, py, fvx, fvy, s2, g, prm):
+        if _accepted(px, py, fvx, fvy, s2, g, p):
             ti = t[i]
             if ti != t_w:  # most flow events share their time with the one before: same w
                 e = (ti - t_ref) / tau_us
                 if e > RENORM_EXPONENT:
                     s = math.exp(-e)
-                    _renormalise(state, s)
+                    _renormalise(st, s)
                     whole *= s
                     total *= s
                     t_ref = ti
@@ -657,11 +667,11 @@ def process(x, y, t, vx, vy, state, prm, t_end, out):
                 w_t = math.exp(e)
                 t_w = ti
             w = w_t
-            if prm.speed_w0 > 0.0:  # tight constraints (slow normal flow) weigh more
-                w *= prm.speed_w0 / (prm.speed_w0 + math.sqrt(s2))
+            if p.speed_w0 > 0.0:  # tight constraints (slow normal flow) weigh more
+                w *= p.speed_w0 / (p.speed_w0 + math.sqrt(s2))
             speed = math.sqrt(s2)
             # distance of the boundary from A's centre c, times the speed
-            dn = (px * fvx + py * fvy) - (prm.cx * fvx + prm.cy * fvy)
+            dn = (px * fvx + py * fvy) - (cx * fvx + cy * fvy)
             margin = rr * speed
             if dn > margin:               # every cell of A in the half-plane
                 whole += w
@@ -672,11 +682,11 @@ def process(x, y, t, vx, vy, state, prm, t_end, out):
                 disc = rr2 * s2 - dn * dn
                 sq = math.sqrt(disc) * inv if disc > 0.0 else 0.0
                 if abs(fvx) >= abs(fvy):
-                    _vote_columns(px, py, fvx, fvy, w, prm.cx + dn * fvx * inv, sq * abs(fvy),
-                                  disc, diffC, constC, rowv, clo, chi, prm.x0, prm.y0)
+                    _vote_columns(px, py, fvx, fvy, w, cx + dn * fvx * inv, sq * abs(fvy),
+                                  disc, diffC, constC, rowv, clo, chi, x0, y0)
                 else:
-                    _vote_rows(px, py, fvx, fvy, w, prm.cy + dn * fvy * inv, sq * abs(fvx),
-                               disc, diffR, rowv, lo, hi, prm.x0, prm.y0)
+                    _vote_rows(px, py, fvx, fvy, w, cy + dn * fvy * inv, sq * abs(fvx),
+                               disc, diffR, rowv, lo, hi, x0, y0)
             total += w
             dirty = 1
         i += 1

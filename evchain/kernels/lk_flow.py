@@ -467,29 +467,13 @@ def _next_window(ok, vx, vy, win, slow_us, max_window_us):
 
 
 @njit(cache=True)
-def _longer_windows(last, second, fifo, k, xe, ye, te, vx, vy, ok, R, S, d, min_active, prm, F,
-                    V, LI, LJ, PU, PW, FV, keep, GX, GY):
-    """Speed-adaptive window: estimate again with the windows the estimates ask for (at most
-    :data:`MAX_PASSES` estimates in all); an estimate from a longer window is kept only if it
-    is slow enough to need it. Returns the event's (vx, vy, ok). Not inlined: the main loop
-    keeps one copy of the estimate."""
-    slow_us = prm.slow_px * 1e6  # px µs/s: speed x window below which the edge is too slow
-    win = prm.window_us
-    for _ in range(MAX_PASSES - 1):
-        nxt = _next_window(ok, vx, vy, win, slow_us, prm.max_window_us)
-        if nxt <= win:
-            break
-        wx, wy, wok = _estimate_calibrated(last, second, fifo, k, xe, ye, te, nxt, 1.0 / nxt,
-                                           1e6 / nxt, R, S, d, min_active, prm, F, V, LI, LJ,
-                                           PU, PW, FV, keep, GX, GY)
-        # kept only if slow enough to need the longer window
-        if not wok or np.sqrt(wx * wx + wy * wy) * win >= slow_us:
-            break
-        vx = wx
-        vy = wy
-        ok = True
-        win = nxt
-    return vx, vy, ok
+def _reestimate(last, second, fifo, k, xe, ye, te, window_us, R, S, d, min_active, prm, F, V,
+                LI, LJ, PU, PW, FV, keep, GX, GY):
+    """:func:`_estimate_calibrated` with another window (not inlined: the main loop keeps one
+    copy of the estimate, for speed)."""
+    return _estimate_calibrated(last, second, fifo, k, xe, ye, te, window_us, 1.0 / window_us,
+                                1e6 / window_us, R, S, d, min_active, prm, F, V, LI, LJ, PU, PW,
+                                FV, keep, GX, GY)
 
 
 @njit(cache=True, inline="always")
@@ -610,10 +594,11 @@ def lk_flow_run(x, y, t, p, state, prm, out_idx, out_vx, out_vy):
     PU = np.zeros(S * S, np.float64)
     PW = np.zeros(S * S, np.float64)
     adaptive = not prm.faithful and prm.max_window_us > prm.window_us
+    extra_passes = MAX_PASSES - 1 if adaptive else 0
     wlim = _memory_window(prm, adaptive)
     w_inv = 1.0 / prm.window_us
     w_inv_s = 1e6 / prm.window_us
-    slow_us = prm.slow_px * 1e6
+    slow_us = prm.slow_px * 1e6  # px µs/s: speed x window below which the edge is too slow
     r = prm.r
     # Savitzky-Golay (faithful): sum of i^2 over the full (2r+1)^2 window
     sg_norm = (2 * r + 1) * r * (r + 1) * (2 * r + 1) / 3.0
@@ -653,11 +638,19 @@ def lk_flow_run(x, y, t, p, state, prm, out_idx, out_vx, out_vy):
             vx, vy, ok = _estimate_calibrated(last, second, fifo, k, xe, ye, te, prm.window_us,
                                               w_inv, w_inv_s, R, S, d, min_active, prm, F, V,
                                               LI, LJ, PU, PW, FV, keep, GX, GY)
-            if adaptive and _next_window(ok, vx, vy, prm.window_us, slow_us,
-                                         prm.max_window_us) > prm.window_us:
-                vx, vy, ok = _longer_windows(last, second, fifo, k, xe, ye, te, vx, vy, ok, R, S,
-                                             d, min_active, prm, F, V, LI, LJ, PU, PW, FV, keep,
-                                             GX, GY)
+            # speed-adaptive window: again with the window the estimate asks for; a longer
+            # window's estimate is kept only if it is slow enough to need it
+            win = prm.window_us
+            for _ in range(extra_passes):
+                nxt = _next_window(ok, vx, vy, win, slow_us, prm.max_window_us)
+                if nxt <= win:
+                    break
+                wx, wy, wok = _reestimate(last, second, fifo, k, xe, ye, te, nxt, R, S, d,
+                                          min_active, prm, F, V, LI, LJ, PU, PW, FV, keep, GX,
+                                          GY)
+                if not wok or np.sqrt(wx * wx + wy * wy) * win >= slow_us:
+                    break
+                vx, vy, ok, win = wx, wy, True, nxt
             if ok:
                 mean, started, ok = _calibrated_speed(mean, started, vx, vy, prm)
         if ok:

@@ -32,11 +32,6 @@ from numba import njit
 
 from evchain.kernels.fit import centred_moments, smallest_eigvec3, sym2_det, sym2_solve
 
-__all__ = ["NO_EVENT", "VARIANTS", "PlaneParams", "new_state", "plane_flow_kernel",
-           "plane_flow_adaptive_kernel", "fit_explicit", "fit_homogeneous", "iterate_explicit",
-           "iterate_homogeneous", "smallest_eigvec3", "sg_gradient", "sg_gradient_masks",
-           "sg_tables"]
-
 NO_EVENT = -(1 << 62)  # 'never fired': any age computed against it is huge, never overflows
 SINGLE, ITERATIVE, ROBUST, ORIGINAL, SAVITZKY_GOLAY = range(5)
 VARIANTS = {"single": SINGLE, "iterative": ITERATIVE, "robust": ROBUST, "original": ORIGINAL,
@@ -47,8 +42,7 @@ COLLINEAR_EPS = 1e-9
 
 
 class PlaneParams(NamedTuple):
-    """Constants of :func:`plane_flow_kernel`; build with :func:`evchain.kernels.records.record`.
-    """
+    """Constants of :func:`plane_flow_kernel`; built by ``records.record``."""
 
     variant: int              #: fit method, a value of :data:`VARIANTS`
     r: int                    #: half-width of the (2r+1)^2 neighbourhood, px
@@ -272,10 +266,12 @@ def sg_gradient_masks(wt, rowmask, colmask, size, coef, pairs):
 MAX_REFITS = 4
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _mask_counts(n_masks, size, r):
     """Per validity mask of a line of ``size`` pixels: its number of valid pixels and the sum of
-    their offsets from the centre (int64[n_masks] each)."""
+    their offsets from the centre (int64[n_masks] each). Inlined: allocated in the loop's
+    function, the compiler knows the tables alias nothing (returned by a call, the loop was
+    slower)."""
     popcount = np.zeros(n_masks, np.int64)
     bitsum = np.zeros(n_masks, np.int64)
     for m in range(n_masks):
