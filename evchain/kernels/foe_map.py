@@ -56,12 +56,9 @@ CARRY = np.dtype([("t_ref", "i8"), ("next_read", "i8"), ("has_estimate", "i8"), 
                   ("total", "f8")])
 
 
-#: the constants of :func:`process`, one record (an array, not a named tuple: a packet's votes
-#: are cheap, and numba types a record array several times faster per call): the votes' decay
-#: time constant (µs), the slowest flow that votes (px/s), the angular gate (on, and the cosine
-#: of its largest deviation from p - estimate), the reads' period (µs), the refinement
-#: fraction, the support an estimate needs, the speed weight s0 (px/s, 0: every vote weighs 1),
-#: region A's disc (centre and radius, cells) and the map's first column and row (cells)
+#: the constants of :func:`process` (one record, not a named tuple: numba types it faster per
+#: call, and a packet's votes are cheap); fields as in :class:`~evchain.filters.foe_map.FoeMap`'s
+#: parameters, in µs, px/s and map cells; ``cos_gate``: cos of the gate's largest angle
 PARAMS = np.dtype([("tau_us", "f8"), ("min_speed_pxs", "f8"), ("gate_on", "?"),
                    ("cos_gate", "f8"), ("period_us", "i8"), ("refine_fraction", "f8"),
                    ("min_support", "f8"), ("speed_w0", "f8"), ("cx", "f8"), ("cy", "f8"),
@@ -70,14 +67,9 @@ PARAMS = np.dtype([("tau_us", "f8"), ("min_speed_pxs", "f8"), ("gate_on", "?"),
 
 def new_params(**values) -> np.ndarray:
     """The constants of :func:`process` as one :data:`PARAMS` record; every field is needed."""
-    names = PARAMS.names
-    if set(values) != set(names):
-        raise TypeError(f"foe_map params: missing {sorted(set(names) - set(values))}, "
-                        f"unknown {sorted(set(values) - set(names))}")
-    prm = np.zeros(1, PARAMS)
-    for name, v in values.items():
-        prm[name] = v
-    return prm
+    if set(values) != set(PARAMS.names):
+        raise TypeError(f"foe_map params: expected {PARAMS.names}, got {sorted(values)}")
+    return np.array([tuple(values[name] for name in PARAMS.names)], PARAMS)
 
 
 class FoeMapState(NamedTuple):

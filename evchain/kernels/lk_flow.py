@@ -283,18 +283,6 @@ def _centre_offset_points(U, W, FV, m, vx, vy, w_inv):
 
 
 @njit(cache=True, inline="always")
-def _count_gradient(N, i, j, gradient):
-    """jAER's stencil on the count image N at (i, j) (not Savitzky-Golay): (gx, gy)."""
-    if gradient == BACKWARD:
-        # jAER's y points up: its backward step y - 1 is our y + 1
-        return float(N[i, j] - N[i - 1, j]), float(N[i, j + 1] - N[i, j])
-    if gradient == CENTRAL:
-        return float(N[i + 1, j] - N[i - 1, j]), float(N[i, j + 1] - N[i, j - 1])
-    return (float(N[i - 2, j] - 8 * N[i - 1, j] + 8 * N[i + 1, j] - N[i + 2, j]),
-            float(N[i, j - 2] - 8 * N[i, j - 1] + 8 * N[i, j + 1] - N[i, j + 2]))
-
-
-@njit(cache=True, inline="always")
 def _count_slopes(N, S, R, sg_norm):
     """jAER's Savitzky-Golay gradient: one slope pair for the whole window."""
     gxs = 0.0
@@ -323,10 +311,19 @@ def _faithful(N, d, S, R, gradient, stencil_norm, sg_norm, thr):
     ntc = 0.0
     for j in range(d, S - d):
         for i in range(d, S - d):
-            gx = gxs
-            gy = gys
-            if gradient != SAVITZKY_GOLAY:
-                gx, gy = _count_gradient(N, i, j, gradient)
+            if gradient == BACKWARD:
+                gx = float(N[i, j] - N[i - 1, j])
+                # jAER's y points up: its backward step y - 1 is our y + 1
+                gy = float(N[i, j + 1] - N[i, j])
+            elif gradient == CENTRAL:
+                gx = float(N[i + 1, j] - N[i - 1, j])
+                gy = float(N[i, j + 1] - N[i, j - 1])
+            elif gradient == CENTRAL2:
+                gx = float(N[i - 2, j] - 8 * N[i - 1, j] + 8 * N[i + 1, j] - N[i + 2, j])
+                gy = float(N[i, j - 2] - 8 * N[i, j - 1] + 8 * N[i, j + 1] - N[i, j + 2])
+            else:
+                gx = gxs
+                gy = gys
             nt = N[i, j] * stencil_norm * 20.0
             sx2 += gx * gx
             sy2 += gy * gy

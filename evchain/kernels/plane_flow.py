@@ -594,35 +594,10 @@ def event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, adaptive, gather):
     return n_out
 
 
-_KERNEL_DOC = """
-
-    Parameters
-    ----------
-    x, y : uint16 ndarray, shape (n,)
-        Pixel coordinates of the events, in time order.
-    t : int64 ndarray, shape (n,)
-        Timestamps, µs, non-decreasing.
-    p : int8 ndarray, shape (n,)
-        Polarities (> 0: ON).
-    ts : int64 ndarray, shape (2, H, W)
-        The surface of active events (:func:`new_state`), updated in place.
-    prm : PlaneParams
-        The constants.
-    out_idx : int64 ndarray, shape (>= n,)
-        Out: indices of the events with flow.
-    out_vx, out_vy : float64 ndarray, shape (>= n,)
-        Out: their flow, px/s.
-
-    Returns
-    -------
-    int
-        The number of events with flow (the filled length of ``out_*``).
-"""
-
-
 @njit(cache=True)
 def plane_flow_adaptive_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy):
-    """:func:`plane_flow_kernel` with the speed-adaptive window (the loop with the refits)."""
+    """:func:`plane_flow_kernel` with the speed-adaptive window (the loop with the refits); the
+    same arguments and result."""
     gather = _gather_mode(prm.variant, prm.r)
     if gather == MASKS:
         return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, True, MASKS)
@@ -652,6 +627,28 @@ def plane_flow_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy):
     ``refractory_updates`` (jAER: true): an event within ``refractory_us`` still updates the
     surface; false: it is dropped entirely (the thesis's description), so the surface holds the
     onset of each pixel's burst and the refractory period counts from the last onset.
+
+    Parameters
+    ----------
+    x, y : uint16 ndarray, shape (n,)
+        Pixel coordinates of the events, in time order.
+    t : int64 ndarray, shape (n,)
+        Timestamps, µs, non-decreasing.
+    p : int8 ndarray, shape (n,)
+        Polarities (> 0: ON).
+    ts : int64 ndarray, shape (2, H, W)
+        The surface of active events (:func:`new_state`), updated in place.
+    prm : PlaneParams
+        The constants.
+    out_idx : int64 ndarray, shape (>= n,)
+        Out: indices of the events with flow.
+    out_vx, out_vy : float64 ndarray, shape (>= n,)
+        Out: their flow, px/s.
+
+    Returns
+    -------
+    int
+        The number of events with flow (the filled length of ``out_*``).
     """
     if prm.max_window_us > prm.window_us and prm.variant != ORIGINAL:
         return plane_flow_adaptive_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy)
@@ -661,7 +658,3 @@ def plane_flow_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy):
     if gather == WINDOW:
         return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, False, WINDOW)
     return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, False, POINTS)
-
-
-plane_flow_kernel.__doc__ += _KERNEL_DOC
-plane_flow_adaptive_kernel.__doc__ += _KERNEL_DOC
