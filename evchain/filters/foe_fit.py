@@ -59,12 +59,18 @@ class FoeFit(Filter):
                                    "inlier weight is below this")
 
     def reset(self) -> None:
+        from evchain.kernels import foe_fit as k
+        from evchain.kernels.records import record
+
+        p = self.params
+        self._prm = record(k.FitParams, margin=p.margin_px, tolerance=p.tolerance,
+                           max_iter=p.max_iter, max_step=3.0)
         self._buf = {c: np.zeros(0, np.float64) for c in ("x", "y", "nx", "ny", "s", "e")}
         self._tref = 0  # e = exp((t - tref) / tau): the decay weights, computed once per event
         self._t = np.zeros(0, np.int64)
         self._lo = self._hi = 0  # the buffer's live events: [lo, hi)
         self._next: int | None = None
-        self._th = np.full(5, np.nan)
+        self._th = k.initial_theta(math.nan, math.nan)
         self._vote: tuple[int, float, float] | None = None
         self._won = -math.inf  # time a far fit last beat a fit started from the votes
 
@@ -134,22 +140,23 @@ class FoeFit(Filter):
     def _fit(self, k, buf, t, T, tau_us):
         p = self.params
         _, vx, vy = self._vote
-        warm = not math.isnan(self._th[0])
+        warm = not math.isnan(self._th[k.FOE_X])
         if not warm:
-            self._th[:] = (vx, vy, np.nan, np.nan, np.nan)
+            self._th = k.initial_theta(vx, vy)
         lo, hi = self._lo, self._hi
         i0 = lo + int(np.searchsorted(t[lo:hi], T - int(3 * tau_us)))
         i1 = lo + int(np.searchsorted(t[lo:hi], T))
         g = math.exp(-(T - self._tref) / tau_us)
 
+        events = k.FitEvents(buf["x"], buf["y"], buf["nx"], buf["ny"], buf["s"], buf["e"])
+
         def run(th):
-            ok, inl, tot = k.fit(buf["x"], buf["y"], buf["nx"], buf["ny"], buf["s"], buf["e"],
-                                 i0, i1, g, th, p.margin_px, p.tolerance, p.max_iter, 3.0)
+            ok, inl, tot = k.fit(events, i0, i1, g, th, self._prm)
             return ok and inl >= p.min_inliers, inl, tot
 
         th = self._th.copy()
         ok, inl, tot = run(th)
-        far = math.hypot(th[0] - vx, th[1] - vy) > p.max_deviation_px
+        far = math.hypot(th[k.FOE_X] - vx, th[k.FOE_Y] - vy) > p.max_deviation_px
         if ok and far and warm:
             # Far from the votes: the votes may be the wrong ones (at 15 m/s they err by 30-50 px
             # for seconds). Refit from them; keep the warm fit unless the votes' fit explains
@@ -157,7 +164,7 @@ class FoeFit(Filter):
             # A warm fit that won stays unchallenged for tau (the window's weights change by
             # 1/e), which keeps the extra fits to a few per cent while the votes are off.
             if T - self._won >= tau_us:
-                tv = np.array([vx, vy, np.nan, np.nan, np.nan])
+                tv = k.initial_theta(vx, vy)
                 okv, inlv, _ = run(tv)
                 ok = not okv or inl >= inlv
                 if ok:
@@ -168,7 +175,7 @@ class FoeFit(Filter):
             self._won = -math.inf
         if ok:
             self._th = th
-            return th[0], th[1], inl, tot
+            return th[k.FOE_X], th[k.FOE_Y], inl, tot
         self._th[:] = np.nan
         self._won = -math.inf
         return vx, vy, inl, tot

@@ -114,49 +114,33 @@ class FoeMap(Filter):
 
     def reset(self) -> None:
         self._geometry: Geometry | None = None
-        self._ist = np.zeros(4, np.int64)
-        self._fst = np.zeros(5, np.float64)
+        self._state = None
         self._started = False
 
     def _allocate(self, geometry: Geometry) -> None:
+        from evchain.kernels import foe_map as k
+
         p = self.params
         self._geometry = geometry
         cg, radius = cell_geometry(geometry, p.cell_px, p.region_radius_px)
         x0, y0, lo, hi, clo, chi = region_cells(cg, radius)
-        self._bounds_r, self._bounds_c = np.stack([lo, hi]), np.stack([clo, chi])
         self._x0, self._y0 = x0, y0
-        self._lo, self._hi = self._bounds_r
-        self._clo, self._chi = self._bounds_c
-        ny, nx = len(lo), len(clo)
-        self._diffR = np.zeros((ny, nx + 1), np.float64)
-        self._rowv = np.zeros((3, ny + 1), np.float64)  # constR and the reads' row bounds
-        self._constR = self._rowv[0]
-        self._diffC = np.zeros((ny + 1, nx), np.float64)
-        self._constC = np.zeros(nx + 1, np.float64)
-        self._mbuf = np.empty((ny, nx), np.float64)
-        self._rst = np.zeros((ny, 6), np.float64)
-        self._rst[:, 0] = -np.inf
+        self._state = k.new_state(lo, hi, clo, chi)
+        self._state_arrays = tuple(self._state)  # numba types a plain tuple faster per call
         if radius is None:
-            disc = ((cg.width - 1) / 2.0, (cg.height - 1) / 2.0,
-                    0.5 * math.hypot(cg.width, cg.height))
+            cx, cy, r = ((cg.width - 1) / 2.0, (cg.height - 1) / 2.0,
+                         0.5 * math.hypot(cg.width, cg.height))
         else:
-            disc = (float(cg.cx), float(cg.cy), float(radius))
+            cx, cy, r = float(cg.cx), float(cg.cy), float(radius)
         gate_on = p.max_angle_deg is not None
-        cos_gate = math.cos(math.radians(p.max_angle_deg)) if gate_on else -1.0
-        consts = np.array([p.tau_ms * 1000.0, p.min_speed_pxs, cos_gate, gate_on,
-                           p.estimate_every_us, p.refine_fraction, p.min_support,
-                           p.speed_weight_pxs or 0.0, *disc, x0, y0], np.float64)
-        # the kernel's arguments that do not change from packet to packet
-        self._args = (self._diffR, self._rowv, self._diffC, self._constC, self._bounds_r,
-                      self._bounds_c, self._mbuf, self._rst, self._fst, self._ist, consts)
+        self._prm = k.new_params(
+            tau_us=p.tau_ms * 1000.0, min_speed_pxs=p.min_speed_pxs,
+            cos_gate=math.cos(math.radians(p.max_angle_deg)) if gate_on else -1.0,
+            gate_on=gate_on, period_us=p.estimate_every_us, refine_fraction=p.refine_fraction,
+            min_support=p.min_support, speed_w0=p.speed_weight_pxs or 0.0, cx=cx, cy=cy,
+            radius=r, x0=x0, y0=y0)
         self._period = int(p.estimate_every_us)
-        from evchain.kernels import foe_map as k
-
-        self._kernel = k.process
-
-    def _maps(self):
-        return (self._diffR, self._constR, self._diffC, self._constC, self._lo, self._hi,
-                self._clo, self._chi, self._x0, self._y0)
+        self._kernel = k
 
     def process(self, packet: FlowPacket) -> FlowPacket:
         if not isinstance(packet, FlowPacket):
@@ -166,19 +150,20 @@ class FoeMap(Filter):
         elif packet.geometry is not self._geometry and packet.geometry != self._geometry:
             raise DataError(f"foe_map: sensor geometry changed from {self._geometry} to "
                             f"{packet.geometry}")
+        k = self._kernel
         period = self._period
         if not self._started:
-            self._ist[1] = -(-packet.t_start // period) * period
+            k.start(self._state, -(-packet.t_start // period) * period)
             self._started = True
-        n_max = max(0, -(-(packet.t_end - int(self._ist[1])) // period))
+        n_max = max(0, -(-(packet.t_end - k.next_read(self._state)) // period))
         out = np.empty(n_max, dtype=_FOE)  # the kernel writes its fields
         cell = self.params.cell_px
         if cell == 1:
             x, y = packet.x, packet.y
         else:
             x, y = to_cells(packet.x, cell), to_cells(packet.y, cell)
-        n = self._kernel(x, y, packet.t, packet.vx, packet.vy, *self._args, int(packet.t_end),
-                         out)
+        n = k.process(x, y, packet.t, packet.vx, packet.vy, self._state_arrays, self._prm,
+                      int(packet.t_end), out)
         if n < n_max:
             out = out[:n]
         if cell != 1:
@@ -194,9 +179,7 @@ class FoeMap(Filter):
         """
         from evchain.kernels import foe_map as k
 
-        out = np.empty_like(self._mbuf)
-        k.materialize(*self._maps(), self._fst[0], out, np.empty(len(out)))
-        return out * math.exp(-(t_us - int(self._ist[0])) / (self.params.tau_ms * 1000.0))
+        return k.dense_map(self._state, self._x0, t_us, self.params.tau_ms * 1000.0)
 
     @property
     def origin(self) -> tuple[int, int]:

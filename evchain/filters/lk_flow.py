@@ -97,8 +97,18 @@ class LKFlow(Filter):
             return self
 
     def reset(self) -> None:
-        from evchain.kernels.lk_flow import new_state
+        from evchain.kernels.lk_flow import LKParams, new_state
+        from evchain.kernels.records import record
 
+        q = self.params
+        self._prm = record(
+            LKParams, r=q.search_distance, window_us=q.window_us, refractory_us=q.refractory_us,
+            gradient=GRADIENTS[q.gradient], faithful=q.mode == "faithful",
+            eig_threshold=q.eig_threshold, eig_ratio=q.eig_ratio, speed_control=q.speed_control,
+            mix=q.speed_control_mix, max_factor=q.max_speed_factor,
+            max_speed_pxs=q.max_speed_pxs, refit_tolerance=q.refit_tolerance,
+            centre_check_px=q.centre_check_px, max_window_us=q.max_window_us,
+            slow_px=q.slow_px)
         self._density = DensityCounter(DENSITY_BIN_US)
         self._last = None
         g = self.context.geometry
@@ -124,13 +134,8 @@ class LKFlow(Filter):
         vx = np.empty(n, np.float64)
         vy = np.empty(n, np.float64)
         if n:
-            q = self.params
-            n_out = lk_flow_run(packet.x, packet.y, packet.t, packet.p, *self._state,
-                                q.search_distance, q.window_us, q.refractory_us,
-                                GRADIENTS[q.gradient], q.mode == "faithful", q.eig_threshold,
-                                q.eig_ratio, q.speed_control, q.speed_control_mix,
-                                q.max_speed_factor, q.max_speed_pxs, q.refit_tolerance,
-                                q.centre_check_px, q.max_window_us, q.slow_px, idx, vx, vy)
+            n_out = lk_flow_run(packet.x, packet.y, packet.t, packet.p, self._state, self._prm,
+                                idx, vx, vy)
         else:
             n_out = 0
         idx = idx[:n_out]

@@ -94,11 +94,20 @@ class PlaneFlow(Filter):
             return self
 
     def reset(self) -> None:
-        from evchain.kernels.plane_flow import VARIANTS, new_state
+        from evchain.kernels.plane_flow import VARIANTS, PlaneParams, new_state
+        from evchain.kernels.records import record
 
         g = self.context.geometry
         self._state = None if g is None else new_state(g.width, g.height)
-        self._variant = VARIANTS[self.params.variant]
+        q = self.params
+        self._prm = record(
+            PlaneParams, variant=VARIANTS[q.variant], r=q.search_distance,
+            window_us=q.window_us, refractory_us=q.refractory_us,
+            margin=q.search_distance if q.border_px is None else q.border_px,
+            min_points=q.min_points, th1=q.th1, th2=q.th2_s, max_speed=q.max_speed_pxs,
+            max_iter=q.max_iterations, min_spread=q.min_spread_px, centre_check=q.centre_check,
+            max_window_us=q.max_window_us, slow_px=q.slow_px, refit_failed=q.refit_failed,
+            refractory_updates=q.refractory_updates)
         self._density = DensityCounter(DENSITY_BIN_US)
         self._end = None
         self._geometry = g
@@ -114,17 +123,10 @@ class PlaneFlow(Filter):
         idx = np.empty(n, np.int64)
         vx = np.empty(n, np.float64)
         vy = np.empty(n, np.float64)
-        prm = self.params
-        r = prm.search_distance
-        margin = r if prm.border_px is None else prm.border_px
         k = 0
         if n:
             k = plane_flow_kernel(packet.x, packet.y, packet.t, packet.p, self._state,
-                                  self._variant, r, prm.window_us, prm.refractory_us, margin,
-                                  prm.min_points, prm.th1, prm.th2_s, prm.max_speed_pxs,
-                                  prm.max_iterations, prm.min_spread_px, prm.centre_check,
-                                  idx, vx, vy, prm.max_window_us, prm.slow_px,
-                                  prm.refit_failed, prm.refractory_updates)
+                                  self._prm, idx, vx, vy)
         idx = idx[:k]
         out = FlowPacket.from_events(packet, idx, vx[:k], vy[:k])
         self._end = packet.t_end

@@ -103,20 +103,25 @@ class Ttc(Filter):
                                       "among all clusters (else: no obstacle at that tick)")
 
     def reset(self) -> None:
-        p = self.params
-        k, b = p.max_clusters, p.samples_per_cluster
-        from evchain.kernels.ttc import KG_BINS, NCOL
+        from evchain.kernels.records import record
+        from evchain.kernels.ttc import TtcParams
 
-        self._C = np.zeros((k, NCOL), np.float64)
-        self._I = np.zeros((k, 4), np.int64)
-        self._ST = np.zeros((k, b), np.float64)
-        self._SV = np.zeros((k, b), np.float64)
-        self._SK = np.zeros((k, b), np.float64)
-        self._G = np.zeros(9, np.float64)
-        self._H = np.zeros(KG_BINS, np.float64)
-        self._G[7] = -1.0
-        self._started = False
-        self._S = None
+        p = self.params
+        self._prm = record(
+            TtcParams, period_us=p.estimate_every_us, select_nearest=p.select == "nearest_foe",
+            select_min_activity=p.select_min_activity, half_width=p.region_b_half_width_px,
+            min_below=p.region_b_min_below_px, min_dist=p.min_distance_px,
+            min_speed=p.min_speed_pxs, max_speed=p.max_speed_pxs, min_tau=p.min_tau_s,
+            max_tau=p.max_tau_s, init_size=p.cluster_size_px, max_size=p.max_cluster_size_px,
+            join_margin=p.join_margin_px, act_tau_us=p.activity_tau_ms * 1000.0,
+            min_activity=p.min_activity, max_age_us=p.sample_max_age_ms * 1000.0,
+            min_samples=p.min_samples, rel_floor=p.rel_noise_floor,
+            q_s2_per_s=p.process_noise_s2_per_s, gate=p.gate_sigma, ground_test=p.ground_test,
+            ground_tol=p.ground_tolerance, ground_memory_us=p.ground_memory_ms * 1000.0,
+            ground_min_events=p.ground_min_events, ground_fallback=p.ground_fallback,
+            corridor=p.corridor_half_width_h or 0.0, hold=p.select_hold,
+            base_px=p.baseline_px, base_age_us=p.baseline_max_ms * 1000.0)
+        self._state = None
 
     def process(self, packet: FlowPacket) -> FlowPacket:
         if not isinstance(packet, FlowPacket):
@@ -125,13 +130,11 @@ class Ttc(Filter):
 
         p = self.params
         period = int(p.estimate_every_us)
-        if self._S is None:
+        if self._state is None:
             g = packet.geometry
-            shape = (2, g.height, g.width) if p.baseline_px > 0 else (2, 0, 0)
-            self._S = np.full(shape, -1e300)
-        if not self._started:
-            self._G[3] = float(-(-packet.t_start // period) * period)
-            self._started = True
+            self._state = kern.new_state(p.max_clusters, p.samples_per_cluster, g.height,
+                                         g.width, p.baseline_px > 0)
+            kern.start(self._state, -(-packet.t_start // period) * period)
         foe = packet.series.get("foe")
         if foe is None:
             ft, fx, fy = np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
@@ -139,29 +142,10 @@ class Ttc(Filter):
             ft = np.ascontiguousarray(foe["t"], np.int64)
             fx = np.ascontiguousarray(foe["x"], np.float64)
             fy = np.ascontiguousarray(foe["y"], np.float64)
-        n_ticks = max(0, -(-(packet.t_end - int(self._G[3])) // period))
-        o = [np.empty(n_ticks, np.int64), np.empty(n_ticks), np.empty(n_ticks, np.int64),
-             np.empty(n_ticks), np.empty(n_ticks), np.empty(n_ticks)]
-        m = n_ticks * p.max_clusters
-        c = [np.empty(m, np.int64), np.empty(m, np.int64)] + [np.empty(m) for _ in range(6)]
-        no, nc = kern.process(
-            packet.x, packet.y, packet.t, packet.p, packet.vx, packet.vy, ft, fx, fy, self._C,
-            self._I, self._ST, self._SV, self._SK, self._G, self._S, self._H, int(packet.t_end),
-            period,
-            p.select == "nearest_foe", p.select_min_activity,
-            p.region_b_half_width_px, p.region_b_min_below_px, p.min_distance_px,
-            p.min_speed_pxs, p.max_speed_pxs, p.min_tau_s, p.max_tau_s, p.cluster_size_px,
-            p.max_cluster_size_px, p.join_margin_px, p.activity_tau_ms * 1000.0,
-            p.min_activity, p.sample_max_age_ms * 1000.0, p.min_samples, p.rel_noise_floor,
-            p.process_noise_s2_per_s, p.gate_sigma, p.ground_test, p.ground_tolerance,
-            p.ground_memory_ms * 1000.0, float(p.ground_min_events), p.ground_fallback,
-            p.corridor_half_width_h or 0.0, p.select_hold, p.baseline_px,
-            p.baseline_max_ms * 1000.0, *o, *c)
-        ttc = np.zeros(no, TTC_DTYPE)
-        for name, col in zip(("t", "tau_s", "cluster", "x", "y", "support"), o, strict=True):
-            ttc[name] = col[:no]
-        cl = np.zeros(nc, CLUSTER_DTYPE)
-        for name, col in zip(("t", "cluster", "x", "y", "size_px", "tau_s", "support",
-                              "ground_ratio"), c, strict=True):
-            cl[name] = col[:nc]
-        return packet.with_series("ttc", ttc).with_series("ttc_clusters", cl)
+        n_ticks = max(0, -(-(packet.t_end - kern.next_tick(self._state)) // period))
+        ttc = np.zeros(n_ticks, TTC_DTYPE)
+        cl = np.zeros(n_ticks * p.max_clusters, CLUSTER_DTYPE)
+        no, nc = kern.process((packet.x, packet.y, packet.t, packet.p, packet.vx, packet.vy),
+                              (ft, fx, fy), self._state, self._prm, int(packet.t_end), ttc, cl)
+        return packet.with_series("ttc", ttc[:no].copy()).with_series("ttc_clusters",
+                                                                       cl[:nc].copy())

@@ -22,11 +22,42 @@ minimum the fit does not leave).
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
+#: the unknowns ``th``: the FOE (px) and the three planes' scales (road, left, right facade)
+FOE_X, FOE_Y, ROAD, LEFT, RIGHT = range(5)
 NP = 5
+
+
+class FitEvents(NamedTuple):
+    """The flow events a fit sees (float64 arrays, one entry per event, in time order)."""
+
+    x: np.ndarray   #: position, px
+    y: np.ndarray
+    nx: np.ndarray  #: unit normal (the flow's direction)
+    ny: np.ndarray
+    s: np.ndarray   #: normal flow speed, px/s (> 0)
+    e: np.ndarray   #: decay weight exp((t - t_ref) / tau)
+
+
+class FitParams(NamedTuple):
+    """Constants of :func:`fit`; build with :func:`evchain.kernels.records.record`."""
+
+    margin: float     #: events this close to a plane's vanishing line are left out of it, px
+    tolerance: float  #: Tukey constant on the relative speed residual
+    max_iter: int     #: Gauss-Newton iterations
+    max_step: float   #: largest FOE step per iteration, px
+
+
+def initial_theta(foe_x: float, foe_y: float) -> np.ndarray:
+    """Unknowns for a fit starting at the FOE (foe_x, foe_y), the planes' scales unknown."""
+    th = np.full(NP, np.nan)
+    th[FOE_X] = foe_x
+    th[FOE_Y] = foe_y
+    return th
 
 
 @njit(cache=True, error_model="numpy")
@@ -74,34 +105,44 @@ def _applies(k, dxx, dyy, margin):
 
 
 @njit(cache=True, error_model="numpy")
+def _weighted_median(r, w, m):
+    """The weighted median of ``r[:m]`` (weights ``w[:m]``): the first value in sorted order
+    where the cumulative weight reaches half the total; NaN when none does."""
+    o = np.argsort(r[:m])
+    half = 0.0
+    for j in range(m):
+        half += w[j]
+    half *= 0.5
+    acc = 0.0
+    for j in range(m):
+        acc += w[o[j]]
+        if acc >= half:
+            return r[o[j]]
+    return np.nan
+
+
+@njit(cache=True, error_model="numpy")
 def _init_scales(x, y, nx, ny, s, e, g, i0, i1, th, margin):
+    """Each plane scale without a value: the weighted median of s / ((p - foe).n d) over the
+    plane's events (the facades' only above the FOE's row); left NaN without events."""
     for k in range(3):
-        if not math.isnan(th[2 + k]):
+        if not math.isnan(th[ROAD + k]):
             continue
         r = np.empty(i1 - i0)
         w = np.empty(i1 - i0)
         m = 0
         for i in range(i0, i1):
-            dxx = x[i] - th[0]
-            dyy = y[i] - th[1]
+            dxx = x[i] - th[FOE_X]
+            dyy = y[i] - th[FOE_Y]
             dn = dxx * nx[i] + dyy * ny[i]
             if dn > 0.0 and _applies(k, dxx, dyy, margin) and (k == 0 or dyy < -margin):
                 r[m] = s[i] / (dn * _lever(k, dxx, dyy))
                 w[m] = e[i] * g
                 m += 1
-        if m == 0:
-            continue
-        o = np.argsort(r[:m])
-        half = 0.0
-        for j in range(m):
-            half += w[j]
-        half *= 0.5
-        acc = 0.0
-        for j in range(m):
-            acc += w[o[j]]
-            if acc >= half:
-                th[2 + k] = r[o[j]]
-                break
+        if m > 0:
+            med = _weighted_median(r, w, m)
+            if not math.isnan(med):
+                th[ROAD + k] = med
 
 
 @njit(cache=True, error_model="numpy", fastmath={"reassoc", "contract"})
@@ -180,51 +221,98 @@ def _sums(x, y, nx, ny, s, e, i0, i1, g, th, margin, c):
 
 
 @njit(cache=True, error_model="numpy")
-def fit(x, y, nx, ny, s, e, i0, i1, g, th, margin, c, max_iter, max_step):
-    """Fit ``th`` (in/out, float64[5]; NaN scales are initialised) to events ``i0..i1`` (speed
-    s > 0, unit normal (nx, ny)) with decay weights ``e g``: ``e = exp((t - t_ref) / tau)`` is
-    kept per event (computed once), ``g = exp(-(T - t_ref) / tau)`` per fit, so an event at the
-    fit time T weighs 1. Returns (ok, inlier weight, applicable weight) with these weights; ok
-    is False when a system is singular or a value is not finite."""
-    _init_scales(x, y, nx, ny, s, e, g, i0, i1, th, margin)
+def _normal_equations(sm, A, b):
+    """The Gauss-Newton system from the sums of :func:`_sums` (J is 0 off each event's
+    plane)."""
+    A[:] = 0.0
+    A[0, 0], A[0, 1], A[1, 0], A[1, 1] = sm[0], sm[1], sm[1], sm[2]
+    b[0], b[1] = sm[3], sm[4]
+    for k in range(3):  # per plane: w J0 Ja, w J1 Ja, w Ja Ja, w r Ja
+        A[0, 2 + k] = A[2 + k, 0] = sm[7 + 4 * k]
+        A[1, 2 + k] = A[2 + k, 1] = sm[8 + 4 * k]
+        A[2 + k, 2 + k] = sm[9 + 4 * k]
+        b[2 + k] = sm[10 + 4 * k]
+
+
+@njit(cache=True, error_model="numpy")
+def _condition(A, b):
+    """Keep the scale of a plane without events (its row and column become the identity, no
+    step) and add a 1e-9 ridge relative to the trace; False when the trace is not positive."""
+    tr = 0.0
+    for p in range(NP):
+        tr += A[p, p]
+    if not tr > 0.0:
+        return False
+    for p in range(NP):
+        if A[p, p] <= 1e-12 * tr:  # a plane without events: keep its scale
+            for q in range(NP):
+                A[p, q] = 0.0
+                A[q, p] = 0.0
+            A[p, p] = 1.0
+            b[p] = 0.0
+        else:
+            A[p, p] += 1e-9 * tr
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def _apply_step(th, b, max_step):
+    """th += the step b, the FOE's part shortened to ``max_step`` px; returns (the FOE step
+    before shortening, px; every value finite, or NaN for a scale without a value)."""
+    step = max(abs(b[0]), abs(b[1]))
+    scale = 1.0 if step <= max_step else max_step / step
+    for p in range(NP):
+        th[p] += b[p] * (scale if p < 2 else 1.0)
+    for p in range(NP):
+        if not math.isfinite(th[p]) and not (p >= 2 and math.isnan(th[p])):
+            return step, False
+    return step, True
+
+
+@njit(cache=True, error_model="numpy")
+def fit(events, i0, i1, g, th, prm):
+    """Fit the unknowns ``th`` to the events ``i0..i1``; robust Gauss-Newton (module docstring).
+
+    NaN scales are initialised first. The events weigh ``e g``: ``e = exp((t - t_ref) / tau)``
+    is kept per event (computed once), ``g = exp(-(T - t_ref) / tau)`` per fit, so an event at
+    the fit time T weighs 1.
+
+    Parameters
+    ----------
+    events : FitEvents
+        float64 arrays: positions (px), unit normals, speeds (px/s, > 0), decay weights.
+    i0, i1 : int
+        The events fitted: ``i0 <= i < i1``.
+    g : float
+        The fit time's decay factor (see above).
+    th : float64 ndarray, shape (5,)
+        In/out: the FOE (px, entries :data:`FOE_X`, :data:`FOE_Y`) and the road's, left and
+        right facades' scales (1/(s px): :data:`ROAD`, :data:`LEFT`, :data:`RIGHT`; NaN:
+        unknown).
+    prm : FitParams
+        The constants.
+
+    Returns
+    -------
+    (bool, float, float)
+        ok (False when a system is singular or a value is not finite), the decayed inlier
+        weight and the decayed weight of the events the model applies to.
+    """
+    x, y, nx, ny, s, e = events
+    _init_scales(x, y, nx, ny, s, e, g, i0, i1, th, prm.margin)
     A = np.zeros((NP, NP))
     b = np.zeros(NP)
     inl = 0.0
     tot = 0.0
-    for _ in range(max_iter):
-        sm = _sums(x, y, nx, ny, s, e, i0, i1, g, th, margin, c)
+    for _ in range(prm.max_iter):
+        sm = _sums(x, y, nx, ny, s, e, i0, i1, g, th, prm.margin, prm.tolerance)
         inl, tot = sm[5], sm[6]
-        A[:] = 0.0
-        A[0, 0], A[0, 1], A[1, 0], A[1, 1] = sm[0], sm[1], sm[1], sm[2]
-        b[0], b[1] = sm[3], sm[4]
-        for k in range(3):  # per plane: w J0 Ja, w J1 Ja, w Ja Ja, w r Ja (J is 0 elsewhere)
-            A[0, 2 + k] = A[2 + k, 0] = sm[7 + 4 * k]
-            A[1, 2 + k] = A[2 + k, 1] = sm[8 + 4 * k]
-            A[2 + k, 2 + k] = sm[9 + 4 * k]
-            b[2 + k] = sm[10 + 4 * k]
-        tr = 0.0
-        for p in range(NP):
-            tr += A[p, p]
-        if not tr > 0.0:
+        _normal_equations(sm, A, b)
+        if not _condition(A, b) or not solve(A, b):
             return False, inl, tot
-        for p in range(NP):
-            if A[p, p] <= 1e-12 * tr:  # a plane without events: keep its scale
-                for q in range(NP):
-                    A[p, q] = 0.0
-                    A[q, p] = 0.0
-                A[p, p] = 1.0
-                b[p] = 0.0
-            else:
-                A[p, p] += 1e-9 * tr
-        if not solve(A, b):
+        step, finite = _apply_step(th, b, prm.max_step)
+        if not finite:
             return False, inl, tot
-        step = max(abs(b[0]), abs(b[1]))
-        scale = 1.0 if step <= max_step else max_step / step
-        for p in range(NP):
-            th[p] += b[p] * (scale if p < 2 else 1.0)
-        for p in range(NP):
-            if not math.isfinite(th[p]) and not (p >= 2 and math.isnan(th[p])):
-                return False, inl, tot
         if step < 0.05:  # px: a warm-started fit moves less than this after 1-2 iterations
             break
     return True, inl, tot

@@ -17,29 +17,110 @@ brute-force sum cell by cell.
 Weights grow as ``exp((t - t_ref) / tau)`` (lazy decay); the map is rescaled and ``t_ref`` reset
 before overflow.
 
-State arrays (allocated by the filter):
+State (:class:`FoeMapState`, from :func:`new_state`; constants: :func:`new_params`):
 
-* ``ist`` int64: ``[0]`` t_ref (µs), ``[1]`` next read time (µs), ``[2]`` 1 once an estimate
-  exists, ``[3]`` 1 when votes arrived since the last read;
-* ``fst`` float64: ``[0]`` whole (votes covering all of A), ``[1]`` last x, ``[2]`` last y,
-  ``[3]`` last max (map units), ``[4]`` total weight of accepted votes (map units);
-* ``rowv`` float64 [3, rows + 1]: ``constR`` and two difference arrays over rows for the
-  reads' bounds: the weight of the votes that covered a whole row (the caps) and of the votes
-  that may have reached part of it (the rows a boundary crosses; a column-wise vote: all);
-  reset at a renormalisation;
-* ``rst`` float64 [rows, 6]: per map row its max and min when last computed, ``fst[0]``, the
-  touching weight then, 1 if valid, and the whole-row weight then (reads recompute only the
-  rows that can matter, see :func:`refresh`; a renormalisation invalidates all).
+* the maps: ``diffR`` [rows, cols + 1], ``diffC`` [rows + 1, cols], ``constC`` [cols + 1] and
+  ``rowv`` [3, rows + 1]: ``constR`` (row :data:`CONST_R`) and two difference arrays over rows
+  for the reads' bounds: the weight of the votes that covered a whole row (the caps, row
+  :data:`CAPS`) and of the votes that may have reached part of it (the rows a boundary crosses;
+  a column-wise vote: all; row :data:`TOUCH`); the bounds are reset at a renormalisation;
+* region A: ``lo``, ``hi`` per map row, ``clo``, ``chi`` per map column;
+* ``rows`` float64 [rows, 6]: per map row (columns :data:`ROW_MAX` .. :data:`ROW_FULL`) its max
+  and min when last computed, the ``whole`` votes then, the touching weight then, 1 if valid,
+  and the whole-row weight then (reads recompute only the rows that can matter, see
+  :func:`refresh`; a renormalisation invalidates all);
+* ``carry``: one record of :data:`CARRY`: the weights' reference time ``t_ref`` (µs), the next
+  read (µs), whether an estimate exists and whether votes arrived since the last read; the
+  votes covering all of A (``whole``), the last estimate (x, y, its maximum) and the total
+  weight of accepted votes (map units);
+* ``mbuf`` [rows, cols]: the dense map of a read.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
 from evchain.kernels.intrinsics import from_bits
+
+#: rows of ``rowv``: constR, the caps' and the touching votes' difference arrays
+CONST_R, CAPS, TOUCH = range(3)
+#: columns of ``rows``: the row's max and min when last computed, the whole votes, touching
+#: and whole-row weights then, and 1 if valid
+ROW_MAX, ROW_MIN, ROW_WHOLE, ROW_TOUCH, ROW_VALID, ROW_FULL = range(6)
+CARRY = np.dtype([("t_ref", "i8"), ("next_read", "i8"), ("has_estimate", "i8"), ("dirty", "i8"),
+                  ("whole", "f8"), ("est_x", "f8"), ("est_y", "f8"), ("est_max", "f8"),
+                  ("total", "f8")])
+
+
+#: the constants of :func:`process` (one record, not a named tuple: numba types it faster per
+#: call, and a packet's votes are cheap); fields as in :class:`~evchain.filters.foe_map.FoeMap`'s
+#: parameters, in µs, px/s and map cells; ``cos_gate``: cos of the gate's largest angle
+PARAMS = np.dtype([("tau_us", "f8"), ("min_speed_pxs", "f8"), ("gate_on", "?"),
+                   ("cos_gate", "f8"), ("period_us", "i8"), ("refine_fraction", "f8"),
+                   ("min_support", "f8"), ("speed_w0", "f8"), ("cx", "f8"), ("cy", "f8"),
+                   ("radius", "f8"), ("x0", "i8"), ("y0", "i8")])
+
+
+def new_params(**values) -> np.ndarray:
+    """The constants of :func:`process` as one :data:`PARAMS` record; every field is needed."""
+    if set(values) != set(PARAMS.names):
+        raise TypeError(f"foe_map params: expected {PARAMS.names}, got {sorted(values)}")
+    return np.array([tuple(values[name] for name in PARAMS.names)], PARAMS)
+
+
+class FoeMapState(NamedTuple):
+    """The state of :func:`process` (see the module docstring), from :func:`new_state`."""
+
+    diffR: np.ndarray
+    diffC: np.ndarray
+    constC: np.ndarray
+    rowv: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    clo: np.ndarray
+    chi: np.ndarray
+    rows: np.ndarray
+    carry: np.ndarray
+    mbuf: np.ndarray
+
+
+def new_state(lo: np.ndarray, hi: np.ndarray, clo: np.ndarray, chi: np.ndarray) -> FoeMapState:
+    """Empty maps over region A, given by its rows' column bounds ``lo``, ``hi`` and its
+    columns' row bounds ``clo``, ``chi`` (int64, absolute cells; hi < lo: empty)."""
+    ny, nx = len(lo), len(clo)
+    rows = np.zeros((ny, 6), np.float64)
+    rows[:, ROW_MAX] = -np.inf
+    return FoeMapState(np.zeros((ny, nx + 1)), np.zeros((ny + 1, nx)), np.zeros(nx + 1),
+                       np.zeros((3, ny + 1)), np.asarray(lo, np.int64), np.asarray(hi, np.int64),
+                       np.asarray(clo, np.int64), np.asarray(chi, np.int64), rows,
+                       np.zeros(1, CARRY), np.empty((ny, nx)))
+
+
+def start(state: FoeMapState, first_read_us: int) -> None:
+    """Set the first read (µs)."""
+    state.carry["next_read"] = first_read_us
+
+
+def next_read(state: FoeMapState) -> int:
+    """The next read, µs."""
+    return int(state.carry["next_read"][0])
+
+
+def forget_row_bounds(state: FoeMapState) -> None:
+    """Make the next read recompute every row (as after a renormalisation)."""
+    state.rows[:, ROW_VALID] = 0.0
+
+
+def dense_map(state: FoeMapState, x0: int, t_us: int, tau_us: float) -> np.ndarray:
+    """The dense vote map decayed to ``t_us`` (NaN outside region A)."""
+    out = np.empty_like(state.mbuf)
+    materialize(state.diffR, state.rowv[CONST_R], state.diffC, state.constC, state.lo, state.hi,
+                x0, float(state.carry["whole"][0]), out, np.empty(len(out)))
+    return out * math.exp(-(t_us - int(state.carry["t_ref"][0])) / tau_us)
 
 RENORM_EXPONENT = 40.0
 #: the disc around A that decides which votes cover all of A, none or part, and which rows
@@ -82,7 +163,7 @@ def _first(a, b, yy, px, py, vx, vy, slope):
 
 
 @njit(cache=True, error_model="numpy")
-def materialize(diffR, constR, diffC, constC, lo, hi, clo, chi, x0, y0, whole, out, rowmax):
+def materialize(diffR, constR, diffC, constC, lo, hi, x0, whole, out, rowmax):
     """The dense map (NaN outside A) into ``out[ny, nx]`` (map units, not decayed) and each
     row's maximum into ``rowmax[ny]`` (-inf for a row outside A); returns the (max, min) over A
     (-inf, inf when A is empty). One pass, row by row: the per-column prefix sums advance one
@@ -151,32 +232,32 @@ _SIGN = np.int64(0x7FFFFFFFFFFFFFFF)
 
 
 @njit(cache=True, error_model="numpy")
-def refresh(diffR, rowv, diffC, constC, lo, hi, x0, fst, rst, out, refine_fraction):
+def refresh(diffR, rowv, diffC, constC, lo, hi, x0, whole, total, rst, out, refine_fraction):
     """Bring up to date the rows of the dense map ``out`` (map units) that this read needs;
-    returns the (max, min) over A (-inf, inf when A is empty) and sets ``rst[:, 0]`` to each
-    needed row's maximum (rows left out stay below the read's threshold).
+    returns the (max, min) over A (-inf, inf when A is empty) and sets ``rst[:, ROW_MAX]`` to
+    each needed row's maximum (rows left out stay below the read's threshold). ``whole``: the
+    votes covering all of A, ``total``: all accepted votes.
 
     ``rst[r]`` holds row r's maximum and minimum when it was last computed, the ``whole`` votes
-    and the row's whole-row and touching weights (prefix sums of ``rowv[1]``, of ``rowv[1]``
-    plus ``rowv[2]``) at that time, and 1 if valid (0 forces a recomputation). Votes only add,
-    so since then every cell of the row rose by at least the ``whole`` plus the whole-row
-    difference and at most the ``whole`` plus the touching difference: bounds on the row's
-    maximum and minimum now. Only rows that can hold the maximum, the minimum or a cell above
-    the lowest possible threshold are recomputed (the same prefix sums in the same order as
-    :func:`materialize`, so the same values bit for bit); the pass over ``diffC`` stops at the
-    last of them.
+    and the row's whole-row and touching weights (prefix sums of ``rowv[CAPS]``, of
+    ``rowv[CAPS]`` plus ``rowv[TOUCH]``) at that time, and 1 if valid (0 forces a
+    recomputation). Votes only add, so since then every cell of the row rose by at least the
+    ``whole`` plus the whole-row difference and at most the ``whole`` plus the touching
+    difference: bounds on the row's maximum and minimum now. Only rows that can hold the
+    maximum, the minimum or a cell above the lowest possible threshold are recomputed (the same
+    prefix sums in the same order as :func:`materialize`, so the same values bit for bit); the
+    pass over ``diffC`` stops at the last of them.
     """
     ny, nx = out.shape
-    constR = rowv[0]
-    whole = fst[0]
-    eps = 1e-12 * fst[4]
+    constR = rowv[CONST_R]
+    eps = 1e-12 * total
     full = np.empty(ny)    # per row: the partial votes' weight that covered all of it
     touch = np.empty(ny)   # and that reached any of its cells
     fa = 0.0
     ta = 0.0
     for r in range(ny):
-        fa += rowv[1, r]
-        ta += rowv[2, r]
+        fa += rowv[CAPS, r]
+        ta += rowv[TOUCH, r]
         full[r] = fa
         touch[r] = fa + ta
     lbest = -np.inf    # the maximum is at least this
@@ -186,15 +267,15 @@ def refresh(diffR, rowv, diffC, constC, lo, hi, x0, fst, rst, out, refine_fracti
     for r in range(ny):
         if hi[r] < lo[r]:
             continue
-        if rst[r, 4] == 0.0:
+        if rst[r, ROW_VALID] == 0.0:
             every = True
             break
-        up = whole - rst[r, 2]
-        lup = up + (full[r] - rst[r, 5])
-        hup = up + (touch[r] - rst[r, 3])
-        lbest = max(lbest, rst[r, 0] + lup - eps)
-        uworst = min(uworst, rst[r, 1] + hup + eps)
-        lworst = min(lworst, rst[r, 1] + lup - eps)
+        up = whole - rst[r, ROW_WHOLE]
+        lup = up + (full[r] - rst[r, ROW_FULL])
+        hup = up + (touch[r] - rst[r, ROW_TOUCH])
+        lbest = max(lbest, rst[r, ROW_MAX] + lup - eps)
+        uworst = min(uworst, rst[r, ROW_MIN] + hup + eps)
+        lworst = min(lworst, rst[r, ROW_MIN] + lup - eps)
     if refine_fraction > 0.0:
         lthr = lbest - refine_fraction * (lbest - lworst)
     else:
@@ -205,9 +286,9 @@ def refresh(diffR, rowv, diffC, constC, lo, hi, x0, fst, rst, out, refine_fracti
     for r in range(ny):
         if hi[r] < lo[r]:
             continue
-        up = whole - rst[r, 2]
-        if (every or rst[r, 0] + up + (touch[r] - rst[r, 3]) + eps >= lthr
-                or rst[r, 1] + up + (full[r] - rst[r, 5]) - eps <= uworst):
+        up = whole - rst[r, ROW_WHOLE]
+        if (every or rst[r, ROW_MAX] + up + (touch[r] - rst[r, ROW_TOUCH]) + eps >= lthr
+                or rst[r, ROW_MIN] + up + (full[r] - rst[r, ROW_FULL]) - eps <= uworst):
             need[r] = True
             last = r
     _row_prefixes(diffR, lo, hi, x0, need, out)
@@ -240,12 +321,12 @@ def refresh(diffR, rowv, diffC, constC, lo, hi, x0, fst, rst, out, refine_fracti
                 kw = min(kw, k)
             rbest = from_bits(kb ^ ((kb >> 63) & _SIGN))
             rworst = from_bits(kw ^ ((kw >> 63) & _SIGN))
-            rst[r, 0] = rbest
-            rst[r, 1] = rworst
-            rst[r, 2] = whole
-            rst[r, 3] = touch[r]
-            rst[r, 4] = 1.0
-            rst[r, 5] = full[r]
+            rst[r, ROW_MAX] = rbest
+            rst[r, ROW_MIN] = rworst
+            rst[r, ROW_WHOLE] = whole
+            rst[r, ROW_TOUCH] = touch[r]
+            rst[r, ROW_VALID] = 1.0
+            rst[r, ROW_FULL] = full[r]
             best = max(best, rbest)
             worst = min(worst, rworst)
     return best, worst
@@ -327,50 +408,221 @@ def read_estimate(m, x0, y0, best, worst, refine_fraction, lo, hi, rowmax):
     return x0 + sx / sw, sy / sw
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _span(m, h, origin, count, disc):
+    """The lines (index from ``origin``, within 0 .. count - 1) the chord with centre ``m``,
+    half-extent ``h`` crosses; (count, count - 1) when it misses the disc."""
+    k0 = max(int(math.floor(m - h)) - origin, 0)
+    k1 = min(int(math.ceil(m + h)) - origin, count - 1)
+    if disc <= 0.0 or k0 > k1:
+        return count, count - 1
+    return k0, k1
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _vote_columns(px, py, fvx, fvy, w, xm, hx, disc, diffC, constC, rowv, clo, chi, x0, y0):
+    """A vote whose boundary is steeper than 45 degrees (|vx| >= |vy|): the columns it crosses
+    (chord centre ``xm`` +- ``hx``) get their interval's start in ``diffC`` (and the whole
+    column in ``constC`` for an interval that starts at the column's first cell); the columns
+    before and after, wholly on one side, one range update each in ``constC``; every row may
+    be reached (``rowv[TOUCH]``)."""
+    ncol = clo.shape[0]
+    rowv[TOUCH, 0] += w           # may reach every row
+    rowv[TOUCH, rowv.shape[1] - 1] -= w
+    k0, k1 = _span(xm, hx, x0, ncol, disc)
+    # vy > 0: +w to the columns' rows before the boundary (constC), -w from it on; vy < 0: +w
+    # from it on. One path for both (selects, not branches: the sign is random); adding 0.0
+    # changes nothing. vy = 0: +w to the whole column where its first cell is inside
+    level = fvy == 0.0
+    sl = fvx / fvy
+    cw = w if fvy > 0.0 else 0.0
+    sw = -w if fvy > 0.0 else w
+    if not level and k1 >= k0:
+        constC[k0] += cw
+        constC[k1 + 1] -= cw
+    for c in range(k0, k1 + 1):
+        if chi[c] < clo[c]:
+            continue
+        if level:
+            if (px - (x0 + c)) * fvx > 0.0:
+                diffC[clo[c] - y0, c] += w
+        else:
+            k = _first(clo[c], chi[c], float(x0 + c), py, px, fvy, fvx, sl)
+            diffC[k - y0, c] += sw
+    # the columns before and after: wholly on one side; test one cell each
+    c = min(k0, ncol) - 1
+    while c >= 0 and chi[c] < clo[c]:
+        c -= 1
+    cc = max(c, 0)
+    cw = w if (c >= 0) & _cond(px, py, fvx, fvy, float(x0 + cc), float(clo[cc])) else 0.0
+    constC[0] += cw
+    constC[min(k0, ncol)] -= cw
+    first = k1 + 1 if k1 >= k0 else ncol
+    c = first
+    while c < ncol and chi[c] < clo[c]:
+        c += 1
+    cc = min(c, ncol - 1)
+    cw = w if (c < ncol) & _cond(px, py, fvx, fvy, float(x0 + cc), float(clo[cc])) else 0.0
+    constC[first] += cw
+    constC[ncol] -= cw
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _vote_rows(px, py, fvx, fvy, w, ym, hy, disc, diffR, rowv, lo, hi, x0, y0):
+    """A vote whose boundary is flatter than 45 degrees: as :func:`_vote_columns` with rows
+    and columns swapped (``diffR``, ``rowv[CONST_R]``), and the rows crossed, before and after
+    recorded for the reads' bounds (``rowv[TOUCH]``, ``rowv[CAPS]``)."""
+    nrow = lo.shape[0]
+    k0, k1 = _span(ym, hy, y0, nrow, disc)
+    if k1 >= k0:                # the rows crossed
+        rowv[TOUCH, k0] += w
+        rowv[TOUCH, k1 + 1] -= w
+    level = fvx == 0.0
+    sl = fvy / fvx
+    cw = w if fvx > 0.0 else 0.0
+    sw = -w if fvx > 0.0 else w
+    if not level and k1 >= k0:
+        rowv[CONST_R, k0] += cw
+        rowv[CONST_R, k1 + 1] -= cw
+    for r in range(k0, k1 + 1):
+        if hi[r] < lo[r]:
+            continue
+        if level:
+            if (py - (y0 + r)) * fvy > 0.0:
+                diffR[r, lo[r] - x0] += w
+        else:
+            k = _first(lo[r], hi[r], float(y0 + r), px, py, fvx, fvy, sl)
+            diffR[r, k - x0] += sw
+    r = min(k0, nrow) - 1
+    while r >= 0 and hi[r] < lo[r]:
+        r -= 1
+    rc = max(r, 0)
+    cw = w if (r >= 0) & _cond(px, py, fvx, fvy, float(lo[rc]), float(y0 + rc)) else 0.0
+    rowv[CONST_R, 0] += cw
+    rowv[CONST_R, min(k0, nrow)] -= cw
+    rowv[CAPS, 0] += cw
+    rowv[CAPS, min(k0, nrow)] -= cw
+    first = k1 + 1 if k1 >= k0 else nrow
+    r = first
+    while r < nrow and hi[r] < lo[r]:
+        r += 1
+    rc = min(r, nrow - 1)
+    cw = w if (r < nrow) & _cond(px, py, fvx, fvy, float(lo[rc]), float(y0 + rc)) else 0.0
+    rowv[CONST_R, first] += cw
+    rowv[CONST_R, nrow] -= cw
+    rowv[CAPS, first] += cw
+    rowv[CAPS, nrow] -= cw
+
+
 @njit(cache=True, error_model="numpy")
-def process(x, y, t, vx, vy, diffR, rowv, diffC, constC, bounds_r, bounds_c, mbuf, rst, fst,
-            ist, cst, t_end, out):
-    """Vote with every flow event of a packet; read estimates at multiples of ``period_us``
-    into the structured array ``out`` (fields t, x, y, support, total).
+def _renormalise(state, s):
+    """Scale every map by ``s`` (the weights' reference time moves on); forget the rows' bounds."""
+    diffR, diffC, constC, rowv = state.diffR, state.diffC, state.constC, state.rowv
+    # element loops: array expressions here put refcount operations into every iteration of
+    # the event loop (measured: 6x slower overall)
+    for a in range(diffR.shape[0]):
+        for b in range(diffR.shape[1]):
+            diffR[a, b] *= s
+    for a in range(rowv.shape[1]):
+        rowv[CONST_R, a] *= s
+    for a in range(diffC.shape[0]):
+        for b in range(diffC.shape[1]):
+            diffC[a, b] *= s
+    for a in range(constC.shape[0]):
+        constC[a] *= s
+    state.carry[0].est_max *= s
+    for a in range(state.rows.shape[0]):
+        state.rows[a, ROW_VALID] = 0.0
+    for a in range(rowv.shape[1]):
+        rowv[CAPS, a] = 0.0
+        rowv[TOUCH, a] = 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def _read(state, prm, T, whole, total, dirty):
+    """The read at T: recompute the estimate when votes arrived since the last one (``dirty``);
+    returns whether there is an estimate."""
+    g = state.carry[0]
+    if dirty == 1:
+        g.whole = whole
+        g.total = total
+        best, worst = refresh(state.diffR, state.rowv, state.diffC, state.constC, state.lo,
+                              state.hi, prm.x0, whole, total, state.rows, state.mbuf,
+                              prm.refine_fraction)
+        ex, ey = read_estimate(state.mbuf, prm.x0, prm.y0, best, worst, prm.refine_fraction,
+                               state.lo, state.hi, state.rows[:, ROW_MAX])
+        if best > 0.0 and ex == ex:
+            g.est_x = ex
+            g.est_y = ey
+            g.est_max = best
+            g.has_estimate = 1
+    return g.has_estimate == 1
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _accepted(px, py, fvx, fvy, s2, g, prm):
+    """A flow event votes: fast enough and, with the angular gate and an estimate, pointing
+    away from the estimate within the gate (events within 1 px of it pass)."""
+    if not (s2 > 0.0 and s2 >= prm.min_speed_pxs * prm.min_speed_pxs):
+        return False
+    if not (prm.gate_on and g.has_estimate == 1):
+        return True
+    rx = px - g.est_x
+    ry = py - g.est_y
+    rn = math.sqrt(rx * rx + ry * ry)
+    return not rn > 1.0 or (rx * fvx + ry * fvy) / (rn * math.sqrt(s2)) >= prm.cos_gate
+
+
+@njit(cache=True, error_model="numpy")
+def process(x, y, t, vx, vy, state, prm, t_end, out):
+    """Vote with every flow event of a packet; read estimates at multiples of ``period_us``.
 
     A read at time T sees exactly the events with t < T. Reads happen before the first event at
-    or after T, and at the end for every T < ``t_end``. Returns the number of estimates written.
-    ``rowv`` holds ``constR`` and the row bounds' difference arrays (see the module docstring),
-    ``bounds_r`` ``lo`` and ``hi``, ``bounds_c`` ``clo`` and ``chi``; ``cst`` the constants
-    tau_us, min_speed_pxs, cos(gate angle), gate on (1/0), period_us, refine_fraction,
-    min_support, speed weight s0, region A's centre x, y and radius, x0, y0 (few arguments:
-    each costs ~0.15 us per call in numba's dispatcher).
+    or after T, and at the end for every T < ``t_end``. Each vote covers all of A (O(1)), none
+    of it, or the rows (columns) its boundary crosses plus two caps (:func:`_vote_rows`,
+    :func:`_vote_columns`).
+
+    Parameters
+    ----------
+    x, y : ndarray, shape (n,)
+        Flow events' positions in map cells (uint16 pixels, or float64 cells).
+    t : int64 ndarray, shape (n,)
+        Their times, µs, non-decreasing.
+    vx, vy : float32 ndarray, shape (n,)
+        Their flow, px/s (cells/s).
+    state : tuple
+        The arrays of a :class:`FoeMapState` (:func:`new_state`, :func:`start`), updated in
+        place; best as a plain tuple (``tuple(state)``): numba types it faster per call.
+    prm : PARAMS ndarray, shape (1,)
+        The constants (:func:`new_params`).
+    t_end : int
+        End of the packet's time slice, µs.
+    out : structured ndarray (t, x, y, support, total)
+        Out: the estimates (t µs, position in cells, decayed support and total votes).
+
+    Returns
+    -------
+    int
+        The number of estimates written into ``out``.
     """
-    constR = rowv[0]
-    lo = bounds_r[0]
-    hi = bounds_r[1]
-    clo = bounds_c[0]
-    chi = bounds_c[1]
-    tau_us = cst[0]
-    min_speed_pxs = cst[1]
-    cos_gate = cst[2]
-    gate_on = cst[3] != 0.0
-    period_us = np.int64(cst[4])
-    refine_fraction = cst[5]
-    min_support = cst[6]
-    speed_w0 = cst[7]
-    ccx = cst[8]
-    ccy = cst[9]
-    rr = cst[10] + MARGIN_PX
+    diffR, diffC, constC, rowv, lo, hi, clo, chi, rows, carry, mbuf = state
+    st = FoeMapState(diffR, diffC, constC, rowv, lo, hi, clo, chi, rows, carry, mbuf)
+    g = carry[0]
+    p = prm[0]
+    tau_us = p.tau_us
+    cx, cy, x0, y0 = p.cx, p.cy, p.x0, p.y0
+    rr = p.radius + MARGIN_PX
     rr2 = rr * rr
-    x0 = np.int64(cst[11])
-    y0 = np.int64(cst[12])
     n_out = 0
     n = t.shape[0]
-    min_speed2 = min_speed_pxs * min_speed_pxs
     # the state updated per event lives in locals (stores into the maps could alias the state
     # arrays, so LLVM would reload and store these every event); written back at the end and
     # before a read
-    t_ref = ist[0]
-    t_read = ist[1]
-    dirty = ist[3]
-    whole = fst[0]
-    total = fst[4]
+    t_ref = g.t_ref
+    t_read = g.next_read
+    dirty = g.dirty
+    whole = g.whole
+    total = g.total
     t_w = t_ref - 1  # w_t = the weight of a vote at time t_w
     w_t = math.exp((t_w - t_ref) / tau_us)
     i = 0
@@ -378,195 +630,70 @@ def process(x, y, t, vx, vy, diffR, rowv, diffC, constC, bounds_r, bounds_c, mbu
         t_next = t[i] if i < n else t_end
         # reads due before this event (or before the end of the slice)
         while t_read < t_next or (i < n and t_read == t_next):
-            T = t_read
-            if dirty == 1:
-                fst[0] = whole
-                fst[4] = total
-                best, worst = refresh(diffR, rowv, diffC, constC, lo, hi, x0, fst, rst, mbuf,
-                                      refine_fraction)
-                ex, ey = read_estimate(mbuf, x0, y0, best, worst, refine_fraction, lo, hi,
-                                       rst[:, 0])
-                dirty = 0
-                if best > 0.0 and ex == ex:
-                    fst[1] = ex
-                    fst[2] = ey
-                    fst[3] = best
-                    ist[2] = 1
-            if ist[2] == 1:
-                scale = math.exp(-(T - t_ref) / tau_us)
-                sup = fst[3] * scale
-                if sup >= min_support and n_out < out.shape[0]:
-                    out[n_out].t = T
-                    out[n_out].x = fst[1]
-                    out[n_out].y = fst[2]
-                    out[n_out].support = sup
-                    out[n_out].total = total * scale
+            if _read(st, p, t_read, whole, total, dirty):
+                scale = math.exp(-(t_read - t_ref) / tau_us)
+                sup = g.est_max * scale
+                if sup >= p.min_support and n_out < out.shape[0]:
+                    _emit(out, n_out, t_read, g.est_x, g.est_y, sup, total * scale)
                     n_out += 1
-            t_read = T + period_us
+            dirty = 0
+            t_read = t_read + p.period_us
         if i >= n:
             break
         fvx = np.float64(vx[i])
         fvy = np.float64(vy[i])
         s2 = fvx * fvx + fvy * fvy
-        if s2 > 0.0 and s2 >= min_speed2:
-            px = float(x[i])
-            py = float(y[i])
-            ok = True
-            if gate_on and ist[2] == 1:
-                rx = px - fst[1]
-                ry = py - fst[2]
-                rn = math.sqrt(rx * rx + ry * ry)
-                if rn > 1.0:
-                    cg = (rx * fvx + ry * fvy) / (rn * math.sqrt(s2))
-                    ok = cg >= cos_gate
-            if ok:
-                ti = t[i]
-                if ti != t_w:  # most flow events share their time with the one before: same w
-                    e = (ti - t_ref) / tau_us
-                    if e > RENORM_EXPONENT:
-                        s = math.exp(-e)
-                        # element loops: array expressions here put refcount operations into
-                        # every iteration of the event loop (measured: 6x slower overall)
-                        for a in range(diffR.shape[0]):
-                            for b in range(diffR.shape[1]):
-                                diffR[a, b] *= s
-                        for a in range(constR.shape[0]):
-                            constR[a] *= s
-                        for a in range(diffC.shape[0]):
-                            for b in range(diffC.shape[1]):
-                                diffC[a, b] *= s
-                        for a in range(constC.shape[0]):
-                            constC[a] *= s
-                        whole *= s
-                        fst[3] *= s
-                        total *= s
-                        for a in range(rst.shape[0]):
-                            rst[a, 4] = 0.0
-                        for a in range(rowv.shape[1]):
-                            rowv[1, a] = 0.0
-                            rowv[2, a] = 0.0
-                        t_ref = ti
-                        e = 0.0
-                    w_t = math.exp(e)
-                    t_w = ti
-                w = w_t
-                if speed_w0 > 0.0:  # tight constraints (slow normal flow) weigh more
-                    w *= speed_w0 / (speed_w0 + math.sqrt(s2))
-                # vote: all of A (O(1)), none of it, or the rows (columns) the boundary crosses
-                # plus two caps. Written out here: calls passing many arrays per event cost
-                # refcount traffic that is slower than the work itself.
-                speed = math.sqrt(s2)
-                dn = (px * fvx + py * fvy) - (ccx * fvx + ccy * fvy)  # distance from c * speed
-                margin = rr * speed
-                if dn > margin:               # every cell of A in the half-plane
-                    whole += w
-                elif dn >= -margin:           # otherwise no cell of A is in the half-plane
-                    # the chord of the line {q : q.v = p.v} through the disc (c, rr): centre
-                    # c + dn v / |v|^2, half-extent sqrt(rr^2 |v|^2 - dn^2) / |v|^2 along it
-                    inv = 1.0 / s2
-                    disc = rr2 * s2 - dn * dn
-                    sq = math.sqrt(disc) * inv if disc > 0.0 else 0.0
-                    if abs(fvx) >= abs(fvy):
-                        ncol = clo.shape[0]
-                        rowv[2, 0] += w           # may reach every row
-                        rowv[2, lo.shape[0]] -= w
-                        xm = ccx + dn * fvx * inv
-                        hx = sq * abs(fvy)
-                        k0 = max(int(math.floor(xm - hx)) - x0, 0)
-                        k1 = min(int(math.ceil(xm + hx)) - x0, ncol - 1)
-                        if disc <= 0.0 or k0 > k1:
-                            k0 = ncol
-                            k1 = ncol - 1
-                        if fvy == 0.0:
-                            for c in range(k0, k1 + 1):
-                                if chi[c] >= clo[c] and (px - (x0 + c)) * fvx > 0.0:
-                                    diffC[clo[c] - y0, c] += w
-                        else:
-                            # vy > 0: +w to the columns' rows before the boundary (constC), -w
-                            # from it on; vy < 0: +w from it on. One path for both (selects,
-                            # not branches: the sign is random); adding 0.0 changes nothing
-                            sl = fvx / fvy
-                            cw = w if fvy > 0.0 else 0.0
-                            sw = -w if fvy > 0.0 else w
-                            if k1 >= k0:
-                                constC[k0] += cw
-                                constC[k1 + 1] -= cw
-                            for c in range(k0, k1 + 1):
-                                if chi[c] >= clo[c]:
-                                    k = _first(clo[c], chi[c], float(x0 + c), py, px, fvy, fvx, sl)
-                                    diffC[k - y0, c] += sw
-                        # the columns before and after: wholly on one side; test one cell each
-                        c = min(k0, ncol) - 1
-                        while c >= 0 and chi[c] < clo[c]:
-                            c -= 1
-                        cc = max(c, 0)
-                        cw = w if (c >= 0) & _cond(px, py, fvx, fvy, float(x0 + cc),
-                                                  float(clo[cc])) else 0.0
-                        constC[0] += cw
-                        constC[min(k0, ncol)] -= cw
-                        c = k1 + 1 if k1 >= k0 else ncol
-                        first = c
-                        while c < ncol and chi[c] < clo[c]:
-                            c += 1
-                        cc = min(c, ncol - 1)
-                        cw = w if (c < ncol) & _cond(px, py, fvx, fvy, float(x0 + cc),
-                                                    float(clo[cc])) else 0.0
-                        constC[first] += cw
-                        constC[ncol] -= cw
-                    else:
-                        nrow = lo.shape[0]
-                        ym = ccy + dn * fvy * inv
-                        hy = sq * abs(fvx)
-                        k0 = max(int(math.floor(ym - hy)) - y0, 0)
-                        k1 = min(int(math.ceil(ym + hy)) - y0, nrow - 1)
-                        if disc <= 0.0 or k0 > k1:
-                            k0 = nrow
-                            k1 = nrow - 1
-                        if k1 >= k0:                # the rows crossed
-                            rowv[2, k0] += w
-                            rowv[2, k1 + 1] -= w
-                        if fvx == 0.0:
-                            for r in range(k0, k1 + 1):
-                                if hi[r] >= lo[r] and (py - (y0 + r)) * fvy > 0.0:
-                                    diffR[r, lo[r] - x0] += w
-                        else:
-                            sl = fvy / fvx
-                            cw = w if fvx > 0.0 else 0.0
-                            sw = -w if fvx > 0.0 else w
-                            if k1 >= k0:
-                                constR[k0] += cw
-                                constR[k1 + 1] -= cw
-                            for r in range(k0, k1 + 1):
-                                if hi[r] >= lo[r]:
-                                    k = _first(lo[r], hi[r], float(y0 + r), px, py, fvx, fvy, sl)
-                                    diffR[r, k - x0] += sw
-                        r = min(k0, nrow) - 1
-                        while r >= 0 and hi[r] < lo[r]:
-                            r -= 1
-                        rc = max(r, 0)
-                        cw = w if (r >= 0) & _cond(px, py, fvx, fvy, float(lo[rc]),
-                                                  float(y0 + rc)) else 0.0
-                        constR[0] += cw
-                        constR[min(k0, nrow)] -= cw
-                        rowv[1, 0] += cw
-                        rowv[1, min(k0, nrow)] -= cw
-                        r = k1 + 1 if k1 >= k0 else nrow
-                        first = r
-                        while r < nrow and hi[r] < lo[r]:
-                            r += 1
-                        rc = min(r, nrow - 1)
-                        cw = w if (r < nrow) & _cond(px, py, fvx, fvy, float(lo[rc]),
-                                                    float(y0 + rc)) else 0.0
-                        constR[first] += cw
-                        constR[nrow] -= cw
-                        rowv[1, first] += cw
-                        rowv[1, nrow] -= cw
-                total += w
-                dirty = 1
+        px = float(x[i])
+        py = float(y[i])
+        if _accepted(px, py, fvx, fvy, s2, g, p):
+            ti = t[i]
+            if ti != t_w:  # most flow events share their time with the one before: same w
+                e = (ti - t_ref) / tau_us
+                if e > RENORM_EXPONENT:
+                    s = math.exp(-e)
+                    _renormalise(st, s)
+                    whole *= s
+                    total *= s
+                    t_ref = ti
+                    e = 0.0
+                w_t = math.exp(e)
+                t_w = ti
+            w = w_t
+            if p.speed_w0 > 0.0:  # tight constraints (slow normal flow) weigh more
+                w *= p.speed_w0 / (p.speed_w0 + math.sqrt(s2))
+            speed = math.sqrt(s2)
+            # distance of the boundary from A's centre c, times the speed
+            dn = (px * fvx + py * fvy) - (cx * fvx + cy * fvy)
+            margin = rr * speed
+            if dn > margin:               # every cell of A in the half-plane
+                whole += w
+            elif dn >= -margin:           # otherwise no cell of A is in the half-plane
+                # the chord of the line {q : q.v = p.v} through the disc (c, rr): centre
+                # c + dn v / |v|^2, half-extent sqrt(rr^2 |v|^2 - dn^2) / |v|^2 along it
+                inv = 1.0 / s2
+                disc = rr2 * s2 - dn * dn
+                sq = math.sqrt(disc) * inv if disc > 0.0 else 0.0
+                if abs(fvx) >= abs(fvy):
+                    _vote_columns(px, py, fvx, fvy, w, cx + dn * fvx * inv, sq * abs(fvy),
+                                  disc, diffC, constC, rowv, clo, chi, x0, y0)
+                else:
+                    _vote_rows(px, py, fvx, fvy, w, cy + dn * fvy * inv, sq * abs(fvx),
+                               disc, diffR, rowv, lo, hi, x0, y0)
+            total += w
+            dirty = 1
         i += 1
-    ist[0] = t_ref
-    ist[1] = t_read
-    ist[3] = dirty
-    fst[0] = whole
-    fst[4] = total
+    g.t_ref = t_ref
+    g.next_read = t_read
+    g.dirty = dirty
+    g.whole = whole
+    g.total = total
     return n_out
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _emit(out, n, T, x, y, support, total):  # one estimate
+    out[n].t = T
+    out[n].x = x
+    out[n].y = y
+    out[n].support = support
+    out[n].total = total

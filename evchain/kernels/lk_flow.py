@@ -1,6 +1,7 @@
 """Numba kernel of ``lk_flow``: event-based Lucas-Kanade (Benosman 2012, as in jAER).
 
-One pass over a packet's events in time order. State (kept by the filter between packets):
+One pass over a packet's events in time order (:func:`lk_flow_run`, constants in
+:class:`LKParams`). State (:class:`LKState`, kept by the filter between packets):
 
 * ``last`` int64 ``[2, H, W]``: per polarity (index 0 OFF, 1 ON) the newest timestamp of every
   pixel, :data:`EMPTY_T` where none; ``second`` the same for the timestamp before it (shape
@@ -12,7 +13,8 @@ One pass over a packet's events in time order. State (kept by the filter between
   would be shifted can never be counted again (events come in time order), nor can anything
   behind it, so the shift stops there: a walk stops at the first timestamp outside the window,
   and the slot it then reads still holds one that is older still;
-* ``speed_state`` float64 ``[2]``: running mean of speeds and a flag "mean initialised".
+* ``speed`` float64 ``[2]``: running mean of speeds and a flag "mean initialised"
+  (:data:`MEAN_SPEED`, :data:`MEAN_STARTED`).
 
 Gradient codes: 0 backward, 1 central (first order), 2 central2 (second order, 5 points),
 3 Savitzky-Golay (one linear plane fit per neighbourhood).
@@ -32,22 +34,65 @@ Two modes, see ``docs/explanation/lk_flow.md``:
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from numba import njit
+
+from evchain.kernels.fit import plane_fit_raw, sym2_det, sym2_eigenvalues, sym2_solve
 
 EMPTY_T = -(1 << 62)
 
 BACKWARD, CENTRAL, CENTRAL2, SAVITZKY_GOLAY = 0, 1, 2, 3
 
+#: entries of ``LKState.speed``: the running mean speed, and 1 once it is initialised
+MEAN_SPEED, MEAN_STARTED = 0, 1
 
-def new_state(height: int, width: int, depth: int):
-    """Fresh state arrays (last, second, fifo, speed_state) for ``depth`` timestamps per pixel
-    and polarity."""
+#: calibrated speed-adaptive window: estimates per event at most (the first with ``window_us``)
+MAX_PASSES = 3
+
+
+class LKParams(NamedTuple):
+    """Constants of :func:`lk_flow_run`; build with :func:`evchain.kernels.records.record`."""
+
+    r: int                   #: half-width of the (2r+1)^2 neighbourhood, px
+    window_us: int           #: age of the timestamps counted, µs
+    refractory_us: int       #: no flow this soon after the pixel's previous event, µs
+    gradient: int            #: BACKWARD, CENTRAL, CENTRAL2 or SAVITZKY_GOLAY
+    faithful: bool           #: jAER's LucasKanadeFlow (else calibrated)
+    eig_threshold: float     #: faithful: eigenvalue threshold
+    eig_ratio: float         #: calibrated: full flow when lambda2 >= eig_ratio lambda1
+    speed_control: bool      #: drop events faster than max_factor x the running mean speed
+    mix: float               #: mixing factor of the running mean speed
+    max_factor: float        #: speed control's factor
+    max_speed_pxs: float     #: calibrated: speed ceiling, px/s
+    refit_tolerance: float   #: calibrated: refit tolerance (0: off)
+    centre_check_px: float   #: calibrated: centre check limit, px (0: off)
+    max_window_us: int       #: calibrated: speed-adaptive window up to this, µs (off unless >
+    #: window_us)
+    slow_px: float           #: adaptive window: distance an edge must cross within it, px
+
+
+class LKState(NamedTuple):
+    """The memory of :func:`lk_flow_run` (see the module docstring), from :func:`new_state`."""
+
+    last: np.ndarray    #: int64 [2, H, W]: newest timestamp per polarity and pixel, µs
+    second: np.ndarray  #: int64 [2, H, W] (or [2, 0, 0]): the one before it
+    fifo: np.ndarray    #: int64 [2, H, W, depth - 2]: the older ones, newest first
+    speed: np.ndarray   #: float64 [2]: running mean speed; 1 once initialised
+
+
+def new_state(height: int, width: int, depth: int) -> LKState:
+    """Fresh memory for ``depth`` timestamps per pixel and polarity (all :data:`EMPTY_T`) and a
+    running mean speed not yet started."""
     last = np.full((2, height, width), EMPTY_T, np.int64)
     second = np.full((2, height, width) if depth > 1 else (2, 0, 0), EMPTY_T, np.int64)
     fifo = np.full((2, height, width, max(depth - 2, 0)), EMPTY_T, np.int64)
-    speed_state = np.zeros(2, np.float64)
-    return last, second, fifo, speed_state
+    speed = np.zeros(2, np.float64)
+    return LKState(last, second, fifo, speed)
+
+
+# -- calibrated mode: fits ---------------------------------------------------------------------
 
 
 @njit(cache=True)
@@ -125,6 +170,23 @@ def _calibrated_fd(LI, LJ, n_act, F, V, gradient, w_inv, eig_ratio, tol, GX, GY,
     return _solve_rows(GX, GY, keep, m, w_inv, eig_ratio)
 
 
+@njit(cache=True, inline="always")
+def _dominant_direction(sx2, sy2, sxy, lam1):
+    """Unit eigenvector of the structure tensor [[sx2, sxy], [sxy, sy2]] for its larger
+    eigenvalue ``lam1``."""
+    if sxy != 0.0:
+        ex = lam1 - sy2
+        ey = sxy
+    elif sx2 >= sy2:
+        ex = 1.0
+        ey = 0.0
+    else:
+        ex = 0.0
+        ey = 1.0
+    en = np.sqrt(ex * ex + ey * ey)
+    return ex / en, ey / en
+
+
 @njit(cache=True)
 def _solve_rows(GX, GY, keep, m, b, eig_ratio):
     """Least squares of rows (GX, GY) . v = b (kept rows): full solution when
@@ -145,72 +207,16 @@ def _solve_rows(GX, GY, keep, m, b, eig_ratio):
             sy += gy
     sxt = sx * b
     syt = sy * b
-    pp = sx2 + sy2
-    disc = np.sqrt((sx2 - sy2) * (sx2 - sy2) + 4.0 * sxy * sxy)
-    lam1 = 0.5 * (pp + disc)
-    lam2 = 0.5 * (pp - disc)
+    lam1, lam2 = sym2_eigenvalues(sx2, sxy, sy2)
     if not lam1 > 0.0:
         return 0.0, 0.0, False
     if lam2 > 0.0 and lam2 >= eig_ratio * lam1:
-        qq = sx2 * sy2 - sxy * sxy
-        return (sy2 * sxt - sxy * syt) / qq, (sx2 * syt - sxy * sxt) / qq, True
+        vx, vy = sym2_solve(sx2, sxy, sy2, sxt, syt, sym2_det(sx2, sxy, sy2))
+        return vx, vy, True
     # least squares restricted to the dominant eigenvector: normal flow
-    if sxy != 0.0:
-        ex = lam1 - sy2
-        ey = sxy
-    elif sx2 >= sy2:
-        ex = 1.0
-        ey = 0.0
-    else:
-        ex = 0.0
-        ey = 1.0
-    en = np.sqrt(ex * ex + ey * ey)
-    ex /= en
-    ey /= en
+    ex, ey = _dominant_direction(sx2, sy2, sxy, lam1)
     proj = (ex * sxt + ey * syt) / lam1
     return ex * proj, ey * proj, True
-
-
-@njit(cache=True)
-def _plane(U, W, FV, keep, m):
-    """Least-squares plane F = c + gx u + gy w over the kept points. Returns (c, gx, gy, ok)."""
-    s1 = 0.0
-    su = 0.0
-    sw = 0.0
-    suu = 0.0
-    sww = 0.0
-    suw = 0.0
-    sf = 0.0
-    suf = 0.0
-    swf = 0.0
-    for q in range(m):
-        if keep[q]:
-            u = U[q]
-            w = W[q]
-            f = FV[q]
-            s1 += 1.0
-            su += u
-            sw += w
-            suu += u * u
-            sww += w * w
-            suw += u * w
-            sf += f
-            suf += u * f
-            swf += w * f
-    if s1 < 3.0:
-        return 0.0, 0.0, 0.0, False
-    cuu = suu - su * su / s1
-    cww = sww - sw * sw / s1
-    cuw = suw - su * sw / s1
-    cuf = suf - su * sf / s1
-    cwf = swf - sw * sf / s1
-    det = cuu * cww - cuw * cuw
-    if det <= 1e-9 * (cuu * cww + 1e-300):
-        return 0.0, 0.0, 0.0, False  # collinear support: no plane
-    gx = (cww * cuf - cuw * cwf) / det
-    gy = (cuu * cwf - cuw * cuf) / det
-    c = (sf - gx * su - gy * sw) / s1
-    return c, gx, gy, True
 
 
 @njit(cache=True)
@@ -219,7 +225,7 @@ def _calibrated_sg(U, W, FV, keep, m, w_inv, tol):
     (``U``, ``W``: coordinates centred on the event, ``FV``: F; listed by the gather, ``keep``
     all True); normal flow (1 / W) g / |g|^2. With ``tol > 0`` pixels farther than ``tol`` px
     (along the normal) from the plane are dropped and the plane fitted again, once."""
-    c, gx, gy, ok = _plane(U, W, FV, keep, m)
+    c, gx, gy, ok = plane_fit_raw(U, W, FV, keep, m)
     if not ok:
         return 0.0, 0.0, False
     g2 = gx * gx + gy * gy
@@ -233,7 +239,7 @@ def _calibrated_sg(U, W, FV, keep, m, w_inv, tol):
                 keep[q] = False
                 dropped += 1
         if dropped:
-            c, gx, gy, ok = _plane(U, W, FV, keep, m)
+            c, gx, gy, ok = plane_fit_raw(U, W, FV, keep, m)
             if not ok:
                 return 0.0, 0.0, False
             g2 = gx * gx + gy * gy
@@ -268,18 +274,28 @@ def _centre_offset_points(U, W, FV, m, vx, vy, w_inv):
     return abs(fc - sc / n) / np.sqrt(gx * gx + gy * gy)
 
 
+# -- faithful mode -----------------------------------------------------------------------------
+
+
+@njit(cache=True, inline="always")
+def _count_slopes(N, S, R, sg_norm):
+    """jAER's Savitzky-Golay gradient: one slope pair for the whole window."""
+    gxs = 0.0
+    gys = 0.0
+    for j in range(S):
+        for i in range(S):
+            gxs += (i - R) * N[i, j]
+            gys += (j - R) * N[i, j]
+    return gxs / sg_norm, gys / sg_norm
+
+
 @njit(cache=True)
 def _faithful(N, d, S, R, gradient, stencil_norm, sg_norm, thr):
     """jAER's LucasKanadeFlow on the count image N. Returns (vx, vy)."""
     gxs = 0.0
     gys = 0.0
     if gradient == SAVITZKY_GOLAY:
-        for j in range(S):
-            for i in range(S):
-                gxs += (i - R) * N[i, j]
-                gys += (j - R) * N[i, j]
-        gxs /= sg_norm
-        gys /= sg_norm
+        gxs, gys = _count_slopes(N, S, R, sg_norm)
     sx2 = 0.0
     sy2 = 0.0
     sxy = 0.0
@@ -313,10 +329,7 @@ def _faithful(N, d, S, R, gradient, stencil_norm, sg_norm, thr):
                 gxc = gx
                 gyc = gy
                 ntc = nt
-    pp = sx2 + sy2
-    disc = np.sqrt((sx2 - sy2) * (sx2 - sy2) + 4.0 * sxy * sxy)
-    lam1 = 0.5 * (pp + disc)
-    lam2 = 0.5 * (pp - disc)
+    lam1, lam2 = sym2_eigenvalues(sx2, sxy, sy2)
     if lam1 < thr:
         return 0.0, 0.0
     if lam2 < thr:
@@ -324,8 +337,36 @@ def _faithful(N, d, S, R, gradient, stencil_norm, sg_norm, thr):
         if g2 > 0.0:
             return -gxc * ntc / g2, -gyc * ntc / g2
         return 0.0, 0.0
-    qq = sx2 * sy2 - sxy * sxy
-    return (sxy * syt - sy2 * sxt) / qq, (sxy * sxt - sx2 * syt) / qq
+    # jAER's sign: the solution of S v = -(sxt, syt)
+    return sym2_solve(sx2, sxy, sy2, -sxt, -syt, sym2_det(sx2, sxy, sy2))
+
+
+# -- the memory --------------------------------------------------------------------------------
+
+
+@njit(cache=True, inline="always")
+def _gather_counts(last, second, fifo, k, xe, ye, tmin, R, S, d, N):
+    """Faithful gather: ``N`` = the counts of timestamps >= ``tmin`` over the neighbourhood of
+    (xe, ye) including the stencil margin ``d`` (its corners are never read)."""
+    has2 = second.shape[1] > 0
+    deep = fifo.shape[3]
+    for j in range(S):
+        yy = ye - R + j
+        jm = j < d or j >= S - d
+        for i in range(S):
+            if jm and (i < d or i >= S - d):
+                continue  # corner of the stencil margin: never read
+            xx = xe - R + i
+            n = 0
+            if last[k, yy, xx] >= tmin:
+                n = 1
+            if n == 1 and has2 and second[k, yy, xx] >= tmin:
+                n = 2
+                for jj in range(deep):
+                    if fifo[k, yy, xx, jj] < tmin:
+                        break
+                    n += 1
+            N[i, j] = n
 
 
 @njit(cache=True, inline="always")
@@ -346,105 +387,193 @@ def _gather_calibrated(last, second, fifo, k, xe, ye, te, tmin, w_inv, R, S, d, 
             if jm and (i < d or i >= S - d):
                 continue  # corner of the stencil margin: never read
             xx = xe - R + i
-            ts = last[k, yy, xx]
-            if ts >= tmin:
-                oldest = ts
-                if has2:
-                    ts = second[k, yy, xx]
-                    if ts >= tmin:
-                        oldest = ts
-                        for jj in range(deep):
-                            ts = fifo[k, yy, xx, jj]
-                            if ts < tmin:
-                                break
-                            oldest = ts
-                fv = 1.0 - (te - oldest) * w_inv
-                F[i, j] = fv
-                V[i, j] = 1.0
-                if i >= d and i < S - d and not jm:
-                    LI[m_list] = i
-                    LJ[m_list] = j
-                    PU[m_list] = float(i - R)
-                    PW[m_list] = float(j - R)
-                    FV[m_list] = fv
-                    keep[m_list] = True
-                    m_list += 1
-            else:
+            oldest = last[k, yy, xx]
+            if oldest < tmin:
                 F[i, j] = 0.0
                 V[i, j] = 0.0
+                continue
+            if has2 and second[k, yy, xx] >= tmin:
+                oldest = second[k, yy, xx]
+                for jj in range(deep):
+                    ts = fifo[k, yy, xx, jj]
+                    if ts < tmin:
+                        break
+                    oldest = ts
+            fv = 1.0 - (te - oldest) * w_inv
+            F[i, j] = fv
+            V[i, j] = 1.0
+            if i >= d and i < S - d and not jm:
+                LI[m_list] = i
+                LJ[m_list] = j
+                PU[m_list] = float(i - R)
+                PW[m_list] = float(j - R)
+                FV[m_list] = fv
+                keep[m_list] = True
+                m_list += 1
     return m_list
+
+
+# -- one event ---------------------------------------------------------------------------------
 
 
 @njit(cache=True, inline="always")
 def _estimate_calibrated(last, second, fifo, k, xe, ye, te, window_us, w_inv, w_inv_s, R, S, d,
-                         gradient, min_active, eig_ratio, refit_tolerance, centre_check_px,
-                         max_speed_pxs, F, V, LI, LJ, PU, PW, FV, keep, GX, GY):
+                         min_active, prm, F, V, LI, LJ, PU, PW, FV, keep, GX, GY):
     """Calibrated flow of one event from the timestamps of age < ``window_us`` (``w_inv`` =
     1 / window_us, ``w_inv_s`` = 1e6 / window_us): gather, fit (Savitzky-Golay plane or finite
     differences), centre check, speed ceiling. Returns (vx, vy, ok); ok False when there is no
-    usable estimate."""
+    usable estimate. ``F`` .. ``GY``: the scratch arrays of :func:`lk_flow_run` (one by one: a
+    tuple of arrays, or a division here, would cost reference counts per event)."""
     m_list = _gather_calibrated(last, second, fifo, k, xe, ye, te, te - (window_us - 1), w_inv,
                                 R, S, d, F, V, LI, LJ, PU, PW, FV, keep)
     if m_list < min_active:
         return 0.0, 0.0, False
-    if gradient == SAVITZKY_GOLAY:
-        vx, vy, ok = _calibrated_sg(PU, PW, FV, keep, m_list, w_inv_s, refit_tolerance)
+    if prm.gradient == SAVITZKY_GOLAY:
+        vx, vy, ok = _calibrated_sg(PU, PW, FV, keep, m_list, w_inv_s, prm.refit_tolerance)
     else:
-        vx, vy, ok = _calibrated_fd(LI, LJ, m_list, F, V, gradient, w_inv_s, eig_ratio,
-                                    refit_tolerance, GX, GY, keep)
+        vx, vy, ok = _calibrated_fd(LI, LJ, m_list, F, V, prm.gradient, w_inv_s, prm.eig_ratio,
+                                    prm.refit_tolerance, GX, GY, keep)
     if not ok:
         return 0.0, 0.0, False
-    if centre_check_px > 0.0 and _centre_offset_points(
-            PU, PW, FV, m_list, vx, vy, w_inv_s) > centre_check_px:
+    if prm.centre_check_px > 0.0 and _centre_offset_points(
+            PU, PW, FV, m_list, vx, vy, w_inv_s) > prm.centre_check_px:
         return 0.0, 0.0, False
     v = np.sqrt(vx * vx + vy * vy)
-    if not np.isfinite(v) or v == 0.0 or v > max_speed_pxs:
+    if not np.isfinite(v) or v == 0.0 or v > prm.max_speed_pxs:
         return 0.0, 0.0, False
     return vx, vy, True
 
 
+@njit(cache=True, inline="always")
+def _next_window(ok, vx, vy, win, slow_us, max_window_us):
+    """Adaptive window: the window (µs) the estimate (vx, vy) from window ``win`` asks for,
+    min(max_window_us, slow_px / speed) (``max_window_us`` when not ``ok``); ``win`` itself
+    when the edge crosses slow_px within ``win`` (``slow_us`` = slow_px x 1e6)."""
+    if not ok:
+        return max_window_us
+    v = np.sqrt(vx * vx + vy * vy)
+    if v * win >= slow_us:
+        return win  # the edge crosses slow_px within the window: resolved
+    want = slow_us / v
+    return max_window_us if want >= max_window_us else np.int64(np.ceil(want))
+
+
 @njit(cache=True)
-def _reestimate(last, second, fifo, k, xe, ye, te, window_us, R, S, d, gradient, min_active,
-                eig_ratio, refit_tolerance, centre_check_px, max_speed_pxs, F, V, LI, LJ, PU, PW,
-                FV, keep, GX, GY):
+def _reestimate(last, second, fifo, k, xe, ye, te, window_us, R, S, d, min_active, prm, F, V,
+                LI, LJ, PU, PW, FV, keep, GX, GY):
     """:func:`_estimate_calibrated` with another window (not inlined: the main loop keeps one
     copy of the estimate, for speed)."""
     return _estimate_calibrated(last, second, fifo, k, xe, ye, te, window_us, 1.0 / window_us,
-                                1e6 / window_us, R, S, d, gradient, min_active, eig_ratio,
-                                refit_tolerance, centre_check_px, max_speed_pxs, F, V, LI, LJ,
-                                PU, PW, FV, keep, GX, GY)
+                                1e6 / window_us, R, S, d, min_active, prm, F, V, LI, LJ, PU, PW,
+                                FV, keep, GX, GY)
 
 
-#: calibrated speed-adaptive window: estimates per event at most (the first with ``window_us``)
-MAX_PASSES = 3
+@njit(cache=True, inline="always")
+def _faithful_speed(mean, vx, vy, prm):
+    """jAER's speed control: the running mean speed (from 0, mixing every computed speed) and
+    whether the flow is kept: not faster than ``max_factor`` x the mean, not zero, finite."""
+    v = np.sqrt(vx * vx + vy * vy)
+    ok = True
+    if prm.speed_control:
+        mean = (1.0 - prm.mix) * mean + prm.mix * v
+        ok = not v > mean * prm.max_factor
+    return mean, ok and not (v == 0.0 or not np.isfinite(v))
 
 
-@njit(cache=True)
-def lk_flow_run(x, y, t, p, last, second, fifo, speed_state, r, window_us, refractory_us, gradient,
-                faithful, eig_threshold, eig_ratio, speed_control, mix, max_factor,
-                max_speed_pxs, refit_tolerance, centre_check_px, max_window_us, slow_px,
-                out_idx, out_vx, out_vy):
-    """Process events in order; write flow of emitted events into ``out_*``; return their count.
+@njit(cache=True, inline="always")
+def _calibrated_speed(mean, started, vx, vy, prm):
+    """Calibrated speed control: the running mean speed starts at the first speed; returns
+    (mean, started, kept)."""
+    if not prm.speed_control:
+        return mean, started, True
+    v = np.sqrt(vx * vx + vy * vy)
+    if started == 0.0:
+        mean = v
+        started = 1.0
+    else:
+        mean = (1.0 - prm.mix) * mean + prm.mix * v
+    return mean, started, not v > mean * prm.max_factor
 
-    ``out_*`` must have room for ``len(t)`` entries. ``max_window_us`` > ``window_us``
-    (calibrated mode only; else ignored) turns on the speed-adaptive window: an event whose
-    estimate with ``window_us`` fails, or says that the edge crosses fewer than ``slow_px`` px
-    within the window, is estimated again with the window the estimate asks for,
-    min(``max_window_us``, ``slow_px`` / speed) (``max_window_us`` after a failure), at most
-    :data:`MAX_PASSES` estimates in all; an estimate from a longer window is kept only if it is
-    slow enough to need it (the edge crosses fewer than ``slow_px`` px within the previous
-    window), and the last such estimate is the event's flow.
-    """
-    _, height, width = last.shape
-    has2 = second.shape[1] > 0
-    deep = fifo.shape[3]
+
+@njit(cache=True, inline="always")
+def _memory_window(prm, adaptive):
+    """The oldest age (µs) the memory must keep countable."""
+    if prm.faithful:
+        return prm.window_us          # jAER keeps timestamps with age <= window
+    if adaptive:
+        return prm.max_window_us - 1  # the memory must hold the longest window
+    return prm.window_us - 1          # calibrated: age < window (weight > 0)
+
+
+@njit(cache=True, inline="always")
+def _stencil(gradient, r):
+    """(d, R, S): the stencil margin, the half-width R = r + d of the window read and its side
+    S = 2 R + 1."""
     d = 1
     if gradient == CENTRAL2:
         d = 2
     elif gradient == SAVITZKY_GOLAY:
         d = 0
-    R = r + d
-    S = 2 * R + 1
+    return d, r + d, 2 * (r + d) + 1
+
+
+@njit(cache=True, inline="always")
+def _stencil_norm(gradient, r):
+    """Faithful mode: the normalisation of the temporal term per gradient (jAER)."""
+    if gradient == CENTRAL:
+        return 2.0
+    if gradient == CENTRAL2:
+        return 12.0
+    if gradient == SAVITZKY_GOLAY:
+        return 1.0 / r
+    return 1.0
+
+
+@njit(cache=True)
+def lk_flow_run(x, y, t, p, state, prm, out_idx, out_vx, out_vy):
+    """Process events in order; write the flow of the emitted events into ``out_*``.
+
+    ``prm.max_window_us`` > ``prm.window_us`` (calibrated mode only; else ignored) turns on the
+    speed-adaptive window: an event whose estimate with ``window_us`` fails, or says that the
+    edge crosses fewer than ``slow_px`` px within the window, is estimated again with the window
+    the estimate asks for, min(``max_window_us``, ``slow_px`` / speed) (``max_window_us`` after a
+    failure), at most :data:`MAX_PASSES` estimates in all; an estimate from a longer window is
+    kept only if it is slow enough to need it (the edge crosses fewer than ``slow_px`` px within
+    the previous window), and the last such estimate is the event's flow.
+
+    Parameters
+    ----------
+    x, y : uint16 ndarray, shape (n,)
+        Pixel coordinates of the events, in time order.
+    t : int64 ndarray, shape (n,)
+        Timestamps, µs, non-decreasing (also across calls).
+    p : int8 ndarray, shape (n,)
+        Polarities (> 0: ON).
+    state : LKState
+        The memory (:func:`new_state`), updated in place.
+    prm : LKParams
+        The constants.
+    out_idx : int64 ndarray, shape (>= n,)
+        Out: indices of the emitted events.
+    out_vx, out_vy : float64 ndarray, shape (>= n,)
+        Out: their flow (calibrated: px/s; faithful: jAER's uncalibrated units).
+
+    Returns
+    -------
+    int
+        The number of emitted events (the filled length of ``out_*``).
+    """
+    last, second, fifo, speed = state
+    height = last.shape[1]
+    width = last.shape[2]
+    has2 = second.shape[1] > 0
+    deep = fifo.shape[3]
+    gradient = prm.gradient
+    d, R, S = _stencil(gradient, prm.r)
+    # scratch, allocated here (fresh allocations: the compiler knows they alias nothing) and
+    # passed one by one (a tuple of arrays costs reference counts per event): faithful counts
+    # N; calibrated onset image F and its validity V; the active pixels' indices LI, LJ,
+    # offsets PU, PW and F there FV; the fits' kept rows and finite differences GX, GY
     N = np.zeros((S, S), np.int64)
     F = np.zeros((S, S), np.float64)
     V = np.zeros((S, S), np.float64)
@@ -452,34 +581,25 @@ def lk_flow_run(x, y, t, p, last, second, fifo, speed_state, r, window_us, refra
     GY = np.zeros(S * S, np.float64)
     FV = np.zeros(S * S, np.float64)
     keep = np.zeros(S * S, np.bool_)
-    w_inv = 1.0 / window_us
-    w_inv_s = 1e6 / window_us
-    adaptive = not faithful and max_window_us > window_us
-    if faithful:
-        wlim = window_us          # jAER keeps timestamps with age <= window
-    elif adaptive:
-        wlim = max_window_us - 1  # the memory must hold the longest window
-    else:
-        wlim = window_us - 1      # calibrated: age < window (weight > 0)
-    slow_us = slow_px * 1e6       # px µs/s: speed x window below which the edge is too slow
-    # Savitzky-Golay (faithful): sum of i^2 over the full (2r+1)^2 window
-    sg_norm = (2 * r + 1) * r * (r + 1) * (2 * r + 1) / 3.0
-    stencil_norm = 1.0
-    if gradient == CENTRAL:
-        stencil_norm = 2.0
-    elif gradient == CENTRAL2:
-        stencil_norm = 12.0
-    elif gradient == SAVITZKY_GOLAY:
-        stencil_norm = 1.0 / r
-    # calibrated: fewest active pixels of the (2r+1)^2 neighbourhood that can give flow (two
-    # equations, three points for a plane; the centre check needs a neighbour besides the event)
-    min_active = 3 if gradient == SAVITZKY_GOLAY else 2
-    # calibrated: the gather lists the active pixels of the neighbourhood (in the order the
-    # fits and the centre check visit them, so their sums are unchanged); faithful: counts N
     LI = np.zeros(S * S, np.int64)
     LJ = np.zeros(S * S, np.int64)
     PU = np.zeros(S * S, np.float64)
     PW = np.zeros(S * S, np.float64)
+    adaptive = not prm.faithful and prm.max_window_us > prm.window_us
+    extra_passes = MAX_PASSES - 1 if adaptive else 0
+    wlim = _memory_window(prm, adaptive)
+    w_inv = 1.0 / prm.window_us
+    w_inv_s = 1e6 / prm.window_us
+    slow_us = prm.slow_px * 1e6  # px µs/s: speed x window below which the edge is too slow
+    r = prm.r
+    # Savitzky-Golay (faithful): sum of i^2 over the full (2r+1)^2 window
+    sg_norm = (2 * r + 1) * r * (r + 1) * (2 * r + 1) / 3.0
+    stencil_norm = _stencil_norm(gradient, r)
+    # calibrated: fewest active pixels of the (2r+1)^2 neighbourhood that can give flow (two
+    # equations, three points for a plane; the centre check needs a neighbour besides the event)
+    min_active = 3 if gradient == SAVITZKY_GOLAY else 2
+    mean = speed[MEAN_SPEED]
+    started = speed[MEAN_STARTED]
     n_out = 0
     for e in range(len(t)):
         xe = np.int64(x[e])
@@ -487,8 +607,10 @@ def lk_flow_run(x, y, t, p, last, second, fifo, speed_state, r, window_us, refra
         te = t[e]
         k = 1 if p[e] > 0 else 0
         inside = xe >= R and xe < width - R and ye >= R and ye < height - R
-        if faithful and not inside:
+        if prm.faithful and not inside:
             continue  # jAER: border events never reach the memory
+        # into the memory: the older timestamps shift back only while they can still be
+        # counted (age <= wlim); anything behind one outside the window never counts again
         prev = last[k, ye, xe]
         if has2 and prev >= te - wlim:  # prev can still be counted: shift it back
             p2 = second[k, ye, xe]
@@ -498,85 +620,36 @@ def lk_flow_run(x, y, t, p, last, second, fifo, speed_state, r, window_us, refra
                 fifo[k, ye, xe, 0] = p2
             second[k, ye, xe] = prev
         last[k, ye, xe] = te
-        if not inside:
+        if not inside or te - prev < prm.refractory_us:
             continue
-        if te - prev < refractory_us:
-            continue
-        if faithful:
-            # counts of the neighbourhood incl. the stencil margin
-            tmin = te - wlim
-            for j in range(S):
-                yy = ye - R + j
-                jm = j < d or j >= S - d
-                for i in range(S):
-                    if jm and (i < d or i >= S - d):
-                        continue  # corner of the stencil margin: never read
-                    xx = xe - R + i
-                    ts = last[k, yy, xx]
-                    n = 0
-                    if ts >= tmin:
-                        n = 1
-                        if has2:
-                            ts = second[k, yy, xx]
-                            if ts >= tmin:
-                                n = 2
-                                for jj in range(deep):
-                                    if fifo[k, yy, xx, jj] < tmin:
-                                        break
-                                    n += 1
-                    N[i, j] = n
-            vx, vy = _faithful(N, d, S, R, gradient, stencil_norm, sg_norm, eig_threshold)
-            v = np.sqrt(vx * vx + vy * vy)
-            if speed_control:
-                speed_state[0] = (1.0 - mix) * speed_state[0] + mix * v
-                if v > speed_state[0] * max_factor:
-                    continue
-            if v == 0.0 or not np.isfinite(v):
-                continue
+        if prm.faithful:
+            _gather_counts(last, second, fifo, k, xe, ye, te - wlim, R, S, d, N)
+            vx, vy = _faithful(N, d, S, R, gradient, stencil_norm, sg_norm, prm.eig_threshold)
+            mean, ok = _faithful_speed(mean, vx, vy, prm)
         else:
-            vx, vy, ok = _estimate_calibrated(
-                last, second, fifo, k, xe, ye, te, window_us, w_inv, w_inv_s, R, S, d,
-                gradient, min_active,
-                eig_ratio, refit_tolerance, centre_check_px, max_speed_pxs, F, V, LI, LJ, PU,
-                PW, FV, keep, GX, GY)
-            if adaptive:
-                win = window_us
-                for _ in range(MAX_PASSES - 1):
-                    if ok:
-                        v = np.sqrt(vx * vx + vy * vy)
-                        if v * win >= slow_us:
-                            break  # the edge crosses slow_px within the window: resolved
-                        want = slow_us / v
-                        nxt = max_window_us if want >= max_window_us else np.int64(
-                            np.ceil(want))
-                    else:
-                        nxt = max_window_us
-                    if nxt <= win:
-                        break
-                    wx, wy, wok = _reestimate(
-                        last, second, fifo, k, xe, ye, te, nxt, R, S, d, gradient, min_active,
-                        eig_ratio, refit_tolerance, centre_check_px, max_speed_pxs, F, V, LI,
-                        LJ, PU, PW, FV, keep, GX, GY)
-                    # kept only if slow enough to need the longer window
-                    if not wok or np.sqrt(wx * wx + wy * wy) * win >= slow_us:
-                        break
-                    vx = wx
-                    vy = wy
-                    ok = True
-                    win = nxt
-            if not ok:
-                continue
-            if speed_control:
-                v = np.sqrt(vx * vx + vy * vy)
-                if speed_state[1] == 0.0:
-                    speed_state[0] = v
-                    speed_state[1] = 1.0
-                else:
-                    speed_state[0] = (1.0 - mix) * speed_state[0] + mix * v
-                if v > speed_state[0] * max_factor:
-                    continue
-        out_idx[n_out] = e
-        out_vx[n_out] = vx
-        out_vy[n_out] = vy
-        n_out += 1
+            vx, vy, ok = _estimate_calibrated(last, second, fifo, k, xe, ye, te, prm.window_us,
+                                              w_inv, w_inv_s, R, S, d, min_active, prm, F, V,
+                                              LI, LJ, PU, PW, FV, keep, GX, GY)
+            # speed-adaptive window: again with the window the estimate asks for; a longer
+            # window's estimate is kept only if it is slow enough to need it
+            win = prm.window_us
+            for _ in range(extra_passes):
+                nxt = _next_window(ok, vx, vy, win, slow_us, prm.max_window_us)
+                if nxt <= win:
+                    break
+                wx, wy, wok = _reestimate(last, second, fifo, k, xe, ye, te, nxt, R, S, d,
+                                          min_active, prm, F, V, LI, LJ, PU, PW, FV, keep, GX,
+                                          GY)
+                if not wok or np.sqrt(wx * wx + wy * wy) * win >= slow_us:
+                    break
+                vx, vy, ok, win = wx, wy, True, nxt
+            if ok:
+                mean, started, ok = _calibrated_speed(mean, started, vx, vy, prm)
+        if ok:
+            out_idx[n_out] = e
+            out_vx[n_out] = vx
+            out_vy[n_out] = vy
+            n_out += 1
+    speed[MEAN_SPEED] = mean
+    speed[MEAN_STARTED] = started
     return n_out

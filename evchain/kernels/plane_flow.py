@@ -19,190 +19,81 @@ vx = -n_t / n_x, vy = -n_t / n_y, skipped when a component of the normal is exac
 Velocity everywhere except ``original``: v = g / |g|^2 with g = (dt/dx, dt/dy) in s/px.
 Speed ceiling: flow with |v| > ``max_speed_pxs`` is rejected (th3 stated in px/s).
 Singular or degenerate fits (collinear points, repeated eigenvalues, flat surfaces) are skipped:
-no NaN or inf is ever written.
+no NaN or inf is ever written. The covariance and the 2x2 solve are :mod:`evchain.kernels.fit`'s.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
+from evchain.kernels.fit import centred_moments, smallest_eigvec3, sym2_det, sym2_solve
+
 NO_EVENT = -(1 << 62)  # 'never fired': any age computed against it is huge, never overflows
-VARIANTS = {"single": 0, "iterative": 1, "robust": 2, "original": 3, "savitzky_golay": 4}
+SINGLE, ITERATIVE, ROBUST, ORIGINAL, SAVITZKY_GOLAY = range(5)
+VARIANTS = {"single": SINGLE, "iterative": ITERATIVE, "robust": ROBUST, "original": ORIGINAL,
+            "savitzky_golay": SAVITZKY_GOLAY}
 # 1 - corr(x, y)^2 below this: points (numerically) collinear -> no plane. For integer pixel
 # offsets a non-collinear set has at least 1 / (n^2 r^4) (~5e-6 for r = 3): well above.
 COLLINEAR_EPS = 1e-9
-# two smallest eigenvalues closer than this (relative to the largest): normal undefined.
-EIG_EPS = 1e-12
+
+
+class PlaneParams(NamedTuple):
+    """Constants of :func:`plane_flow_kernel`; built by ``records.record``."""
+
+    variant: int              #: fit method, a value of :data:`VARIANTS`
+    r: int                    #: half-width of the (2r+1)^2 neighbourhood, px
+    window_us: int            #: neighbours at most this old, µs
+    refractory_us: int        #: no flow this soon after the pixel's previous event, µs
+    margin: int               #: no flow this close to the border, px
+    min_points: int           #: fewest neighbours (the event included)
+    th1: float                #: iterative fits: stop when the parameters change less
+    th2: float                #: iterative fits' residual limit and centre check limit, s
+    max_speed: float          #: drop faster flow, px/s
+    max_iter: int             #: iterative fits: refits at most
+    min_spread: float         #: neighbours' least spread across their principal axis, px
+    centre_check: bool        #: drop a plane farther than th2 from the event itself
+    max_window_us: int        #: speed-adaptive window up to this, µs (off when <= window_us)
+    slow_px: float            #: adaptive window: the edge must move this far within it, px
+    refit_failed: bool        #: adaptive window: also refit when the first fit fails
+    refractory_updates: bool  #: a refractory event still updates the surface (jAER)
 
 
 def new_state(width: int, height: int) -> np.ndarray:
-    """The surface of active events, all pixels empty."""
+    """The surface of active events, all pixels empty.
+
+    Returns
+    -------
+    ts : int64 ndarray, shape (2, height, width)
+        Latest timestamp (µs) per polarity (0 OFF, 1 ON) and pixel, :data:`NO_EVENT` for none.
+    """
     return np.full((2, height, width), NO_EVENT, np.int64)
 
 
 @njit(cache=True)
 def fit_explicit(X, Y, T, use, n):
     """Least squares t = a x + b y + c over points with ``use``; (ok, a, b, c)."""
-    m = 0
-    sx = 0.0
-    sy = 0.0
-    st = 0.0
-    for i in range(n):
-        if use[i]:
-            m += 1
-            sx += X[i]
-            sy += Y[i]
-            st += T[i]
+    m, mx, my, mt, cxx, cyy, _, cxy, cxt, cyt = centred_moments(X, Y, T, use, n)
     if m < 3:
         return False, 0.0, 0.0, 0.0
-    mx = sx / m
-    my = sy / m
-    mt = st / m
-    cxx = 0.0
-    cyy = 0.0
-    cxy = 0.0
-    cxt = 0.0
-    cyt = 0.0
-    for i in range(n):
-        if use[i]:
-            dx = X[i] - mx
-            dy = Y[i] - my
-            dt = T[i] - mt
-            cxx += dx * dx
-            cyy += dy * dy
-            cxy += dx * dy
-            cxt += dx * dt
-            cyt += dy * dt
-    det = cxx * cyy - cxy * cxy
+    det = sym2_det(cxx, cxy, cyy)
     if cxx <= 0.0 or cyy <= 0.0 or det <= COLLINEAR_EPS * cxx * cyy:
         return False, 0.0, 0.0, 0.0
-    a = (cyy * cxt - cxy * cyt) / det
-    b = (cxx * cyt - cxy * cxt) / det
+    a, b = sym2_solve(cxx, cxy, cyy, cxt, cyt, det)
     c = mt - a * mx - b * my
     return True, a, b, c
 
 
 @njit(cache=True)
-def smallest_eigvec3(a00, a01, a02, a11, a12, a22):
-    """Unit eigenvector of the smallest eigenvalue of a symmetric 3x3 matrix (cyclic Jacobi).
-
-    Jacobi rotations give eigenvalues to about eps * |A| absolutely, so a small eigenvalue stays
-    separable from its neighbour even when one eigenvalue dominates (a closed-form cubic solver
-    loses ~sqrt(eps) there). Returns (ok, v0, v1, v2) with v2 >= 0; not ok when the smallest
-    eigenvalue is (numerically) repeated.
-    """
-    A = np.empty((3, 3))
-    A[0, 0] = a00
-    A[0, 1] = a01
-    A[0, 2] = a02
-    A[1, 0] = a01
-    A[1, 1] = a11
-    A[1, 2] = a12
-    A[2, 0] = a02
-    A[2, 1] = a12
-    A[2, 2] = a22
-    V = np.eye(3)
-    scale = a00 * a00 + a11 * a11 + a22 * a22 + 2.0 * (a01 * a01 + a02 * a02 + a12 * a12)
-    if scale <= 0.0:
-        return False, 0.0, 0.0, 0.0
-    for _ in range(30):
-        off = A[0, 1] * A[0, 1] + A[0, 2] * A[0, 2] + A[1, 2] * A[1, 2]
-        if off <= 1e-34 * scale:
-            break
-        for p in range(2):
-            for q in range(p + 1, 3):
-                apq = A[p, q]
-                if apq == 0.0:
-                    continue
-                theta = (A[q, q] - A[p, p]) / (2.0 * apq)
-                tt = 1.0 / (abs(theta) + math.sqrt(theta * theta + 1.0))
-                if theta < 0.0:
-                    tt = -tt
-                c = 1.0 / math.sqrt(tt * tt + 1.0)
-                s = tt * c
-                for k in range(3):  # A <- A J (columns p, q)
-                    akp = A[k, p]
-                    akq = A[k, q]
-                    A[k, p] = c * akp - s * akq
-                    A[k, q] = s * akp + c * akq
-                for k in range(3):  # A <- J^T A (rows p, q)
-                    apk = A[p, k]
-                    aqk = A[q, k]
-                    A[p, k] = c * apk - s * aqk
-                    A[q, k] = s * apk + c * aqk
-                for k in range(3):
-                    vkp = V[k, p]
-                    vkq = V[k, q]
-                    V[k, p] = c * vkp - s * vkq
-                    V[k, q] = s * vkp + c * vkq
-    e0 = A[0, 0]
-    e1 = A[1, 1]
-    e2 = A[2, 2]
-    j = 0
-    if e1 < e0 and e1 <= e2:
-        j = 1
-    elif e2 < e0 and e2 < e1:
-        j = 2
-    lo = A[j, j]
-    nxt = np.inf
-    big = -np.inf
-    for k in range(3):
-        if k != j:
-            nxt = min(nxt, A[k, k])
-        big = max(big, abs(A[k, k]))
-    if nxt - lo <= EIG_EPS * big:
-        return False, 0.0, 0.0, 0.0
-    v0 = V[0, j]
-    v1 = V[1, j]
-    v2 = V[2, j]
-    nn = math.sqrt(v0 * v0 + v1 * v1 + v2 * v2)
-    v0 /= nn
-    v1 /= nn
-    v2 /= nn
-    if v2 < 0.0:  # sign convention: normal with n_t >= 0
-        v0, v1, v2 = -v0, -v1, -v2
-    return True, v0, v1, v2
-
-
-@njit(cache=True)
 def fit_homogeneous(X, Y, T, use, n):
     """Total least squares plane nx x + ny y + nt t = d; (ok, nx, ny, nt, d), |n| = 1."""
-    m = 0
-    sx = 0.0
-    sy = 0.0
-    st = 0.0
-    for i in range(n):
-        if use[i]:
-            m += 1
-            sx += X[i]
-            sy += Y[i]
-            st += T[i]
+    m, mx, my, mt, cxx, cyy, ctt, cxy, cxt, cyt = centred_moments(X, Y, T, use, n)
     if m < 3:
         return False, 0.0, 0.0, 0.0, 0.0
-    mx = sx / m
-    my = sy / m
-    mt = st / m
-    cxx = 0.0
-    cyy = 0.0
-    ctt = 0.0
-    cxy = 0.0
-    cxt = 0.0
-    cyt = 0.0
-    for i in range(n):
-        if use[i]:
-            dx = X[i] - mx
-            dy = Y[i] - my
-            dt = T[i] - mt
-            cxx += dx * dx
-            cyy += dy * dy
-            ctt += dt * dt
-            cxy += dx * dy
-            cxt += dx * dt
-            cyt += dy * dt
-    det = cxx * cyy - cxy * cxy
+    det = sym2_det(cxx, cxy, cyy)
     if cxx <= 0.0 or cyy <= 0.0 or det <= COLLINEAR_EPS * cxx * cyy:
         return False, 0.0, 0.0, 0.0, 0.0  # collinear in x-y: the plane may contain the t axis
     ok, nx, ny, nt = smallest_eigvec3(cxx, cxy, cxt, cyy, cyt, ctt)
@@ -313,6 +204,17 @@ SG_TABLE_MAX_SIZE = 7
 SG_SCALE = 60.0
 
 
+@njit(cache=True, inline="always")
+def _pair_coefficient(m, b, size):
+    """coef[m, b] of :func:`sg_tables` for a valid b."""
+    acc = 0.0
+    for a in range(size):
+        if a != b and (m >> a) & 1:
+            w = SG_SCALE / abs(b - a)
+            acc += w if a < b else -w
+    return acc
+
+
 @njit(cache=True)
 def sg_tables(size):
     """Per-line tables of the mean pairwise slope for every validity mask of a line of ``size``.
@@ -329,12 +231,7 @@ def sg_tables(size):
         for b in range(size):
             if (m >> b) & 1:
                 c += 1
-                acc = 0.0
-                for a in range(size):
-                    if a != b and (m >> a) & 1:
-                        w = SG_SCALE / abs(b - a)
-                        acc += w if a < b else -w
-                coef[m, b] = acc
+                coef[m, b] = _pair_coefficient(m, b, size)
         pairs[m] = c * (c - 1) // 2
     return coef, pairs
 
@@ -370,17 +267,250 @@ MAX_REFITS = 4
 
 
 @njit(cache=True, inline="always")
-def event_loop(x, y, t, p, ts, variant, r, window_us, refractory_us, margin, min_points, th1,
-               th2, max_speed, max_iter, min_spread, centre_check, out_idx, out_vx, out_vy,
-               max_window_us, slow_px, refit_failed, refractory_updates, adaptive):
-    """The loop of :func:`plane_flow_kernel`; the speed-adaptive window's refits with
-    ``adaptive``. Inlined into each kernel with ``adaptive`` a constant, so that the fixed
-    window's loop compiles without the refits. The fit is written out in the loop, not called:
-    a (numba-inlined) function taking the work arrays costs their reference counts per event,
-    a large share of the fixed window's time."""
+def _mask_counts(n_masks, size, r):
+    """Per validity mask of a line of ``size`` pixels: its number of valid pixels and the sum of
+    their offsets from the centre (int64[n_masks] each). Inlined: allocated in the loop's
+    function, the compiler knows the tables alias nothing (returned by a call, the loop was
+    slower)."""
+    popcount = np.zeros(n_masks, np.int64)
+    bitsum = np.zeros(n_masks, np.int64)
+    for m in range(n_masks):
+        for b in range(size):
+            if (m >> b) & 1:
+                popcount[m] += 1
+                bitsum[m] += b - r
+    return popcount, bitsum
+
+
+@njit(cache=True, inline="always")
+def _gets_flow(xi, yi, width, height, margin, r, variant):
+    """Outside the border margin (and, for Savitzky-Golay, with the whole stencil inside)."""
+    if xi < margin or yi < margin or xi >= width - margin or yi >= height - margin:
+        return False
+    full = xi >= r and yi >= r and xi + r < width and yi + r < height
+    return variant != SAVITZKY_GOLAY or full  # SG needs the whole stencil (border_px < r)
+
+
+@njit(cache=True, inline="always")
+def _next_window(ok, gx, gy, w, window_us, max_window_us, refit_failed, k_us):
+    """Adaptive window: the window to refit with after a fit with window ``w`` (µs) gave
+    gradient (gx, gy) (s/px; ``ok`` False: no fit); ``w`` itself when there is no refit."""
+    if ok:
+        want = k_us * math.sqrt(gx * gx + gy * gy)
+        if want <= w:
+            return w  # the edge moved at least slow_px within the window
+        return max_window_us if want >= max_window_us else np.int64(want)
+    if refit_failed and w == window_us:
+        return max_window_us
+    return w
+
+
+@njit(cache=True, inline="always")
+def _mask_moments(rowmask, size, r, spread2):
+    """Sums of dx dx, dy dy, dx dy over the valid pixels of the row masks (0 unless
+    ``spread2`` > 0: only the spread test needs them)."""
+    sxx = 0
+    syy = 0
+    sxy = 0
+    if not spread2 > 0.0:
+        return sxx, syy, sxy
+    for kk in range(size * size):
+        if (rowmask[kk // size] >> (kk % size)) & 1:
+            dx = kk % size - r
+            dy = kk // size - r
+            sxx += dx * dx
+            syy += dy * dy
+            sxy += dx * dy
+    return sxx, syy, sxy
+
+
+@njit(cache=True, inline="always")
+def _window_moments(wv, size, r, spread2):
+    """Sums of dx dx, dy dy, dx dy over the valid pixels of the window's validity ``wv`` (0
+    unless ``spread2`` > 0)."""
+    sxx = 0
+    syy = 0
+    sxy = 0
+    if not spread2 > 0.0:
+        return sxx, syy, sxy
+    for kk in range(size * size):
+        if wv[kk] > 0.0:
+            dx = kk % size - r
+            dy = kk // size - r
+            sxx += dx * dx
+            syy += dy * dy
+            sxy += dx * dy
+    return sxx, syy, sxy
+
+
+@njit(cache=True, inline="always")
+def _gather_masks(ts, pi, xi, yi, ti, w, r, wt, rowmask, colmask, popcount, bitsum, spread2):
+    """Savitzky-Golay with the mask tables: the window's times ``wt`` (µs before the event) and
+    validity masks per row and column. Returns (n, st, sx, sy, sxx, syy, sxy): the number of
+    valid pixels, the sum of their times (µs, <= 0) and of their offsets and (only with
+    ``spread2``) products of offsets."""
+    size = 2 * r + 1
+    n = 0
+    st = 0.0
+    sx = 0
+    sy = 0
+    for dy in range(-r, r + 1):
+        row = ts[pi, yi + dy]
+        k0 = (dy + r) * size + r
+        rm = 0
+        for dx in range(-r, r + 1):
+            age = ti - row[xi + dx]
+            # invalid times stay in wt: the tables give them weight 0
+            wt[k0 + dx] = -age
+            valid = np.int64(age <= w)  # branch-free: validity is unpredictable
+            st -= age * valid
+            rm |= valid << (dx + r)
+        rowmask[dy + r] = rm
+        n += popcount[rm]
+        sx += bitsum[rm]
+        sy += dy * popcount[rm]
+    for c in range(size):
+        cm = 0
+        for line in range(size):
+            cm |= ((rowmask[line] >> c) & 1) << line
+        colmask[c] = cm
+    sxx, syy, sxy = _mask_moments(rowmask, size, r, spread2)
+    return n, st, sx, sy, sxx, syy, sxy
+
+
+@njit(cache=True, inline="always")
+def _gather_window(ts, pi, xi, yi, ti, w, r, wt, wv, spread2):
+    """Savitzky-Golay on a window too wide for the tables: its times ``wt`` (µs before the
+    event, 0 where invalid) and validity ``wv``; returns as :func:`_gather_masks`."""
+    size = 2 * r + 1
+    n = 0
+    st = 0.0
+    sx = 0
+    sy = 0
+    for dy in range(-r, r + 1):
+        row = ts[pi, yi + dy]
+        k0 = (dy + r) * size + r
+        for dx in range(-r, r + 1):
+            age = ti - row[xi + dx]
+            valid = 1 if age <= w else 0
+            wv[k0 + dx] = valid
+            wt[k0 + dx] = -age * valid
+            st -= age * valid
+            n += valid
+            sx += dx * valid
+            sy += dy * valid
+    sxx, syy, sxy = _window_moments(wv, size, r, spread2)
+    return n, st, sx, sy, sxx, syy, sxy
+
+
+@njit(cache=True, inline="always")
+def _gather_points(ts, pi, xi, yi, ti, w, r, X, Y, T, use):
+    """The valid neighbours as points (the event itself included; branch-free): the first n
+    entries of ``X``, ``Y`` (px), ``T`` (s, <= 0). Returns as :func:`_gather_masks` (st 0)."""
     height = ts.shape[1]
     width = ts.shape[2]
+    n = 0
+    sx = 0
+    sy = 0
+    sxx = 0
+    syy = 0
+    sxy = 0
+    for dy in range(-r, r + 1):
+        yy = yi + dy
+        if yy < 0 or yy >= height:
+            continue
+        row = ts[pi, yy]
+        for dx in range(-r, r + 1):
+            xx = xi + dx
+            if xx < 0 or xx >= width:
+                continue
+            age = ti - row[xx]
+            valid = 1 if age <= w else 0
+            X[n] = dx
+            Y[n] = dy
+            T[n] = -age * 1e-6
+            use[n] = True
+            n += valid
+            sx += dx * valid
+            sy += dy * valid
+            sxx += dx * dx * valid
+            syy += dy * dy * valid
+            sxy += dx * dy * valid
+    return n, 0.0, sx, sy, sxx, syy, sxy
+
+
+@njit(cache=True, inline="always")
+def _least_spread(n, sx, sy, sxx, syy, sxy):
+    """Smallest eigenvalue of the points' position covariance (px^2)."""
+    cxx = (sxx - sx * sx / n) / n
+    cyy = (syy - sy * sy / n) / n
+    cxy = (sxy - sx * sy / n) / n
+    half = 0.5 * (cxx + cyy)
+    return half - math.sqrt(max(0.25 * (cxx - cyy) ** 2 + cxy * cxy, 0.0))
+
+
+@njit(cache=True, inline="always")
+def _centre_ok(fit_ok, c, lim, centre_check):
+    """A fit is kept when it succeeded and, with the centre check, its plane passes within
+    ``lim`` (s) of the event (``c``: the plane's time at the event, s)."""
+    return fit_ok and not (centre_check and abs(c) > lim)
+
+
+@njit(cache=True, inline="always")
+def _normal_gradient(fit_ok, nx, ny, nt, d, lim, centre_check, original):
+    """(ok, gx, gy) from a homogeneous plane n . (x, y, t) = d: the gradient -(nx, ny) / nt
+    (s/px), or with ``original`` jAER's velocity -nt / (nx, ny) (px/s)."""
+    if not fit_ok or nt <= 0.0 or (centre_check and abs(d) > lim):
+        return False, 0.0, 0.0
+    if original:
+        if nx == 0.0 or ny == 0.0:
+            return False, 0.0, 0.0
+        return True, -nt / nx, -nt / ny
+    return True, -nx / nt, -ny / nt
+
+
+@njit(cache=True, inline="always")
+def _velocity(variant, gx, gy, max_speed, g_min2):
+    """Flow (ok, vx, vy) in px/s from the gradient (s/px): v = g / |g|^2 (``original``: g is the
+    velocity); not ok above the speed ceiling or for a flat plane."""
+    if variant == ORIGINAL:
+        if gx * gx + gy * gy > max_speed * max_speed:
+            return False, 0.0, 0.0
+        return True, gx, gy
+    g2 = gx * gx + gy * gy
+    if g2 < g_min2 or g2 == 0.0:
+        return False, 0.0, 0.0
+    return True, gx / g2, gy / g2
+
+
+#: how a fit gathers its window: Savitzky-Golay with the mask tables, Savitzky-Golay on a wide
+#: window, or the valid neighbours as points (the other variants)
+MASKS, WINDOW, POINTS = range(3)
+
+
+@njit(cache=True)
+def _gather_mode(variant, r):
+    """The gather of a variant and search distance (:data:`MASKS`, :data:`WINDOW` or
+    :data:`POINTS`)."""
+    if variant != SAVITZKY_GOLAY:
+        return POINTS
+    return MASKS if 2 * r + 1 <= SG_TABLE_MAX_SIZE else WINDOW
+
+
+@njit(cache=True, inline="always")
+def event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, adaptive, gather):
+    """The loop of :func:`plane_flow_kernel`: the speed-adaptive window's refits with
+    ``adaptive``, the fits' gather ``gather`` (:func:`_gather_mode`). Inlined into the kernels
+    with both constant, so that each copy of the loop compiles only its own gather and fits
+    (and the fixed window's copies no refits): a loop choosing among inlined gathers per event
+    kept their work arrays' reference counts in the loop; called gathers cost a call per fit."""
+    height = ts.shape[1]
+    width = ts.shape[2]
+    variant = prm.variant
+    r = prm.r
     size = 2 * r + 1
+    # scratch (allocated here: the compiler then knows they alias nothing): the points X, Y
+    # (px), T (s) and their flags; the window's times (µs) and validity; its masks per line
     cap = size * size
     X = np.empty(cap, np.float64)
     Y = np.empty(cap, np.float64)
@@ -390,22 +520,11 @@ def event_loop(x, y, t, p, ts, variant, r, window_us, refractory_us, margin, min
     wv = np.empty(cap, np.float64)
     rowmask = np.zeros(size, np.int64)
     colmask = np.zeros(size, np.int64)
-    tabulated = variant == 4 and size <= SG_TABLE_MAX_SIZE
-    if tabulated:
-        coef, pairs = sg_tables(size)
-    else:
-        coef, pairs = sg_tables(1)
-    # per line mask: number of valid pixels and the sum of their offsets from the centre
-    popcount = np.zeros(coef.shape[0], np.int64)
-    bitsum = np.zeros(coef.shape[0], np.int64)
-    for m in range(coef.shape[0]):
-        for b in range(size):
-            if (m >> b) & 1:
-                popcount[m] += 1
-                bitsum[m] += b - r
-    g_min2 = 1.0 / (max_speed * max_speed)
-    spread2 = min_spread * min_spread
-    k_us = slow_px * 1e6  # W (µs) = k_us |g| (s/px): the window in which the edge moves k px
+    coef, pairs = sg_tables(size if gather == MASKS else 1)
+    popcount, bitsum = _mask_counts(coef.shape[0], size, r)
+    g_min2 = 1.0 / (prm.max_speed * prm.max_speed)
+    spread2 = prm.min_spread * prm.min_spread
+    k_us = prm.slow_px * 1e6  # W (µs) = k_us |g| (s/px): the window in which the edge moves k px
     fits = MAX_REFITS + 1 if adaptive else 1
     n_out = 0
     for i in range(len(x)):
@@ -414,205 +533,87 @@ def event_loop(x, y, t, p, ts, variant, r, window_us, refractory_us, margin, min
         ti = t[i]
         pi = 1 if p[i] > 0 else 0
         prev = ts[pi, yi, xi]
-        if prev != NO_EVENT and ti - prev < refractory_us:
-            if refractory_updates:
-                ts[pi, yi, xi] = ti
+        refractory = prev != NO_EVENT and ti - prev < prm.refractory_us
+        if not refractory or prm.refractory_updates:
+            ts[pi, yi, xi] = ti
+        if refractory or not _gets_flow(xi, yi, width, height, prm.margin, r, variant):
             continue
-        ts[pi, yi, xi] = ti
-        if xi < margin or yi < margin or xi >= width - margin or yi >= height - margin:
-            continue
-        full = xi >= r and yi >= r and xi + r < width and yi + r < height
-        if variant == 4 and not full:
-            continue  # SG needs the whole stencil (border_px < r)
         # fits with window w (µs) and residual / centre check limit lim (s); a failed fit
         # continues with the next, whose start decides whether to refit
-        w = window_us
-        lim = th2
-        ok = False
-        gx = 0.0
-        gy = 0.0
+        w, lim, ok, gx, gy = prm.window_us, prm.th2, False, 0.0, 0.0
         for k in range(fits):
             if k > 0:  # adaptive: refit when the last fit asks for a longer window
-                if ok:
-                    want = k_us * math.sqrt(gx * gx + gy * gy)
-                    if want <= w:
-                        break  # the edge moved at least slow_px within the window
-                    w_new = max_window_us if want >= max_window_us else np.int64(want)
-                elif refit_failed and w == window_us:
-                    w_new = max_window_us
-                else:
-                    break
+                w_new = _next_window(ok, gx, gy, w, prm.window_us, prm.max_window_us,
+                                     prm.refit_failed, k_us)
                 if w_new <= w:
                     break
                 w = w_new
-                lim = th2 * w / window_us
-            ok = False
-            n = 0
-            st = 0.0
-            sx = 0
-            sy = 0
-            sxx = 0
-            syy = 0
-            sxy = 0
-            if tabulated:  # SG: the window's times and validity masks per row and column
-                for dy in range(-r, r + 1):
-                    row = ts[pi, yi + dy]
-                    k0 = (dy + r) * size + r
-                    rm = 0
-                    for dx in range(-r, r + 1):
-                        age = ti - row[xi + dx]
-                        # invalid times stay in wt: the tables give them weight 0
-                        wt[k0 + dx] = -age
-                        valid = np.int64(age <= w)  # branch-free: validity is unpredictable
-                        st -= age * valid
-                        rm |= valid << (dx + r)
-                    rowmask[dy + r] = rm
-                    n += popcount[rm]
-                    sx += bitsum[rm]
-                    sy += dy * popcount[rm]
-                for c in range(size):
-                    cm = 0
-                    for line in range(size):
-                        cm |= ((rowmask[line] >> c) & 1) << line
-                    colmask[c] = cm
-                if spread2 > 0.0:
-                    for kk in range(cap):
-                        if (rowmask[kk // size] >> (kk % size)) & 1:
-                            dx = kk % size - r
-                            dy = kk // size - r
-                            sxx += dx * dx
-                            syy += dy * dy
-                            sxy += dx * dy
-            elif variant == 4:  # SG, wide window: only the window's times and validity
-                for dy in range(-r, r + 1):
-                    row = ts[pi, yi + dy]
-                    k0 = (dy + r) * size + r
-                    for dx in range(-r, r + 1):
-                        age = ti - row[xi + dx]
-                        valid = 1 if age <= w else 0
-                        wv[k0 + dx] = valid
-                        wt[k0 + dx] = -age * valid
-                        st -= age * valid
-                        n += valid
-                        sx += dx * valid
-                        sy += dy * valid
-                if spread2 > 0.0:
-                    for kk in range(cap):
-                        if wv[kk] > 0.0:
-                            dx = kk % size - r
-                            dy = kk // size - r
-                            sxx += dx * dx
-                            syy += dy * dy
-                            sxy += dx * dy
-            else:  # the valid neighbours as points (the event itself included), branch-free
-                for dy in range(-r, r + 1):
-                    yy = yi + dy
-                    if yy < 0 or yy >= height:
-                        continue
-                    row = ts[pi, yy]
-                    for dx in range(-r, r + 1):
-                        xx = xi + dx
-                        if xx < 0 or xx >= width:
-                            continue
-                        age = ti - row[xx]
-                        valid = 1 if age <= w else 0
-                        X[n] = dx
-                        Y[n] = dy
-                        T[n] = -age * 1e-6
-                        use[n] = True
-                        n += valid
-                        sx += dx * valid
-                        sy += dy * valid
-                        sxx += dx * dx * valid
-                        syy += dy * dy * valid
-                        sxy += dx * dy * valid
-            if n < min_points or n < 3:
-                continue
-            if spread2 > 0.0:
-                cxx = (sxx - sx * sx / n) / n
-                cyy = (syy - sy * sy / n) / n
-                cxy = (sxy - sx * sy / n) / n
-                half = 0.5 * (cxx + cyy)
-                lam = half - math.sqrt(max(0.25 * (cxx - cyy) ** 2 + cxy * cxy, 0.0))
-                if lam < spread2:
-                    continue
-            # (gx, gy): the gradient (dt/dx, dt/dy) in s/px; for original its velocity
-            if variant == 4:
-                if tabulated:
-                    fit_ok, gx, gy = sg_gradient_masks(wt, rowmask, colmask, size, coef, pairs)
-                else:
-                    fit_ok, gx, gy = sg_gradient(wt, wv, size)
-                if not fit_ok:
-                    continue
-                # the plane with these slopes through the points' centroid, at the event
-                c = (st * 1e-6 - gx * sx - gy * sy) / n
-                if centre_check and abs(c) > lim:
-                    continue
-            elif variant == 0:
-                fit_ok, gx, gy, c = fit_explicit(X, Y, T, use, n)
-                if not fit_ok or (centre_check and abs(c) > lim):
-                    continue
-            elif variant == 1:
-                fit_ok, gx, gy, c = iterate_explicit(X, Y, T, use, n, th1, lim, max_iter)
-                if not fit_ok or (centre_check and abs(c) > lim):
-                    continue
+                lim = prm.th2 * w / prm.window_us
+            if gather == MASKS:
+                n, st, sx, sy, sxx, syy, sxy = _gather_masks(ts, pi, xi, yi, ti, w, r, wt,
+                                                             rowmask, colmask, popcount,
+                                                             bitsum, spread2)
+            elif gather == WINDOW:
+                n, st, sx, sy, sxx, syy, sxy = _gather_window(ts, pi, xi, yi, ti, w, r, wt, wv,
+                                                              spread2)
             else:
-                fit_ok, nx, ny, nt, d = iterate_homogeneous(X, Y, T, use, n, th1, lim,
-                                                            max_iter)
-                if not fit_ok or nt <= 0.0 or (centre_check and abs(d) > lim):
-                    continue
-                if variant == 3:
-                    if nx == 0.0 or ny == 0.0:
-                        continue
-                    gx = -nt / nx
-                    gy = -nt / ny
-                else:
-                    gx = -nx / nt
-                    gy = -ny / nt
-            ok = True
+                n, st, sx, sy, sxx, syy, sxy = _gather_points(ts, pi, xi, yi, ti, w, r, X, Y, T,
+                                                              use)
+            ok = False
+            if n < prm.min_points or n < 3:
+                continue
+            if spread2 > 0.0 and _least_spread(n, sx, sy, sxx, syy, sxy) < spread2:
+                continue
+            # (gx, gy): the gradient (dt/dx, dt/dy) in s/px; for original its velocity
+            if gather == MASKS:
+                ok, gx, gy = sg_gradient_masks(wt, rowmask, colmask, size, coef, pairs)
+            elif gather == WINDOW:
+                ok, gx, gy = sg_gradient(wt, wv, size)
+            elif variant == SINGLE:
+                fit_ok, gx, gy, c = fit_explicit(X, Y, T, use, n)
+                ok = _centre_ok(fit_ok, c, lim, prm.centre_check)
+            elif variant == ITERATIVE:
+                fit_ok, gx, gy, c = iterate_explicit(X, Y, T, use, n, prm.th1, lim, prm.max_iter)
+                ok = _centre_ok(fit_ok, c, lim, prm.centre_check)
+            else:
+                fit_ok, nx, ny, nt, d = iterate_homogeneous(X, Y, T, use, n, prm.th1, lim,
+                                                            prm.max_iter)
+                ok, gx, gy = _normal_gradient(fit_ok, nx, ny, nt, d, lim, prm.centre_check,
+                                              variant == ORIGINAL)
+            if gather != POINTS and ok and prm.centre_check:
+                # the plane with these slopes through the points' centroid, at the event
+                ok = not abs((st * 1e-6 - gx * sx - gy * sy) / n) > lim
         if not ok:
             continue
-        if variant == 3:
-            if gx * gx + gy * gy > max_speed * max_speed:
-                continue
+        ok, vx, vy = _velocity(variant, gx, gy, prm.max_speed, g_min2)
+        if ok:
             out_idx[n_out] = i
-            out_vx[n_out] = gx
-            out_vy[n_out] = gy
+            out_vx[n_out] = vx
+            out_vy[n_out] = vy
             n_out += 1
-            continue
-        g2 = gx * gx + gy * gy
-        if g2 < g_min2 or g2 == 0.0:
-            continue
-        out_idx[n_out] = i
-        out_vx[n_out] = gx / g2
-        out_vy[n_out] = gy / g2
-        n_out += 1
     return n_out
 
 
 @njit(cache=True)
-def plane_flow_adaptive_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, margin,
-                               min_points, th1, th2, max_speed, max_iter, min_spread,
-                               centre_check, out_idx, out_vx, out_vy, max_window_us, slow_px,
-                               refit_failed, refractory_updates):
-    """:func:`plane_flow_kernel` with the speed-adaptive window (the loop with the refits)."""
-    return event_loop(x, y, t, p, ts, variant, r, window_us, refractory_us, margin, min_points,
-                      th1, th2, max_speed, max_iter, min_spread, centre_check, out_idx, out_vx,
-                      out_vy, max_window_us, slow_px, refit_failed, refractory_updates, True)
+def plane_flow_adaptive_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy):
+    """:func:`plane_flow_kernel` with the speed-adaptive window (the loop with the refits); the
+    same arguments and result."""
+    gather = _gather_mode(prm.variant, prm.r)
+    if gather == MASKS:
+        return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, True, MASKS)
+    if gather == WINDOW:
+        return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, True, WINDOW)
+    return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, True, POINTS)
 
 
 @njit(cache=True)
-def plane_flow_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, margin,
-                      min_points, th1, th2, max_speed, max_iter, min_spread, centre_check,
-                      out_idx, out_vx, out_vy, max_window_us=0, slow_px=2.0,
-                      refit_failed=True, refractory_updates=True):
+def plane_flow_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy):
     """Process events in order, updating ``ts`` in place; returns the number of flow events.
 
-    ``min_spread`` (px): the neighbours' positions must spread at least this much (standard
-    deviation) across their principal direction, 0 = off (jAER). ``centre_check``: drop the
+    ``prm.min_spread`` (px): the neighbours' positions must spread at least this much (standard
+    deviation) across their principal direction, 0 = off (jAER). ``prm.centre_check``: drop the
     estimate when the event itself lies farther than ``th2`` (s) from the final plane (the plane
-    then describes other, older structure). ``out_idx`` (int64),
-    ``out_vx``, ``out_vy`` (float64) need room for ``len(x)`` entries.
+    then describes other, older structure).
 
     Speed-adaptive window (on when ``max_window_us > window_us``; not for ``original``): when
     the fit with ``window_us`` says the edge moved less than ``slow_px`` px within the window
@@ -626,13 +627,34 @@ def plane_flow_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us, marg
     ``refractory_updates`` (jAER: true): an event within ``refractory_us`` still updates the
     surface; false: it is dropped entirely (the thesis's description), so the surface holds the
     onset of each pixel's burst and the refractory period counts from the last onset.
+
+    Parameters
+    ----------
+    x, y : uint16 ndarray, shape (n,)
+        Pixel coordinates of the events, in time order.
+    t : int64 ndarray, shape (n,)
+        Timestamps, µs, non-decreasing.
+    p : int8 ndarray, shape (n,)
+        Polarities (> 0: ON).
+    ts : int64 ndarray, shape (2, H, W)
+        The surface of active events (:func:`new_state`), updated in place.
+    prm : PlaneParams
+        The constants.
+    out_idx : int64 ndarray, shape (>= n,)
+        Out: indices of the events with flow.
+    out_vx, out_vy : float64 ndarray, shape (>= n,)
+        Out: their flow, px/s.
+
+    Returns
+    -------
+    int
+        The number of events with flow (the filled length of ``out_*``).
     """
-    if max_window_us > window_us and variant != 3:
-        return plane_flow_adaptive_kernel(x, y, t, p, ts, variant, r, window_us, refractory_us,
-                                          margin, min_points, th1, th2, max_speed, max_iter,
-                                          min_spread, centre_check, out_idx, out_vx, out_vy,
-                                          max_window_us, slow_px, refit_failed,
-                                          refractory_updates)
-    return event_loop(x, y, t, p, ts, variant, r, window_us, refractory_us, margin, min_points,
-                      th1, th2, max_speed, max_iter, min_spread, centre_check, out_idx, out_vx,
-                      out_vy, max_window_us, slow_px, refit_failed, refractory_updates, False)
+    if prm.max_window_us > prm.window_us and prm.variant != ORIGINAL:
+        return plane_flow_adaptive_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy)
+    gather = _gather_mode(prm.variant, prm.r)
+    if gather == MASKS:
+        return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, False, MASKS)
+    if gather == WINDOW:
+        return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, False, WINDOW)
+    return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, False, POINTS)

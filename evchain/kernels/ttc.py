@@ -1,57 +1,146 @@
 """Numba kernels of ``ttc``: per-event time to contact in region B, clustering, per-cluster fusion.
 
-Cluster state ``C[k, :]`` (float64) has the columns below; ``I[k, :]`` (int64) holds id, active
-flag, number of stored samples and ring position. Each cluster keeps a ring of its recent samples
-``(t_us, tau_s)`` in ``ST[k]``, ``SV[k]``. ``G`` (float64) holds the carried state: ``[0]`` 1 when
-an FOE is known, ``[1]`` foe x, ``[2]`` foe y, ``[3]`` next tick (µs), ``[4]`` next cluster id,
-``[5]`` the ground constant K (s px), ``[6]`` the number of votes for K, ``[7]`` the id of the
-last selected cluster (-1: none), ``[8]`` the reference time of the votes' weights (µs).
+State (:class:`TtcState`, from :func:`new_state`): the clusters (a structured array of
+:data:`CLUSTER_STATE`: id, active flag, ring fill and position, square, activity, fused tau and
+its variance, ground ratio), each with a ring of its recent samples (time, tau, tau * dy); the
+carried scalars (a one-record array of :data:`CARRY`: the FOE, the next tick, the next cluster
+id, the ground constant and its votes, the last selected cluster); each pixel's last flow-event
+time (for the baseline tau); the ground histogram. Constants: :class:`TtcParams`.
 
 Ground plane: for a road point at ``dy = y - y_foe`` rows below the FOE, seen by a level camera
 at height h moving at speed V, ``tau * dy = f h / V =: K`` (the same for all road points). An
 obstacle point at height hp above the road has ``tau * dy = K (1 - hp / h) < K``: it is nearer
 than the road at its row. K is estimated from the events themselves: the mode of ``tau * dy``
-over region-B events (a fading histogram ``H`` of its log, see ``ground_vote``,
-``ground_mode``; events joining a cluster already known to be off the road are left out);
-each cluster keeps ``tau * dy`` of its samples in ``SK[k]`` and its
-ratio ``rho = median(tau * dy) / K`` in ``C[k, RHO]``.
+over region-B events (a fading histogram of its log, see ``ground_vote``, ``ground_mode``;
+events joining a cluster already known to be off the road are left out); each cluster keeps
+``tau * dy`` of its samples and its ratio ``rho = median(tau * dy) / K``.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
 
-CX, CY, SIZE, ACT, TLAST, TAU, VAR, HAS, MISS, TTAU, RHO = range(11)
-NCOL = 11
-ID, ACTIVE, NS, POS = range(4)
+#: one cluster: identity and ring bookkeeping (int64), then its square (centre, half-size px),
+#: decayed activity (events) at ``t_last`` (µs), fused tau (s) with variance (s^2) at ``t_tau``
+#: (µs), ``has_tau`` 1 once it has one, consecutive gated ``misses``, ground ratio ``rho``
+CLUSTER_STATE = np.dtype([("id", "i8"), ("active", "i8"), ("n_samples", "i8"), ("ring_pos", "i8"),
+                          ("cx", "f8"), ("cy", "f8"), ("size", "f8"), ("activity", "f8"),
+                          ("t_last", "f8"), ("tau", "f8"), ("var", "f8"), ("has_tau", "f8"),
+                          ("misses", "f8"), ("t_tau", "f8"), ("rho", "f8")])
+#: carried from packet to packet: ``has_foe`` 1 once an FOE is known, at (``foe_x``,
+#: ``foe_y``); the next tick (µs) and cluster id; the ground constant K (s px), the number of
+#: votes for it and their weights' reference time (µs); the id of the last selected cluster (-1:
+#: none)
+CARRY = np.dtype([("has_foe", "f8"), ("foe_x", "f8"), ("foe_y", "f8"), ("next_tick", "f8"),
+                  ("next_id", "f8"), ("k_ground", "f8"), ("n_votes", "f8"), ("held_id", "f8"),
+                  ("votes_t_ref", "f8")])
+
+KG_LN_MIN = math.log(0.01)  # ground histogram: bins of ln(tau * dy) from 0.01 s px
+KG_BIN = 0.02               # bin width in ln (2 %)
+KG_BINS = 1024              # up to 0.01 e^20.48 ~ 8e6 s px
+#: a time after every FOE entry (µs)
+_FOREVER = np.iinfo(np.int64).max
+
+
+class TtcParams(NamedTuple):
+    """Constants of :func:`process`; build with :func:`evchain.kernels.records.record`."""
+
+    period_us: int              #: ticks at multiples of this, µs
+    select_nearest: bool        #: obstacle: the cluster nearest the FOE (else the most active)
+    select_min_activity: float  #: nearest: activity a cluster needs to be selected
+    half_width: float           #: region B: largest |x - x_foe|, px
+    min_below: float            #: region B: y - y_foe at least this, px
+    min_dist: float             #: region B: distance from the FOE at least this, px
+    min_speed: float            #: flow speed range, px/s
+    max_speed: float
+    min_tau: float              #: per-event tau range, s
+    max_tau: float
+    init_size: float            #: half-size of a new cluster, px
+    max_size: float             #: largest half-size, px
+    join_margin: float          #: events this far outside a square still join it, px
+    act_tau_us: float           #: decay of the activity, µs
+    min_activity: float         #: clusters below this activity are removed
+    max_age_us: float           #: samples older than this are not used, µs
+    min_samples: int            #: samples a cluster estimate needs
+    rel_floor: float            #: measurement noise floor (fraction of tau)
+    q_s2_per_s: float           #: process noise of tau, s^2/s
+    gate: float                 #: Kalman gate, sigma
+    ground_test: bool           #: only clusters off the road plane can be the obstacle
+    ground_tol: float           #: relative band around K that counts as road
+    ground_memory_us: float     #: the ground votes' memory, µs
+    ground_min_events: float    #: votes K needs before the ground test applies
+    ground_fallback: bool       #: none off the road: select among all
+    corridor: float             #: driving corridor half-width in camera heights (0: off)
+    hold: bool                  #: keep the previous obstacle while it qualifies
+    base_px: int                #: baseline tau over up to this many px (0: from the flow)
+    base_age_us: float          #: longest baseline, µs
+
+
+class TtcState(NamedTuple):
+    """The state of :func:`process` (:func:`new_state`); updated in place."""
+
+    clusters: np.ndarray     #: CLUSTER_STATE [max_clusters]
+    samples_t: np.ndarray    #: float64 [max_clusters, ring]: sample times, µs
+    samples_tau: np.ndarray  #: float64 [max_clusters, ring]: sample tau, s
+    samples_kg: np.ndarray   #: float64 [max_clusters, ring]: sample tau * dy, s px
+    carry: np.ndarray        #: CARRY [1]
+    last_t: np.ndarray       #: float64 [2, H, W] (or [2, 0, 0]): last flow-event time, µs
+    ground_hist: np.ndarray  #: float64 [KG_BINS]: the ground votes
+
+
+def new_state(max_clusters: int, ring: int, height: int, width: int,
+              baseline: bool) -> TtcState:
+    """Empty state: no cluster, no FOE, no votes, the first tick still to be set
+    (:func:`start`); each pixel's last flow-event time only with ``baseline``."""
+    carry = np.zeros(1, CARRY)
+    carry["held_id"] = -1.0
+    return TtcState(np.zeros(max_clusters, CLUSTER_STATE), np.zeros((max_clusters, ring)),
+                    np.zeros((max_clusters, ring)), np.zeros((max_clusters, ring)), carry,
+                    np.full((2, height, width) if baseline else (2, 0, 0), -1e300),
+                    np.zeros(KG_BINS))
+
+
+def start(state: TtcState, first_tick_us: int) -> None:
+    """Set the first tick (µs)."""
+    state.carry["next_tick"] = float(first_tick_us)
+
+
+def next_tick(state: TtcState) -> int:
+    """The next tick, µs."""
+    return int(state.carry["next_tick"][0])
+
+
+def ground_constant(state: TtcState) -> float:
+    """The last estimate of the ground constant K, s px (0 before one)."""
+    return float(state.carry["k_ground"][0])
 
 
 @njit(cache=True)
-def event_tau(px, py, vx, vy, fx, fy, half_width, min_below, min_dist, min_speed, max_speed,
-              min_tau, max_tau):
+def event_tau(px, py, vx, vy, fx, fy, prm):
     """tau = (p - foe).v / |v|^2 for a flow event in region B, or -1 when it does not qualify.
 
     Region B: below the FOE by at least ``min_below`` px, ``|x - fx| <= half_width``, at least
     ``min_dist`` px from the FOE, diverging, speed in [min_speed, max_speed], tau in
-    [min_tau, max_tau].
+    [min_tau, max_tau] (the fields of ``prm``).
     """
     rx = px - fx
     ry = py - fy
-    if ry < min_below or abs(rx) > half_width:
+    if ry < prm.min_below or abs(rx) > prm.half_width:
         return -1.0
-    if rx * rx + ry * ry < min_dist * min_dist:
+    if rx * rx + ry * ry < prm.min_dist * prm.min_dist:
         return -1.0
     s2 = vx * vx + vy * vy
-    if not (s2 > 0.0) or s2 < min_speed * min_speed or s2 > max_speed * max_speed:
+    if not (s2 > 0.0) or s2 < prm.min_speed * prm.min_speed or s2 > prm.max_speed * prm.max_speed:
         return -1.0
     d = rx * vx + ry * vy
     if not (d > 0.0):
         return -1.0
     tau = d / s2
-    if tau < min_tau or tau > max_tau:
+    if tau < prm.min_tau or tau > prm.max_tau:
         return -1.0
     return tau
 
@@ -92,32 +181,27 @@ def baseline_tau(S, pol, px, py, nx, ny, d0, ti, max_px, max_age_us):
     return tau
 
 
-KG_LN_MIN = math.log(0.01)  # ground histogram: bins of ln(tau * dy) from 0.01 s px
-KG_BIN = 0.02               # bin width in ln (2 %)
-KG_BINS = 1024              # up to 0.01 e^20.48 ~ 8e6 s px
-
-
 @njit(cache=True)
-def ground_vote(H, G, kg, t_us, memory_us):
+def ground_vote(H, carry, kg, t_us, memory_us):
     """Add kg = tau * dy > 0 of an event at ``t_us`` to the ground histogram ``H`` (bins of
-    ln kg), weighted ``exp((t_us - G[8]) / memory_us)`` (older votes fade with that memory);
-    ``G[6]`` counts the votes, ``G[8]`` is the weights' reference time (the first vote's, moved
-    on with a rescale before the weights overflow)."""
+    ln kg), weighted ``exp((t_us - votes_t_ref) / memory_us)`` (older votes fade with that
+    memory); ``carry[0]`` counts the votes in ``n_votes`` and keeps the weights' reference time
+    ``votes_t_ref`` (the first vote's, moved on with a rescale before the weights overflow)."""
     if not (kg > 0.0):
         return
     b = int(math.floor((math.log(kg) - KG_LN_MIN) / KG_BIN))
     if b < 0 or b >= H.shape[0]:
         return
-    if G[6] == 0.0:
-        G[8] = t_us
-    w = math.exp((t_us - G[8]) / memory_us)
+    if carry[0].n_votes == 0.0:
+        carry[0].votes_t_ref = t_us
+    w = math.exp((t_us - carry[0].votes_t_ref) / memory_us)
     if w > 1e100:
         for j in range(H.shape[0]):
             H[j] /= w
-        G[8] = t_us
+        carry[0].votes_t_ref = t_us
         w = 1.0
     H[b] += w
-    G[6] += 1.0
+    carry[0].n_votes += 1.0
 
 
 @njit(cache=True)
@@ -143,272 +227,405 @@ def ground_mode(H, half_bins):
     return math.exp(KG_LN_MIN + KG_BIN * m / tot)
 
 
+# -- per tick: the clusters' estimates and the obstacle -----------------------------------------
+
+
 @njit(cache=True)
 def _median_sorted(vals, n):
     return vals[n // 2] if n % 2 == 1 else 0.5 * (vals[n // 2 - 1] + vals[n // 2])
 
 
 @njit(cache=True)
-def _cluster_estimate(C, I, ST, SV, SK, k, T, max_age_us, min_samples, rel_floor, q_s2_per_s,
-                      gate, k_ground, buf):
-    """Update cluster k's fused tau at tick time T from its recent samples (median, MAD), and
-    its ground ratio rho (median of tau * dy over K; left as it is while K is unknown)."""
+def _median_mad(buf, n):
+    """Median and median absolute deviation of ``buf[:n]``."""
+    vals = np.sort(buf[:n])
+    med = _median_sorted(vals, n)
+    for j in range(n):
+        vals[j] = abs(vals[j] - med)
+    vals = np.sort(vals)
+    return med, _median_sorted(vals, n)
+
+
+@njit(cache=True)
+def _recent_kg(ST, SK, k, nb, T, max_age_us, buf):
+    """tau * dy of cluster k's samples at most ``max_age_us`` old at T into ``buf``; their
+    number."""
     n = 0
-    nb = I[k, NS]
     for j in range(nb):
         age = T - ST[k, j]
         if age <= max_age_us:
             buf[n] = SK[k, j]
             n += 1
-    if n >= min_samples and k_ground > 0.0:
-        C[k, RHO] = _median_sorted(np.sort(buf[:n]), n) / k_ground
+    return n
+
+
+@njit(cache=True)
+def _recent_tau(ST, SV, k, nb, T, max_age_us, buf):
+    """Cluster k's samples at most ``max_age_us`` old at T, each moved forward to T at
+    -1 s/s, into ``buf``; their number."""
     n = 0
     for j in range(nb):
         age = T - ST[k, j]
         if age <= max_age_us:
             buf[n] = SV[k, j] - age * 1e-6
             n += 1
-    has = C[k, HAS] > 0.0
-    if has:  # predict: tau falls 1 s per s
-        dt = (T - C[k, TTAU]) * 1e-6
-        C[k, TAU] -= dt
-        C[k, VAR] += q_s2_per_s * dt
-        C[k, TTAU] = T
-    if n < min_samples:
-        return
-    vals = np.sort(buf[:n])
-    med = _median_sorted(vals, n)
-    for j in range(n):
-        vals[j] = abs(vals[j] - med)
-    vals = np.sort(vals)
-    mad = _median_sorted(vals, n)
-    sigma = 1.4826 * mad / math.sqrt(n) + rel_floor * abs(med)
-    r = sigma * sigma + 1e-12
-    if not has:
-        C[k, TAU] = med
-        C[k, VAR] = r
-        C[k, HAS] = 1.0
-        C[k, TTAU] = T
-        C[k, MISS] = 0.0
-        return
-    innov = med - C[k, TAU]
-    s = C[k, VAR] + r
-    if innov * innov > gate * gate * s:
-        C[k, MISS] += 1.0
-        if C[k, MISS] >= 3.0:  # the measurements insist: restart from them
-            C[k, TAU] = med
-            C[k, VAR] = r
-            C[k, MISS] = 0.0
-        return
-    C[k, MISS] = 0.0
-    gain = C[k, VAR] / s
-    C[k, TAU] += gain * innov
-    C[k, VAR] = (1.0 - gain) * C[k, VAR]
+    return n
 
 
 @njit(cache=True)
-def process(x, y, t, pol, vx, vy, ft, fx, fy, C, I, ST, SV, SK, G, S, H, t_end, period_us,
-            select_nearest, select_min_activity,
-            half_width, min_below, min_dist, min_speed, max_speed, min_tau, max_tau,
-            init_size, max_size, join_margin, act_tau_us, min_activity,
-            max_age_us, min_samples, rel_floor, q_s2_per_s, gate,
-            ground_test, ground_tol, ground_memory_us, ground_min_events, ground_fallback,
-            corridor, hold, base_px, base_age_us,
-            o_t, o_tau, o_id, o_x, o_y, o_sup, c_t, c_id, c_x, c_y, c_size, c_tau, c_sup,
-            c_rho):
-    """Process one packet; returns (number of obstacle rows, number of cluster rows).
+def _fuse(c, med, r, T, gate):
+    """Fuse the measurement ``med`` (variance ``r``) into the cluster's predicted tau: the first
+    one starts it; a gated-out one counts a miss (three in a row restart from the
+    measurement); else a 1-D Kalman update."""
+    if not c.has_tau > 0.0:
+        c.tau = med
+        c.var = r
+        c.has_tau = 1.0
+        c.t_tau = T
+        c.misses = 0.0
+        return
+    innov = med - c.tau
+    s = c.var + r
+    if innov * innov > gate * gate * s:
+        c.misses += 1.0
+        if c.misses >= 3.0:  # the measurements insist: restart from them
+            c.tau = med
+            c.var = r
+            c.misses = 0.0
+        return
+    c.misses = 0.0
+    gain = c.var / s
+    c.tau += gain * innov
+    c.var = (1.0 - gain) * c.var
+
+
+@njit(cache=True)
+def _cluster_estimate(cl, k, ST, SV, SK, T, k_ground, buf, prm):
+    """Update cluster k's fused tau at tick time T from its recent samples (median, MAD), and
+    its ground ratio rho (median of tau * dy over K; left as it is while K is unknown)."""
+    c = cl[k]
+    nb = c.n_samples
+    n = _recent_kg(ST, SK, k, nb, T, prm.max_age_us, buf)
+    if n >= prm.min_samples and k_ground > 0.0:
+        c.rho = _median_sorted(np.sort(buf[:n]), n) / k_ground
+    n = _recent_tau(ST, SV, k, nb, T, prm.max_age_us, buf)
+    if c.has_tau > 0.0:  # predict: tau falls 1 s per s
+        dt = (T - c.t_tau) * 1e-6
+        c.tau -= dt
+        c.var += prm.q_s2_per_s * dt
+        c.t_tau = T
+    if n < prm.min_samples:
+        return
+    med, mad = _median_mad(buf, n)
+    sigma = 1.4826 * mad / math.sqrt(n) + prm.rel_floor * abs(med)
+    _fuse(c, med, sigma * sigma + 1e-12, T, prm.gate)
+
+
+@njit(cache=True)
+def _candidate(c, a, g, prm, use_ground):
+    """Whether a reported cluster (activity ``a``) can be the obstacle: (considered, d, off_road).
+    Considered: active enough (nearest selection) and reaching into the driving corridor (the
+    lateral gap between its square and the FOE at most ``corridor`` times the depth of its
+    lower edge below the FOE). d: the distance of its square's nearest point from the FOE
+    (nearest selection; else 0). off_road: not ruled out by the ground test (rho < 1 -
+    ground_tol, or the test not in use)."""
+    if prm.select_nearest and a < prm.select_min_activity:
+        return False, 0.0, False
+    if prm.corridor > 0.0:
+        gap = max(0.0, abs(c.cx - g.foe_x) - c.size)
+        if gap > prm.corridor * (c.cy + c.size - g.foe_y):
+            return False, 0.0, False  # beside the driving corridor
+    d = 0.0
+    if prm.select_nearest:
+        ddx = max(0.0, abs(c.cx - g.foe_x) - c.size)
+        ddy = max(0.0, abs(c.cy - g.foe_y) - c.size)
+        d = math.sqrt(ddx * ddx + ddy * ddy)
+    return True, d, not (use_ground and not (c.rho < 1.0 - prm.ground_tol))
+
+
+@njit(cache=True, inline="always")
+def _better(d, a, best_d, best_a):
+    """Nearer, or as near and more active."""
+    return d < best_d or (d == best_d and a > best_a)
+
+
+@njit(cache=True)
+def _emit_cluster(out, n, T, c, a, k_ground):
+    """Row n of the ``ttc_clusters`` output: the cluster at tick T with activity ``a``."""
+    out[n].t = T
+    out[n].cluster = c.id
+    out[n].x = c.cx
+    out[n].y = c.cy
+    out[n].size_px = c.size
+    out[n].tau_s = c.tau
+    out[n].support = a
+    rho = c.rho
+    out[n].ground_ratio = rho if (k_ground > 0.0 and rho == rho) else -1.0
+
+
+@njit(cache=True)
+def _emit_obstacle(out, n, T, c, support):
+    """Row n of the ``ttc`` output: the obstacle's cluster at tick T."""
+    out[n].t = T
+    out[n].tau_s = c.tau
+    out[n].cluster = c.id
+    out[n].x = c.cx
+    out[n].y = c.cy
+    out[n].support = support
+
+
+@njit(cache=True)
+def _tick(state, prm, half_bins, buf, ttc_out, no, clusters_out, nc):
+    """The tick at ``next_tick``: the ground constant, every live cluster's decay, estimate and
+    row, the obstacle's row; moves ``next_tick`` on by a period. Returns the rows written
+    (no, nc)."""
+    cl, ST, SV, SK, carry, _, hist = state
+    g = carry[0]
+    T = g.next_tick
+    if g.n_votes >= prm.ground_min_events:
+        g.k_ground = ground_mode(hist, half_bins)
+    k_ground = g.k_ground if g.n_votes >= prm.ground_min_events else 0.0
+    use_ground = prm.ground_test and k_ground > 0.0
+    best = -1
+    best_sup = 0.0
+    best_d = 1e300
+    held = -1
+    fb = -1  # the fallback choice (ground test ignored)
+    fb_sup = 0.0
+    fb_d = 1e300
+    for k in range(cl.shape[0]):
+        c = cl[k]
+        if c.active == 0:
+            continue
+        a = c.activity * math.exp(-(T - c.t_last) / prm.act_tau_us)
+        if a < prm.min_activity:
+            c.active = 0
+            continue
+        _cluster_estimate(cl, k, ST, SV, SK, T, k_ground, buf, prm)
+        if c.has_tau > 0.0 and c.tau <= 0.0:  # passed or hit: drop it
+            c.active = 0
+            continue
+        if not (c.has_tau > 0.0 and nc < clusters_out.shape[0]):
+            continue
+        _emit_cluster(clusters_out, nc, T, c, a, k_ground)
+        nc += 1
+        considered, d, off_road = _candidate(c, a, g, prm, use_ground)
+        if not considered:
+            continue
+        if _better(d, a, fb_d, fb_sup):
+            fb_d = d
+            fb_sup = a
+            fb = k
+        if not off_road:
+            continue  # lies on the road (or its rho is not known yet)
+        if prm.hold and c.id == g.held_id:
+            held = k
+        if _better(d, a, best_d, best_sup):
+            best_d = d
+            best_sup = a
+            best = k
+    if held >= 0:
+        best = held
+        best_sup = cl[held].activity * math.exp(-(T - cl[held].t_last) / prm.act_tau_us)
+    if best < 0 and (prm.ground_fallback or not use_ground):
+        best = fb
+        best_sup = fb_sup
+    g.held_id = cl[best].id if best >= 0 else -1.0
+    if best >= 0 and no < ttc_out.shape[0]:
+        _emit_obstacle(ttc_out, no, T, cl[best], best_sup)
+        no += 1
+    g.next_tick = T + prm.period_us
+    return no, nc
+
+
+# -- per event: tau and the clusters ----------------------------------------------------------
+
+
+@njit(cache=True)
+def _apply_foe(foe_t, foe_x, foe_y, j, t_us, g):
+    """Take the FOE entries from j on with time <= ``t_us`` (NaN entries are skipped); returns
+    the index of the first one left."""
+    while j < foe_t.shape[0] and foe_t[j] <= t_us:
+        if foe_x[j] == foe_x[j] and foe_y[j] == foe_y[j]:
+            g.has_foe = 1.0
+            g.foe_x = foe_x[j]
+            g.foe_y = foe_y[j]
+        j += 1
+    return j
+
+
+@njit(cache=True)
+def _nearest_cluster(cl, px, py, ti, prm):
+    """The nearest cluster (inf-norm) whose square, widened by the join margin, holds p:
+    (k, distance), k -1 for none; and the slot a new cluster would take (the first inactive
+    one, or the first decayed below ``min_activity``, else the least active)."""
+    kb = -1
+    db = 1e300
+    free = -1
+    weakest = -1
+    wa = 1e300
+    for k in range(cl.shape[0]):
+        c = cl[k]
+        if c.active == 0:
+            if free < 0:
+                free = k
+            continue
+        a = c.activity * math.exp(-(ti - c.t_last) / prm.act_tau_us)
+        if a < prm.min_activity and free < 0:
+            free = k
+        if a < wa:
+            wa = a
+            weakest = k
+        d = max(abs(px - c.cx), abs(py - c.cy))
+        if d <= c.size + prm.join_margin and d < db:
+            db = d
+            kb = k
+    return kb, db, free if free >= 0 else weakest
+
+
+@njit(cache=True)
+def _new_cluster(c, g, px, py, ti, prm):
+    """Start cluster ``c`` at p with the next id."""
+    c.id = int(g.next_id)
+    g.next_id += 1.0
+    c.active = 1
+    c.n_samples = 0
+    c.ring_pos = 0
+    c.cx = px
+    c.cy = py
+    c.size = prm.init_size
+    c.activity = 1.0
+    c.t_last = ti
+    c.has_tau = 0.0
+    c.misses = 0.0
+    c.tau = 0.0
+    c.var = 0.0
+    c.t_tau = ti
+    c.rho = math.nan
+
+
+@njit(cache=True)
+def _join(c, px, py, ti, dist, prm):
+    """An event at distance ``dist`` (inf-norm) joins cluster ``c``: its activity decays to ti
+    and counts the event; its square grows towards events near or beyond the boundary, then
+    its centre moves towards p by 1 / activity."""
+    a = c.activity * math.exp(-(ti - c.t_last) / prm.act_tau_us) + 1.0
+    c.activity = a
+    c.t_last = ti
+    if dist > c.size:
+        c.size = min(prm.max_size, dist)
+    c.cx += (px - c.cx) / a
+    c.cy += (py - c.cy) / a
+
+
+@njit(cache=True)
+def _add_sample(c, ST, SV, SK, k, ti, tau, kg):
+    """Append (ti, tau, kg) to the ring of samples of cluster ``c`` (slot k)."""
+    p = c.ring_pos
+    ring = ST.shape[1]
+    ST[k, p] = ti
+    SV[k, p] = tau
+    SK[k, p] = kg
+    c.ring_pos = (p + 1) % ring
+    if c.n_samples < ring:
+        c.n_samples += 1
+
+
+@njit(cache=True)
+def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
+    """Process one packet; returns (rows of ``ttc_out``, rows of ``clusters_out``) written.
 
     Ticks at multiples of ``period_us`` see the events before them (cut-independent). FOE
-    entries ``ft`` apply to the events at or after their time. With ``ground_test`` only
-    clusters with rho < 1 - ground_tol (nearer than the road at their rows) can be the
-    obstacle once K has seen ``ground_min_events`` events; when there is none,
-    ``ground_fallback`` selects among all clusters, else the tick has no obstacle row. With
-    ``corridor`` > 0 a cluster must reach into the driving corridor: the lateral gap between
-    its square and the FOE at most ``corridor`` times the depth of its lower edge below the FOE
-    (a road point at (dx, dy) below the FOE lies dx / dy camera heights to the side). With
-    ``hold`` the previous tick's obstacle (id in ``G[7]``) stays selected while it qualifies.
+    entries apply to the events at or after their time. With ``ground_test`` only clusters
+    with rho < 1 - ground_tol (nearer than the road at their rows) can be the obstacle once K
+    has seen ``ground_min_events`` events; when there is none, ``ground_fallback`` selects
+    among all clusters, else the tick has no obstacle row. With ``corridor`` > 0 a cluster must
+    reach into the driving corridor: the lateral gap between its square and the FOE at most
+    ``corridor`` times the depth of its lower edge below the FOE (a road point at (dx, dy)
+    below the FOE lies dx / dy camera heights to the side). With ``hold`` the previous tick's
+    obstacle stays selected while it qualifies.
+
+    Parameters
+    ----------
+    events : tuple (x, y, t, p, vx, vy)
+        The flow events in time order: x, y uint16 [n] px; t int64 [n] µs; p int8 [n]
+        polarity; vx, vy float32 [n] flow, px/s.
+    foe : tuple (t, x, y)
+        FOE entries: t int64 [m] µs, x, y float64 [m] px (NaN: no estimate).
+    state : TtcState
+        Updated in place (:func:`new_state`, :func:`start`).
+    prm : TtcParams
+        The constants.
+    t_end : int
+        End of the packet's time slice, µs: ticks before it are made.
+    ttc_out : structured ndarray [>= ticks] (t, tau_s, cluster, x, y, support)
+        Out: the obstacle per tick (t µs, tau s, cluster id, centre px, activity).
+    clusters_out : structured ndarray [>= ticks x clusters]
+        (t, cluster, x, y, size_px, tau_s, support, ground_ratio). Out: every live cluster
+        with a tau per tick (ground_ratio -1 while K is unknown).
+
+    Returns
+    -------
+    (int, int)
+        The rows written into ``ttc_out`` and ``clusters_out``.
     """
-    K = C.shape[0]
-    B = ST.shape[1]
-    half_bins = int(round(math.log(1.0 + ground_tol) / KG_BIN))
-    buf = np.empty(B, np.float64)
+    x, y, t, pol, vx, vy = events
+    foe_t, foe_x, foe_y = foe
+    # the state's arrays as locals, passed on one by one (a tuple of arrays passed on costs
+    # reference counts per event)
+    cl, ST, SV, SK, carry, last_t, hist = state
+    g = carry[0]
+    half_bins = int(round(math.log(1.0 + prm.ground_tol) / KG_BIN))
+    buf = np.empty(ST.shape[1], np.float64)
     n = t.shape[0]
-    nf = ft.shape[0]
     j = 0
     i = 0
     no = 0
     nc = 0
     while True:
         t_next = t[i] if i < n else t_end
-        while G[3] < t_next or (i < n and G[3] == t_next):
-            T = G[3]
-            if G[6] >= ground_min_events:
-                G[5] = ground_mode(H, half_bins)
-            k_ground = G[5] if G[6] >= ground_min_events else 0.0
-            use_ground = ground_test and k_ground > 0.0
-            best = -1
-            best_sup = 0.0
-            best_d = 1e300
-            held = -1
-            fb = -1  # the fallback choice (ground test ignored)
-            fb_sup = 0.0
-            fb_d = 1e300
-            for k in range(K):
-                if I[k, ACTIVE] == 0:
-                    continue
-                a = C[k, ACT] * math.exp(-(T - C[k, TLAST]) / act_tau_us)
-                if a < min_activity:
-                    I[k, ACTIVE] = 0
-                    continue
-                _cluster_estimate(C, I, ST, SV, SK, k, T, max_age_us, min_samples, rel_floor,
-                                  q_s2_per_s, gate, k_ground, buf)
-                if C[k, HAS] > 0.0 and C[k, TAU] <= 0.0:  # passed or hit: drop it
-                    I[k, ACTIVE] = 0
-                    continue
-                if C[k, HAS] > 0.0 and nc < c_t.shape[0]:
-                    c_t[nc] = T
-                    c_id[nc] = I[k, ID]
-                    c_x[nc] = C[k, CX]
-                    c_y[nc] = C[k, CY]
-                    c_size[nc] = C[k, SIZE]
-                    c_tau[nc] = C[k, TAU]
-                    c_sup[nc] = a
-                    rho = C[k, RHO]
-                    c_rho[nc] = rho if (k_ground > 0.0 and rho == rho) else -1.0
-                    nc += 1
-                    if select_nearest and a < select_min_activity:
-                        continue
-                    if corridor > 0.0:
-                        gap = max(0.0, abs(C[k, CX] - G[1]) - C[k, SIZE])
-                        if gap > corridor * (C[k, CY] + C[k, SIZE] - G[2]):
-                            continue  # beside the driving corridor
-                    # nearest the FOE (its square's nearest point; the first thing in the
-                    # driving corridor; ties by support), or the most active
-                    d = 0.0
-                    if select_nearest:
-                        ddx = max(0.0, abs(C[k, CX] - G[1]) - C[k, SIZE])
-                        ddy = max(0.0, abs(C[k, CY] - G[2]) - C[k, SIZE])
-                        d = math.sqrt(ddx * ddx + ddy * ddy)
-                    if d < fb_d or (d == fb_d and a > fb_sup):
-                        fb_d = d
-                        fb_sup = a
-                        fb = k
-                    if use_ground and not (C[k, RHO] < 1.0 - ground_tol):
-                        continue  # lies on the road (or its rho is not known yet)
-                    if hold and I[k, ID] == G[7]:
-                        held = k
-                    if d < best_d or (d == best_d and a > best_sup):
-                        best_d = d
-                        best_sup = a
-                        best = k
-            if held >= 0:
-                best = held
-                best_sup = C[held, ACT] * math.exp(-(T - C[held, TLAST]) / act_tau_us)
-            if best < 0 and (ground_fallback or not use_ground):
-                best = fb
-                best_sup = fb_sup
-            G[7] = I[best, ID] if best >= 0 else -1.0
-            if best >= 0 and no < o_t.shape[0]:
-                o_t[no] = T
-                o_tau[no] = C[best, TAU]
-                o_id[no] = I[best, ID]
-                o_x[no] = C[best, CX]
-                o_y[no] = C[best, CY]
-                o_sup[no] = best_sup
-                no += 1
-            G[3] = T + period_us
+        while g.next_tick < t_next or (i < n and g.next_tick == t_next):
+            no, nc = _tick(state, prm, half_bins, buf, ttc_out, no, clusters_out, nc)
         if i >= n:
             break
         ti = t[i]
-        while j < nf and ft[j] <= ti:
-            if fx[j] == fx[j] and fy[j] == fy[j]:
-                G[0] = 1.0
-                G[1] = fx[j]
-                G[2] = fy[j]
-            j += 1
-        if G[0] > 0.0:
-            px = float(x[i])
-            py = float(y[i])
-            evx = np.float64(vx[i])
-            evy = np.float64(vy[i])
-            tau = event_tau(px, py, evx, evy, G[1], G[2], half_width,
-                            min_below, min_dist, min_speed, max_speed, min_tau, max_tau)
-            if tau > 0.0 and base_px > 0:
-                sp = math.sqrt(evx * evx + evy * evy)
-                tau = baseline_tau(S, 1 if pol[i] > 0 else 0, px, py, evx / sp, evy / sp,
-                                   tau * sp, float(ti), base_px, base_age_us)
-                if tau < min_tau or tau > max_tau:
-                    tau = -1.0
-            if tau > 0.0:
-                kg = tau * (py - G[2])
-                # nearest cluster (inf-norm) whose square, widened by the margin, holds p
-                kb = -1
-                db = 1e300
-                free = -1
-                weakest = -1
-                wa = 1e300
-                for k in range(K):
-                    if I[k, ACTIVE] == 0:
-                        if free < 0:
-                            free = k
-                        continue
-                    a = C[k, ACT] * math.exp(-(ti - C[k, TLAST]) / act_tau_us)
-                    if a < min_activity and free < 0:
-                        free = k
-                    if a < wa:
-                        wa = a
-                        weakest = k
-                    d = max(abs(px - C[k, CX]), abs(py - C[k, CY]))
-                    if d <= C[k, SIZE] + join_margin and d < db:
-                        db = d
-                        kb = k
-                if kb < 0:
-                    kb = free if free >= 0 else weakest
-                    I[kb, ID] = int(G[4])
-                    G[4] += 1.0
-                    I[kb, ACTIVE] = 1
-                    I[kb, NS] = 0
-                    I[kb, POS] = 0
-                    C[kb, CX] = px
-                    C[kb, CY] = py
-                    C[kb, SIZE] = init_size
-                    C[kb, ACT] = 1.0
-                    C[kb, TLAST] = ti
-                    C[kb, HAS] = 0.0
-                    C[kb, MISS] = 0.0
-                    C[kb, TAU] = 0.0
-                    C[kb, VAR] = 0.0
-                    C[kb, TTAU] = ti
-                    C[kb, RHO] = math.nan
-                else:
-                    a = C[kb, ACT] * math.exp(-(ti - C[kb, TLAST]) / act_tau_us) + 1.0
-                    C[kb, ACT] = a
-                    C[kb, TLAST] = ti
-                    # grow towards events near or beyond the boundary, then move the centre
-                    if db > C[kb, SIZE]:
-                        C[kb, SIZE] = min(max_size, db)
-                    C[kb, CX] += (px - C[kb, CX]) / a
-                    C[kb, CY] += (py - C[kb, CY]) / a
-                p = I[kb, POS]
-                ST[kb, p] = ti
-                SV[kb, p] = tau
-                SK[kb, p] = kg
-                I[kb, POS] = (p + 1) % B
-                if I[kb, NS] < B:
-                    I[kb, NS] += 1
-                # K learns from events of clusters not (yet) known to be off the road
-                if not (C[kb, RHO] < 1.0 - ground_tol):
-                    ground_vote(H, G, kg, float(ti), ground_memory_us)
-        if S.shape[1] > 0:
-            qx = int(x[i])
-            qy = int(y[i])
-            if 0 <= qx < S.shape[2] and 0 <= qy < S.shape[1]:
-                S[1 if pol[i] > 0 else 0, qy, qx] = ti
+        j = _apply_foe(foe_t, foe_x, foe_y, j, ti, g)
+        px = float(x[i])
+        py = float(y[i])
+        evx = np.float64(vx[i])
+        evy = np.float64(vy[i])
+        tau = -1.0
+        if g.has_foe > 0.0:
+            tau = event_tau(px, py, evx, evy, g.foe_x, g.foe_y, prm)
+        if tau > 0.0 and prm.base_px > 0:  # from where the edge was earlier
+            sp = math.sqrt(evx * evx + evy * evy)
+            tau = baseline_tau(last_t, 1 if pol[i] > 0 else 0, px, py, evx / sp, evy / sp,
+                               tau * sp, float(ti), prm.base_px, prm.base_age_us)
+            if tau < prm.min_tau or tau > prm.max_tau:
+                tau = -1.0
+        if tau > 0.0:  # to its cluster: the nearest whose widened square holds it, or a new one
+            kg = tau * (py - g.foe_y)
+            kb, db, slot = _nearest_cluster(cl, px, py, ti, prm)
+            if kb < 0:
+                kb = slot
+                _new_cluster(cl[kb], g, px, py, ti, prm)
+            else:
+                _join(cl[kb], px, py, ti, db, prm)
+            _add_sample(cl[kb], ST, SV, SK, kb, ti, tau, kg)
+            # K learns from events of clusters not (yet) known to be off the road
+            if not (cl[kb].rho < 1.0 - prm.ground_tol):
+                ground_vote(hist, carry, kg, float(ti), prm.ground_memory_us)
+        _remember_time(last_t, x[i], y[i], pol[i], ti)
         i += 1
-    while j < nf:  # FOE entries after the last event still count for the next packet
-        if fx[j] == fx[j] and fy[j] == fy[j]:
-            G[0] = 1.0
-            G[1] = fx[j]
-            G[2] = fy[j]
-        j += 1
+    _apply_foe(foe_t, foe_x, foe_y, j, _FOREVER, g)  # entries after the last event count next
     return no, nc
+
+
+@njit(cache=True)
+def _remember_time(last_t, x, y, pol, ti):
+    """The pixel's last flow-event time (kept only for the baseline tau)."""
+    if last_t.shape[1] > 0:
+        qx = int(x)
+        qy = int(y)
+        if 0 <= qx < last_t.shape[2] and 0 <= qy < last_t.shape[1]:
+            last_t[1 if pol > 0 else 0, qy, qx] = ti

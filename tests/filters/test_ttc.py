@@ -124,7 +124,12 @@ def test_event_tau_matches_reference():
     vy[::5] = 0.0
     args = (60.0, 40.0, 30.0, 2.0, 8.0, 1.0, 500.0, 0.05, 20.0)
     want = event_tau_naive(px, py, vx, vy, *args)
-    got = np.array([event_tau(px[i], py[i], vx[i], vy[i], *args) for i in range(n)])
+    f = Ttc()
+    f.setup(Ttc.Params(region_b_half_width_px=30.0, region_b_min_below_px=2.0,
+                       min_distance_px=8.0, min_speed_pxs=1.0, max_speed_pxs=500.0,
+                       min_tau_s=0.05, max_tau_s=20.0), Context())
+    got = np.array([event_tau(px[i], py[i], vx[i], vy[i], 60.0, 40.0, f._prm)
+                    for i in range(n)])
     np.testing.assert_allclose(got, want, rtol=1e-12)
     assert (want > 0).sum() > 50
 
@@ -177,7 +182,9 @@ def test_ground_plane_test_selects_the_obstacle(ground):
     truth = 3.0 - s["t"] * 1e-6
     rel = np.median(np.abs(s["tau_s"] - truth) / truth)
     if ground:   # the road is recognised (K = 40 s px found) and the obstacle is selected
-        np.testing.assert_allclose(f._G[5], 40.0, rtol=0.05)
+        from evchain.kernels.ttc import ground_constant
+
+        np.testing.assert_allclose(ground_constant(f._state), 40.0, rtol=0.05)
         assert rel < 0.05, rel
         cl = out.series["ttc_clusters"]
         key = cl["t"] * 10_000 + cl["cluster"]
@@ -188,13 +195,14 @@ def test_ground_plane_test_selects_the_obstacle(ground):
 
 
 def _ground_run(kg, t, tol, memory_us):
-    from evchain.kernels.ttc import KG_BINS, ground_mode, ground_vote
+    from evchain.kernels.ttc import ground_mode, ground_vote, new_state
 
-    g, h = np.zeros(9), np.zeros(KG_BINS)
+    state = new_state(1, 4, 0, 0, False)
+    h = state.ground_hist
     for v, ti in zip(kg, t, strict=True):
-        ground_vote(h, g, v, float(ti), memory_us)
+        ground_vote(h, state.carry, v, float(ti), memory_us)
     half = int(round(np.log(1.0 + tol) / 0.02))
-    return ground_mode(h, half), g[6]
+    return ground_mode(h, half), state.carry["n_votes"][0]
 
 
 @pytest.mark.parametrize("seed", [0, 1])

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from evchain.kernels import foe_fit as k
+from evchain.kernels.records import record
 from tests.naive import foe_fit as naive
 
 A = (1 / 22.8, 1 / 40.0, 1 / 25.0)  # road K = f h / V = 22.8 s px; facades
@@ -14,7 +15,8 @@ def _run(x, y, nx, ny, s, th0, t=None, T=1e6, tau=2e5, margin=10.0, c=0.5, iters
     t = np.full(len(x), T - 1.0) if t is None else t
     th = np.array(th0, np.float64)
     e, g = np.exp((t - t[0]) / tau) if len(t) else t, np.exp(-(T - (t[0] if len(t) else 0)) / tau)
-    ok, inl, tot = k.fit(x, y, nx, ny, s, e, 0, len(x), g, th, margin, c, iters, 3.0)
+    prm = record(k.FitParams, margin=margin, tolerance=c, max_iter=iters, max_step=3.0)
+    ok, inl, tot = k.fit(k.FitEvents(x, y, nx, ny, s, e), 0, len(x), g, th, prm)
     return ok, th, inl, tot
 
 
@@ -203,7 +205,8 @@ def _obstacle_fits(foot, c):
     foe, (x, y, nx, ny, s) = _obstacle_scene(foot)
     th = np.array((foe[0], foe[1], np.nan, np.nan, np.nan))
     for _ in range(40):  # warm-started fits in a row, as the filter runs them
-        ok, _, _ = k.fit(x, y, nx, ny, s, np.ones(len(x)), 0, len(x), 1.0, th, 10.0, c, 4, 3.0)
+        ok, _, _ = k.fit(k.FitEvents(x, y, nx, ny, s, np.ones(len(x))), 0, len(x), 1.0, th,
+                         record(k.FitParams, margin=10.0, tolerance=c, max_iter=4, max_step=3.0))
         assert ok and np.isfinite(th[:2]).all()
     return th[0] - foe[0], th[1] - foe[1]
 

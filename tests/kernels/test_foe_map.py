@@ -142,6 +142,7 @@ def test_pruned_reads_equal_full_reads(case, hard):
     params = FoeMap.Params(tau_ms=15.0, region_radius_px=radius, estimate_every_us=1000,
                            refine_fraction=refine, max_angle_deg=gate, **other)
     cuts = list(range(1000, packet.t_end, 1000))  # one read per packet
+    from evchain.kernels.foe_map import forget_row_bounds
     from evchain.testing.contract import recut
 
     packets = recut([packet], cuts)
@@ -152,7 +153,7 @@ def test_pruned_reads_equal_full_reads(case, hard):
     for p in packets:
         got.append(pruned.process(p).series["foe"])
         if full._geometry is not None:
-            full._rst[:, 4] = 0.0
+            forget_row_bounds(full._state)
         want.append(full.process(p).series["foe"])
     got, want = np.concatenate(got), np.concatenate(want)
     assert len(got) == len(want) > 100
@@ -179,20 +180,18 @@ def test_refresh_equals_materialize_with_negative_values(radius):
         rng.normal(size=nx + 1)
     want = np.empty((ny, nx))
     rowmax = np.empty(ny)
-    best, worst = k.materialize(diffR, constR, diffC, constC, lo, hi, clo, chi, x0, y0, -0.5,
-                                want, rowmax)
-    fst = np.array([-0.5, 0, 0, 0, 1.0])
+    best, worst = k.materialize(diffR, constR, diffC, constC, lo, hi, x0, -0.5, want, rowmax)
     rst = np.zeros((ny, 6))
     got = np.full((ny, nx), np.nan)
     rowv = np.stack([constR, np.zeros(ny + 1), np.zeros(ny + 1)])
-    b2, w2 = k.refresh(diffR, rowv, diffC, constC, lo, hi, x0, fst, rst, got, 0.05)
+    b2, w2 = k.refresh(diffR, rowv, diffC, constC, lo, hi, x0, -0.5, 1.0, rst, got, 0.05)
     assert worst < 0 < best
     assert (b2, w2) == (best, worst)
     inside = ~np.isnan(want)
     assert np.array_equal(got[inside], want[inside])
     ok = hi >= lo
-    assert np.array_equal(rst[ok, 0], rowmax[ok])
-    assert np.array_equal(rst[ok, 1], np.nanmin(want[ok], axis=1))
+    assert np.array_equal(rst[ok, k.ROW_MAX], rowmax[ok])
+    assert np.array_equal(rst[ok, k.ROW_MIN], np.nanmin(want[ok], axis=1))
 
 
 @pytest.mark.parametrize("refine", [0.0, 0.05, 0.5])

@@ -8,7 +8,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from evchain.filters.lk_flow import GRADIENTS
-from evchain.kernels.lk_flow import lk_flow_run, new_state
+from evchain.kernels.lk_flow import LKParams, lk_flow_run, new_state
+from evchain.kernels.records import record
 from tests.naive.lk_flow import lk_flow_naive
 
 DEFAULTS = dict(search_distance=2, window_us=80_000, refractory_us=150_000,
@@ -24,13 +25,16 @@ def run_kernel(x, y, t, p, width, height, state=None, **kw):
         state = new_state(height, width, q["fifo_depth"])
     n = len(t)
     idx, vx, vy = np.empty(n, np.int64), np.empty(n), np.empty(n)
+    prm = record(LKParams, r=q["search_distance"], window_us=q["window_us"],
+                 refractory_us=q["refractory_us"], gradient=GRADIENTS[q["gradient"]],
+                 faithful=q["mode"] == "faithful", eig_threshold=q["eig_threshold"],
+                 eig_ratio=q["eig_ratio"], speed_control=q["speed_control"],
+                 mix=q["speed_control_mix"], max_factor=q["max_speed_factor"],
+                 max_speed_pxs=q["max_speed_pxs"], refit_tolerance=q["refit_tolerance"],
+                 centre_check_px=q["centre_check_px"], max_window_us=q["max_window_us"],
+                 slow_px=q["slow_px"])
     m = lk_flow_run(np.asarray(x, np.uint16), np.asarray(y, np.uint16),
-                    np.asarray(t, np.int64), np.asarray(p, np.int8), *state,
-                    q["search_distance"], q["window_us"], q["refractory_us"],
-                    GRADIENTS[q["gradient"]], q["mode"] == "faithful", q["eig_threshold"],
-                    q["eig_ratio"], q["speed_control"], q["speed_control_mix"],
-                    q["max_speed_factor"], q["max_speed_pxs"], q["refit_tolerance"],
-                    q["centre_check_px"], q["max_window_us"], q["slow_px"], idx, vx, vy)
+                    np.asarray(t, np.int64), np.asarray(p, np.int8), state, prm, idx, vx, vy)
     return idx[:m], vx[:m], vy[:m]
 
 

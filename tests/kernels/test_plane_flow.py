@@ -11,12 +11,14 @@ from hypothesis import strategies as st
 from evchain.core.packets import Geometry
 from evchain.kernels.plane_flow import (
     VARIANTS,
+    PlaneParams,
     fit_explicit,
     new_state,
     plane_flow_adaptive_kernel,
     plane_flow_kernel,
     smallest_eigvec3,
 )
+from evchain.kernels.records import record
 from evchain.testing.synthetic import moving_edge_events, random_events
 from tests.naive.plane_flow import plane_flow_naive
 
@@ -33,13 +35,10 @@ def run_kernel(x, y, t, p, width, height, **kw):
     n = len(t)
     idx, vx, vy = np.empty(n, np.int64), np.empty(n), np.empty(n)
     margin = q["r"] if q["margin"] is None else q["margin"]
+    prm = record(PlaneParams, **{**{k: v for k, v in q.items() if k in PlaneParams._fields},
+                                 "variant": VARIANTS[q["variant"]], "margin": margin})
     k = plane_flow_kernel(np.asarray(x, np.uint16), np.asarray(y, np.uint16),
-                          np.asarray(t, np.int64), np.asarray(p, np.int8), ts,
-                          VARIANTS[q["variant"]], q["r"], q["window_us"], q["refractory_us"],
-                          margin, q["min_points"], q["th1"], q["th2"], q["max_speed"],
-                          q["max_iter"], q["min_spread"], q["centre_check"], idx, vx, vy,
-                          q["max_window_us"], q["slow_px"], q["refit_failed"],
-                          q["refractory_updates"])
+                          np.asarray(t, np.int64), np.asarray(p, np.int8), ts, prm, idx, vx, vy)
     return idx[:k], vx[:k], vy[:k]
 
 
@@ -390,12 +389,15 @@ def test_adaptive_loop_without_refits_equals_fixed_loop(variant, r):
     g = Geometry(24, 20)
     ev = random_events(3000, g, 0, 400_000, seed=5)
     args = (ev.x, ev.y, ev.t, ev.p)
-    prm = (VARIANTS[variant], r, 20_000, 3000, r, 3, 1e-5, 0.01, 1e4, 10, 0.3, True)
+    prm = record(PlaneParams, variant=VARIANTS[variant], r=r, window_us=20_000,
+                 refractory_us=3000, margin=r, min_points=3, th1=1e-5, th2=0.01, max_speed=1e4,
+                 max_iter=10, min_spread=0.3, centre_check=True, max_window_us=20_000,
+                 slow_px=2.0, refit_failed=False, refractory_updates=True)
     out = []
     for kernel in (plane_flow_kernel, plane_flow_adaptive_kernel):
         ts = new_state(g.width, g.height)
         idx, vx, vy = np.empty(len(ev), np.int64), np.empty(len(ev)), np.empty(len(ev))
-        k = kernel(*args, ts, *prm, idx, vx, vy, 20_000, 2.0, False, True)
+        k = kernel(*args, ts, prm, idx, vx, vy)
         out.append((idx[:k], vx[:k], vy[:k], ts))
     assert len(out[0][0]) > 20
     for a, b in zip(out[0], out[1], strict=True):

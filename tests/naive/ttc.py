@@ -1,8 +1,10 @@
-"""Plain numpy reference of the per-event part of the ``ttc`` kernel (region B and tau)."""
+"""Plain Python references of the ``ttc`` kernel: region B and tau per event, the ground
+constant, the baseline tau, and the whole filter (clusters, fusion, selection)."""
 
 from __future__ import annotations
 
 import math
+from collections import deque
 
 import numpy as np
 
@@ -71,3 +73,219 @@ def baseline_tau_naive(last_t, px, py, nx, ny, d0, ti, max_px, max_age_us) -> fl
             break
         tau, tprev = (d0 - dd) * (ti - tq) * 1e-6 / dd, tq
     return tau
+
+
+# -- the whole filter: clusters, fusion, selection ------------------------------------------------
+
+
+def median(values) -> float:
+    """Median of a non-empty list: the middle value, or the mean of the two middle values."""
+    v = sorted(values)
+    n = len(v)
+    return v[n // 2] if n % 2 == 1 else 0.5 * (v[n // 2 - 1] + v[n // 2])
+
+
+class Cluster:
+    """One square cluster with its recent samples (time µs, tau s, tau * dy s px)."""
+
+    def __init__(self, ident, x, y, t, size, ring):
+        self.id = ident
+        self.cx, self.cy, self.size = x, y, size
+        self.activity, self.t_last = 1.0, float(t)
+        self.samples = deque(maxlen=ring)
+        self.tau = None          # fused tau (s), None before the first estimate
+        self.var = 0.0
+        self.t_tau = float(t)
+        self.misses = 0
+        self.rho = math.nan      # median(tau * dy) / K
+
+    def activity_at(self, t, tau_us):
+        return self.activity * math.exp(-(t - self.t_last) / tau_us)
+
+
+def ttc_naive(packets, q, width, height):
+    """The ``ttc`` filter in plain Python, packet by packet (FOE entries count from the first
+    event at or after their time, and from the end of the packet that carries them; a tick at T
+    sees the events before T). ``q``: a ``Ttc.Params``. Returns (ttc rows, cluster rows) as
+    lists of tuples in the order of the series' fields."""
+    slots = [None] * q.max_clusters        # None or a Cluster (inactive slots are None)
+    next_id = 0
+    foe = None
+    votes_kg, votes_t = [], []
+    k_ground = 0.0
+    held = -1
+    last_t = np.full((2, height, width), -1e300)
+    period = q.estimate_every_us
+    tick = None
+    ttc_rows, cluster_rows = [], []
+
+    def apply_foe(entries, upto):
+        nonlocal foe
+        while entries and entries[0][0] <= upto:
+            ft, fx, fy = entries.pop(0)
+            if fx == fx and fy == fy:
+                foe = (fx, fy)
+
+    def do_tick(T):
+        nonlocal k_ground, held
+        k_now = 0.0
+        n_votes = sum(1 for kg in votes_kg if kg > 0 and 0 <= _bin(kg) < 1024)
+        if n_votes >= q.ground_min_events:
+            k_ground = ground_constant_naive(votes_kg, votes_t, q.ground_tolerance,
+                                             q.ground_memory_ms * 1000.0)[0]
+            k_now = k_ground
+        use_ground = q.ground_test and k_now > 0.0
+        best = fb = held_k = None
+        for k, c in enumerate(slots):
+            if c is None:
+                continue
+            a = c.activity_at(T, q.activity_tau_ms * 1000.0)
+            if a < q.min_activity:
+                slots[k] = None
+                continue
+            estimate(c, T, k_now)
+            if c.tau is not None and c.tau <= 0.0:
+                slots[k] = None
+                continue
+            if c.tau is None:
+                continue
+            rho = c.rho if (k_now > 0.0 and c.rho == c.rho) else -1.0
+            cluster_rows.append((T, c.id, c.cx, c.cy, c.size, c.tau, a, rho))
+            if q.select == "nearest_foe" and a < q.select_min_activity:
+                continue
+            gx = max(0.0, abs(c.cx - foe[0]) - c.size)
+            if q.corridor_half_width_h and gx > q.corridor_half_width_h * (c.cy + c.size
+                                                                           - foe[1]):
+                continue
+            d = 0.0
+            if q.select == "nearest_foe":
+                gy = max(0.0, abs(c.cy - foe[1]) - c.size)
+                d = math.sqrt(gx * gx + gy * gy)
+            if fb is None or d < fb[0] or (d == fb[0] and a > fb[1]):
+                fb = (d, a, k)
+            if use_ground and not (c.rho < 1.0 - q.ground_tolerance):
+                continue
+            if q.select_hold and c.id == held:
+                held_k = k
+            if best is None or d < best[0] or (d == best[0] and a > best[1]):
+                best = (d, a, k)
+        if held_k is not None:
+            best = (0.0, slots[held_k].activity_at(T, q.activity_tau_ms * 1000.0), held_k)
+        if best is None and (q.ground_fallback or not use_ground):
+            best = fb
+        held = -1 if best is None else slots[best[2]].id
+        if best is not None:
+            c = slots[best[2]]
+            ttc_rows.append((T, c.tau, c.id, c.cx, c.cy, best[1]))
+
+    def estimate(c, T, k_now):
+        recent = [s for s in c.samples if T - s[0] <= q.sample_max_age_ms * 1000.0]
+        if len(recent) >= q.min_samples and k_now > 0.0:
+            c.rho = median([s[2] for s in recent]) / k_now
+        taus = [s[1] - (T - s[0]) * 1e-6 for s in recent]
+        if c.tau is not None:  # tau falls 1 s per s
+            dt = (T - c.t_tau) * 1e-6
+            c.tau -= dt
+            c.var += q.process_noise_s2_per_s * dt
+            c.t_tau = T
+        if len(taus) < q.min_samples:
+            return
+        med = median(taus)
+        mad = median([abs(v - med) for v in taus])
+        sigma = 1.4826 * mad / math.sqrt(len(taus)) + q.rel_noise_floor * abs(med)
+        r = sigma * sigma + 1e-12
+        if c.tau is None:
+            c.tau, c.var, c.t_tau, c.misses = med, r, T, 0
+            return
+        innov = med - c.tau
+        s = c.var + r
+        if innov * innov > q.gate_sigma ** 2 * s:
+            c.misses += 1
+            if c.misses >= 3:
+                c.tau, c.var, c.misses = med, r, 0
+            return
+        c.misses = 0
+        gain = c.var / s
+        c.tau += gain * innov
+        c.var = (1.0 - gain) * c.var
+
+    def add_event(px, py, ti, tau):
+        nonlocal next_id
+        kg = tau * (py - foe[1])
+        near = free = weakest = None
+        for k, c in enumerate(slots):
+            if c is None:
+                free = k if free is None else free
+                continue
+            a = c.activity_at(ti, q.activity_tau_ms * 1000.0)
+            if a < q.min_activity and free is None:
+                free = k
+            if weakest is None or a < weakest[1]:
+                weakest = (k, a)
+            d = max(abs(px - c.cx), abs(py - c.cy))
+            if d <= c.size + q.join_margin_px and (near is None or d < near[1]):
+                near = (k, d)
+        if near is None:
+            k = free if free is not None else weakest[0]
+            c = slots[k] = Cluster(next_id, px, py, ti, q.cluster_size_px, q.samples_per_cluster)
+            next_id += 1
+        else:
+            k, d = near
+            c = slots[k]
+            a = c.activity_at(ti, q.activity_tau_ms * 1000.0) + 1.0
+            c.activity, c.t_last = a, float(ti)
+            if d > c.size:
+                c.size = min(q.max_cluster_size_px, d)
+            c.cx += (px - c.cx) / a
+            c.cy += (py - c.cy) / a
+        c.samples.append((float(ti), tau, kg))
+        if not (c.rho < 1.0 - q.ground_tolerance):
+            votes_kg.append(kg)
+            votes_t.append(float(ti))
+
+    def tau_of(px, py, vx, vy, pol, ti):
+        tau = float(event_tau_naive([px], [py], [vx], [vy], foe[0], foe[1],
+                                    q.region_b_half_width_px, q.region_b_min_below_px,
+                                    q.min_distance_px, q.min_speed_pxs, q.max_speed_pxs,
+                                    q.min_tau_s, q.max_tau_s)[0])
+        if tau > 0.0 and q.baseline_px > 0:
+            sp = math.sqrt(vx * vx + vy * vy)
+            tau = baseline_tau_naive(last_t[pol], px, py, vx / sp, vy / sp, tau * sp,
+                                     float(ti), q.baseline_px, q.baseline_max_ms * 1000.0)
+            if tau < q.min_tau_s or tau > q.max_tau_s:
+                tau = -1.0
+        return tau
+
+    for pk in packets:
+        if tick is None:
+            tick = -(-pk.t_start // period) * period
+        entries = []
+        series = pk.series.get("foe")
+        if series is not None:
+            entries = [(int(a), float(b), float(c)) for a, b, c in
+                       zip(series["t"], series["x"], series["y"], strict=True)]
+        for i in range(len(pk.t)):
+            ti = int(pk.t[i])
+            while tick <= ti:
+                do_tick(float(tick))
+                tick += period
+            apply_foe(entries, ti)
+            px, py = float(pk.x[i]), float(pk.y[i])
+            vx, vy = float(pk.vx[i]), float(pk.vy[i])
+            pol = 1 if pk.p[i] > 0 else 0
+            if foe is not None:
+                tau = tau_of(px, py, vx, vy, pol, ti)
+                if tau > 0.0:
+                    add_event(px, py, ti, tau)
+            if q.baseline_px > 0 and 0 <= pk.x[i] < width and 0 <= pk.y[i] < height:
+                last_t[pol, pk.y[i], pk.x[i]] = ti
+        while tick < pk.t_end:
+            do_tick(float(tick))
+            tick += period
+        apply_foe(entries, math.inf)
+    return ttc_rows, cluster_rows
+
+
+def _bin(kg, k_min=0.01, width=0.02) -> int:
+    """The ground histogram's bin of kg > 0."""
+    return int(math.floor((math.log(kg) - math.log(k_min)) / width))

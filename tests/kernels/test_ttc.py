@@ -1,0 +1,205 @@
+"""The ``ttc`` kernel's clustering, fusion and selection against the plain-Python reference
+(tests/naive/ttc.py): random streams and parameters, and hard inputs (empty packets, events on
+cluster borders, all clusters dying, every slot taken, tau crossing 0)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from evchain.core.filter import Context
+from evchain.core.packets import FlowPacket, Geometry
+from evchain.filters.foe_map import foe_series
+from evchain.filters.ttc import Ttc
+from tests.naive.ttc import ttc_naive
+
+G = Geometry(96, 72, f=80.0)
+FOE = (48.0, 20.0)
+EXACT = ("t", "cluster")
+
+
+def packet(t_start, t_end, x=(), y=(), t=(), p=(), vx=(), vy=(), foe=None):
+    """A flow packet; ``foe``: list of (t, x, y) entries of its ``foe`` series."""
+    pk = FlowPacket(geometry=G, t_start=t_start, t_end=t_end, x=np.asarray(x, np.uint16),
+                    y=np.asarray(y, np.uint16), t=np.asarray(t, np.int64),
+                    p=np.asarray(p, np.int8), vx=np.asarray(vx, np.float32),
+                    vy=np.asarray(vy, np.float32))
+    if foe:
+        ft, fx, fy = zip(*foe, strict=True)
+        pk = pk.with_series("foe", foe_series(list(fx), list(fy), list(ft), [1.0] * len(ft)))
+    return pk
+
+
+def expanding(x, y, tau, rng, noise=0.02, foe=FOE):
+    """Flow of points at (x, y) with time to contact ``tau`` (s): (p - foe) / tau, with
+    relative noise."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    k = 1.0 + noise * rng.standard_normal((2, x.size))
+    return (x - foe[0]) / tau * k[0], (y - foe[1]) / tau * k[1]
+
+
+def random_stream(seed, duration_us=600_000, n_packets=8, n_blobs=5, n=1500, nan_foe=True,
+                  empty=True):
+    """Blobs below the FOE, each with its own time to contact (falling 1 s/s), some outliers;
+    the FOE given per packet (jittered, now and then NaN), now and then an empty packet."""
+    rng = np.random.default_rng(seed)
+    cx = rng.uniform(10, 86, n_blobs)
+    cy = rng.uniform(28, 68, n_blobs)
+    tau0 = rng.uniform(0.3, 4.0, n_blobs)
+    b = rng.integers(0, n_blobs, n)
+    t = np.sort(rng.integers(0, duration_us, n))
+    x = np.clip(np.round(cx[b] + rng.normal(0, 3, n)), 0, G.width - 1)
+    y = np.clip(np.round(cy[b] + rng.normal(0, 3, n)), 0, G.height - 1)
+    tau = np.maximum(tau0[b] - t * 1e-6, 0.05)
+    vx, vy = expanding(x, y, tau, rng)
+    out = rng.random(n) < 0.1
+    vx[out] = rng.normal(0, 80, out.sum())
+    vy[out] = rng.normal(0, 80, out.sum())
+    p = rng.choice([-1, 1], n)
+    cuts = np.linspace(0, duration_us, n_packets + 1).astype(np.int64)
+    packets = []
+    for k in range(n_packets):
+        lo, hi = np.searchsorted(t, cuts[k]), np.searchsorted(t, cuts[k + 1])
+        if empty and rng.random() < 0.2:
+            lo = hi  # an empty packet (its events are dropped)
+        entries = [(int(cuts[k]) + int(rng.integers(0, 5000)),
+                    FOE[0] + rng.normal(0, 1), FOE[1] + rng.normal(0, 1))]
+        if nan_foe and rng.random() < 0.3:
+            entries.append((entries[0][0] + 1, np.nan, np.nan))
+        packets.append(packet(int(cuts[k]), int(cuts[k + 1]), x[lo:hi], y[lo:hi], t[lo:hi],
+                              p[lo:hi], vx[lo:hi], vy[lo:hi], entries))
+    return packets
+
+
+def compare(packets, **params):
+    """Kernel (through the filter) and reference give the same rows; returns them."""
+    q = Ttc.Params(**params)
+    f = Ttc()
+    f.setup(q, Context(geometry=G))
+    outs = [f.process(pk) for pk in packets]
+    got = {name: np.concatenate([o.series[name] for o in outs])
+           for name in ("ttc", "ttc_clusters")}
+    want_ttc, want_cl = ttc_naive(packets, q, G.width, G.height)
+    for name, want in (("ttc", want_ttc), ("ttc_clusters", want_cl)):
+        have = got[name]
+        assert len(have) == len(want), (name, len(have), len(want))
+        if not want:
+            continue
+        for j, field in enumerate(have.dtype.names):
+            col = np.array([row[j] for row in want])
+            if field in EXACT:
+                np.testing.assert_array_equal(have[field], col.astype(np.int64), err_msg=field)
+            else:
+                np.testing.assert_allclose(have[field], col, rtol=1e-9, atol=1e-12,
+                                           err_msg=field)
+    return got["ttc"], got["ttc_clusters"]
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_random_streams_match_reference(seed):
+    ttc, cl = compare(random_stream(seed), baseline_px=0, min_samples=3)
+    assert len(ttc) > 20 and len(np.unique(cl["cluster"])) >= 3
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), select=st.sampled_from(["nearest_foe", "support"]),
+       ground=st.booleans(), corridor=st.sampled_from([None, 1.0, 3.0]),
+       hold=st.booleans(), fallback=st.booleans(), baseline=st.sampled_from([0, 4]),
+       max_clusters=st.sampled_from([1, 2, 3, 8, 32]), min_samples=st.sampled_from([1, 3, 8]),
+       size=st.sampled_from([(3.0, 5.0, 1.0), (6.0, 15.0, 4.0), (10.0, 10.0, 0.0)]),
+       activity=st.sampled_from([(30.0, 1.0), (100.0, 2.0), (400.0, 5.0)]),
+       ring=st.sampled_from([4, 16, 256]), period=st.sampled_from([3_000, 10_000, 25_000]))
+def test_random_parameters_match_reference(seed, select, ground, corridor, hold, fallback,
+                                           baseline, max_clusters, min_samples, size, activity,
+                                           ring, period):
+    compare(random_stream(seed, n=900), select=select, ground_test=ground,
+            ground_min_events=40, corridor_half_width_h=corridor, select_hold=hold,
+            ground_fallback=fallback, baseline_px=baseline, max_clusters=max_clusters,
+            min_samples=min_samples, cluster_size_px=size[0], max_cluster_size_px=size[1],
+            join_margin_px=size[2], activity_tau_ms=activity[0], min_activity=activity[1],
+            samples_per_cluster=ring, estimate_every_us=period, select_min_activity=2.0)
+
+
+def test_empty_packets():
+    """Packets without events (before, between and after the events; with and without FOE
+    entries) still tick: the clusters decay and their predictions fall 1 s/s."""
+    stream = random_stream(7, duration_us=300_000, n_packets=4, empty=False)
+    packets = ([packet(0, 50_000), packet(50_000, 50_000, foe=[(50_000, *FOE)])]
+               + [packet(pk.t_start + 50_000, pk.t_end + 50_000, pk.x, pk.y, pk.t + 50_000, pk.p,
+                         pk.vx, pk.vy, [(pk.t_start + 50_000, *FOE)]) for pk in stream]
+               + [packet(350_000, 360_000), packet(360_000, 600_000)])
+    ttc, cl = compare(packets, baseline_px=0, min_samples=3, activity_tau_ms=300.0)
+    late = ttc[ttc["t"] >= 350_000]
+    assert len(late) > 3 and not (ttc["t"] < 50_000).any()
+
+
+def test_events_on_cluster_borders():
+    """An event exactly ``size + join_margin`` (inf-norm) from a cluster's centre joins it and
+    grows it; one 1 px farther starts a new cluster."""
+    rng = np.random.default_rng(0)
+    x0, y0 = 40, 50
+    xs = [x0] * 6 + [x0 + 6, x0 - 6, x0 + 3, x0 + 20, x0 + 20, x0 + 20]
+    ys = [y0] * 6 + [y0 + 2, y0 - 6, y0 + 6, y0, y0 + 1, y0]
+    t = np.arange(len(xs)) * 1000 + 1000
+    vx, vy = expanding(xs, ys, 2.0, rng, noise=0.0)
+    pk = packet(0, 40_000, xs, ys, t, [1] * len(xs), vx, vy, [(0, *FOE)])
+    params = dict(baseline_px=0, min_samples=1, cluster_size_px=4.0, join_margin_px=2.0,
+                  max_cluster_size_px=30.0, estimate_every_us=20_000, min_activity=0.5)
+    ttc, cl = compare([pk], **params)
+    assert len(np.unique(cl["cluster"])) == 2
+    # one px farther than the widened square: a second cluster already at x0 + 7
+    xs[6] = x0 + 7
+    vx, vy = expanding(xs, ys, 2.0, rng, noise=0.0)
+    _, cl = compare([packet(0, 40_000, xs, ys, t, [1] * len(xs), vx, vy, [(0, *FOE)])],
+                    **params)
+    assert len(np.unique(cl["cluster"])) == 3
+
+
+def test_all_clusters_die_and_new_ones_start():
+    """After a silence longer than the activity decay every cluster is removed; the next
+    events start new clusters (new ids) in the freed slots."""
+    first = random_stream(3, duration_us=200_000, n_packets=2, empty=False)
+    again = random_stream(4, duration_us=200_000, n_packets=2, empty=False)
+    quiet = [packet(200_000, 700_000, foe=[(200_000, *FOE)])]
+    later = [packet(pk.t_start + 700_000, pk.t_end + 700_000, pk.x, pk.y, pk.t + 700_000, pk.p,
+                    pk.vx, pk.vy, [(pk.t_start + 700_000, *FOE)]) for pk in again]
+    ttc, cl = compare(first + quiet + later, baseline_px=0, min_samples=3,
+                      activity_tau_ms=50.0)
+    gap = cl[(cl["t"] > 450_000) & (cl["t"] < 700_000)]
+    assert len(gap) == 0
+    before = set(cl["cluster"][cl["t"] < 200_000])
+    after = set(cl["cluster"][cl["t"] > 700_000])
+    assert before and after and min(after) > max(before)
+
+
+def test_every_slot_taken():
+    """More places than cluster slots: new clusters take the decayed or the weakest slot."""
+    ttc, cl = compare(random_stream(11, n_blobs=8, n=2000), baseline_px=0, min_samples=2,
+                      max_clusters=3, cluster_size_px=3.0, max_cluster_size_px=4.0,
+                      join_margin_px=0.0)
+    per_tick = np.unique(cl["t"], return_counts=True)[1]
+    assert per_tick.max() <= 3 and cl["cluster"].max() > 10  # ids far beyond the slots
+
+
+def test_tau_crossing_zero():
+    """A cluster whose predicted tau reaches 0 (an object at contact) is dropped although it
+    is still active; a later event there starts a new cluster."""
+    rng = np.random.default_rng(5)
+    n = 60
+    x = rng.integers(40, 46, n)
+    y = rng.integers(50, 56, n)
+    t = np.sort(rng.integers(0, 30_000, n))
+    vx, vy = expanding(x, y, 0.08 - t * 1e-6, rng, noise=0.0)
+    packets = [packet(0, 30_000, x, y, t, [1] * n, vx, vy, [(0, *FOE)]),
+               packet(30_000, 150_000, foe=[(30_000, *FOE)]),
+               packet(150_000, 200_000, x[:5], y[:5], t[:5] + 150_000, [1] * 5,
+                      *expanding(x[:5], y[:5], 1.0, rng, noise=0.0))]
+    ttc, cl = compare(packets, baseline_px=0, min_samples=3, activity_tau_ms=5000.0,
+                      estimate_every_us=5_000, min_tau_s=0.01)
+    first = cl["cluster"][0]
+    rows = cl[cl["cluster"] == first]
+    assert (rows["tau_s"] > 0).all() and rows["t"].max() < 150_000
+    assert rows["tau_s"].min() < 0.01
+    assert (cl["cluster"][cl["t"] > 150_000] != first).all()
