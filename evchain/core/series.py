@@ -26,6 +26,8 @@ class SeriesDef:
     name: str
     dtype: np.dtype
     description: str = ""
+    #: fields that :meth:`array` fills with NaN when not given (values a producer may not have)
+    nan_fields: tuple[str, ...] = ()
 
     def __post_init__(self):
         dtype = np.dtype(self.dtype)
@@ -33,30 +35,47 @@ class SeriesDef:
             raise ValueError(f"series {self.name!r}: dtype must be structured with an int64 "
                              f"field 't' first, got {dtype}")
         object.__setattr__(self, "dtype", dtype)
+        unknown = set(self.nan_fields) - set(dtype.names)
+        if unknown:
+            raise ValueError(f"series {self.name!r}: nan_fields {sorted(unknown)} are not fields")
 
     def array(self, **columns) -> np.ndarray:
-        """Entries from equal-length columns (fields not given are 0)."""
+        """Entries from equal-length columns (fields not given are 0, or NaN for
+        :attr:`nan_fields`)."""
         n = len(next(iter(columns.values()))) if columns else 0
-        out = np.zeros(n, self.dtype)
+        out = self.empty(n)
         for name, values in columns.items():
             out[name] = values
+        return out
+
+    def empty(self, n: int) -> np.ndarray:
+        """``n`` entries, every field 0 but :attr:`nan_fields` NaN."""
+        out = np.zeros(n, self.dtype)
+        for name in self.nan_fields:
+            out[name] = np.nan
         return out
 
     def renamed(self, name: str, description: str | None = None) -> SeriesDef:
         """The same entries under another name (e.g. a stage whose series name is a
         parameter)."""
         return SeriesDef(name, self.dtype,
-                         self.description if description is None else description)
+                         self.description if description is None else description,
+                         self.nan_fields)
 
     def fields(self) -> str:
         """The field names, e.g. ``t, x, y, support, total``."""
         return ", ".join(self.dtype.names)
 
 
+#: the camera's angular velocity in the FOE series, deg/s about its axes (x right, y down, z
+#: forward; :class:`~evchain.core.truth.RotationTruth`'s convention); NaN where not estimated
+ROTATION_FIELDS = ("wx_deg_s", "wy_deg_s", "wz_deg_s")
+
 FOE = SeriesDef("foe", [("t", "i8"), ("x", "f8"), ("y", "f8"), ("support", "f8"),
-                        ("total", "f8")],
-                "focus of expansion estimates: x, y in px, support and total weight of the "
-                "estimate")
+                        ("total", "f8"), *((c, "f8") for c in ROTATION_FIELDS)],
+                "focus of expansion (the heading) estimates: x, y in px, support and total "
+                "weight of the estimate, the camera's angular velocity wx, wy, wz in deg/s "
+                "(NaN where not estimated)", nan_fields=ROTATION_FIELDS)
 FOE_VOTES = FOE.renamed("foe_votes", "the voting FOE estimates (foe_map's foe entries) that "
                         "foe_fit refined")
 
@@ -75,10 +94,16 @@ FLOW_ERROR = SeriesDef("flow_error", [("t", "i8"), ("n", "i8"), ("aee_pxs", "f8"
                                       ("aee_normal_pxs", "f8"), ("aae_deg", "f8"),
                                       ("invalid_rate", "f8")],
                        "flow errors per time bin (t = bin end): px/s, degrees, share 0-1")
+_ROTATION_TRUE = ("wx_true_deg_s", "wy_true_deg_s", "wz_true_deg_s")
 FOE_ERROR = SeriesDef("foe_error", [("t", "i8"), ("x", "f8"), ("y", "f8"), ("x_true", "f8"),
                                     ("y_true", "f8"), ("dx", "f8"), ("dy", "f8"),
-                                    ("angle_deg", "f8")],
-                      "per foe entry: estimate, truth and error in px, ray angle in degrees")
+                                    ("angle_deg", "f8"),
+                                    *((c, "f8") for c in ROTATION_FIELDS + _ROTATION_TRUE),
+                                    ("rotation_error_deg_s", "f8")],
+                      "per foe entry: estimate, truth and error in px, ray angle in degrees; "
+                      "the estimated and the true angular velocity and the norm of their "
+                      "difference in deg/s (NaN where either is unknown)",
+                      nan_fields=(*ROTATION_FIELDS, *_ROTATION_TRUE, "rotation_error_deg_s"))
 TTC_ERROR = SeriesDef("ttc_error", [("t", "i8"), ("tau_s", "f8"), ("tau_true_s", "f8"),
                                     ("rel_error", "f8"), ("cluster", "i8"), ("x", "f8"),
                                     ("y", "f8"), ("on_obstacle", "i1")],

@@ -12,8 +12,6 @@ from evchain.core.packets import FlowPacket, Geometry
 from evchain.core.series import FOE
 from evchain.errors import DataError
 
-_FOE = FOE.dtype
-
 
 def region_cells(geometry: Geometry, radius_px: float | None):
     """Region A: ``(x0, y0, lo, hi, clo, chi)``: its bounding box origin, the absolute column
@@ -156,7 +154,7 @@ class FoeMap(Filter):
             k.start(self._state, -(-packet.t_start // period) * period)
             self._started = True
         n_max = max(0, -(-(packet.t_end - k.next_read(self._state)) // period))
-        out = np.empty(n_max, dtype=_FOE)  # the kernel writes its fields
+        out = FOE.empty(n_max)  # the kernel writes position and weights; no rotation (NaN)
         cell = self.params.cell_px
         if cell == 1:
             x, y = packet.x, packet.y

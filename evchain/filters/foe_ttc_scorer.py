@@ -9,8 +9,8 @@ from pydantic import Field
 
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import FlowPacket
-from evchain.core.series import FOE, FOE_ERROR, TTC, TTC_CLUSTERS, TTC_ERROR
-from evchain.core.truth import FoeTruth, ObjectTruth, TtcTruth, not_scored
+from evchain.core.series import FOE, FOE_ERROR, ROTATION_FIELDS, TTC, TTC_CLUSTERS, TTC_ERROR
+from evchain.core.truth import FoeTruth, ObjectTruth, RotationTruth, TtcTruth, not_scored
 
 
 def _truth_foe(truth: FoeTruth, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -19,6 +19,16 @@ def _truth_foe(truth: FoeTruth, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     x, y = truth.foe(t.astype(np.float64))
     return (np.broadcast_to(np.asarray(x, np.float64), t.shape).copy(),
             np.broadcast_to(np.asarray(y, np.float64), t.shape).copy())
+
+
+def _truth_rotation_deg_s(truth, t: np.ndarray) -> np.ndarray:
+    """The true angular velocity at times ``t`` as ``[len(t), 3]`` deg/s (NaN when the truth
+    has no :class:`~evchain.core.truth.RotationTruth`)."""
+    if not isinstance(truth, RotationTruth) or len(t) == 0:
+        return np.full((len(t), 3), np.nan)
+    w = truth.angular_velocity(t.astype(np.float64))
+    return np.degrees(np.stack([np.broadcast_to(np.asarray(c, np.float64), t.shape)
+                                for c in w], axis=1))
 
 
 def _truth_ttc(truth: TtcTruth, t: np.ndarray) -> np.ndarray:
@@ -129,9 +139,11 @@ class FoeTtcScorer(Filter):
     tick, 0 if not, -1 if the truth cannot tell). At the end writes ``metrics.foe`` (``dx_mean_px``,
     ``dx_std_px``, ``dy_mean_px``, ``dy_std_px``, ``angle_mean_deg`` after ``warmup_s``;
     thesis eq. 4.1; ``lag_ms``: how late the estimate follows the true FOE where that moves,
-    :func:`foe_lag_ms`) and ``metrics.ttc`` over the last ``last_window_s`` before collision,
-    sampled every ``sample_every_us`` (a time without an estimate of at most ``max_age_us``
-    counts as a miss):
+    :func:`foe_lag_ms`; ``rotation_rate_error_deg_s``: the median norm of the difference between
+    the estimated and the true angular velocity, where the ``foe`` entries carry one and the
+    truth knows it, :meth:`_rotation_metrics`) and ``metrics.ttc`` over the last
+    ``last_window_s`` before collision, sampled every ``sample_every_us`` (a time without an
+    estimate of at most ``max_age_us`` counts as a miss):
 
     * ``share_on_obstacle_within_20pct`` (the headline): share of the times at which the
       reported cluster lies on the obstacle (the truth's ``object_id`` sees one of its
@@ -157,7 +169,7 @@ class FoeTtcScorer(Filter):
     optional_series = (FOE, TTC, TTC_CLUSTERS)
     adds_series = (FOE_ERROR, TTC_ERROR)
     needs_truth = (FoeTruth, TtcTruth)
-    uses_truth = (ObjectTruth,)
+    uses_truth = (ObjectTruth, RotationTruth)
     output_paths = ("plot_dir",)
 
     class Params(FilterParams):
@@ -207,6 +219,13 @@ class FoeTtcScorer(Filter):
             x, y = np.asarray(foe["x"], np.float64), np.asarray(foe["y"], np.float64)
             err = FOE_ERROR.array(t=t, x=x, y=y, x_true=xt, y_true=yt, dx=x - xt, dy=y - yt,
                                   angle_deg=foe_angle_deg(x, y, xt, yt, g.f, g.cx, g.cy))
+            if all(c in foe.dtype.names for c in ROTATION_FIELDS):
+                w = np.stack([np.asarray(foe[c], np.float64) for c in ROTATION_FIELDS], 1)
+                wt = _truth_rotation_deg_s(truth, t)
+                for i, c in enumerate(ROTATION_FIELDS):
+                    err[c] = w[:, i]
+                    err[c.replace("_deg", "_true_deg")] = wt[:, i]
+                err["rotation_error_deg_s"] = np.linalg.norm(w - wt, axis=1)
             self._foe.append(err)
             self._last_foe = (float(x[-1]), float(y[-1]))
             out = out.with_series(FOE_ERROR.name, err)
@@ -276,7 +295,34 @@ class FoeTtcScorer(Filter):
                 "angle_mean_deg": float(np.nanmean(ang)) if np.isfinite(ang).any() else None,
                 "angle_std_deg": float(np.nanstd(ang)) if np.isfinite(ang).any() else None,
                 "n": int(k.sum()), "warmup_s": self.params.warmup_s,
-                **foe_lag_metrics(foe[k])}
+                **foe_lag_metrics(foe[k]), **self._rotation_metrics(foe[k])}
+
+    def _rotation_metrics(self, foe: np.ndarray) -> dict:
+        """The camera's rotation rate against the truth over the scored ``foe_error`` entries:
+        ``rotation_rate_error_deg_s``, the median of |w - w_true| (the norm of the difference
+        of the angular velocity vectors, deg/s) over the entries with an estimate;
+        ``rotation_rate_error_wx_deg_s`` (wy, wz): the median of each axis' |difference|;
+        ``rotation_rate_true_deg_s``: the median |w_true|, the scale of what was estimated;
+        ``rotation_coverage``: the share of entries with an estimate. None where nothing was
+        estimated or the truth knows no rotation (then ``not_scored`` says so)."""
+        keys = ("rotation_rate_error_deg_s", *(f"rotation_rate_error_{c}" for c in
+                                               ROTATION_FIELDS),
+                "rotation_rate_true_deg_s")
+        if not isinstance(self.truth, RotationTruth):
+            return {**dict.fromkeys(keys), "rotation_coverage": None,
+                    "not_scored": not_scored(keys, self.truth, RotationTruth)}
+        true = np.stack([foe[c.replace("_deg", "_true_deg")] for c in ROTATION_FIELDS], 1)
+        est = np.stack([foe[c] for c in ROTATION_FIELDS], 1)
+        have = np.isfinite(est).all(axis=1) & np.isfinite(true).all(axis=1)
+        cover = float(have.mean()) if len(foe) else None
+        if not have.any():
+            return {**dict.fromkeys(keys), "rotation_coverage": cover}
+        d = np.abs(est[have] - true[have])
+        return {"rotation_rate_error_deg_s": float(np.median(np.linalg.norm(d, axis=1))),
+                **{f"rotation_rate_error_{c}": float(np.median(d[:, i]))
+                   for i, c in enumerate(ROTATION_FIELDS)},
+                "rotation_rate_true_deg_s": float(np.median(np.linalg.norm(true[have], axis=1))),
+                "rotation_coverage": cover}
 
     def _ttc_metrics(self, ttc: np.ndarray) -> tuple[dict, dict]:
         p = self.params

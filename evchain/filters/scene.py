@@ -9,7 +9,14 @@ from pydantic import Field, model_validator
 
 from evchain.core.filter import Filter
 from evchain.core.packets import FramePacket
-from evchain.core.truth import DepthTruth, FlowTruth, FoeTruth, ObjectTruth, TtcTruth
+from evchain.core.truth import (
+    DepthTruth,
+    FlowTruth,
+    FoeTruth,
+    ObjectTruth,
+    RotationTruth,
+    TtcTruth,
+)
 from evchain.sim.config import SceneConfig
 
 
@@ -20,14 +27,15 @@ class SceneSource(Filter):
     (from the exact motion field at the earlier frame), bounded by ``dt_min_us``/``dt_max_us``;
     ``dt_us`` fixes the step instead (thesis Table 4.4: 20 or 40 µs). Packets cover
     ``packet_us`` slices (shorter when ``max_frames_per_packet`` is reached). Sets
-    ``context.geometry`` (with f, cx, cy), ``context.truth`` (flow, FOE, TTC, depth, object
-    ids) and ``context.renderer`` (frames at any time, for picture sinks).
+    ``context.geometry`` (with f, cx, cy), ``context.truth`` (flow, FOE, camera rotation, TTC,
+    depth, object ids) and ``context.renderer`` (frames at any time, for picture sinks).
     """
 
     name = "scene"
     consumes = None
     produces = FramePacket
-    provides_truth = (FlowTruth, FoeTruth, TtcTruth, DepthTruth, ObjectTruth)
+    provides_truth = (FlowTruth, FoeTruth, RotationTruth, TtcTruth, DepthTruth,
+                      ObjectTruth)
 
     class Params(SceneConfig):
         packet_us: int = Field(10_000, ge=1, le=10_000_000, description="slice per packet, µs")
