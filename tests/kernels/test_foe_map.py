@@ -158,7 +158,7 @@ def test_pruned_reads_equal_full_reads(case, hard):
     got, want = np.concatenate(got), np.concatenate(want)
     assert len(got) == len(want) > 100
     for name in want.dtype.names:
-        assert np.array_equal(got[name], want[name]), name
+        assert np.array_equal(got[name], want[name], equal_nan=True), name
 
 
 @pytest.mark.parametrize("radius", [None, 9.5])
