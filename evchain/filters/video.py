@@ -14,6 +14,7 @@ from evchain.core.series import FOE, TTC
 from evchain.core.truth import FoeTruth
 from evchain.errors import ConfigError
 from evchain.io.atomic import AtomicFile
+from evchain.report.movie import MovieWriter, gif_delay_ms
 from evchain.report.render import RED, YELLOW, draw_cross, event_image
 
 
@@ -23,7 +24,9 @@ class Video(Filter):
     the ground truth) and the obstacle's TTC (from the ``ttc`` series) drawn on top.
 
     ``.gif`` needs nothing extra; ``.mp4`` needs ``pip install 'evchain[video]'``. Frames are
-    taken at fixed times, so packet cuts do not change the video.
+    taken at fixed times, so packet cuts do not change the video. A GIF's frame delay is whole
+    hundredths of a second (``fps`` at most 50; 30 fps plays as 33.3, with a warning); an MP4
+    plays at ``fps`` exactly (see :mod:`evchain.report.movie`).
     """
 
     name = "video"
@@ -45,7 +48,13 @@ class Video(Filter):
         if suffix not in (".gif", ".mp4"):
             raise ConfigError(f"video path must end in .gif or .mp4, got {params.path!r}",
                               key="video.path")
-        self.format = "GIF" if suffix == ".gif" else "FFMPEG"
+        self.kind = suffix[1:]
+        if self.kind == "gif":
+            delay_ms = gif_delay_ms(params.fps)
+            if abs(delay_ms - 1000.0 / params.fps) > 1e-6:
+                context.warn(f"video: {params.path}: a GIF frame lasts whole hundredths of a "
+                             f"second; fps {params.fps:g} plays as {1000 / delay_ms:.4g} "
+                             f"({delay_ms} ms per frame)")
         super().setup(params, context)
 
     def reset(self):
@@ -58,16 +67,8 @@ class Video(Filter):
         self.ttc_text = ""
         self.frames = 0
 
-    def _open(self):
-        import imageio.v2 as iio
-
-        kw = {"duration": 1.0 / self.params.fps, "loop": 0} if self.format == "GIF" else {
-            "fps": self.params.fps, "macro_block_size": 1}
-        try:
-            return iio.get_writer(self.out.tmp, format=self.format, mode="I", **kw)
-        except ImportError:
-            raise ConfigError("writing .mp4 needs: pip install 'evchain[video]'",
-                              key="video.path") from None
+    def _open(self) -> MovieWriter:
+        return MovieWriter(self.out.tmp, self.kind, self.params.fps)
 
     def process(self, packet: EventPacket) -> EventPacket:
         if self.frame_start is None:
@@ -105,7 +106,7 @@ class Video(Filter):
             img = self._label(img, f"{t_end / 1e6:8.3f} s  {self.ttc_text}")
         if self.writer is None:
             self.writer = self._open()
-        self.writer.append_data(img)
+        self.writer.append(img)
         self.frames += 1
 
     @staticmethod
@@ -122,7 +123,7 @@ class Video(Filter):
         if self.writer is None:
             self.writer = self._open()  # an empty stream still gives a (one-frame) valid file
             g = self.context.geometry
-            self.writer.append_data(np.zeros((g.height * self.params.scale,
+            self.writer.append(np.zeros((g.height * self.params.scale,
                                               g.width * self.params.scale, 3), np.uint8))
         self.writer.close()
         self.writer = None
