@@ -10,18 +10,21 @@ from pydantic import Field
 
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import EventPacket
-from evchain.core.series import FOE, TTC
+from evchain.core.series import FOE, TTC, TTC_CLUSTERS
 from evchain.core.truth import FoeTruth
 from evchain.errors import ConfigError
 from evchain.io.atomic import AtomicFile
 from evchain.report.movie import MovieWriter, gif_delay_ms
-from evchain.report.render import RED, YELLOW, draw_cross, event_image
+from evchain.report.video_frame import compose
 
 
 class Video(Filter):
     """Write a video of the stream: one frame per ``frame_us`` of events (flow events coloured by
-    direction), with the estimated FOE (yellow, from the ``foe`` series), the true FOE (red, from
-    the ground truth) and the obstacle's TTC (from the ``ttc`` series) drawn on top.
+    direction). Overlays (``overlay: all``): the estimated FOE (yellow, from the ``foe`` series)
+    and the true FOE (red, from the ground truth) with a legend, the stream time and the
+    obstacle's TTC (from the ``ttc`` series), every live TTC cluster with its TTC as a label
+    (from ``ttc_clusters``; labels never overlap), and on flow frames sampled flow arrows and the
+    colour wheel of directions (see :mod:`evchain.report.video_frame`).
 
     ``.gif`` needs nothing extra; ``.mp4`` needs ``pip install 'evchain[video]'``. Frames are
     taken at fixed times, so packet cuts do not change the video. A GIF's frame delay is whole
@@ -31,7 +34,7 @@ class Video(Filter):
 
     name = "video"
     consumes = EventPacket
-    optional_series = (FOE, TTC)
+    optional_series = (FOE, TTC, TTC_CLUSTERS)
     uses_truth = (FoeTruth,)
     output_paths = ("path",)
 
@@ -41,7 +44,11 @@ class Video(Filter):
         fps: float = Field(25.0, gt=0, le=240, description="playback frames per second")
         scale: int = Field(2, ge=1, le=8, description="pixel magnification")
         max_frames: int = Field(2000, ge=1, description="stop adding frames after this many")
-        overlay: Literal["all", "none"] = Field("all", description="draw FOE and TTC markers")
+        overlay: Literal["all", "none"] = Field(
+            "all", description="draw FOE, TTC and flow overlays (markers, legend, labels, "
+            "arrows, colour wheel)")
+        arrows_every_px: int = Field(16, ge=0, description="spacing of the sampled flow "
+                                     "arrows in output pixels (0: none)")
 
     def setup(self, params, context):
         suffix = Path(params.path).suffix.lower()
@@ -65,6 +72,8 @@ class Video(Filter):
         self.pending: list[EventPacket] = []
         self.foe = (np.nan, np.nan)
         self.ttc_text = ""
+        self.clusters = None
+        self.obstacle = None
         self.frames = 0
 
     def _open(self) -> MovieWriter:
@@ -89,33 +98,25 @@ class Video(Filter):
         if self.frames >= self.params.max_frames:
             return
         foe, ttc = series.get(FOE.name), series.get(TTC.name)
+        clusters = series.get(TTC_CLUSTERS.name)
         if foe is not None and len(foe):
             self.foe = (foe["x"][-1], foe["y"][-1])
         if ttc is not None and len(ttc):
             self.ttc_text = f"TTC {ttc['tau_s'][-1]:.2f} s"
-        g = shown.geometry
-        flow = (shown.vx, shown.vy) if hasattr(shown, "vx") else (None, None)
-        img = event_image(g.height, g.width, shown.x, shown.y, shown.p, *flow)
-        if self.params.overlay == "all":
-            if isinstance(self.truth, FoeTruth):
-                tx, ty = self.truth.foe(np.array([t_end], np.float64))
-                draw_cross(img, float(tx[0]), float(ty[0]), RED)
-            draw_cross(img, *self.foe, YELLOW)
-        img = np.kron(img, np.ones((self.params.scale, self.params.scale, 1), np.uint8))
-        if self.params.overlay == "all":
-            img = self._label(img, f"{t_end / 1e6:8.3f} s  {self.ttc_text}")
+            self.obstacle = int(ttc["cluster"][-1])
+        if clusters is not None and len(clusters):
+            self.clusters = clusters[clusters["t"] == clusters["t"][-1]]
+        foe_true = None
+        if isinstance(self.truth, FoeTruth):
+            tx, ty = self.truth.foe(np.array([t_end], np.float64))
+            foe_true = (float(tx[0]), float(ty[0]))
+        img, _ = compose(shown, self.params.scale, self.params.overlay == "all", self.foe,
+                         foe_true, f"{t_end / 1e6:8.3f} s  {self.ttc_text}", self.clusters,
+                         self.obstacle, self.params.arrows_every_px)
         if self.writer is None:
             self.writer = self._open()
         self.writer.append(img)
         self.frames += 1
-
-    @staticmethod
-    def _label(img: np.ndarray, text: str) -> np.ndarray:
-        from PIL import Image, ImageDraw
-
-        pil = Image.fromarray(img)
-        ImageDraw.Draw(pil).text((4, 2), text, fill=(255, 255, 255))
-        return np.asarray(pil)
 
     def flush(self):
         if self.pending and len(self.pending[0]):
