@@ -17,14 +17,18 @@ from evchain.io.atomic import AtomicFile
 from evchain.report.movie import MovieWriter, gif_delay_ms
 from evchain.report.video_frame import compose
 
+#: the latest tick's TTC clusters stay on screen this long (µs) when no newer tick comes
+CLUSTERS_SHOWN_US = 100_000
+
 
 class Video(Filter):
     """Write a video of the stream: one frame per ``frame_us`` of events (flow events coloured by
     direction). Overlays (``overlay: all``): the estimated FOE (yellow, from the ``foe`` series)
     and the true FOE (red, from the ground truth) with a legend, the stream time and the
-    obstacle's TTC (from the ``ttc`` series), every live TTC cluster with its TTC as a label
-    (from ``ttc_clusters``; labels never overlap), and on flow frames sampled flow arrows and the
-    colour wheel of directions (see :mod:`evchain.report.video_frame`).
+    obstacle's TTC (from the ``ttc`` series), the TTC clusters of the latest tick (from
+    ``ttc_clusters``, for up to 100 ms) with their TTC as labels that never overlap, and on flow
+    frames sampled flow arrows and the colour wheel of directions (see
+    :mod:`evchain.report.video_frame`).
 
     ``.gif`` needs nothing extra; ``.mp4`` needs ``pip install 'evchain[video]'``. Frames are
     taken at fixed times, so packet cuts do not change the video. A GIF's frame delay is whole
@@ -106,6 +110,8 @@ class Video(Filter):
             self.obstacle = int(ttc["cluster"][-1])
         if clusters is not None and len(clusters):
             self.clusters = clusters[clusters["t"] == clusters["t"][-1]]
+        if self.clusters is not None and t_end - self.clusters["t"][0] > CLUSTERS_SHOWN_US:
+            self.clusters = None  # no live cluster lately
         foe_true = None
         if isinstance(self.truth, FoeTruth):
             tx, ty = self.truth.foe(np.array([t_end], np.float64))

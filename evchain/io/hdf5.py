@@ -88,9 +88,7 @@ class DsecWriter:
         opts = compression_options(compression)
         g = h5file.create_group("events")
         if geometry is not None:
-            g.attrs.update({"width": geometry.width, "height": geometry.height,
-                            "cx": geometry.cx, "cy": geometry.cy,
-                            **({"f": geometry.f} if geometry.f else {})})
+            _geometry_attrs(g, geometry)
         for c in COLUMNS:
             g.create_dataset(c, shape=(0,), maxshape=(None,), dtype=DTYPES[c],
                              chunks=(CHUNK_ROWS,), **opts)
@@ -107,6 +105,8 @@ class DsecWriter:
     def append(self, packet: EventPacket) -> None:
         if self.t_offset is None:
             self.t_offset = int(packet.t_start)
+            if "width" not in self.events.attrs:  # no geometry known when the file was made
+                _geometry_attrs(self.events, packet.geometry)
         self.t_end = int(packet.t_end)
         if len(packet):
             self.pending.append(packet)
@@ -147,6 +147,11 @@ class DsecWriter:
         ms_to_idx = np.concatenate([*self.ms_to_idx, tail]).astype(np.uint64)
         self.file.create_dataset("ms_to_idx", data=ms_to_idx, **self.opts)
         self.file.create_dataset("t_offset", data=np.int64(t_offset))
+
+
+def _geometry_attrs(group, geometry: Geometry) -> None:
+    group.attrs.update({"width": geometry.width, "height": geometry.height, "cx": geometry.cx,
+                        "cy": geometry.cy, **({"f": geometry.f} if geometry.f else {})})
 
 
 def write_hdf5(path: str | Path, events: EventPacket, compression: Compression = "blosc"

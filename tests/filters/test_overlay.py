@@ -174,3 +174,20 @@ def test_video_draws_the_clusters_of_the_series(tmp_path):
     frame = np.asarray(iio.mimread(tmp_path / "v.gif")[0])[..., :3].astype(int)
     orange = np.abs(frame - OBSTACLE).max(axis=-1) < 40
     assert orange[130:152, 170:200].any()  # the obstacle's square around (90, 70) at scale 2
+
+
+def test_video_drops_clusters_when_no_tick_comes(tmp_path):
+    """Clusters of a tick stay on screen for 100 ms, then go when no newer tick comes."""
+    packets, truth = expansion_stream(n_packets=6, packet_us=25_000, foe_series=True)
+    cl = clusters([(90, 70)])
+    cl["t"] = packets[0].t_start
+    ttc = TTC.array(t=[packets[0].t_start], tau_s=[1.5], cluster=[0], x=[90.0], y=[70.0])
+    packets[0] = packets[0].with_series("ttc_clusters", cl).with_series("ttc", ttc)
+    f = Video()
+    f.setup(Video.Params(path="v.gif", frame_us=25_000, scale=2),
+            make_context(packets[0].geometry, truth, tmp_path))
+    run_filter(f, packets)
+    f.close()
+    frames = [np.asarray(fr)[..., :3].astype(int) for fr in iio.mimread(tmp_path / "v.gif")]
+    shown = [(np.abs(fr[120:160, 160:210] - OBSTACLE).max(axis=-1) < 40).any() for fr in frames]
+    assert shown == [True, True, True, True, False, False]

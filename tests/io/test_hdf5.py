@@ -284,3 +284,12 @@ def test_not_hdf5_and_outside_sensor(tmp_path):
         run_pipeline(pipeline_from_text(
             f"chain:\n  - use: hdf5\n    path: {tmp_path / 'small.h5'}\n", "p.yaml", registry),
             registry, tmp_path / "r2")
+
+
+def test_writer_takes_the_geometry_from_the_first_packet(tmp_path):
+    ev = random_events(100, Geometry(40, 30), seed=10)
+    w = Hdf5Writer()
+    w.setup(Hdf5Writer.Params(path="e.h5", compression="none"), make_context(None, None, tmp_path))
+    run_filter(w, [ev])
+    back = read_hdf5(tmp_path / "e.h5")
+    assert back.geometry == Geometry(40, 30) and same(back, ev)
