@@ -1,8 +1,10 @@
 """AEDAT 2.0 (jAER) files: streaming reader and writer, and the ``aedat`` / ``aedat_writer`` stages.
 
 Format (see ``docs/explanation/aedat.md``): ASCII header lines that start with ``#`` and end in
-CRLF, the first one ``#!AER-DAT2.0``; then 8-byte big-endian records ``(int32 address, int32
-timestamp in µs)``. The address layout depends on the chip:
+CRLF, the first one ``#!AER-DAT2.0``, the last (as jAER writes it) ``#End Of ASCII Header``;
+then 8-byte big-endian records ``(int32 address, int32 timestamp in µs)``. The writer never
+starts the records with the byte ``#`` (:func:`first_without_hash`). The address layout depends
+on the chip:
 
 * DAVIS240 / DAVIS346 (jAER ``DavisChip``): bit 31 = 0 and bit 10 = 0 for DVS events (bit 31 =
   1 is APS/IMU, bit 10 = 1 an external-input "special" event), y in bits 22-30, x in bits 12-21,
@@ -46,8 +48,13 @@ HALF = 1 << 31
 #: before it, is read as a timestamp reset
 RESET_WINDOW_US = 1_000_000
 #: DAVIS external-input ("special") event address, written before a first record that would
-#: start with the byte ``#`` (see :func:`encode_records`)
+#: start with the byte ``#`` when no other event of the same time can go first (see
+#: :class:`Writer`)
 DAVIS_SPECIAL_ADDRESS = 1 << 10
+#: the last header line jAER writes (since 2016) and stops reading at, whatever follows
+END_OF_HEADER = "End Of ASCII Header"
+#: raw DAVIS y rows whose address starts with the byte ``#`` (0x23): ``y_raw >> 2 == 0x23``
+HASH_ROWS_RAW = range(0x23 << 2, (0x23 << 2) + 4)
 
 ChipName = Literal["davis240", "davis346", "dvs128"]
 
@@ -113,7 +120,9 @@ class Header:
 
 
 def read_header(path: str | Path) -> Header:
-    """Parse the header: every line starting with ``#``; stops at the first byte that is not ``#``.
+    """Parse the header: lines starting with ``#``, up to and including the line
+    ``#End Of ASCII Header`` (as jAER: any case, and here also with spaces around it), else up to
+    the first byte that is not ``#``.
 
     Raises :class:`DataError` for a missing, empty or non-AEDAT-2.0 file and for a truncated
     last record.
@@ -138,6 +147,8 @@ def read_header(path: str | Path) -> Header:
         lines.append(first.rstrip(b"\r\n").decode("ascii", "replace")[1:])
         while fh.peek(1)[:1] == b"#":
             lines.append(fh.readline().rstrip(b"\r\n").decode("latin-1")[1:])
+            if lines[-1].strip().lower() == END_OF_HEADER.lower():
+                break
         offset = fh.tell()
     header = Header(path, lines, offset, size)
     header.chip = _chip_from_lines(lines)
@@ -164,7 +175,8 @@ def _chip_from_lines(lines: list[str]) -> Chip | None:
 
 
 def header_bytes(chip: Chip, extra: list[str] = ()) -> bytes:
-    """The header jAER writes (CRLF line ends), naming the chip's jAER class."""
+    """The header jAER writes (CRLF line ends), naming the chip's jAER class, ending with
+    ``#End Of ASCII Header``."""
     lines = [VERSION_LINE.decode(),
              "# This is a raw AE data file - do not edit",
              "# Data format is int32 address, int32 timestamp (8 bytes total), repeated for each "
@@ -175,7 +187,7 @@ def header_bytes(chip: Chip, extra: list[str] = ()) -> bytes:
         lines.append(f"# AEChip: {chip.jaer_class}")
     else:
         lines.append(f"# evchain-sensor: {chip.width}x{chip.height} (jAER DAVIS address layout)")
-    lines += [f"# {line}" for line in extra]
+    lines += [f"# {line}" for line in extra] + [f"#{END_OF_HEADER}"]
     return "".join(line + "\r\n" for line in lines).encode("ascii")
 
 
@@ -420,16 +432,10 @@ def read_aedat2(path: str | Path, chip: ChipName | None = None, chunk_records: i
 # encoding
 
 
-def encode_records(chip: Chip, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray,
-                   first: bool = False) -> np.ndarray:
-    """Records ``[n, 2]`` as big-endian uint32 for events in evchain coordinates.
-
-    Timestamps are written modulo 2**32 (the reader unwraps them). With ``first`` (the file's
-    first records) and a DAVIS layout whose first address byte would be ``#`` (0x23, raw y in
-    140..143), a DAVIS external-input special event (address 0x400, same timestamp) is written
-    first: readers take a leading ``#`` byte for another header line. jAER marks such events
-    special; evchain's reader skips them (counted as non-DVS).
-    """
+def encode_records(chip: Chip, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray
+                   ) -> np.ndarray:
+    """Records ``[n, 2]`` as big-endian uint32 for events in evchain coordinates (timestamps
+    modulo 2**32; the reader unwraps them)."""
     n = len(x)
     if n and (int(x.max()) >= chip.width or int(y.max()) >= chip.height):
         raise DataError(f"event outside the {chip.width}x{chip.height} sensor of chip "
@@ -444,10 +450,30 @@ def encode_records(chip: Chip, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: n
     out = np.empty((n, 2), dtype=">u4")
     out[:, 0] = addr
     out[:, 1] = t.astype(np.uint64) & np.uint64(0xFFFFFFFF) if n else 0
-    if first and n and chip.layout == "davis" and (int(addr[0]) >> 24) == 0x23:
-        lead = np.array([[DAVIS_SPECIAL_ADDRESS, out[0, 1]]], dtype=">u4")
-        out = np.concatenate([lead, out]).astype(">u4", copy=False)
     return out
+
+
+def first_without_hash(chip: Chip, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray
+                       ) -> tuple[tuple[np.ndarray, ...], bool]:
+    """The file's first events, arranged so that the data does not start with the byte ``#``.
+
+    Readers that end the header at the first byte that is not ``#`` (tonic, many scripts, and
+    jAER before it wrote ``#End Of ASCII Header``) swallow a first record starting with ``#``
+    (a DAVIS event in raw rows 140..143) as a header line. If another event of the same time
+    starts otherwise, it goes first (events of equal time have no order in the format). Returns
+    the columns and whether no such event exists: then the writer puts a DAVIS special event
+    first, which jAER marks special and evchain skips, but which readers that ignore the
+    special bit take for an OFF event at raw address 0.
+    """
+    if chip.layout != "davis" or not len(t) or chip.height - 1 - int(y[0]) not in HASH_ROWS_RAW:
+        return (x, y, t, p), False
+    k = int(np.searchsorted(t, t[0], side="right"))
+    rows = chip.height - 1 - y[:k].astype(np.int64)
+    free = np.flatnonzero((rows < HASH_ROWS_RAW.start) | (rows >= HASH_ROWS_RAW.stop))
+    if not len(free):
+        return (x, y, t, p), True
+    j = int(free[0])
+    return tuple(np.concatenate([c[j:j + 1], c[:j], c[j + 1:]]) for c in (x, y, t, p)), False
 
 
 class Writer:
@@ -469,6 +495,9 @@ class Writer:
         t = np.asarray(t, np.int64)
         prev = int(t[0]) if self._last_t is None else self._last_t
         chip = self.chip
+        lead = False
+        if self.events == 0:
+            (x, y, t, p), lead = first_without_hash(chip, x, y, t, p)
         words = np.empty(2 * len(t), "<u4")
         bad, gap = encode(x, y, t, p, 0 if chip.layout == "davis" else 1, chip.width,
                           chip.height, prev, words)
@@ -481,9 +510,9 @@ class Writer:
             raise DataError(f"{self.name}: event {gap} at {int(t[gap])} us follows {before} us: a "
                             "gap of 2^31 us or more cannot be written to AEDAT 2.0 (32-bit "
                             "timestamps)")
-        if self.events == 0 and chip.layout == "davis" and (int(words[0]) & 0xFF) == 0x23:
-            lead = encode_records(chip, x[:1], y[:1], t[:1], p[:1], first=True)[:1]
-            self.fh.write(lead.tobytes())  # the special record, see encode_records
+        if lead:  # the special record, see first_without_hash
+            self.fh.write(np.array([[DAVIS_SPECIAL_ADDRESS, int(t[0]) & 0xFFFFFFFF]],
+                                   ">u4").tobytes())
             self.specials += 1
         self.fh.write(words)
         self.events += len(t)
