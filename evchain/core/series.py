@@ -88,6 +88,12 @@ EVENT_RATE = SeriesDef("event_rate", [("t", "i8"), ("t_bin_start", "i8"), ("t_bi
                                       ("rate_eps", "f8"), ("on", "i8"), ("off", "i8")],
                        "events per second at one pixel column per bin")
 
+IMU = SeriesDef("imu", [("t", "i8"), ("ax", "f8"), ("ay", "f8"), ("az", "f8"), ("gx", "f8"),
+                        ("gy", "f8"), ("gz", "f8"), ("temperature_c", "f8")],
+                "inertial samples in the camera's axes (x right, y down, z forward): "
+                "accelerometer ax, ay, az in g (specific force: an upright camera at rest reads "
+                "ay = -1), gyro gx, gy, gz in deg/s (right-handed: tilt up, pan right, roll "
+                "clockwise seen from behind), temperature_c in °C")
 #: default bin of the flow density series (µs)
 DENSITY_BIN_US = 100_000
 
