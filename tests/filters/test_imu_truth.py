@@ -198,3 +198,19 @@ def test_dvsflow16_recordings(name, tmp_path):
         assert share < 0.05 and report["metrics"]["flow"]["n_scored"] < 0.05 * report[
             "metrics"]["flow"]["n_flow"]
         assert any("truth for only" in w for w in report["warnings"])
+
+
+def test_rate_plot_of_the_rolling_camera(tmp_path):
+    from evchain.filters.imu_rate_plot import ImuRatePlot
+
+    cam = RollingCamera(duration_us=600_000)
+    out, _, _, ctx = run(stream(cam, bias_dps=BIAS), gyro_bias_dps=BIAS, focal_px=70.0,
+                         calibration_us=300_000)
+    plot = ImuRatePlot()
+    plot.id = "imu_rate_plot"
+    plot.setup(ImuRatePlot.Params(path="rate.png"), Context(out_dir=tmp_path))
+    assert plot.process(out) is out
+    plot.flush()
+    png = (tmp_path / "rate.png").read_bytes()
+    assert png.startswith(b"\x89PNG") and len(png) > 10_000
+    assert plot.context.metrics["imu_rate_plot"]["bins"] == 6
