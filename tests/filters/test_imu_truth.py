@@ -214,3 +214,22 @@ def test_rate_plot_of_the_rolling_camera(tmp_path):
     png = (tmp_path / "rate.png").read_bytes()
     assert png.startswith(b"\x89PNG") and len(png) > 10_000
     assert plot.context.metrics["imu_rate_plot"]["bins"] == 6
+
+
+def test_pipeline_on_a_file_without_imu_records_says_so(tmp_path, capsys):
+    """A recording without IMU records: exit code 2 and a message naming the cause, no
+    metrics that look like a result."""
+    from evchain.cli import main
+    from evchain.io.aedat2 import write_aedat2
+
+    events = RollingCamera(Geometry(240, 180), centre=(120.0, 90.0),
+                           duration_us=300_000).events()
+    path = write_aedat2(tmp_path / "no_imu.aedat", events, chip="davis240")
+    pipeline = REPO / "pipelines" / "dvsflow16-imu-lk.yaml"
+    code = main(["run", str(pipeline), "--set", f"aedat.path={path}",
+                 "--out", str(tmp_path / "run")])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "imu_truth" in err and "no IMU samples" in err and "no IMU records" in err
+    report = json.loads((tmp_path / "run" / "report.json").read_text())
+    assert report["status"] == "failed" and "flow" not in report["metrics"]
