@@ -583,7 +583,8 @@ class AedatSource(Filter):
 
     The chip (address layout and size) comes from the parameter ``chip`` or from the header's
     ``# AEChip:`` line. DAVIS IMU samples become the series ``imu`` (camera axes, g and deg/s;
-    :mod:`evchain.io.davis_imu`), with the full scales from jAER's preferences in the header
+    :mod:`evchain.io.davis_imu`; from the file's first sample on, none without IMU records),
+    with the full scales from jAER's preferences in the header
     or, where it says none, from ``gyro_full_scale_dps`` and ``accel_full_scale_g``. Other
     non-DVS records (APS, special events) are skipped and counted in ``metrics[<id>]``;
     32-bit timestamp wraps and resets are unwrapped into int64 µs.
@@ -662,6 +663,7 @@ class AedatSource(Filter):
                       imu)
         self._imu_pending = np.zeros(0, IMU.dtype)
         self._imu_late = 0
+        self._imu_seen = False
         for packet in self._packets(dec):
             yield self._with_imu(packet) if prm.imu else packet
         if self.stats.resets:
@@ -689,7 +691,8 @@ class AedatSource(Filter):
             self._imu_pending = np.concatenate([self._imu_pending, got])
 
     def _with_imu(self, packet: EventPacket) -> EventPacket:
-        """``packet`` with the IMU samples of its slice as the series ``imu``; samples that
+        """``packet`` with the IMU samples of its slice as the series ``imu``, from the first
+        sample of the file on (a file without IMU records gives no series); samples that
         arrive after their slice was emitted (written out of time order) are counted in
         ``imu_late`` and dropped."""
         pend = self._imu_pending
@@ -698,7 +701,8 @@ class AedatSource(Filter):
         self._imu_late += int(np.count_nonzero(late))
         mine = pend[~late & (t < packet.t_end)]
         self._imu_pending = pend[t >= packet.t_end]
-        return packet.with_series(IMU.name, mine)
+        self._imu_seen = self._imu_seen or len(pend) > 0
+        return packet.with_series(IMU.name, mine) if self._imu_seen else packet
 
     def _packets(self, dec: Decoder) -> Iterator[EventPacket]:
         prm = self.params

@@ -217,3 +217,10 @@ def test_rot_disk_gyro_rolls_about_the_optical_axis():
     psi = np.degrees(np.unwrap(np.arctan2(imu["ay"], imu["ax"])))
     turn = -np.sum(0.5 * (gz[1:] + gz[:-1]) * np.diff(imu["t"]) * 1e-6)
     assert abs((psi[-1] - psi[0]) / turn - 1) < 0.05
+
+
+def test_a_file_without_imu_records_gives_no_series(tmp_path):
+    rec = np.array([[dvs(3, 4, 1), 1000], [dvs(5, 6, 0), 2000]], np.uint64)
+    packets, ctx = source_packets(write(tmp_path / "plain.aedat", rec))
+    assert all("imu" not in p.series for p in packets)
+    assert ctx.metrics["aedat"]["imu_samples"] == 0
