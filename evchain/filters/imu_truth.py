@@ -270,7 +270,7 @@ class ImuTruth(Filter):
             cam = start
         halves = None
         if accepted and prm.principal_point_px is None:
-            # the spread of the estimate: the same fit on each half of the lead-in
+            # the estimate's spread: the same fit on each half of the calibration stretch
             mid = float(np.median(lead.t))
             halves = []
             for part in (lead.select(lead.t < mid), lead.select(lead.t >= mid)):
