@@ -79,7 +79,8 @@ def replay_spec(spec, events_path: str | Path, check_recording: bool = True):
     reading ``events_path``, the events of an earlier run (``evchain run ... --replay``).
 
     That run's ``pipeline.resolved.yaml`` (beside the file) must show the same scene and
-    emulator parameters, else the events would not be the ones this pipeline makes.
+    emulator parameters, else the events would not be the ones this pipeline makes (a
+    parameter the recording does not name, one added since, counts with its default).
     ``check_recording`` False skips that check, for a recording still to be made. The path is
     made absolute (relative to the current folder)."""
     import os
@@ -118,7 +119,9 @@ def _check_recording(spec, recorded: Path) -> None:
         theirs = chain[i] if i < len(chain) else {}
         mine = {k: v for k, v in stage.params.model_dump(mode="json").items()
                 if k not in RENDER_ONLY}
-        differ = sorted(k for k, v in mine.items() if theirs.get(k) != v)
+        # a parameter added since the recording was made had its default's effect there
+        defaults = type(stage.params)().model_dump(mode="json")
+        differ = sorted(k for k, v in mine.items() if theirs.get(k, defaults.get(k)) != v)
         if theirs.get("use") != stage.use or differ:
             shown = ", ".join(f"{k}: {theirs.get(k)!r} there, {mine[k]!r} here" for k in differ)
             raise ConfigError(f"the recorded run ({recorded}) is not this pipeline's "
