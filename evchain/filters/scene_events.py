@@ -23,7 +23,8 @@ class SceneEvents(Filter):
     Give the scene parameters of the run that wrote the file (see its
     ``pipeline.resolved.yaml``): the truth (flow, depth, FOE, TTC) is computed from them, not
     read from the file. Sets ``context.geometry`` (with f, cx, cy) and ``context.truth`` (flow,
-    FOE, TTC, depth, object ids).
+    FOE, TTC, depth, object ids). Packets cover the file's events in ``packet_us`` slices from
+    the first; a file without events gives empty slices over the drive's duration.
     """
 
     name = "scene_events"
@@ -55,14 +56,21 @@ class SceneEvents(Filter):
                             "give the width and height of the run that wrote the file")
         context.geometry = self.geometry
         context.truth = SceneTruth(scene)
+        self.duration_us = int(round(scene.duration_s * 1e6))
         super().setup(params, context)
 
     def time_span_us(self) -> tuple[int, int] | None:
         return self.reader.time_span_us()
 
     def packets(self) -> Iterator[EventPacket]:
+        empty = True
         for packet in self.reader.packets():
+            empty = False
             yield packet.replace(geometry=self.geometry)
+        if empty:  # a drive without events (e.g. a uniform scene): its time still passes
+            P = self.params.packet_us
+            for t in range(0, self.duration_us, P):
+                yield EventPacket.empty(self.geometry, t, min(t + P, self.duration_us))
 
     def close(self) -> None:
         reader = getattr(self, "reader", None)
