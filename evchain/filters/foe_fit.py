@@ -34,7 +34,7 @@ class FoeFit(Filter):
     A fit needs a voting estimate at most ``tau_ms`` old: with none yet, or none for longer
     (``foe_map`` withholds its estimates while the flow's directions agree no better than
     noise would, and the speeds of such flow can still give a fit enough inliers) there is no
-    fit and no entry, and the next fit starts from the next voting estimate.
+    fit and no entry; the fits resume from the last one when voting estimates return.
     ``metrics.foe_fit`` counts the fit times, the fits kept, the voting estimates emitted
     instead, and the times without an estimate.
     """
@@ -153,9 +153,7 @@ class FoeFit(Filter):
         latest voting estimate is older than tau."""
         p = self.params
         t_vote, vx, vy = self._vote
-        if T - t_vote > tau_us:  # the flow has shown no FOE for tau: start afresh after it
-            self._th[:] = np.nan
-            self._won = -math.inf
+        if T - t_vote > tau_us:  # the flow has shown no FOE for tau: wait, resume from here
             return None
         warm = not math.isnan(self._th[k.FOE_X])
         if not warm:
