@@ -351,7 +351,7 @@ class FoeTtcScorer(Filter):
              "window_s": window_s,
              "window_span_s": [t_first * 1e-6, t_last * 1e-6],
              "n_estimates": int(len(ttc))}
-        if t_first - (t_last - int(p.last_window_s * 1e6)) >= p.sample_every_us:
+        if t_first - (t_last - int(p.last_window_s * 1e6)) > p.sample_every_us:  # a grid step
             self.context.warn(
                 f"{self.id}: the TTC window is {window_s:g} s, shorter than last_window_s "
                 f"{p.last_window_s:g} s (the stream has a true TTC only from {t_first * 1e-6:g} "
