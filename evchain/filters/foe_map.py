@@ -131,9 +131,6 @@ class FoeMap(Filter):
         self._geometry: Geometry | None = None
         self._state = None
         self._started = False
-        # the votes' decayed weight sums (sum w, sum w^2) at time _ts, for the noise test
-        self._s1 = self._s2 = 0.0
-        self._ts = 0
         self._counts = {"reads": 0, "estimates": 0, "no votes yet": 0, "noise-level": 0}
 
     def _allocate(self, geometry: Geometry) -> None:
@@ -181,49 +178,34 @@ class FoeMap(Filter):
         n_max = max(0, -(-(packet.t_end - k.next_read(self._state)) // period))
         self._counts["reads"] += n_max
         out = np.empty(n_max, dtype=_FOE)  # the kernel writes its fields
+        n_votes = np.empty(n_max)
         cell = self.params.cell_px
         if cell == 1:
             x, y = packet.x, packet.y
         else:
             x, y = to_cells(packet.x, cell), to_cells(packet.y, cell)
         n = k.process(x, y, packet.t, packet.vx, packet.vy, self._state_arrays, self._prm,
-                      int(packet.t_end), out)
+                      int(packet.t_end), out, n_votes)
         if n < n_max:
             out = out[:n]
         self._counts["no votes yet"] += n_max - n
         if self._log_m_alpha is not None:
-            out = out[self._above_noise(packet, out)]
+            out = out[self._above_noise(out, n_votes[:n])]
         self._counts["estimates"] += len(out)
         if cell != 1:
             out["x"] = from_cells(out["x"], cell)
             out["y"] = from_cells(out["y"], cell)
         return packet.with_series("foe", out)
 
-    def _above_noise(self, packet: FlowPacket, out: np.ndarray) -> np.ndarray:
-        """Which estimates' consensus (support / total) exceeds the noise bound at their read
-        time; carries the decayed sums of the votes' weights and squared weights on."""
-        p = self.params
-        tau = p.tau_ms * 1000.0
-        s2v = packet.vx.astype(np.float64) ** 2 + packet.vy.astype(np.float64) ** 2
-        acc = (s2v > 0) & (s2v >= p.min_speed_pxs ** 2)  # the votes the kernel counts
-        t = packet.t[acc]
-        w = np.ones(len(t))
-        if p.speed_weight_pxs:
-            w = p.speed_weight_pxs / (p.speed_weight_pxs + np.sqrt(s2v[acc]))
+    def _above_noise(self, out: np.ndarray, n_votes: np.ndarray) -> np.ndarray:
+        """Which estimates' consensus (support / total) exceeds the noise bound given their
+        effective numbers of votes."""
         keep = np.zeros(len(out), bool)
-        i = 0
-        for j, T in enumerate([*out["t"].tolist(), int(packet.t_end)]):
-            i1 = int(np.searchsorted(t, T, side="left"))  # a read at T sees the votes before T
-            g = np.exp((t[i:i1] - T) / tau)
-            d = math.exp(-(T - self._ts) / tau)
-            self._s1 = self._s1 * d + float(np.sum(w[i:i1] * g))
-            self._s2 = self._s2 * d * d + float(np.sum((w[i:i1] * g) ** 2))
-            self._ts, i = T, i1
-            if j < len(out) and self._s2 > 0 and out["total"][j] > 0:
-                n_eff = self._s1 * self._s1 / self._s2
-                bound = 0.5 + math.sqrt(self._log_m_alpha / (2.0 * n_eff))
-                keep[j] = out["support"][j] / out["total"][j] > bound
-        self._counts["noise-level"] += int(len(out) - keep.sum())
+        lma = self._log_m_alpha
+        for j, (n, sup, tot) in enumerate(zip(n_votes.tolist(), out["support"].tolist(),
+                                              out["total"].tolist(), strict=True)):
+            keep[j] = n > 0.0 and sup > (0.5 + math.sqrt(lma / (2.0 * n))) * tot
+        self._counts["noise-level"] += len(out) - int(keep.sum())
         return keep
 
     def flush(self):
