@@ -113,7 +113,7 @@ def test_no_ttc_below_the_bounds(case):
 def test_metrics_that_are_none_say_why(case):
     name, runs = case
     for flow, (report, _) in runs.items():
-        for group in ("foe", "ttc"):
+        for group in ("foe", "ttc", "flow"):
             m = report["metrics"][group]
             empty = [k for k, v in m.items() if v is None and k not in ("lag_ms", "lag_axis")]
             if empty:
