@@ -115,7 +115,7 @@ class Filter:
     uses_truth: ClassVar[tuple[type, ...]] = ()
     #: another way to give this stage its truth, named when the truth is missing
     truth_hint: ClassVar[str] = ""
-    #: sources: the ground truth they set as ``context.truth``
+    #: the ground truth a source (or a stage, for the stages after it) sets as ``context.truth``
     provides_truth: ClassVar[tuple[type, ...]] = ()
     #: the stage that turns the scene into sensor data (emulator, aps): the report's CPU time
     #: per simulated second counts the stages after the last sensor (or after the source)

@@ -89,6 +89,22 @@ EVENT_RATE = SeriesDef("event_rate", [("t", "i8"), ("t_bin_start", "i8"), ("t_bi
                                       ("rate_eps", "f8"), ("on", "i8"), ("off", "i8")],
                        "events per second at one pixel column per bin")
 
+IMU = SeriesDef("imu", [("t", "i8"), ("ax", "f8"), ("ay", "f8"), ("az", "f8"), ("gx", "f8"),
+                        ("gy", "f8"), ("gz", "f8"), ("temperature_c", "f8")],
+                "inertial samples in the camera's axes (x right, y down, z forward): "
+                "accelerometer ax, ay, az in g (specific force: an upright camera at rest reads "
+                "ay = -1), gyro gx, gy, gz in deg/s (right-handed: tilt up, pan right, roll "
+                "clockwise seen from behind), temperature_c in °C")
+IMU_RATE = SeriesDef("imu_rate", [("t", "i8"), ("n", "i8"), ("gx", "f8"), ("gy", "f8"),
+                                  ("gz", "f8"), ("fit_gx", "f8"), ("fit_gy", "f8"),
+                                  ("fit_gz", "f8"), ("normal_error", "f8"), ("valid", "i1")],
+                     "per time bin (t = the bin's last µs): the gyro's rate (bias removed, at "
+                     "the times the measurements reflect) and the rate fitted to the measured "
+                     "normal flow, "
+                     "deg/s; n measurements, their median relative normal-flow error against "
+                     "the gyro's flow, and whether the gyro's flow is the truth there (1) or "
+                     "not (0)")
+
 #: default bin of the flow density series (µs)
 DENSITY_BIN_US = 100_000
 

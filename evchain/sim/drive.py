@@ -38,7 +38,9 @@ class Scene:
             cfg.start_m, cfg.speed_mps, cfg.camera_height_m,
             math.radians(cfg.pitch_amplitude_deg), cfg.pitch_frequency_hz,
             cfg.pitch_shift_interval_s, cfg.pitch_decay_s, cfg.pitch_first_shift_s,
-            1.0 if cfg.dynamics == "pitch" else 0.0, float(len(self.segs))], np.float64)
+            1.0 if cfg.dynamics == "pitch" else 0.0, float(len(self.segs)),
+            math.radians(cfg.pan_dps), math.radians(cfg.tilt_dps), cfg.rotation_start_s],
+            np.float64)
         self.duration_s = cfg.drive_s
         #: the latest time the route supports (the drive may stop earlier)
         self.max_time_s = ((self.world.route_m - cfg.start_m) / cfg.speed_mps

@@ -44,7 +44,8 @@ def test_console_script_entry():
 def test_docs_generated(tmp_path, capsys):
     assert cli.main(["docs", "--out", str(tmp_path)]) == 0
     filters = (tmp_path / "filters.md").read_text()
-    assert "## `hdf5_writer`" in filters and "| `compression` | bool | `True` |" in filters
+    assert "## `hdf5_writer`" in filters
+    assert "| `compression` | Literal['blosc', 'gzip', 'none'] | `'blosc'` |" in filters
     assert "## `evchain_filters()" in (tmp_path / "hooks.md").read_text()
 
 
