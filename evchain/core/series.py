@@ -82,7 +82,8 @@ FOE_ERROR = SeriesDef("foe_error", [("t", "i8"), ("x", "f8"), ("y", "f8"), ("x_t
 TTC_ERROR = SeriesDef("ttc_error", [("t", "i8"), ("tau_s", "f8"), ("tau_true_s", "f8"),
                                     ("rel_error", "f8"), ("cluster", "i8"), ("x", "f8"),
                                     ("y", "f8"), ("on_obstacle", "i1")],
-                      "per ttc entry: estimate, truth, relative error, whether the cluster "
+                      "per ttc entry: estimate, truth, relative error (both -1 where the "
+                      "truth has no TTC: nothing ahead to contact), whether the cluster "
                       "lies on the obstacle (1, 0, -1 unknown)")
 EVENT_RATE = SeriesDef("event_rate", [("t", "i8"), ("t_bin_start", "i8"), ("t_bin_end", "i8"),
                                       ("rate_eps", "f8"), ("on", "i8"), ("off", "i8")],

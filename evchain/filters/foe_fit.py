@@ -30,6 +30,13 @@ class FoeFit(Filter):
     decayed inlier weight) the voting estimate is emitted and the next fit starts from it again.
     The ``foe_map`` entries move to series ``foe_votes``; series ``foe`` gets one entry per
     fit (t, x, y, support = decayed inlier weight, total = decayed weight of modelled events).
+
+    A fit needs a voting estimate at most ``tau_ms`` old: with none yet, or none for longer
+    (``foe_map`` withholds its estimates while the flow's directions agree no better than
+    noise would, and the speeds of such flow can still give a fit enough inliers) there is no
+    fit and no entry; the fits resume from the last one when voting estimates return.
+    ``metrics.foe_fit`` counts the fit times, the fits kept, the voting estimates emitted
+    instead, and the times without an estimate.
     """
 
     name = "foe_fit"
@@ -73,6 +80,7 @@ class FoeFit(Filter):
         self._th = k.initial_theta(math.nan, math.nan)
         self._vote: tuple[int, float, float] | None = None
         self._won = -math.inf  # time a far fit last beat a fit started from the votes
+        self._counts = {"fit times": 0, "fits": 0, "votes": 0, "no voting estimate": 0}
 
     def process(self, packet: FlowPacket) -> FlowPacket:
         if not isinstance(packet, FlowPacket):
@@ -105,9 +113,12 @@ class FoeFit(Filter):
             if j:
                 self._vote = (int(votes["t"][j - 1]), float(votes["x"][j - 1]),
                               float(votes["y"][j - 1]))
-            if self._vote is None:
+            self._counts["fit times"] += 1
+            r = None if self._vote is None else self._fit(k, buf, t, T, tau_us)
+            if r is None:
+                self._counts["no voting estimate"] += 1
                 continue
-            rows.append((T, *self._fit(k, buf, t, T, tau_us)))
+            rows.append((T, *r))
         out = np.zeros(len(rows), FOE_DTYPE)
         for i, r in enumerate(rows):
             out[i] = r
@@ -138,8 +149,12 @@ class FoeFit(Filter):
         self._lo, self._hi = lo, hi + m
 
     def _fit(self, k, buf, t, T, tau_us):
+        """(x, y, support, total) of the fit at T, or the voting estimate's; None when the
+        latest voting estimate is older than tau."""
         p = self.params
-        _, vx, vy = self._vote
+        t_vote, vx, vy = self._vote
+        if T - t_vote > tau_us:  # the flow has shown no FOE for tau: wait, resume from here
+            return None
         warm = not math.isnan(self._th[k.FOE_X])
         if not warm:
             self._th = k.initial_theta(vx, vy)
@@ -175,7 +190,16 @@ class FoeFit(Filter):
             self._won = -math.inf
         if ok:
             self._th = th
+            self._counts["fits"] += 1
             return th[k.FOE_X], th[k.FOE_Y], inl, tot
         self._th[:] = np.nan
         self._won = -math.inf
+        self._counts["votes"] += 1
         return vx, vy, inl, tot
+
+    def flush(self):
+        c = self._counts
+        self.context.metrics[self.metrics_key("foe_fit")] = {
+            "fit_times": c["fit times"], "fits_kept": c["fits"], "voting_estimates": c["votes"],
+            "no_estimate": {"no recent voting estimate": c["no voting estimate"]}}
+        return None

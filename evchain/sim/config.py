@@ -81,6 +81,10 @@ class SceneConfig(FilterParams):
     sun_azimuth_deg: float = Field(40.0, description="sun azimuth from world x towards y")
     sun_elevation_deg: float = Field(35.0, ge=0, le=90, description="sun elevation")
     layout_seed: int = Field(0, ge=0, description="seed of the procedural layout and textures")
+    contrast: float = Field(
+        1.0, ge=0, le=1, description="log contrast of the frames: intensity I becomes "
+        "0.5 (I / 0.5)^contrast, so every log change shrinks by this factor; 0: a uniform grey "
+        "frame (no events; the geometry and the ground truth stay those of the scene)")
 
     @model_validator(mode="after")
     def _check_drive(self):

@@ -268,3 +268,82 @@ def test_foe_lag_is_undefined_where_the_truth_does_not_move():
     foe["x"], foe["y"] = 80.5, 60 + 4 * np.sin((t - 50_000) * 1e-6 * 5)
     m = foe_lag_metrics(foe)
     assert m["lag_axis"] == "y" and m["lag_ms"] == pytest.approx(50.0, abs=2.0)
+
+
+# -- hard cases: short streams, no estimates, no obstacle ------------------------------------
+
+
+def score_ctx(packets, truth, tmp_path, **params):
+    """Like :func:`score`, also returning the context (its warnings)."""
+    ctx = Context(out_dir=tmp_path, truth=truth)
+    f = FoeTtcScorer()
+    f.setup(FoeTtcScorer.Params(**{"plots": False, **params}), ctx)
+    outs = [f.process(p) for p in packets]
+    f.flush()
+    return ctx, FlowPacket.concat(outs)
+
+
+def test_full_windows_say_their_length_and_warn_nothing(tmp_path):
+    ctx, _ = score_ctx(*stream(), tmp_path)
+    assert ctx.metrics["ttc"]["window_s"] == pytest.approx(3.0)
+    assert ctx.metrics["ttc"]["window_span_s"] == pytest.approx([0.89, 3.89])
+    assert ctx.metrics["foe"]["window_s"] == pytest.approx(2.9)   # 1 s warm-up of 3.9 s
+    assert ctx.warnings == []
+
+
+def test_a_stream_shorter_than_the_ttc_window_says_so(tmp_path):
+    """The last 1.2 s of a drive: the TTC window is those 1.2 s, not 3, and a warning says
+    so; the metrics are those of the 1.2 s."""
+    packets, truth = stream()
+    ctx, _ = score_ctx(packets[-12:], truth, tmp_path, warmup_s=0.5)
+    t = ctx.metrics["ttc"]
+    assert t["window_s"] == pytest.approx(1.19)
+    assert t["window_span_s"] == pytest.approx([2.7, 3.89])
+    assert t["share_within_20pct"] == 1.0
+    assert ctx.metrics["foe"]["window_s"] == pytest.approx(0.7)
+    assert len(ctx.warnings) == 1
+    assert "TTC window is 1.19 s, shorter than last_window_s 3 s" in ctx.warnings[0]
+
+
+def test_a_stream_under_the_foe_warmup_scores_no_foe_and_says_why(tmp_path):
+    packets, truth = stream()
+    ctx, _ = score_ctx(packets[-5:], truth, tmp_path, warmup_s=1.0)
+    f = ctx.metrics["foe"]
+    assert f["n"] == 0 and f["window_s"] == 0.0 and f["dx_mean_px"] is None
+    assert "not longer than the FOE warm-up" in f["why_none"]
+    assert any("FOE warm-up" in w for w in ctx.warnings)
+    assert any("TTC window is 0.49 s" in w for w in ctx.warnings)
+
+
+def test_no_estimates_give_none_medians_with_reasons(tmp_path):
+    """TTC estimates at under half of the window's times: the medians (a miss is an
+    infinite error) are None, not infinite, and why_none says why; no FOE at all: None and a
+    reason."""
+    packets, truth = stream(gap=(0.0, 2.5))
+    packets = [p.replace(series={k: v for k, v in p.series.items() if k != "foe"})
+               for p in packets]
+    ctx, _ = score_ctx(packets, truth, tmp_path)
+    t, f = ctx.metrics["ttc"], ctx.metrics["foe"]
+    assert 0.45 < t["coverage_last3s"] < 0.5
+    assert t["median_rel_error_last3s"] is None and t["median_rel_error_all"] is None
+    assert "estimates at 47% of the times" in t["why_none"]["median_rel_error_last3s"]
+    assert f["n"] == 0 and f["dx_mean_px"] is None
+    assert f["why_none"].startswith("no FOE estimate in the 2.9 s after the warm-up")
+
+
+class NoObstacleTruth(ExpansionTruth):
+    """An expansion with nothing ahead to contact: the TTC is undefined at every time."""
+
+    def ttc(self, t_us):
+        return np.full(np.shape(t_us), np.nan)
+
+
+def test_no_obstacle_scores_no_ttc_and_writes_no_nan(tmp_path):
+    packets, _ = stream()
+    ctx, out = score_ctx(packets, NoObstacleTruth(FOE, 4.0), tmp_path)
+    t = ctx.metrics["ttc"]
+    assert t["n"] == 0 and t["n_estimates"] == 390 and "no obstacle ahead" in t["why_none"]
+    err = out.series["ttc_error"]
+    assert len(err) == 390
+    assert (err["tau_true_s"] == -1).all() and (err["rel_error"] == -1).all()
+    assert ctx.metrics["foe"]["dx_mean_px"] == 0.0
