@@ -1,0 +1,106 @@
+"""Ctrl-C (SIGINT) during a run: the first stops the stream and finishes cleanly (every filter
+flushed and closed, outputs complete up to there), a second one aborts."""
+
+import json
+import signal
+import threading
+
+import pytest
+
+from evchain import cli
+from evchain.core.chain import run_pipeline
+from evchain.core.config import pipeline_from_text
+from evchain.errors import RunInterrupted
+from tests.core import toy_filters
+
+PIPE = """\
+name: interrupt-test
+chain:
+  - use: toy_source
+    packets: 5
+  - use: toy_writer
+    path: out/count.txt
+  - use: toy_scorer
+  - use: toy_cut_dependent
+"""
+
+
+def run(registry, tmp_path, overrides=()):
+    spec = pipeline_from_text(PIPE, "p.yaml", registry, list(overrides))
+    return run_pipeline(spec, registry, tmp_path)
+
+
+def test_first_ctrl_c_flushes_every_filter_and_writes_complete_outputs(registry, tmp_path):
+    toy_filters.CLOSED.clear()
+    toy_filters.STREAM_ENDED.clear()
+    handler = signal.getsignal(signal.SIGINT)
+    with pytest.raises(RunInterrupted, match=r"at 30000 us: every filter was flushed") as info:
+        run(registry, tmp_path, ["toy_source.sigint_at_packet=2"])
+    assert signal.getsignal(signal.SIGINT) is handler  # restored
+    # packets 0, 1 and the one in flight (2) went through the chain, nothing after
+    assert (tmp_path / "out" / "count.txt").read_text() == "300"
+    assert not (tmp_path / "out" / "count.txt.partial").exists()
+    assert (tmp_path / "series" / "count.csv").read_text().splitlines() == [
+        "t,n", "0,100", "10000,100", "20000,100"]
+    rep = json.loads((tmp_path / "report.json").read_text())
+    assert rep["status"] == "interrupted" and "30000 us" in rep["error"]
+    assert rep["metrics"] == {"toy": {"count": 300}, "scored": {"count": 300}}  # flushed
+    assert rep["filters"][0]["events_out"] == 300
+    assert info.value.result.report == rep and info.value.t_us == 30_000
+    assert toy_filters.STREAM_ENDED == ["toy_source"]  # the source's generator was closed
+    assert toy_filters.CLOSED == ["toy_source", "toy_writer"]
+    assert isinstance(info.value, KeyboardInterrupt)  # callers stop as on Ctrl-C
+
+
+def test_second_ctrl_c_aborts_and_completes_nothing(registry, tmp_path):
+    toy_filters.CLOSED.clear()
+    with pytest.raises(KeyboardInterrupt) as info:
+        run(registry, tmp_path, ["toy_source.sigint_at_packet=2", "toy_source.sigints=2"])
+    assert not isinstance(info.value, RunInterrupted)
+    assert not (tmp_path / "out" / "count.txt").exists()
+    assert (tmp_path / "out" / "count.txt.partial").exists()
+    rep = json.loads((tmp_path / "report.json").read_text())
+    assert rep["status"] == "failed" and rep["error"].startswith("KeyboardInterrupt")
+    assert toy_filters.CLOSED == ["toy_source", "toy_writer"]
+
+
+def test_a_source_that_checks_stop_ends_at_once(registry, tmp_path):
+    """A live source checks ``context.stop`` while it waits: no packet after the Ctrl-C."""
+    with pytest.raises(RunInterrupted, match="at 20000 us"):
+        run(registry, tmp_path, ["toy_source.sigint_at_packet=2", "toy_source.checks_stop=true"])
+    assert (tmp_path / "out" / "count.txt").read_text() == "200"
+    with pytest.raises(RunInterrupted, match="before the first packet"):
+        run(registry, tmp_path, ["toy_source.sigint_at_packet=0", "toy_source.checks_stop=true"])
+    # nothing came: empty but complete outputs
+    assert (tmp_path / "out" / "count.txt").read_text() == "0"
+    assert json.loads((tmp_path / "report.json").read_text())["status"] == "interrupted"
+
+
+def test_without_ctrl_c_nothing_changes(registry, tmp_path):
+    result = run(registry, tmp_path)
+    assert result.report["status"] == "ok" and result.report["error"] is None
+    assert (tmp_path / "out" / "count.txt").read_text() == "500"
+
+
+def test_runs_outside_the_main_thread(registry, tmp_path):
+    """Signal handlers can only be set in the main thread: elsewhere a run is unchanged."""
+    got = []
+    t = threading.Thread(target=lambda: got.append(run(registry, tmp_path).report["status"]))
+    t.start()
+    t.join(timeout=60)
+    assert got == ["ok"]
+
+
+def test_cli_exits_130_after_writing_the_outputs(registry, tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(cli, "_registry", lambda: registry)
+    pipe = tmp_path / "p.yaml"
+    pipe.write_text(PIPE)
+    out = tmp_path / "run"
+    rc = cli.main(["run", str(pipe), "--out", str(out), "--no-progress",
+                   "--set", "toy_source.sigint_at_packet=1"])
+    assert rc == 130
+    captured = capsys.readouterr()
+    assert "interrupt-test: stopped after" in captured.out
+    assert "toy_writer" in captured.out  # the per-stage table is still printed
+    assert "evchain: interrupted (Ctrl-C) at 20000 us" in captured.err
+    assert (out / "out" / "count.txt").read_text() == "200"
