@@ -94,14 +94,16 @@ class Chain:
     def stream(self, progress: bool = False) -> Iterator[Packet]:
         """Yield the last stage's packets; the chain's flush packets come last. Once
         ``context.stop`` is set no further packet is taken from the source (its iterator is
-        closed) and the filters are flushed as at the end of the stream."""
+        closed; a source that ``ends_on_stop`` ends its stream itself) and the filters are
+        flushed as at the end of the stream."""
         from evchain.core.progress import RunProgress
 
         source, rest = self.filters[0], self.filters[1:]
         bar = RunProgress(source.id, source.time_span_us(), progress)
         it = source.packets()
+        stop = self.context.stop
         try:
-            while not self.context.stop.is_set():
+            while source.ends_on_stop or not stop.is_set():
                 t0, c0 = time.perf_counter(), time.thread_time()
                 packet = _guard(source, None, "packets", next, it, None)
                 self.stats[0].wall_s += time.perf_counter() - t0
@@ -118,7 +120,7 @@ class Chain:
                 out = self._through(packet, 1)
                 if out is not None:
                     yield out
-            if self.context.stop.is_set():
+            if stop.is_set():
                 self.stopped = True
                 if hasattr(it, "close"):  # a generator's finally blocks run now
                     _guard(source, None, "packets", it.close)

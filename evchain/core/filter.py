@@ -122,6 +122,9 @@ class Filter:
     truth_hint: ClassVar[str] = ""
     #: sources: the ground truth they set as ``context.truth``
     provides_truth: ClassVar[tuple[type, ...]] = ()
+    #: sources: it watches ``context.stop`` (Ctrl-C) and then ends its stream itself, with the
+    #: packets it still holds (a live stream); other sources get no further turn once it is set
+    ends_on_stop: ClassVar[bool] = False
     #: the stage that turns the scene into sensor data (emulator, aps): the report's CPU time
     #: per simulated second counts the stages after the last sensor (or after the source)
     sensor: ClassVar[bool] = False

@@ -76,6 +76,43 @@ def test_a_source_that_checks_stop_ends_at_once(registry, tmp_path):
     assert json.loads((tmp_path / "report.json").read_text())["status"] == "interrupted"
 
 
+class Holding(toy_filters.ToySource):
+    """A live source: it watches ``context.stop`` and then hands over what it holds."""
+
+    name = "toy_holding"
+    ends_on_stop = True
+
+    def packets(self):
+        g = self.context.geometry
+        for i in range(self.params.packets):
+            if i == self.params.sigint_at_packet:
+                signal.raise_signal(signal.SIGINT)
+            if self.context.stop.is_set():
+                yield toy_filters.random_events(7, g, i * 10_000, i * 10_000 + 1, seed=i)
+                return
+            yield toy_filters.random_events(100, g, i * 10_000, (i + 1) * 10_000, seed=i)
+
+
+def test_a_source_that_ends_on_stop_hands_over_what_it_holds(tmp_path):
+    from evchain.core.registry import make_registry
+
+    reg = make_registry(discover=False, plugins=(toy_filters, _Plugin(Holding)))
+    text = PIPE.replace("toy_source", "toy_holding")
+    spec = pipeline_from_text(text, "p.yaml", reg, ["toy_holding.sigint_at_packet=2"])
+    with pytest.raises(RunInterrupted, match="at 20001 us"):
+        run_pipeline(spec, reg, tmp_path)
+    assert (tmp_path / "out" / "count.txt").read_text() == "207"
+
+
+class _Plugin:
+    def __init__(self, cls):
+        self.cls = cls
+
+    @toy_filters.hookimpl
+    def evchain_filters(self):
+        return [self.cls]
+
+
 def test_without_ctrl_c_nothing_changes(registry, tmp_path):
     result = run(registry, tmp_path)
     assert result.report["status"] == "ok" and result.report["error"] is None
