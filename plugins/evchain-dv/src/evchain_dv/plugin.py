@@ -1,5 +1,5 @@
-"""Entry point of evchain-dv (group ``evchain``): the AEDAT 4.0 source and sink, and their
-benchmark workloads."""
+"""Entry point of evchain-dv (group ``evchain``): the AEDAT 4.0 file source and sink, the live
+network source and server, and their benchmark workloads."""
 
 from __future__ import annotations
 
@@ -9,8 +9,9 @@ from evchain import hookimpl
 @hookimpl
 def evchain_filters():
     from evchain_dv.aedat4 import Aedat4Source, Aedat4Writer
+    from evchain_dv.network import DvNetworkServer, DvNetworkSource
 
-    return [Aedat4Source, Aedat4Writer]
+    return [Aedat4Source, Aedat4Writer, DvNetworkSource, DvNetworkServer]
 
 
 @hookimpl
