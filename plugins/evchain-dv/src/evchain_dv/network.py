@@ -16,10 +16,12 @@ stream's resolution as the sensor size) and makes both ends behave in a chain:
 * ``dv_network_server`` (sink) serves the chain's events to any number of clients (DV's GUI,
   dv-processing readers, another ``evchain run``). Its ``NetworkWriter`` lives in a process of
   its own (:mod:`evchain_dv.serve`), because dv-processing 2.0.4 deadlocks when a
-  ``NetworkWriter`` is destroyed while a client is connected.
+  ``NetworkWriter`` is destroyed while a client is connected. At the end of the stream it
+  lingers while clients are connected (``linger_s``): dv-processing's reader drops whatever it
+  has not read yet once the server closes the connection.
 
-Both ends poll: dv-processing's reader does not block (``getNextEventBatch`` returns ``None``
-when nothing has arrived), so the source waits between polls, from nothing while events flow
+The source polls: dv-processing's reader does not block (``getNextEventBatch`` returns
+``None`` when nothing has arrived), so it waits between polls, from nothing while events flow
 up to 1 ms when idle.
 """
 
