@@ -440,3 +440,39 @@ def test_registered_through_the_entry_point():
     info = make_registry().filters
     assert info["dv_network"].distribution == "evchain-dv"
     assert info["dv_network_server"].distribution == "evchain-dv"
+
+
+@pytest.mark.parametrize("sender,receiver", [("evchain", "evchain"), ("plain", "dv"),
+                                             ("prebuilt", "evchain"), ("prebuilt", "dv")])
+def test_benchmark_runs_deliver_every_event(tmp_path, sender, receiver):
+    """The runs behind the ``dv-network`` rows, small: nothing lost or changed."""
+    from evchain_dv import bench_network
+
+    ev = events(3000, seed=7)
+    path = bench_network._save(ev, tmp_path)
+    seconds, errors, _ = bench_network._measure(sender, receiver, ev, path, 700, 0.0)
+    assert errors == 0 and 0 < seconds < WAIT_S
+
+
+@pytest.mark.parametrize("sender,receiver", [("evchain", "evchain"), ("plain", "dv")])
+def test_benchmark_latency_runs(tmp_path, sender, receiver):
+    from evchain_dv import bench_network
+
+    ev = events(2000, seed=8)
+    path = bench_network._save(ev, tmp_path)
+    _, errors, latency = bench_network._measure(sender, receiver, ev, path, 500, 1e-3)
+    assert errors == 0 and len(latency) == len(ev)
+    assert latency.min() >= 0  # received after it was sent, on one clock
+
+
+def test_benchmark_error_counts_lost_and_changed_events():
+    from evchain_dv.bench_network import _errors
+
+    ev = events(100, seed=9)
+    cols = [ev.x.copy(), ev.y.copy(), ev.t.copy(), ev.p.copy()]
+    assert _errors(cols, ev, times=True) == 0
+    cols[3][5] = -cols[3][5]
+    cols[2][7] += 1
+    assert _errors(cols, ev, times=True) == 2
+    assert _errors(cols, ev, times=False) == 1  # times are the sender's stamps: order only
+    assert _errors([c[:90] for c in cols], ev, times=True) == 10 + 2

@@ -16,6 +16,6 @@ def evchain_filters():
 
 @hookimpl
 def evchain_bench_workloads():
-    from evchain_dv.bench import WORKLOADS
+    from evchain_dv import bench, bench_network
 
-    return WORKLOADS
+    return {**bench.WORKLOADS, **bench_network.WORKLOADS}
