@@ -476,3 +476,16 @@ def test_benchmark_error_counts_lost_and_changed_events():
     assert _errors(cols, ev, times=True) == 2
     assert _errors(cols, ev, times=False) == 1  # times are the sender's stamps: order only
     assert _errors([c[:90] for c in cols], ev, times=True) == 10 + 2
+
+
+PIPELINES = sorted((Path(__file__).resolve().parents[1] / "pipelines").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("path", PIPELINES, ids=[p.name for p in PIPELINES])
+def test_plugin_pipelines_validate(path):
+    from evchain.core.config import load_pipeline
+    from evchain.core.registry import make_registry
+
+    spec = load_pipeline(path, make_registry())
+    assert spec.stages[0].cls.is_source()
+    assert {"dv_network", "dv_network_server"} & {s.use for s in spec.stages}
