@@ -68,18 +68,18 @@ def event_columns(a: np.ndarray, g: Geometry, where: str, done: int,
     backwards (``last``: the previous event's time, if any) and every event is on the sensor
     ``g``. Errors name ``where`` and the event's index in the stream (``done`` came before)."""
     t = a["timestamp"].astype(np.int64)
-    back = np.diff(t if last is None else np.concatenate([[last], t])) < 0
-    if back.any():
+    if len(t) and ((last is not None and t[0] < last) or np.any(t[1:] < t[:-1])):
+        back = np.diff(t if last is None else np.concatenate([[last], t])) < 0
         i = done + int(np.argmax(back)) + (1 if last is None else 0)
         raise DataError(f"{where}: event {i}: timestamp goes backwards")
-    x, y = a["x"], a["y"]
-    bad = (x < 0) | (y < 0) | (x >= g.width) | (y >= g.height)
-    if bad.any():
-        i = int(np.argmax(bad))
-        raise DataError(f"{where}: event {done + i} at ({x[i]}, {y[i]}) outside the "
+    x = a["x"].astype(np.uint16)  # a negative int16 becomes >= 32768: off any sensor
+    y = a["y"].astype(np.uint16)
+    if np.any(x >= g.width) or np.any(y >= g.height):
+        i = int(np.argmax((x >= g.width) | (y >= g.height)))
+        raise DataError(f"{where}: event {done + i} at ({a['x'][i]}, {a['y'][i]}) outside the "
                         f"{g.width}x{g.height} sensor")
-    return {"x": x.astype(np.uint16), "y": y.astype(np.uint16), "t": t,
-            "p": np.where(a["polarity"] > 0, 1, -1).astype(np.int8)}
+    return {"x": x, "y": y, "t": t,
+            "p": np.where(a["polarity"] > 0, np.int8(1), np.int8(-1))}
 
 
 class Aedat4Source(Filter):
