@@ -402,7 +402,7 @@ def test_a_server_that_is_not_dv_is_a_clear_error_not_a_hang(reply):
 
         t = threading.Thread(target=serve, daemon=True)
         t.start()
-        want = "got b'HTTP/1.1 400" if reply else r"nothing within 0\.5 s"
+        want = "got b'HTTP/1.1 400" if reply else r"received nothing within 0\.5 s"
         with pytest.raises(DataError, match=rf":{port}: not a DV \(AEDAT 4\) network stream.*"
                                             f"{want}"):
             connect(port, connect_timeout_s=0.5)

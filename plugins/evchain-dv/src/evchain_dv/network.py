@@ -76,7 +76,7 @@ def _recv_exactly(sock: socket.socket, n: int, deadline: float) -> bytes:
         sock.settimeout(max(deadline - time.monotonic(), 1e-3))
         try:
             chunk = sock.recv(n - len(data))
-        except TimeoutError:
+        except OSError:  # timed out, reset
             break
         if not chunk:
             break
@@ -110,7 +110,7 @@ def open_stream(host: str, port: int, timeout_s: float, stop: threading.Event):
             address = probe.getpeername()[0]
             head = _recv_exactly(probe, HEADER_ID_AT + len(HEADER_ID), deadline)
         if head[HEADER_ID_AT:] != HEADER_ID:
-            got = f"got {head!r}" if head else f"nothing within {timeout_s:g} s"
+            got = f"got {head!r}" if head else f"received nothing within {timeout_s:g} s"
             raise DataError(f"{where}: not a DV (AEDAT 4) network stream: expected a stream "
                             f"header ({HEADER_ID.decode()!r} at byte {HEADER_ID_AT}), {got}")
         try:
