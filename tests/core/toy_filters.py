@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import signal
 from typing import Literal
 
 import numpy as np
@@ -14,7 +13,6 @@ from evchain.io.atomic import AtomicFile
 from evchain.testing.synthetic import random_events, textured_frames
 
 CLOSED: list[str] = []
-STREAM_ENDED: list[str] = []  # sources whose packets() generator finished or was closed
 
 
 class ToySource(Filter):
@@ -27,11 +25,6 @@ class ToySource(Filter):
         packets: int = Field(3, ge=1, description="number of packets")
         events_per_packet: int = Field(100, ge=0)
         fail_at_packet: int | None = Field(None, description="raise in this packet")
-        sigint_at_packet: int | None = Field(None, description="send SIGINT (Ctrl-C) to this "
-                                             "process before this packet")
-        sigints: int = Field(1, ge=1, description="how many SIGINTs, one after the other")
-        checks_stop: bool = Field(False, description="return once context.stop is set, as a "
-                                  "live source does while it waits")
         width: int = Field(32, ge=1)
 
     def setup(self, params, context):
@@ -39,19 +32,11 @@ class ToySource(Filter):
         context.geometry = Geometry(params.width, 24)
 
     def packets(self):
-        try:
-            for i in range(self.params.packets):
-                if i == self.params.fail_at_packet:
-                    raise ValueError("boom")
-                if i == self.params.sigint_at_packet:
-                    for _ in range(self.params.sigints):
-                        signal.raise_signal(signal.SIGINT)
-                if self.params.checks_stop and self.context.stop.is_set():
-                    return
-                yield random_events(self.params.events_per_packet, self.context.geometry,
-                                    i * 10_000, (i + 1) * 10_000, seed=i)
-        finally:
-            STREAM_ENDED.append(self.id)
+        for i in range(self.params.packets):
+            if i == self.params.fail_at_packet:
+                raise ValueError("boom")
+            yield random_events(self.params.events_per_packet, self.context.geometry,
+                                i * 10_000, (i + 1) * 10_000, seed=i)
 
     def time_span_us(self):
         return (0, self.params.packets * 10_000)
