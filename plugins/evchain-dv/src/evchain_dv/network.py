@@ -22,7 +22,7 @@ stream's resolution as the sensor size) and makes both ends behave in a chain:
 
 The source polls: dv-processing's reader does not block (``getNextEventBatch`` returns
 ``None`` when nothing has arrived), so it waits between polls, from nothing while events flow
-up to 1 ms when idle.
+up to 0.25 ms when idle.
 """
 
 from __future__ import annotations
@@ -49,7 +49,7 @@ from evchain_dv.serve import COMMAND, TIMEOUT
 
 HEADER_ID = b"IOHE"  # flatbuffers identifier of the stream header, after its size and offset
 HEADER_ID_AT = 8
-MAX_WAIT_S = 1e-3  # longest pause between two polls of an idle stream
+MAX_WAIT_S = 2.5e-4  # longest pause between two polls of an idle stream: latency
 RETRY_S = 0.05  # pause between connection attempts while the server is not up
 START_TIMEOUT_S = 60.0  # the server process: start Python, import dv-processing, listen
 SETTLE_S = 0.25  # a client counts once connected this long (connection checks come and go)
