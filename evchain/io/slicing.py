@@ -1,6 +1,4 @@
-"""Cutting a stream of event column chunks into packets of consecutive time slices: of a fixed
-duration (:func:`slice_stream`), or as the chunks arrive (:func:`slice_as_delivered`, for live
-streams)."""
+"""Cutting a stream of event column chunks into packets of consecutive time slices."""
 
 from __future__ import annotations
 
@@ -42,30 +40,3 @@ def _emit(buf, geometry, t0, t1):
     yield EventPacket(geometry=geometry, t_start=t0, t_end=t1,
                       **{c: v[:k] for c, v in buf.items()})
     return {c: v[k:] for c, v in buf.items()}, t1
-
-
-def slice_as_delivered(chunks: Iterator[dict[str, np.ndarray]],
-                       geometry: Geometry) -> Iterator[EventPacket]:
-    """One packet per time-ordered column chunk, as soon as it comes, with consecutive slices
-    from the first event's time to one past the last one's.
-
-    The events at a chunk's last time wait for the next chunk (it may hold more at that very
-    time) and come with it, or at the end of the stream: each packet ends at its chunk's last
-    time, so a chunk whose events all share one time gives no packet of its own.
-    """
-    held: dict[str, np.ndarray] | None = None
-    t0 = None
-    for cols in chunks:
-        if not len(cols["t"]):
-            continue
-        if held is not None:
-            cols = {c: np.concatenate([held[c], cols[c]]) for c in cols}
-        if t0 is None:
-            t0 = int(cols["t"][0])
-        last = int(cols["t"][-1])
-        if last > t0:
-            held, t0 = (yield from _emit(cols, geometry, t0, last))
-        else:
-            held = cols
-    if held is not None and len(held["t"]):
-        yield from _emit(held, geometry, t0, int(held["t"][-1]) + 1)

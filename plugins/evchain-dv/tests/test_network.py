@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 dv = pytest.importorskip("dv_processing")
 
@@ -170,6 +172,67 @@ def test_source_gets_every_event_of_dv_processing_writer(tmp_path, batch):
     if batch == 977:  # a packet per batch as delivered, and the last microsecond's events
         assert len(packets) == -(-len(ev) // batch) + 1
     assert packets[0].t_start == ev.t[0] and packets[-1].t_end == ev.t[-1] + 1
+
+
+class FakeReader:
+    """dv-processing's reader as the source sees it, delivering given batches, then closed."""
+
+    class Batch:
+        def __init__(self, a):
+            self.a = a
+
+        def __len__(self):
+            return len(self.a)
+
+        def numpy(self):
+            return self.a
+
+    def __init__(self, batches: list[np.ndarray]):
+        self.batches = [self.Batch(a) for a in batches]
+
+    def getNextEventBatch(self):
+        return self.batches.pop(0) if self.batches else None
+
+    def isRunning(self):
+        return bool(self.batches)
+
+
+def as_delivered(ev: EventPacket, cuts: list[int]) -> list[EventPacket]:
+    """The source's packets for ``ev`` arriving in batches cut at ``cuts``."""
+    a = np.zeros(len(ev), [("timestamp", "<i8"), ("x", "<i2"), ("y", "<i2"), ("polarity", "i1")])
+    a["timestamp"], a["x"], a["y"], a["polarity"] = ev.t, ev.x, ev.y, ev.p > 0
+    edges = [0, *sorted(set(cuts)), len(ev)]
+    src = DvNetworkSource()
+    batches = [a[i:j] for i, j in zip(edges[:-1], edges[1:], strict=True)]
+    src.where, src.reader = "fake", FakeReader(batches)
+    src.params = DvNetworkSource.Params(port=1)
+    src.context = Context(geometry=GEOMETRY)
+    return list(src.packets())
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.integers(0, 300), max_size=12))
+def test_as_delivered_keeps_every_event_in_consecutive_slices(cuts):
+    ev = events(300, seed=10, span=2_000)  # many events share a microsecond
+    packets = as_delivered(ev, cuts)
+    assert_same_events(EventPacket.concat(packets), ev)
+    assert_consecutive(packets)
+    assert packets[0].t_start == ev.t[0] and packets[-1].t_end == ev.t[-1] + 1
+    # a packet as soon as its batch came: it ends at that batch's last time
+    edges = [0, *sorted(set(cuts)), len(ev)]
+    ends = {int(ev.t[j - 1]) for i, j in zip(edges[:-1], edges[1:], strict=True) if j > i}
+    assert all(p.t_end in ends for p in packets[:-1])
+
+
+def test_as_delivered_holds_the_events_of_a_batchs_last_microsecond():
+    t = np.array([5, 7, 7, 7, 9, 9, 12], np.int64)
+    ev = EventPacket(geometry=GEOMETRY, t_start=5, t_end=13, x=np.arange(7, dtype=np.uint16),
+                     y=np.zeros(7, np.uint16), t=t, p=np.array([1, -1] * 3 + [1], np.int8))
+    packets = as_delivered(ev, [2, 3, 5])  # [5 7] [7] [7 9] [9 12]
+    assert [(p.t_start, p.t_end, p.t.tolist()) for p in packets] == [
+        (5, 7, [5]), (7, 9, [7, 7, 7]), (9, 12, [9, 9]), (12, 13, [12])]
+    assert_same_events(EventPacket.concat(packets), ev)
+    assert as_delivered(ev.select(slice(0, 0)), []) == []
 
 
 def test_source_cuts_slices_of_packet_us_and_ends_when_idle(tmp_path):

@@ -61,25 +61,34 @@ def dv_message(exc: BaseException) -> str:
     return " ".join(lines) or type(exc).__name__
 
 
-def event_columns(a: np.ndarray, g: Geometry, where: str, done: int,
-                  last: int | None) -> dict[str, np.ndarray]:
+def event_columns(a: np.ndarray, g: Geometry, where: str, done: int, last: int | None,
+                  before: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
     """evchain's ``x, y, t, p`` columns of dv-processing's event array ``a`` (fields
     ``timestamp, x, y, polarity``, from ``EventStore.numpy()``), checked: time does not go
     backwards (``last``: the previous event's time, if any) and every event is on the sensor
-    ``g``. Errors name ``where`` and the event's index in the stream (``done`` came before)."""
-    t = a["timestamp"].astype(np.int64)
-    if len(t) and ((last is not None and t[0] < last) or np.any(t[1:] < t[:-1])):
+    ``g``. Errors name ``where`` and the event's index in the stream (``done`` came before).
+    ``before``: columns to put in front (converted with them, so nothing is copied twice)."""
+    m = 0 if before is None else len(before["t"])
+    n = len(a)
+    cols = {"x": np.empty(m + n, np.uint16), "y": np.empty(m + n, np.uint16),
+            "t": np.empty(m + n, np.int64), "p": np.empty(m + n, np.int8)}
+    if m:
+        for c, v in cols.items():
+            v[:m] = before[c]
+    t, x, y = cols["t"][m:], cols["x"][m:], cols["y"][m:]
+    t[:] = a["timestamp"]
+    if n and ((last is not None and t[0] < last) or np.any(t[1:] < t[:-1])):
         back = np.diff(t if last is None else np.concatenate([[last], t])) < 0
         i = done + int(np.argmax(back)) + (1 if last is None else 0)
         raise DataError(f"{where}: event {i}: timestamp goes backwards")
-    x = a["x"].astype(np.uint16)  # a negative int16 becomes >= 32768: off any sensor
-    y = a["y"].astype(np.uint16)
+    x[:] = a["x"]  # a negative int16 becomes >= 32768: off any sensor
+    y[:] = a["y"]
     if np.any(x >= g.width) or np.any(y >= g.height):
         i = int(np.argmax((x >= g.width) | (y >= g.height)))
         raise DataError(f"{where}: event {done + i} at ({a['x'][i]}, {a['y'][i]}) outside the "
                         f"{g.width}x{g.height} sensor")
-    return {"x": x, "y": y, "t": t,
-            "p": np.where(a["polarity"] > 0, np.int8(1), np.int8(-1))}
+    cols["p"][m:] = np.where(a["polarity"] > 0, np.int8(1), np.int8(-1))
+    return cols
 
 
 class Aedat4Source(Filter):

@@ -41,7 +41,7 @@ import numpy as np
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import EventPacket, Geometry
 from evchain.errors import ConfigError, DataError
-from evchain.io.slicing import slice_as_delivered, slice_stream
+from evchain.io.slicing import slice_stream
 from pydantic import Field
 
 from evchain_dv.aedat4 import _dv, dv_message, event_columns
@@ -162,17 +162,38 @@ class DvNetworkSource(Filter):
         super().setup(params, context)
 
     def packets(self) -> Iterator[EventPacket]:
-        if self.params.packet_us is None:
-            yield from slice_as_delivered(self._chunks(), self.context.geometry)
-        else:
-            yield from slice_stream(self._chunks(), self.context.geometry,
-                                    self.params.packet_us)
+        g = self.context.geometry
+        if self.params.packet_us is not None:
+            yield from slice_stream(self._columns(), g, self.params.packet_us)
+            return
+        # as delivered: a packet per batch, ending at its last event's time; the events of that
+        # microsecond wait for the next batch (more may come at that very time)
+        held, t0, done, last = None, None, 0, None
+        for a in self._batches():
+            cols = event_columns(a, g, self.where, done, last, before=held)
+            done, last = done + len(a), int(cols["t"][-1])
+            t0 = int(cols["t"][0]) if t0 is None else t0
+            if last > t0:
+                k = int(np.searchsorted(cols["t"], last))
+                yield EventPacket(geometry=g, t_start=t0, t_end=last,
+                                  **{c: v[:k] for c, v in cols.items()})
+                held, t0 = {c: v[k:] for c, v in cols.items()}, last
+            else:
+                held = cols
+        if held is not None and len(held["t"]):
+            yield EventPacket(geometry=g, t_start=t0, t_end=last + 1, **held)
 
-    def _chunks(self) -> Iterator[dict[str, np.ndarray]]:
-        """Checked event columns of every non-empty batch, until the stream ends."""
+    def _columns(self) -> Iterator[dict[str, np.ndarray]]:
+        done, last = 0, None
+        for a in self._batches():
+            yield event_columns(a, self.context.geometry, self.where, done, last)
+            done, last = done + len(a), int(a["timestamp"][-1])
+
+    def _batches(self) -> Iterator[np.ndarray]:
+        """dv-processing's event array of every non-empty batch, until the stream ends."""
         reader, stop, idle_s = self.reader, self.context.stop, self.params.idle_timeout_s
         poll = Poll()
-        done, last = 0, None
+        done = 0
         last_data = time.monotonic()
         ended = False
         while not stop.is_set():
@@ -192,10 +213,8 @@ class DvNetworkSource(Filter):
                 continue
             poll.data()
             last_data = time.monotonic()
-            a = batch.numpy()
-            yield event_columns(a, self.context.geometry, self.where, done, last)
-            done += len(a)
-            last = int(a["timestamp"][-1])
+            done += len(batch)
+            yield batch.numpy()
 
     def close(self):
         self.reader = None
