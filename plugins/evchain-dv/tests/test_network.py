@@ -513,8 +513,8 @@ def test_benchmark_runs_deliver_every_event(tmp_path, sender, receiver):
 
     ev = events(3000, seed=7)
     path = bench_network._save(ev, tmp_path)
-    seconds, errors, _ = bench_network._measure(sender, receiver, ev, path, 700, 0.0)
-    assert errors == 0 and 0 < seconds < WAIT_S
+    rate, errors, _ = bench_network._measure(sender, receiver, ev, path, 700, 0.0)
+    assert errors == 0 and 0 < rate.seconds < WAIT_S and 0 < rate.events < len(ev)
 
 
 @pytest.mark.parametrize("sender,receiver", [("evchain", "evchain"), ("plain", "dv")])

@@ -1,7 +1,8 @@
 """Live stream benchmarks (``evchain bench dv-network``): evchain's ends of a DV network stream
 next to plain dv-processing, on localhost TCP, in the same run.
 
-``dv-network`` (throughput, events/s; random events, 346x260, batches of 10 000):
+``dv-network`` (throughput, events/s; random events, 346x260, batches of 10 000; 2 M events for
+the loopback, 10 M for the receive rows, a quarter with ``--quick``):
 
 * ``dv-network-loopback-evchain``: evchain packets through ``dv_network_server`` to
   ``dv_network``, and ``dv-network-loopback-dv``: a Python program with dv-processing alone
@@ -16,12 +17,13 @@ batches of 1 000 events with a 1 ms pause after each, stamped as they start on t
 
 The sender is a process of its own (its ``NetworkWriter``, and for evchain the server process
 behind ``dv_network_server``); the receiver runs in the benchmark's process and polls the same
-way at both ends (:class:`evchain_dv.network.Poll`). Throughput is the events over the time
-from the start signal to the arrival of the last of them; ``dv_network`` holds back the events
-of a batch's last microsecond until the next batch, so its last microsecond arrives at the
-end. ``error`` counts events lost or changed (x, y, t, polarity against what was sent; the
-stamped times of the latency rows only by their order); ``limit_ratio`` of an evchain row:
-dv-processing's time / evchain's (latency: median against median).
+way at both ends (:class:`evchain_dv.network.Poll`). Throughput is the stream's steady rate:
+the events that arrive after the first arrival, over the time from it to the last one (which
+leaves out starting the sender); ``dv_network`` holds back the events of a batch's last
+microsecond until the next batch, so the stream's very last microsecond is not timed. ``error``
+counts events lost or changed (x, y, t, polarity against what was sent; the stamped times of
+the latency rows only by their order); ``limit_ratio`` of an evchain row: its throughput /
+dv-processing's (latency: dv-processing's median / evchain's).
 """
 
 from __future__ import annotations
@@ -102,10 +104,30 @@ class Sender:
                 self.proc.wait(timeout=WAIT_S)
 
 
-def _receive_evchain(sender: Sender, n: int) -> tuple[float, list[np.ndarray], np.ndarray]:
-    """(seconds from the start to the arrival of ``n`` events, the x, y, t, p columns
-    received, each event's arrival in µs of the monotonic clock). ``n``: the events sent but
-    those of the last µs, which the source holds until it ends."""
+class Rate:
+    """The steady rate of a stream: the events that arrive after the first arrival, over the
+    time from it to the last one counted (start-up left out)."""
+
+    def __init__(self):
+        self.first = self.last = None
+        self.events = 0
+
+    def arrived(self, n: int) -> None:
+        self.last = time.perf_counter()
+        if self.first is None:
+            self.first = self.last
+        else:
+            self.events += n
+
+    @property
+    def seconds(self) -> float:
+        return self.last - self.first if self.first is not None else np.inf
+
+
+def _receive_evchain(sender: Sender, n: int) -> tuple[Rate, list[np.ndarray], np.ndarray]:
+    """(the rate until ``n`` events arrived, the x, y, t, p columns received, each event's
+    arrival in µs of the monotonic clock). ``n``: the events sent but those of the last µs,
+    which the source holds until it ends."""
     from evchain_dv.network import DvNetworkSource
 
     src = DvNetworkSource()
@@ -113,34 +135,33 @@ def _receive_evchain(sender: Sender, n: int) -> tuple[float, list[np.ndarray], n
     ctx = Context()
     src.setup(DvNetworkSource.Params(port=sender.port, connect_timeout_s=WAIT_S,
                                      idle_timeout_s=WAIT_S), ctx)
-    packets, arrivals, count, seconds = [], [], 0, None
+    packets, arrivals, count, rate = [], [], 0, Rate()
     try:
         sender.say("go")
-        t0 = time.perf_counter()
-        deadline = t0 + WAIT_S
+        deadline = time.perf_counter() + WAIT_S
         for p in src.packets():
             arrivals.append(np.full(len(p), time.monotonic_ns() // 1000))
             packets.append(p)
+            if count < n:
+                rate.arrived(len(p))
             count += len(p)
-            if seconds is None and (count >= n or time.perf_counter() > deadline):
-                seconds = time.perf_counter() - t0
+            if count >= n and not ctx.stop.is_set() or time.perf_counter() > deadline:
                 ctx.stop.set()  # the source hands over what it holds, then ends
     finally:
         src.close()
     whole = EventPacket.concat(packets) if packets else EventPacket.empty(GEOMETRY, 0, 0)
-    return seconds or np.inf, [whole.x, whole.y, whole.t, whole.p], _cat(arrivals)
+    return rate, [whole.x, whole.y, whole.t, whole.p], _cat(arrivals)
 
 
-def _receive_dv(sender: Sender, n: int) -> tuple[float, list[np.ndarray], np.ndarray]:
+def _receive_dv(sender: Sender, n: int) -> tuple[Rate, list[np.ndarray], np.ndarray]:
     import dv_processing as dv
 
     from evchain_dv.network import Poll
 
     reader = dv.io.NetworkReader("127.0.0.1", sender.port)
-    batches, arrivals, count, poll = [], [], 0, Poll()
+    batches, arrivals, count, poll, rate = [], [], 0, Poll(), Rate()
     sender.say("go")
-    t0 = time.perf_counter()
-    deadline = t0 + WAIT_S
+    deadline = time.perf_counter() + WAIT_S
     while count < n and time.perf_counter() < deadline:
         batch = reader.getNextEventBatch()
         if batch is None:
@@ -151,15 +172,15 @@ def _receive_dv(sender: Sender, n: int) -> tuple[float, list[np.ndarray], np.nda
         poll.data()
         a = batch.numpy()
         arrivals.append(np.full(len(a), time.monotonic_ns() // 1000))
+        rate.arrived(len(a))
         batches.append(a)
         count += len(a)
-    seconds = time.perf_counter() - t0
     del reader  # disconnect
     a = np.concatenate(batches) if batches else np.zeros(0, [("timestamp", "i8"), ("x", "i2"),
                                                             ("y", "i2"), ("polarity", "i1")])
     cols = [a["x"].astype(np.uint16), a["y"].astype(np.uint16), a["timestamp"].astype(np.int64),
             np.where(a["polarity"] > 0, 1, -1).astype(np.int8)]
-    return seconds, cols, _cat(arrivals)
+    return rate, cols, _cat(arrivals)
 
 
 def _cat(parts: list[np.ndarray]) -> np.ndarray:
@@ -181,20 +202,20 @@ def _errors(got: list[np.ndarray], want: EventPacket, times: bool) -> int:
 
 
 def _measure(kind: str, receiver: str, events: EventPacket, path: Path, batch: int,
-             pause_s: float) -> tuple[float, int, np.ndarray]:
-    """(seconds, events lost or changed, latencies in µs) of one sender -> receiver run."""
+             pause_s: float) -> tuple[Rate, int, np.ndarray]:
+    """(the rate, events lost or changed, latencies in µs) of one sender -> receiver run."""
     sender = Sender(kind, path, batch, pause_s)
     try:
         if receiver == "evchain":  # the sent times of the latency rows are one µs apart
             last_us = 1 if pause_s else int(np.sum(events.t == events.t[-1]))
-            seconds, got, arrived = _receive_evchain(sender, len(events) - last_us)
+            rate, got, arrived = _receive_evchain(sender, len(events) - last_us)
         else:
-            seconds, got, arrived = _receive_dv(sender, len(events))
+            rate, got, arrived = _receive_dv(sender, len(events))
         sender._expect("sent")
     finally:
         sender.close()
     errors = _errors(got, events, times=pause_s == 0)
-    return seconds, errors, arrived - got[2]
+    return rate, errors, arrived - got[2]
 
 
 def _save(events: EventPacket, folder: Path) -> Path:
@@ -215,26 +236,28 @@ RECEIVERS = {"evchain": "dv_network", "dv": "NetworkReader + EventStore.numpy()"
 
 
 def dv_network(quick: bool) -> list[BenchRow]:
-    n = 500_000 if quick else 2_000_000
-    events = random_events(n, GEOMETRY, t_start=0, t_end=n, seed=0)  # 1 event/µs
     rows = []
     with tempfile.TemporaryDirectory(prefix="evchain-bench-dv-") as tmp:
-        path = _save(events, Path(tmp))
-        for name, kind, stage_ev, stage_dv in (
-                ("loopback", "plain", "dv_network_server->dv_network",
-                 "NetworkWriter->NetworkReader"),
-                ("receive", "prebuilt", "dv_network", "NetworkReader")):
-            measured = {}
+        for name, n, kind, stage_ev, stage_dv in (
+                ("loopback", 500_000 if quick else 2_000_000, "plain",
+                 "dv_network_server->dv_network", "NetworkWriter->NetworkReader"),
+                ("receive", 2_000_000 if quick else 10_000_000, "prebuilt", "dv_network",
+                 "NetworkReader")):
+            events = random_events(n, GEOMETRY, t_start=0, t_end=n, seed=0)  # 1 event/µs
+            path = _save(events, Path(tmp))
+            rates = {}
             for receiver in ("evchain", "dv"):
                 sender = "evchain" if (name, receiver) == ("loopback", "evchain") else kind
-                seconds, errors, _ = _measure(sender, receiver, events, path, BATCH, 0.0)
-                measured[receiver] = seconds
+                rate, errors, _ = _measure(sender, receiver, events, path, BATCH, 0.0)
+                rates[receiver] = rate.events / rate.seconds
                 rows.append(BenchRow(
                     f"dv-network-{name}-{receiver}", stage_ev if receiver == "evchain"
-                    else stage_dv, n / seconds, "events/s", errors, "events lost or changed",
-                    None, {"events": n, "seconds": seconds, "batch_events": BATCH},
+                    else stage_dv, rates[receiver], "events/s", errors,
+                    "events lost or changed", None,
+                    {"events": n, "timed_events": rate.events, "seconds": rate.seconds,
+                     "batch_events": BATCH},
                     data=_data(n, SENDERS[sender], RECEIVERS[receiver])))
-            rows[-2].limit_ratio = measured["dv"] / measured["evchain"]
+            rows[-2].limit_ratio = rates["evchain"] / rates["dv"]
     return rows
 
 
@@ -248,8 +271,8 @@ def dv_network_latency(quick: bool) -> list[BenchRow]:
         medians = {}
         for receiver in ("evchain", "dv"):
             sender = "evchain" if receiver == "evchain" else "plain"
-            seconds, errors, lat = _measure(sender, receiver, events, path, LATENCY_BATCH,
-                                            LATENCY_PAUSE_S)
+            rate, errors, lat = _measure(sender, receiver, events, path, LATENCY_BATCH,
+                                         LATENCY_PAUSE_S)
             p50, p99, top = (float(v) for v in np.percentile(lat, [50, 99, 100]))
             medians[receiver] = p50
             rows.append(BenchRow(
@@ -258,7 +281,7 @@ def dv_network_latency(quick: bool) -> list[BenchRow]:
                 "us (median latency)", errors, "events lost or changed", None,
                 {"latency_p99_us": p99, "latency_max_us": top, "events": n,
                  "batch_events": LATENCY_BATCH, "pause_ms": LATENCY_PAUSE_S * 1e3,
-                 "events_per_s": n / seconds},
+                 "events_per_s": rate.events / rate.seconds},
                 data=(f"{batches} batches of {LATENCY_BATCH:,} random events, 346x260, "
                       f"{LATENCY_PAUSE_S * 1e3:g} ms pause after each, 127.0.0.1 TCP; "
                       f"{SENDERS[sender]} -> {RECEIVERS[receiver]}")))
