@@ -83,11 +83,14 @@ def event_columns(a: np.ndarray, g: Geometry, where: str, done: int, last: int |
         raise DataError(f"{where}: event {i}: timestamp goes backwards")
     x[:] = a["x"]  # a negative int16 becomes >= 32768: off any sensor
     y[:] = a["y"]
-    if np.any(x >= g.width) or np.any(y >= g.height):
+    if n and (x.max() >= g.width or y.max() >= g.height):
         i = int(np.argmax((x >= g.width) | (y >= g.height)))
         raise DataError(f"{where}: event {done + i} at ({a['x'][i]}, {a['y'][i]}) outside the "
                         f"{g.width}x{g.height} sensor")
-    cols["p"][m:] = np.where(a["polarity"] > 0, np.int8(1), np.int8(-1))
+    p = cols["p"][m:]
+    np.greater(a["polarity"], 0, out=p.view(np.bool_))  # 1 or 0, then +1 or -1 in place
+    p *= 2
+    p -= 1
     return cols
 
 
