@@ -3,7 +3,8 @@
 User mistakes (an :class:`EvchainError`) print one line and exit with code 2; ``--debug`` (before
 or after the subcommand) shows the traceback. Unexpected errors are bugs: they exit with code 1.
 Notices that are not the result (kernels compiling, runs taken from a sweep's cache) go to the
-``evchain`` logger, shown on stderr.
+``evchain`` logger, shown on stderr. Ctrl-C during ``run`` stops the stream, writes complete
+outputs and exits with code 130 (a second Ctrl-C aborts at once).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import sys
 import traceback
 from pathlib import Path
 
-from evchain.errors import EvchainError, FilterError
+from evchain.errors import EvchainError, FilterError, RunInterrupted
 
 
 def _registry():
@@ -35,9 +36,15 @@ def cmd_run(args) -> int:
 
         spec = replay_spec(spec, args.replay)
     out = Path(args.out) if args.out else Path("out") / spec.name
-    result = run_pipeline(spec, registry, out, progress=not args.no_progress, debug=args.debug)
+    interrupted = None
+    try:
+        result = run_pipeline(spec, registry, out, progress=not args.no_progress,
+                              debug=args.debug)
+    except RunInterrupted as exc:  # finished cleanly after Ctrl-C: say what was written
+        result, interrupted = exc.result, exc
     rep = result.report
-    print(f"{spec.name}: done in {rep['wall_s']:.2f} s, results in {out}/")
+    done = "stopped after" if interrupted else "done in"
+    print(f"{spec.name}: {done} {rep['wall_s']:.2f} s, results in {out}/")
     for f in rep["filters"]:
         eps = f["throughput_eps"]
         if not eps:
@@ -53,6 +60,9 @@ def cmd_run(args) -> int:
             shown = ", ".join(f"{k}={_fmt(v)}" for k, v in values.items()
                               if not isinstance(v, dict | list))
             print(f"  metrics.{group}: {shown}")
+    if interrupted is not None:
+        print(f"evchain: {interrupted}", file=sys.stderr)
+        return 130  # 128 + SIGINT, as for a process stopped by Ctrl-C
     return 0
 
 

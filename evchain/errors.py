@@ -57,3 +57,15 @@ class FilterError(EvchainError):
 class MissingBenchInput(EvchainError):
     """A benchmark row's cached input (rendered events, flow) is not made yet: names the input
     and the ``evchain bench --prepare`` command that makes it."""
+
+
+class RunInterrupted(KeyboardInterrupt):
+    """A run stopped by SIGINT (Ctrl-C) after finishing cleanly: every filter was flushed and
+    closed, the outputs are complete for the stream up to ``t_us`` and ``report.json`` says
+    ``interrupted``. A :class:`KeyboardInterrupt`, so that callers stop as they would on Ctrl-C
+    (a sweep does not go on to its next run); ``result`` is the run's
+    :class:`~evchain.core.chain.RunResult`."""
+
+    def __init__(self, message: str, result=None, t_us: int | None = None):
+        super().__init__(message)
+        self.result, self.t_us = result, t_us

@@ -8,16 +8,26 @@ stages after the sensor, scorers left out, per simulated second: ``cpu``) and th
 pipeline atomically. A run first marks its folder as in progress (``report.json`` says
 ``running``; the files it will write are removed). On any error every filter's ``close()``
 still runs and the message names the filter and the slice.
+
+Ctrl-C (SIGINT) stops a run cleanly, whatever the source: the first one sets
+``Context.stop``, the chain ends the stream after the packet in flight, flushes and closes
+every filter, so that the outputs are complete up to there; ``report.json`` says
+``interrupted`` and :class:`~evchain.errors.RunInterrupted` is raised. A second Ctrl-C aborts
+at once, as a failure (outputs left as ``.partial``).
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import platform
 import shutil
+import signal
 import sys
+import threading
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,7 +39,7 @@ from evchain.core.config import PipelineSpec
 from evchain.core.filter import Context, Filter
 from evchain.core.packets import FramePacket, Packet
 from evchain.core.registry import Registry
-from evchain.errors import ConfigError, EvchainError, FilterError
+from evchain.errors import ConfigError, EvchainError, FilterError, RunInterrupted
 from evchain.io.atomic import atomic_write_text, partial_path
 from evchain.io.series_csv import SeriesCsvWriter, remove_series
 from evchain.provenance import input_digests, source_stamps
@@ -70,6 +80,7 @@ class Chain:
         self.filters: list[Filter] = []
         self.stats: list[StageStats] = []
         self.span_us: list[int] | None = None  # first and last time the source covered
+        self.stopped = False  # the source was left early: Context.stop (Ctrl-C)
         for stage in spec.stages:
             f = stage.cls()
             f.id = stage.id
@@ -81,14 +92,18 @@ class Chain:
             _guard(f, None, "setup", f.setup, stage.params, self.context)
 
     def stream(self, progress: bool = False) -> Iterator[Packet]:
-        """Yield the last stage's packets; the chain's flush packets come last."""
+        """Yield the last stage's packets; the chain's flush packets come last. Once
+        ``context.stop`` is set no further packet is taken from the source (its iterator is
+        closed; a source that ``ends_on_stop`` ends its stream itself) and the filters are
+        flushed as at the end of the stream."""
         from evchain.core.progress import RunProgress
 
         source, rest = self.filters[0], self.filters[1:]
         bar = RunProgress(source.id, source.time_span_us(), progress)
         it = source.packets()
+        stop = self.context.stop
         try:
-            while True:
+            while source.ends_on_stop or not stop.is_set():
                 t0, c0 = time.perf_counter(), time.thread_time()
                 packet = _guard(source, None, "packets", next, it, None)
                 self.stats[0].wall_s += time.perf_counter() - t0
@@ -105,6 +120,10 @@ class Chain:
                 out = self._through(packet, 1)
                 if out is not None:
                     yield out
+            if stop.is_set():
+                self.stopped = True
+                if hasattr(it, "close"):  # a generator's finally blocks run now
+                    _guard(source, None, "packets", it.close)
             for i, f in enumerate(rest, start=1):
                 t0, c0 = time.perf_counter(), time.thread_time()
                 packet = _guard(f, None, "flush", f.flush)
@@ -197,7 +216,8 @@ def run_pipeline(spec: PipelineSpec, registry: Registry, out_dir: str | Path,
     resolved pipeline, each input file's SHA-256 and the versions and source hashes of the
     code). The folder is marked as in progress first (:func:`start_run_folder`); series are
     written as they come. Raises on failure after closing every filter and writing a report
-    marked ``"status": "failed"``."""
+    marked ``"status": "failed"``; after a Ctrl-C, raises :class:`RunInterrupted` once every
+    filter was flushed and closed and the report says ``"status": "interrupted"``."""
     out = Path(out_dir)
     _make_run_folder(out)
     resolved = spec.resolved()
@@ -211,18 +231,24 @@ def run_pipeline(spec: PipelineSpec, registry: Registry, out_dir: str | Path,
     t0 = time.perf_counter()
     status, error = "ok", None
     try:
-        chain.setup()
-        for packet in chain.stream(progress=progress):
-            series.append(packet.series)
+        with stop_on_interrupt(context.stop):
+            chain.setup()
+            for packet in chain.stream(progress=progress):
+                series.append(packet.series)
+        if chain.stopped:
+            status = "interrupted"
+            end = f" at {chain.span_us[1]} us" if chain.span_us else " before the first packet"
+            error = (f"interrupted (Ctrl-C){end}: every filter was flushed and the outputs in "
+                     f"{out}/ are complete up to there")
     except BaseException as exc:
         status, error = "failed", f"{type(exc).__name__}: {exc}"
         raise
     finally:
         close_errors = chain.close()
-        if close_errors and status == "ok":
+        if close_errors and status != "failed":
             status = "failed"
             error = "; ".join(f"{type(e).__name__}: {e}" for e in close_errors)
-        if status == "ok":
+        if status in ("ok", "interrupted"):
             series.commit()
         else:
             series.abort()
@@ -240,7 +266,35 @@ def run_pipeline(spec: PipelineSpec, registry: Registry, out_dir: str | Path,
         atomic_write_text(out / "report.json", json.dumps(report, indent=2))
     if close_errors:
         raise FilterError(f"closing filters failed: {error}")
-    return RunResult(report=report, out_dir=out)
+    result = RunResult(report=report, out_dir=out)
+    if status == "interrupted":
+        raise RunInterrupted(error, result, chain.span_us[1] if chain.span_us else None)
+    return result
+
+
+@contextmanager
+def stop_on_interrupt(stop: threading.Event):
+    """While inside, the first SIGINT (Ctrl-C) sets ``stop`` instead of raising
+    :class:`KeyboardInterrupt`; a second one raises it. Signals reach the main thread only:
+    elsewhere nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum, frame):
+        if stop.is_set():
+            raise KeyboardInterrupt
+        stop.set()
+        logging.getLogger("evchain").warning(
+            "stopping: finishing the packet in flight and writing the outputs "
+            "(Ctrl-C again to abort)")
+
+    previous = signal.signal(signal.SIGINT, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous if previous is not None
+                      else signal.default_int_handler)
 
 
 def start_run_folder(spec: PipelineSpec, out: Path, report: dict[str, Any]) -> None:

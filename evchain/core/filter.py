@@ -17,6 +17,7 @@ are the chain's job. Numba kernels live in ``evchain.kernels`` and are imported 
 from __future__ import annotations
 
 import hashlib
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,7 +49,10 @@ class Context:
     scorers and picture sinks only; ``renderer`` renders the source's frames at any time, for
     picture sinks (:mod:`evchain.core.renderer`). ``metrics`` is filled by scorers (it becomes
     ``report.json``'s ``metrics``); ``out_dir`` is where sinks write; ``warnings``
-    (:meth:`warn`) become ``report.json``'s ``warnings``.
+    (:meth:`warn`) become ``report.json``'s ``warnings``. ``stop`` is set when the user asks
+    the run to stop (the first Ctrl-C): the chain ends the stream after the packet in flight
+    and flushes every filter; a source that waits for data (a live stream) checks it while it
+    waits and returns.
     """
 
     seed: int = 0
@@ -59,6 +63,7 @@ class Context:
     metrics: dict[str, Any] = field(default_factory=dict)
     debug: bool = False
     warnings: list[str] = field(default_factory=list)
+    stop: threading.Event = field(default_factory=threading.Event)
 
     def warn(self, message: str) -> None:
         """Something the run accepted but the user should know (in ``report.json`` and on the
@@ -115,8 +120,11 @@ class Filter:
     uses_truth: ClassVar[tuple[type, ...]] = ()
     #: another way to give this stage its truth, named when the truth is missing
     truth_hint: ClassVar[str] = ""
-    #: sources: the ground truth they set as ``context.truth``
+    #: the ground truth a source (or a stage, for the stages after it) sets as ``context.truth``
     provides_truth: ClassVar[tuple[type, ...]] = ()
+    #: sources: it watches ``context.stop`` (Ctrl-C) and then ends its stream itself, with the
+    #: packets it still holds (a live stream); other sources get no further turn once it is set
+    ends_on_stop: ClassVar[bool] = False
     #: the stage that turns the scene into sensor data (emulator, aps): the report's CPU time
     #: per simulated second counts the stages after the last sensor (or after the source)
     sensor: ClassVar[bool] = False

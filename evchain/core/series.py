@@ -26,8 +26,6 @@ class SeriesDef:
     name: str
     dtype: np.dtype
     description: str = ""
-    #: fields that :meth:`array` fills with NaN when not given (values a producer may not have)
-    nan_fields: tuple[str, ...] = ()
 
     def __post_init__(self):
         dtype = np.dtype(self.dtype)
@@ -35,32 +33,20 @@ class SeriesDef:
             raise ValueError(f"series {self.name!r}: dtype must be structured with an int64 "
                              f"field 't' first, got {dtype}")
         object.__setattr__(self, "dtype", dtype)
-        unknown = set(self.nan_fields) - set(dtype.names)
-        if unknown:
-            raise ValueError(f"series {self.name!r}: nan_fields {sorted(unknown)} are not fields")
 
     def array(self, **columns) -> np.ndarray:
-        """Entries from equal-length columns (fields not given are 0, or NaN for
-        :attr:`nan_fields`)."""
+        """Entries from equal-length columns (fields not given are 0)."""
         n = len(next(iter(columns.values()))) if columns else 0
-        out = self.empty(n)
+        out = np.zeros(n, self.dtype)
         for name, values in columns.items():
             out[name] = values
-        return out
-
-    def empty(self, n: int) -> np.ndarray:
-        """``n`` entries, every field 0 but :attr:`nan_fields` NaN."""
-        out = np.zeros(n, self.dtype)
-        for name in self.nan_fields:
-            out[name] = np.nan
         return out
 
     def renamed(self, name: str, description: str | None = None) -> SeriesDef:
         """The same entries under another name (e.g. a stage whose series name is a
         parameter)."""
         return SeriesDef(name, self.dtype,
-                         self.description if description is None else description,
-                         self.nan_fields)
+                         self.description if description is None else description)
 
     def fields(self) -> str:
         """The field names, e.g. ``t, x, y, support, total``."""
@@ -68,14 +54,15 @@ class SeriesDef:
 
 
 #: the camera's angular velocity in the FOE series, deg/s about its axes (x right, y down, z
-#: forward; :class:`~evchain.core.truth.RotationTruth`'s convention); NaN where not estimated
+#: forward; :class:`~evchain.core.truth.RotationTruth`'s convention)
 ROTATION_FIELDS = ("wx_deg_s", "wy_deg_s", "wz_deg_s")
 
 FOE = SeriesDef("foe", [("t", "i8"), ("x", "f8"), ("y", "f8"), ("support", "f8"),
-                        ("total", "f8"), *((c, "f8") for c in ROTATION_FIELDS)],
+                        ("total", "f8"), *((c, "f8") for c in ROTATION_FIELDS),
+                        ("rotation", "i1")],
                 "focus of expansion (the heading) estimates: x, y in px, support and total "
-                "weight of the estimate, the camera's angular velocity wx, wy, wz in deg/s "
-                "(NaN where not estimated)", nan_fields=ROTATION_FIELDS)
+                "weight of the estimate; the camera's angular velocity wx, wy, wz in deg/s "
+                "where rotation is 1 (estimated), else 0 and rotation 0")
 FOE_VOTES = FOE.renamed("foe_votes", "the voting FOE estimates (foe_map's foe entries) that "
                         "foe_fit refined")
 
@@ -101,17 +88,33 @@ FOE_ERROR = SeriesDef("foe_error", [("t", "i8"), ("x", "f8"), ("y", "f8"), ("x_t
                                     *((c, "f8") for c in ROTATION_FIELDS + _ROTATION_TRUE),
                                     ("rotation_error_deg_s", "f8")],
                       "per foe entry: estimate, truth and error in px, ray angle in degrees; "
-                      "the estimated and the true angular velocity and the norm of their "
-                      "difference in deg/s (NaN where either is unknown)",
-                      nan_fields=(*ROTATION_FIELDS, *_ROTATION_TRUE, "rotation_error_deg_s"))
+                      "the estimated and the true angular velocity (0 where unknown) and the "
+                      "norm of their difference in deg/s (-1 where either is unknown)")
 TTC_ERROR = SeriesDef("ttc_error", [("t", "i8"), ("tau_s", "f8"), ("tau_true_s", "f8"),
                                     ("rel_error", "f8"), ("cluster", "i8"), ("x", "f8"),
                                     ("y", "f8"), ("on_obstacle", "i1")],
-                      "per ttc entry: estimate, truth, relative error, whether the cluster "
+                      "per ttc entry: estimate, truth, relative error (both -1 where the "
+                      "truth has no TTC: nothing ahead to contact), whether the cluster "
                       "lies on the obstacle (1, 0, -1 unknown)")
 EVENT_RATE = SeriesDef("event_rate", [("t", "i8"), ("t_bin_start", "i8"), ("t_bin_end", "i8"),
                                       ("rate_eps", "f8"), ("on", "i8"), ("off", "i8")],
                        "events per second at one pixel column per bin")
+
+IMU = SeriesDef("imu", [("t", "i8"), ("ax", "f8"), ("ay", "f8"), ("az", "f8"), ("gx", "f8"),
+                        ("gy", "f8"), ("gz", "f8"), ("temperature_c", "f8")],
+                "inertial samples in the camera's axes (x right, y down, z forward): "
+                "accelerometer ax, ay, az in g (specific force: an upright camera at rest reads "
+                "ay = -1), gyro gx, gy, gz in deg/s (right-handed: tilt up, pan right, roll "
+                "clockwise seen from behind), temperature_c in °C")
+IMU_RATE = SeriesDef("imu_rate", [("t", "i8"), ("n", "i8"), ("gx", "f8"), ("gy", "f8"),
+                                  ("gz", "f8"), ("fit_gx", "f8"), ("fit_gy", "f8"),
+                                  ("fit_gz", "f8"), ("normal_error", "f8"), ("valid", "i1")],
+                     "per time bin (t = the bin's last µs): the gyro's rate (bias removed, at "
+                     "the times the measurements reflect) and the rate fitted to the measured "
+                     "normal flow, "
+                     "deg/s; n measurements, their median relative normal-flow error against "
+                     "the gyro's flow, and whether the gyro's flow is the truth there (1) or "
+                     "not (0)")
 
 #: default bin of the flow density series (µs)
 DENSITY_BIN_US = 100_000

@@ -2,7 +2,8 @@
 
 A source that knows the truth sets ``context.truth`` in its ``setup()`` to a provider object
 (not precomputed arrays) and lists in ``provides_truth`` which of these protocols it
-implements; a scorer lists in ``needs_truth`` the ones it cannot work without and in
+implements (a stage may do the same for the stages after it, as ``imu_truth`` does with the
+gyro's flow on recordings); a scorer lists in ``needs_truth`` the ones it cannot work without and in
 ``uses_truth`` the ones it uses when present. The base :class:`~evchain.core.filter.Filter`
 checks them in ``setup()``: a stage whose truth lacks a needed part fails with a
 :class:`~evchain.errors.ConfigError` naming the stage, the part and the sources that provide it.
@@ -141,8 +142,11 @@ def require(stage: str, needs: Iterable[type], truth: object | None, hint: str =
     have = ("the source provides no ground truth" if truth is None else
             f"the ground truth ({type(truth).__name__}) has no {describe(lack)}")
     sources = truth_sources(needs)
+    stages = truth_sources(needs, sources=False)
     where = (f"sources that provide it: {', '.join(sources)}" if sources
              else "no installed source provides it")
+    if stages:
+        where += f"; stages that provide it to the stages after them: {', '.join(stages)}"
     raise ConfigError(f"stage {stage} needs ground truth with {describe(needs)}, but {have}; "
                       f"{where}" + (f"; {hint}" if hint else ""))
 
@@ -154,8 +158,9 @@ def not_scored(what: Iterable[str], truth: object, protocol: type) -> str:
             f"{describe([protocol])}")
 
 
-def truth_sources(needs: Iterable[type]) -> list[str]:
-    """Names of the installed sources whose ``provides_truth`` covers ``needs``."""
+def truth_sources(needs: Iterable[type], sources: bool = True) -> list[str]:
+    """Names of the installed sources (``sources``; else of the other stages, e.g. ``imu_truth``)
+    whose ``provides_truth`` covers ``needs``."""
     from evchain.core.registry import make_registry
     from evchain.errors import PluginError
 
@@ -165,4 +170,5 @@ def truth_sources(needs: Iterable[type]) -> list[str]:
         registry = make_registry(discover=False)
     needs = set(needs)
     return sorted(name for name, info in registry.filters.items()
-                  if info.cls.is_source() and needs <= set(info.cls.provides_truth))
+                  if info.cls.is_source() == sources and info.cls.provides_truth
+                  and needs <= set(info.cls.provides_truth))

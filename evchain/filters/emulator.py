@@ -33,7 +33,8 @@ class Emulator(Filter):
     between frames; an interval's events leave when its end frame arrives (the cubic needs one
     more frame of look-ahead), so output slices lag. Events are time-ordered; times are rounded
     to the nearest µs (set ``record_float_times = True`` before setup to keep the float times
-    in ``float_times``).
+    in ``float_times``). The input's series (e.g. the scene's simulated IMU) pass on, each
+    entry with the output slice that holds it.
     """
 
     name = "emulator"
@@ -84,6 +85,7 @@ class Emulator(Filter):
         self._out_end: int | None = None
         self._last_t_end: int | None = None
         self._carry = None           # events at the slice end, held for the next output
+        self._series: dict[str, np.ndarray] = {}   # input series entries not yet sent
         self._cap_hint = 4096
         self.float_times: list[np.ndarray] | None = [] if getattr(self, "record_float_times",
                                                                   False) else None
@@ -165,6 +167,9 @@ class Emulator(Filter):
         if self._out_end is None:
             self._out_end = packet.t_start
         self._last_t_end = packet.t_end
+        for name, entries in packet.series.items():   # e.g. a simulated IMU: passed on
+            held = self._series.get(name)
+            self._series[name] = entries if held is None else np.concatenate([held, entries])
         n = len(packet.t)
         if n == 0:
             return self._emit(self._out_end, final=False, geometry=packet.geometry)
@@ -282,11 +287,25 @@ class Emulator(Filter):
             self._carry = tuple(a[k:] for a in ev) if k < len(ev[0]) else None
         self._out_end = end
         if out_ev is None:
-            return EventPacket.empty(geometry, start, end)
-        if self.float_times is not None:
-            self.float_times.append(out_ev[4])
-        return EventPacket(geometry=geometry, t_start=start, t_end=end, x=out_ev[0],
-                           y=out_ev[1], t=out_ev[2], p=out_ev[3])
+            out = EventPacket.empty(geometry, start, end)
+        else:
+            if self.float_times is not None:
+                self.float_times.append(out_ev[4])
+            out = EventPacket(geometry=geometry, t_start=start, t_end=end, x=out_ev[0],
+                              y=out_ev[1], t=out_ev[2], p=out_ev[3])
+        return self._with_series(out, final)
+
+    def _with_series(self, out: EventPacket, final: bool) -> EventPacket:
+        """``out`` with the input's series entries of its slice (all that are left at the
+        end); the output lags the input, so entries wait for the slice that holds them."""
+        if not self._series:
+            return out
+        series = {}
+        for name, entries in self._series.items():
+            n = len(entries) if final else int(np.searchsorted(entries["t"], out.t_end))
+            series[name] = entries[:n]
+            self._series[name] = entries[n:]
+        return out.replace(series=series)
 
     def flush(self) -> EventPacket | None:
         if self._out_end is None:

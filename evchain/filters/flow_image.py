@@ -17,7 +17,8 @@ class FlowImage(Filter):
 
     One picture of ``t_window_us`` (default: the whole stream), or one per entry of
     ``times_us`` showing the ``duration_us`` before that time (files ``NAME_<t>us.png``). Each
-    pixel shows its mean flow direction; a colour wheel in the corner is the legend. Files are
+    pixel shows its mean flow direction; sampled arrows show direction and relative speed, and
+    a colour wheel in the corner is the legend. Files are
     written atomically at the end of the stream; ``save_npz`` also keeps the flow events of the
     windows, which :func:`evchain.report.flow_image.flow_image_from_file` renders again.
     """
@@ -36,6 +37,8 @@ class FlowImage(Filter):
         duration_us: int = Field(100_000, gt=0, description="window of each times_us picture")
         scale: int = Field(2, ge=1, le=16, description="pixel magnification")
         wheel: bool = Field(True, description="draw the colour-wheel legend")
+        arrows_every_px: int = Field(16, ge=0, description="spacing of the sampled flow "
+                                     "arrows in output pixels (0: none)")
         save_npz: str | None = Field(None, description=(
             "also save the flow events of the windows (x, y, t, vx, vy, width, height) here"))
 
@@ -108,7 +111,8 @@ class FlowImage(Filter):
             self._acc = [(p, FlowAccumulator(g.width, g.height, a, b))
                          for p, a, b in self._windows()]
         for path, acc in self._acc:
-            atomic_write_bytes(path, png_bytes(acc.image(self.params.scale, self.params.wheel)))
+            atomic_write_bytes(path, png_bytes(acc.image(self.params.scale, self.params.wheel,
+                                                         self.params.arrows_every_px)))
         if self.params.save_npz:
             import io
 

@@ -149,7 +149,8 @@ class FlowScorer(Filter):
     invalid_rate). At the end ``metrics.flow`` (``metrics.flow@ID`` for a stage with an ``id``)
     holds the run's values; ``density`` = flow events / input events from the flow filter's
     ``flow_density`` series (None if it has none). The invalid rate needs the true FOE: without
-    it, it is None and ``not_scored`` says why.
+    it, it is None and ``not_scored`` says why; without flow events to score the errors are
+    None and ``why_none`` says so.
     """
 
     name = "flow_scorer"
@@ -230,6 +231,11 @@ class FlowScorer(Filter):
         m["n_input_events"] = self.n_in if self.n_in else None
         if not isinstance(self.truth, FoeTruth):
             m["not_scored"] = not_scored(["invalid_rate"], self.truth, FoeTruth)
+        if m["n_flow"] == 0:
+            m["why_none"] = ("no flow events to score (no input events)" if not self.n_in
+                             else "no flow events to score: the flow stage estimated none")
+        elif m["n_scored"] == 0:
+            m["why_none"] = "no flow event has ground truth"
         self.context.metrics[self.metrics_key("flow")] = m
         if self.last is None:
             return None

@@ -54,8 +54,15 @@ class FoeFit(Filter):
     next fit starts from it again. The ``foe_map`` entries move to series ``foe_votes``; series
     ``foe`` gets one entry per fit (t, x, y, support = decayed inlier weight, total = decayed
     weight of modelled events, the angular velocity wx, wy, wz of the latest
-    ``estimate_every_us`` in deg/s, 0 on an axis the mode holds: NaN when the votes are emitted
-    or the geometry has no focal length).
+    ``estimate_every_us`` in deg/s, 0 on an axis the mode holds, and ``rotation`` 1; 0 and
+    ``rotation`` 0 when the votes are emitted or the geometry has no focal length).
+
+    A fit needs a voting estimate at most ``tau_ms`` old: with none yet, or none for longer
+    (``foe_map`` withholds its estimates while the flow's directions agree no better than
+    noise would, and the speeds of such flow can still give a fit enough inliers) there is no
+    fit and no entry; the fits resume from the last one when voting estimates return.
+    ``metrics.foe_fit`` counts the fit times, the fits kept, the voting estimates emitted
+    instead, and the times without an estimate.
     """
 
     name = "foe_fit"
@@ -116,6 +123,7 @@ class FoeFit(Filter):
         self._level_x: deque[tuple[int, float]] = deque()  # (t, FOE column) of settled fits
         self._held_x = math.nan  # the FOE column while turning
         self._warm_since: int | None = None  # time of the first fit since the last cold start
+        self._counts = {"fit times": 0, "fits": 0, "votes": 0, "no voting estimate": 0}
 
     def _start(self, geometry: Geometry) -> None:
         from evchain.kernels import foe_fit as k
@@ -142,7 +150,7 @@ class FoeFit(Filter):
                             f"{packet.geometry}")
         p = self.params
         period, tau_us = int(p.estimate_every_us), p.tau_ms * 1000.0
-        votes = packet.series.get("foe", FOE.empty(0))
+        votes = packet.series.get("foe", np.zeros(0, FOE.dtype))
         vx, vy = packet.vx.astype(np.float64), packet.vy.astype(np.float64)
         s = np.hypot(vx, vy)
         ok = s > 0
@@ -172,10 +180,13 @@ class FoeFit(Filter):
             if j:
                 self._vote = (int(votes["t"][j - 1]), float(votes["x"][j - 1]),
                               float(votes["y"][j - 1]))
-            if self._vote is None:
+            self._counts["fit times"] += 1
+            r = None if self._vote is None else self._fit(k, T, tau_us)
+            if r is None:
+                self._counts["no voting estimate"] += 1
                 continue
-            rows.append((T, *self._fit(k, T, tau_us)))
-        out = FOE.empty(len(rows))
+            rows.append((T, *r))
+        out = np.zeros(len(rows), FOE.dtype)
         for i, r in enumerate(rows):
             out[i] = r
         series = dict(packet.series)
@@ -215,8 +226,12 @@ class FoeFit(Filter):
         return np.array([True, self._mode == PITCHING, False, False])
 
     def _fit(self, k, T, tau_us):
+        """(x, y, support, total, wx, wy, wz) of the fit at T, or the voting estimate's; None
+        when the latest voting estimate is older than tau."""
         p = self.params
-        _, vx, vy = self._vote
+        t_vote, vx, vy = self._vote
+        if T - t_vote > tau_us:  # the flow has shown no FOE for tau: wait, resume from here
+            return None
         self._shift_slabs(T)
         warm = not math.isnan(self._th[k.FOE_X])
         if not warm:
@@ -259,15 +274,25 @@ class FoeFit(Filter):
             self._won = -math.inf
         if ok:
             self._th, self._om = th, om
+            self._counts["fits"] += 1
             if not warm:
                 self._warm_since = T
             if self._rotation:
                 self._update_mode(T, th[k.FOE_X], found)
-            w = (np.degrees(om[0] / self._prm.f) if self._rotation else np.full(3, np.nan))
-            return (th[k.FOE_X], th[k.FOE_Y], inl, tot, *w)
+            if self._rotation:
+                return (th[k.FOE_X], th[k.FOE_Y], inl, tot, *np.degrees(om[0] / self._prm.f), 1)
+            return (th[k.FOE_X], th[k.FOE_Y], inl, tot, 0.0, 0.0, 0.0, 0)
         self._th[:] = np.nan
         self._won = -math.inf
-        return (vx, vy, inl, tot, math.nan, math.nan, math.nan)
+        self._counts["votes"] += 1
+        return (vx, vy, inl, tot, 0.0, 0.0, 0.0, 0)
+
+    def flush(self):
+        c = self._counts
+        self.context.metrics[self.metrics_key("foe_fit")] = {
+            "fit_times": c["fit times"], "fits_kept": c["fits"], "voting_estimates": c["votes"],
+            "no_estimate": {"no recent voting estimate": c["no voting estimate"]}}
+        return None
 
     def _update_mode(self, T: int, x: float, probe: np.ndarray) -> None:
         """Record the fit (its FOE column while not turning, its probed rotation) and switch

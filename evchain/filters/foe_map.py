@@ -79,6 +79,16 @@ class FoeMap(Filter):
     cuts do not change them) and appended to series ``foe``: t, x, y (px, sub-pixel centroid of
     the near-maximal cells), support (decayed votes at the maximum), total (all decayed votes).
     The flow passes through unchanged.
+
+    No estimate is emitted before the first vote, nor while the votes do not agree more than
+    flow without any FOE would: if flow directions were independent of positions (sensor
+    noise, a uniform scene with noise), every cell would lie in each vote's half-plane with
+    probability 1/2, so the consensus ``support / total`` of the best of the M cells of A
+    exceeds ``1/2 + sqrt(ln(M / significance) / (2 n))`` with probability at most
+    ``significance`` (Hoeffding's inequality for the weighted votes, a union bound over the
+    cells; n = (sum w)^2 / sum w^2, the effective number of votes). Few votes (n small) give no
+    estimate either. ``metrics.foe_map`` counts the reads, the estimates and the reads without
+    one, by reason.
     """
 
     name = "foe_map"
@@ -109,11 +119,17 @@ class FoeMap(Filter):
         cell_px: int = Field(1, ge=1, le=16, description="map resolution: square cells of this "
                              "many pixels (the votes are tested at the cell centres); 2 halves "
                              "the per-event work and quarters the reads")
+        significance: float | None = Field(
+            1e-3, gt=0, lt=1, description="emit an estimate only when its consensus (support / "
+            "total) exceeds what flow without an FOE (directions independent of positions) "
+            "reaches with at most this probability at a read: 1/2 + sqrt(ln(M / significance) "
+            "/ (2 n)), M the cells of A, n the effective number of votes; null: off")
 
     def reset(self) -> None:
         self._geometry: Geometry | None = None
         self._state = None
         self._started = False
+        self._counts = {"reads": 0, "estimates": 0, "no votes yet": 0, "noise-level": 0}
 
     def _allocate(self, geometry: Geometry) -> None:
         from evchain.kernels import foe_map as k
@@ -137,6 +153,10 @@ class FoeMap(Filter):
             gate_on=gate_on, period_us=p.estimate_every_us, refine_fraction=p.refine_fraction,
             min_support=p.min_support, speed_w0=p.speed_weight_pxs or 0.0, cx=cx, cy=cy,
             radius=r, x0=x0, y0=y0)
+        #: ln(M / significance), M = the cells of A (the union bound of the noise test)
+        cells = int(np.maximum(hi - lo + 1, 0).sum())
+        self._log_m_alpha = (math.log(cells / p.significance) if p.significance is not None
+                             else None)
         self._period = int(p.estimate_every_us)
         self._kernel = k
 
@@ -154,20 +174,45 @@ class FoeMap(Filter):
             k.start(self._state, -(-packet.t_start // period) * period)
             self._started = True
         n_max = max(0, -(-(packet.t_end - k.next_read(self._state)) // period))
-        out = FOE.empty(n_max)  # the kernel writes position and weights; no rotation (NaN)
+        self._counts["reads"] += n_max
+        out = np.zeros(n_max, FOE.dtype)  # the kernel writes position and weights; no rotation
+        n_votes = np.empty(n_max)
         cell = self.params.cell_px
         if cell == 1:
             x, y = packet.x, packet.y
         else:
             x, y = to_cells(packet.x, cell), to_cells(packet.y, cell)
         n = k.process(x, y, packet.t, packet.vx, packet.vy, self._state_arrays, self._prm,
-                      int(packet.t_end), out)
+                      int(packet.t_end), out, n_votes)
         if n < n_max:
             out = out[:n]
+        self._counts["no votes yet"] += n_max - n
+        if self._log_m_alpha is not None:
+            out = out[self._above_noise(out, n_votes[:n])]
+        self._counts["estimates"] += len(out)
         if cell != 1:
             out["x"] = from_cells(out["x"], cell)
             out["y"] = from_cells(out["y"], cell)
         return packet.with_series("foe", out)
+
+    def _above_noise(self, out: np.ndarray, n_votes: np.ndarray) -> np.ndarray:
+        """Which estimates' consensus (support / total) exceeds the noise bound given their
+        effective numbers of votes."""
+        keep = np.zeros(len(out), bool)
+        lma = self._log_m_alpha
+        for j, (n, sup, tot) in enumerate(zip(n_votes.tolist(), out["support"].tolist(),
+                                              out["total"].tolist(), strict=True)):
+            keep[j] = n > 0.0 and sup > (0.5 + math.sqrt(lma / (2.0 * n))) * tot
+        self._counts["noise-level"] += len(out) - int(keep.sum())
+        return keep
+
+    def flush(self):
+        c = self._counts
+        self.context.metrics[self.metrics_key("foe_map")] = {
+            "reads": c["reads"], "estimates": c["estimates"],
+            "no_estimate": {"no votes yet": c["no votes yet"],
+                            "consensus at noise level": c["noise-level"]}}
+        return None
 
     def map_now(self, t_us: int) -> np.ndarray:
         """The dense vote map decayed to ``t_us`` (NaN outside region A), for tests and plots.

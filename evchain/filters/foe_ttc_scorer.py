@@ -74,6 +74,20 @@ def foe_angle_deg(x, y, xt, yt, f: float | None, cx: float, cy: float) -> np.nda
     return np.degrees(np.arctan2(cross, dot))
 
 
+#: the FOE metrics that are None when nothing is scored
+FOE_KEYS = ("dx_mean_px", "dx_std_px", "dy_mean_px", "dy_std_px", "angle_mean_deg",
+            "angle_std_deg")
+
+
+def _median_or_none(rel: np.ndarray) -> float | None:
+    """The median of relative errors (misses are infinite); None when that is infinite
+    (more than half of them misses) or there are none."""
+    if not len(rel):
+        return None
+    m = float(np.median(rel))
+    return m if math.isfinite(m) else None
+
+
 #: the FOE's lag is searched up to this far (ms)
 LAG_MAX_MS = 500.0
 #: ... and defined only where the true FOE coordinate varies by at least this (std, px)
@@ -136,14 +150,18 @@ class FoeTtcScorer(Filter):
 
     Pass-through. Appends series ``foe_error`` (per ``foe`` entry) and ``ttc_error`` (per ``ttc``
     entry: the cluster's centre x, y and ``on_obstacle``: 1 if it lies on the obstacle at that
-    tick, 0 if not, -1 if the truth cannot tell). At the end writes ``metrics.foe`` (``dx_mean_px``,
+    tick, 0 if not, -1 if the truth cannot tell; ``tau_true_s`` and ``rel_error`` -1 where the
+    truth has no TTC). At the end writes ``metrics.foe`` (``dx_mean_px``,
     ``dx_std_px``, ``dy_mean_px``, ``dy_std_px``, ``angle_mean_deg`` after ``warmup_s``;
     thesis eq. 4.1; ``lag_ms``: how late the estimate follows the true FOE where that moves,
-    :func:`foe_lag_ms`; ``rotation_rate_error_deg_s``: the median norm of the difference between
-    the estimated and the true angular velocity, where the ``foe`` entries carry one and the
-    truth knows it, :meth:`_rotation_metrics`) and ``metrics.ttc`` over the last
-    ``last_window_s`` before collision, sampled every ``sample_every_us`` (a time without an
-    estimate of at most ``max_age_us`` counts as a miss):
+    :func:`foe_lag_ms`; ``window_s``: the seconds after the warm-up that were scored;
+    ``rotation_rate_error_deg_s``: the median norm of the difference between the estimated and
+    the true angular velocity, where the ``foe`` entries carry one and the truth knows it,
+    :meth:`_rotation_metrics`) and ``metrics.ttc`` over the last ``last_window_s`` before
+    collision, sampled every ``sample_every_us`` (a time without an estimate of at most
+    ``max_age_us`` counts as a miss; ``window_s`` and ``window_span_s``: the window actually
+    scored, which is shorter than asked when the stream has a true TTC for less time, and then
+    a warning in ``report.json`` says so; so does a stream no longer than the FOE warm-up):
 
     * ``share_on_obstacle_within_20pct`` (the headline): share of the times at which the
       reported cluster lies on the obstacle (the truth's ``object_id`` sees one of its
@@ -156,6 +174,11 @@ class FoeTtcScorer(Filter):
     * ``median_rel_error_last3s``, ``share_within_10pct``, ``share_within_20pct``,
       ``coverage_last3s``: whatever cluster is reported, so a roadside object whose TTC happens
       to match the car's counts as a hit.
+
+    A metric that cannot be given is None, and ``why_none`` says why: no FOE after the
+    warm-up (a string), a median over a window more than half of which has no estimate (a miss
+    is an infinite error), no estimate on the obstacle, no obstacle in the scene at all (no
+    true TTC: nothing is scored, ``n_estimates`` still counts the TTCs reported).
 
     A stage with an ``id`` writes ``metrics.foe@ID`` and ``metrics.ttc@ID``. With ``plots``,
     PNGs: FOE error over time, TTC against truth (estimates on and off the obstacle in their own
@@ -219,13 +242,15 @@ class FoeTtcScorer(Filter):
             x, y = np.asarray(foe["x"], np.float64), np.asarray(foe["y"], np.float64)
             err = FOE_ERROR.array(t=t, x=x, y=y, x_true=xt, y_true=yt, dx=x - xt, dy=y - yt,
                                   angle_deg=foe_angle_deg(x, y, xt, yt, g.f, g.cx, g.cy))
-            if all(c in foe.dtype.names for c in ROTATION_FIELDS):
-                w = np.stack([np.asarray(foe[c], np.float64) for c in ROTATION_FIELDS], 1)
-                wt = _truth_rotation_deg_s(truth, t)
-                for i, c in enumerate(ROTATION_FIELDS):
-                    err[c] = w[:, i]
-                    err[c.replace("_deg", "_true_deg")] = wt[:, i]
-                err["rotation_error_deg_s"] = np.linalg.norm(w - wt, axis=1)
+            w = np.stack([np.asarray(foe[c], np.float64) for c in ROTATION_FIELDS], 1)
+            wt = _truth_rotation_deg_s(truth, t)
+            known = np.isfinite(wt).all(axis=1)
+            wt[~known] = 0.0
+            for i, c in enumerate(ROTATION_FIELDS):
+                err[c] = w[:, i]
+                err[c.replace("_deg", "_true_deg")] = wt[:, i]
+            err["rotation_error_deg_s"] = np.where((foe["rotation"] == 1) & known,
+                                                   np.linalg.norm(w - wt, axis=1), -1.0)
             self._foe.append(err)
             self._last_foe = (float(x[-1]), float(y[-1]))
             out = out.with_series(FOE_ERROR.name, err)
@@ -234,8 +259,10 @@ class FoeTtcScorer(Filter):
             t = np.asarray(ttc["t"], np.int64)
             tt = _truth_ttc(truth, t)
             tau = np.asarray(ttc["tau_s"], np.float64)
+            defined = np.isfinite(tt) & (tt > 0)  # else -1: nothing ahead to contact
             with np.errstate(invalid="ignore", divide="ignore"):
-                rel = np.where(tt > 0, np.abs(tau - tt) / tt, np.nan)
+                rel = np.where(defined, np.abs(tau - tt) / tt, -1.0)
+            tt = np.where(defined, tt, -1.0)
             on = on_obstacle(truth, ttc["x"], ttc["y"], t, self.params.obstacle_margin_px)
             err = TTC_ERROR.array(t=t, tau_s=tau, tau_true_s=tt, rel_error=rel,
                                   cluster=ttc["cluster"], x=ttc["x"], y=ttc["y"],
@@ -284,45 +311,64 @@ class FoeTtcScorer(Filter):
 
     # -- metrics ---------------------------------------------------------------------------
     def _foe_metrics(self, foe: np.ndarray) -> dict:
-        start = self._t0 + int(round(self.params.warmup_s * 1e6))
+        p = self.params
+        start = self._t0 + int(round(p.warmup_s * 1e6))
+        window_s = max(0.0, (self._t_end - start) * 1e-6)
+        base = {"warmup_s": p.warmup_s, "window_s": window_s}
         k = (foe["t"] >= start) & np.isfinite(foe["dx"]) & np.isfinite(foe["dy"])
         if not k.any():
-            return {"n": 0}
+            stream_s = (self._t_end - self._t0) * 1e-6
+            if window_s == 0.0:
+                why = (f"the stream ({stream_s:g} s) is not longer than the FOE warm-up "
+                       f"(warmup_s {p.warmup_s:g} s): nothing is scored")
+                self.context.warn(f"{self.id}: {why}")
+            elif len(foe) and not np.isfinite(foe["x_true"][foe["t"] >= start]).any():
+                why = "the true FOE is undefined (no forward motion) after the warm-up"
+            else:
+                why = (f"no FOE estimate in the {window_s:g} s after the warm-up (the "
+                       "estimators' own metrics say why)")
+            return {**dict.fromkeys(FOE_KEYS), "n": 0, **base, "lag_ms": None,
+                    "lag_axis": None, **self._rotation_metrics(foe[k])[0], "why_none": why}
         adx, ady = np.abs(foe["dx"][k]), np.abs(foe["dy"][k])
         ang = foe["angle_deg"][k]
-        return {"dx_mean_px": float(adx.mean()), "dx_std_px": float(adx.std()),
-                "dy_mean_px": float(ady.mean()), "dy_std_px": float(ady.std()),
-                "angle_mean_deg": float(np.nanmean(ang)) if np.isfinite(ang).any() else None,
-                "angle_std_deg": float(np.nanstd(ang)) if np.isfinite(ang).any() else None,
-                "n": int(k.sum()), "warmup_s": self.params.warmup_s,
-                **foe_lag_metrics(foe[k]), **self._rotation_metrics(foe[k])}
+        rotation, why = self._rotation_metrics(foe[k])
+        m = {"dx_mean_px": float(adx.mean()), "dx_std_px": float(adx.std()),
+             "dy_mean_px": float(ady.mean()), "dy_std_px": float(ady.std()),
+             "angle_mean_deg": float(np.nanmean(ang)) if np.isfinite(ang).any() else None,
+             "angle_std_deg": float(np.nanstd(ang)) if np.isfinite(ang).any() else None,
+             "n": int(k.sum()), **base, **foe_lag_metrics(foe[k]), **rotation}
+        if why is not None:
+            m["why_none"] = {key: why for key, v in rotation.items() if v is None}
+        return m
 
-    def _rotation_metrics(self, foe: np.ndarray) -> dict:
-        """The camera's rotation rate against the truth over the scored ``foe_error`` entries:
-        ``rotation_rate_error_deg_s``, the median of |w - w_true| (the norm of the difference
-        of the angular velocity vectors, deg/s) over the entries with an estimate;
-        ``rotation_rate_error_wx_deg_s`` (wy, wz): the median of each axis' |difference|;
-        ``rotation_rate_true_deg_s``: the median |w_true|, the scale of what was estimated;
-        ``rotation_coverage``: the share of entries with an estimate. None where nothing was
-        estimated or the truth knows no rotation (then ``not_scored`` says so)."""
+    def _rotation_metrics(self, foe: np.ndarray) -> tuple[dict, str | None]:
+        """The camera's rotation rate against the truth over the scored ``foe_error`` entries,
+        and why they are None (else None): ``rotation_rate_error_deg_s``, the median of
+        |w - w_true| (the norm of the difference of the angular velocity vectors, deg/s) over
+        the entries that carry an estimate; ``rotation_rate_error_wx_deg_s`` (wy, wz): the
+        median of each axis' |difference|; ``rotation_rate_true_deg_s``: the median |w_true|,
+        the scale of what was estimated; ``rotation_coverage``: the share of entries with an
+        estimate. None where nothing was estimated or the truth knows no rotation."""
         keys = ("rotation_rate_error_deg_s", *(f"rotation_rate_error_{c}" for c in
                                                ROTATION_FIELDS),
                 "rotation_rate_true_deg_s")
         if not isinstance(self.truth, RotationTruth):
-            return {**dict.fromkeys(keys), "rotation_coverage": None,
-                    "not_scored": not_scored(keys, self.truth, RotationTruth)}
-        true = np.stack([foe[c.replace("_deg", "_true_deg")] for c in ROTATION_FIELDS], 1)
-        est = np.stack([foe[c] for c in ROTATION_FIELDS], 1)
-        have = np.isfinite(est).all(axis=1) & np.isfinite(true).all(axis=1)
+            why = not_scored(keys, self.truth, RotationTruth)
+            return {**dict.fromkeys(keys), "rotation_coverage": None, "not_scored": why}, why
+        have = foe["rotation_error_deg_s"] >= 0
         cover = float(have.mean()) if len(foe) else None
         if not have.any():
-            return {**dict.fromkeys(keys), "rotation_coverage": cover}
-        d = np.abs(est[have] - true[have])
-        return {"rotation_rate_error_deg_s": float(np.median(np.linalg.norm(d, axis=1))),
+            return ({**dict.fromkeys(keys), "rotation_coverage": cover},
+                    "no scored FOE estimate carries the camera's angular velocity (foe_map's "
+                    "and foe_lines' never do, foe_fit's only with a focal length and where it "
+                    "fitted)")
+        true = np.stack([foe[c.replace("_deg", "_true_deg")][have] for c in ROTATION_FIELDS], 1)
+        d = np.abs(np.stack([foe[c][have] for c in ROTATION_FIELDS], 1) - true)
+        return {"rotation_rate_error_deg_s": float(np.median(foe["rotation_error_deg_s"][have])),
                 **{f"rotation_rate_error_{c}": float(np.median(d[:, i]))
                    for i, c in enumerate(ROTATION_FIELDS)},
-                "rotation_rate_true_deg_s": float(np.median(np.linalg.norm(true[have], axis=1))),
-                "rotation_coverage": cover}
+                "rotation_rate_true_deg_s": float(np.median(np.linalg.norm(true, axis=1))),
+                "rotation_coverage": cover}, None
 
     def _ttc_metrics(self, ttc: np.ndarray) -> tuple[dict, dict]:
         p = self.params
@@ -330,7 +376,9 @@ class FoeTtcScorer(Filter):
         truth = _truth_ttc(self.truth, grid)
         ok = np.isfinite(truth) & (truth > 0)
         if not ok.any():
-            return {"n": 0}, {}
+            return {"n": 0, "n_estimates": int(len(ttc)), "window_s": 0.0,
+                    "why_none": "no obstacle ahead: the true TTC is undefined at every time "
+                                "of the stream, so no TTC is scored"}, {}
         idx = np.searchsorted(ttc["t"], grid, side="right") - 1
         have = (idx >= 0)
         idx = np.maximum(idx, 0)
@@ -345,15 +393,35 @@ class FoeTtcScorer(Filter):
         t_last = grid[ok][-1]
         win = ok & (grid >= t_last - int(p.last_window_s * 1e6))
         relw = rel[win]
+        t_first = int(grid[win][0])
+        window_s = (t_last - t_first) * 1e-6
         m = {**self._obstacle_metrics(ttc, grid[win], idx[win], have[win], relw),
-             "median_rel_error_last3s": float(np.median(relw)),
+             "median_rel_error_last3s": _median_or_none(relw),
              "share_within_10pct": float(np.mean(relw <= 0.10)),
              "share_within_20pct": float(np.mean(relw <= 0.20)),
              "coverage_last3s": float(np.mean(np.isfinite(relw))),
-             "median_rel_error_all": float(np.median(rel[ok])),
+             "median_rel_error_all": _median_or_none(rel[ok]),
              "share_within_20pct_all": float(np.mean(rel[ok] <= 0.20)),
-             "window_s": [float((t_last - p.last_window_s * 1e6) * 1e-6), float(t_last * 1e-6)],
+             "window_s": window_s,
+             "window_span_s": [t_first * 1e-6, t_last * 1e-6],
              "n_estimates": int(len(ttc))}
+        if t_first - (t_last - int(p.last_window_s * 1e6)) > p.sample_every_us:  # a grid step
+            self.context.warn(
+                f"{self.id}: the TTC window is {window_s:g} s, shorter than last_window_s "
+                f"{p.last_window_s:g} s (the stream has a true TTC only from {t_first * 1e-6:g} "
+                f"s, its last at {t_last * 1e-6:g} s); the TTC metrics cover those "
+                f"{window_s:g} s")
+        why = {}
+        for key, values in (("median_rel_error_last3s", relw), ("median_rel_error_all", rel[ok])):
+            if m[key] is None:
+                why[key] = (f"estimates at {np.mean(np.isfinite(values)):.0%} of the times; a "
+                            "time without one counts as an infinite error, so the median is "
+                            "undefined below 50%")
+        if m.get("median_rel_error_on_obstacle", 0) is None and "not_scored" not in m \
+                and m.get("coverage_on_obstacle") is not None:
+            why["median_rel_error_on_obstacle"] = "no estimate on the obstacle in the window"
+        if why:
+            m["why_none"] = why
         curves = {"grid_s": grid * 1e-6, "truth": truth}
         return m, curves
 

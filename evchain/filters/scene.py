@@ -9,6 +9,7 @@ from pydantic import Field, model_validator
 
 from evchain.core.filter import Filter
 from evchain.core.packets import FramePacket
+from evchain.core.series import IMU
 from evchain.core.truth import (
     DepthTruth,
     FlowTruth,
@@ -28,12 +29,16 @@ class SceneSource(Filter):
     ``dt_us`` fixes the step instead (thesis Table 4.4: 20 or 40 µs). Packets cover
     ``packet_us`` slices (shorter when ``max_frames_per_packet`` is reached). Sets
     ``context.geometry`` (with f, cx, cy), ``context.truth`` (flow, FOE, camera rotation, TTC,
-    depth, object ids) and ``context.renderer`` (frames at any time, for picture sinks).
+    depth, object ids) and ``context.renderer`` (frames at any time, for picture sinks). With
+    ``imu_rate_hz`` the packets carry the camera's simulated IMU as the series ``imu`` (true
+    gyro and accelerometer in the camera's axes, with optional bias and seeded noise;
+    :mod:`evchain.sim.imu`), as a DAVIS recording does.
     """
 
     name = "scene"
     consumes = None
     produces = FramePacket
+    adds_series = (IMU,)
     provides_truth = (FlowTruth, FoeTruth, RotationTruth, TtcTruth, DepthTruth,
                       ObjectTruth)
 
@@ -50,12 +55,26 @@ class SceneSource(Filter):
         threads: int = Field(
             1, ge=0, le=1024, description="render threads (frames ahead at a steady step, "
             "else rows in parallel; same frames); 0: all cores")
+        imu_rate_hz: float = Field(0.0, ge=0, le=100_000, description=(
+            "samples per second of the camera's simulated IMU (series imu: true gyro and "
+            "accelerometer, camera axes); 0: no IMU"))
+        imu_gyro_bias_dps: tuple[float, float, float] = Field(
+            (0.0, 0.0, 0.0), description="gyro bias added to every sample, deg/s (x, y, z)")
+        imu_gyro_noise_dps: float = Field(0.0, ge=0, description=(
+            "gyro noise, standard deviation per sample, deg/s (seeded)"))
+        imu_accel_noise_g: float = Field(0.0, ge=0, description=(
+            "accelerometer noise, standard deviation per sample, g (seeded)"))
 
         @model_validator(mode="after")
         def _check_dt(self):
             if self.dt_min_us > self.dt_max_us:
                 raise ValueError(f"dt_min_us {self.dt_min_us} exceeds dt_max_us {self.dt_max_us}")
             return self
+
+    @classmethod
+    def series_added(cls, params):
+        """``imu`` when ``imu_rate_hz`` > 0."""
+        return (IMU,) if params.imu_rate_hz > 0 else ()
 
     def setup(self, params, context) -> None:
         from evchain.sim.drive import Scene
@@ -95,7 +114,23 @@ class SceneSource(Filter):
         dt = int(np.floor(p.max_motion_px / vmax_pxs * 1e6))
         return int(min(max(dt, p.dt_min_us), p.dt_max_us))
 
+    def _imu(self, t_start: int, t_end: int) -> np.ndarray | None:
+        """The simulated IMU's samples in ``[t_start, t_end)`` (None without an IMU), on the
+        grid ``k / imu_rate_hz``."""
+        from evchain.sim.imu import imu_samples
+
+        p = self.params
+        if p.imu_rate_hz <= 0:
+            return None
+        step = 1e6 / p.imu_rate_hz
+        k = np.arange(np.ceil(t_start / step), np.ceil(t_end / step))
+        t = np.unique(np.rint(k * step).astype(np.int64))
+        t = t[(t >= t_start) & (t < t_end)]
+        return imu_samples(self.scene, t, self._imu_rng, p.imu_gyro_noise_dps,
+                           p.imu_gyro_bias_dps, p.imu_accel_noise_g)
+
     def packets(self) -> Iterator[FramePacket]:
+        self._imu_rng = self.context.rng(f"{self.id}.imu")
         if self.params.threads == 1:
             yield from self._render_packets()
         else:
@@ -169,8 +204,10 @@ class SceneSource(Filter):
             stack = (np.stack(frames) if frames
                      else np.zeros((0, geom.height, geom.width), np.float32))
             self.frames_emitted += len(times)
-            yield FramePacket(geometry=geom, t_start=t_start, t_end=t_end, frames=stack,
-                              t=np.array(times, np.int64))
+            packet = FramePacket(geometry=geom, t_start=t_start, t_end=t_end, frames=stack,
+                                 t=np.array(times, np.int64))
+            imu = self._imu(t_start, t_end)
+            yield packet if imu is None else packet.with_series(IMU.name, imu)
             t_start = t_end
         self.context.metrics["scene"] = {
             "frames": self.frames_emitted,

@@ -30,7 +30,9 @@ class SceneEvents(Filter):
     Give the scene parameters of the run that wrote the file (see its
     ``pipeline.resolved.yaml``): the truth (flow, depth, FOE, rotation, TTC) is computed from
     them, not read from the file. Sets ``context.geometry`` (with f, cx, cy) and
-    ``context.truth`` (flow, FOE, camera rotation, TTC, depth, object ids).
+    ``context.truth`` (flow, FOE, camera rotation, TTC, depth, object ids). Packets cover the
+    file's events in ``packet_us`` slices from the first; a file without events gives empty
+    slices over the drive's duration.
     """
 
     name = "scene_events"
@@ -63,14 +65,21 @@ class SceneEvents(Filter):
                             "give the width and height of the run that wrote the file")
         context.geometry = self.geometry
         context.truth = SceneTruth(scene)
+        self.duration_us = int(round(scene.duration_s * 1e6))
         super().setup(params, context)
 
     def time_span_us(self) -> tuple[int, int] | None:
         return self.reader.time_span_us()
 
     def packets(self) -> Iterator[EventPacket]:
+        empty = True
         for packet in self.reader.packets():
+            empty = False
             yield packet.replace(geometry=self.geometry)
+        if empty:  # a drive without events (e.g. a uniform scene): its time still passes
+            P = self.params.packet_us
+            for t in range(0, self.duration_us, P):
+                yield EventPacket.empty(self.geometry, t, min(t + P, self.duration_us))
 
     def close(self) -> None:
         reader = getattr(self, "reader", None)
@@ -87,7 +96,8 @@ def replay_spec(spec, events_path: str | Path, check_recording: bool = True):
     reading ``events_path``, the events of an earlier run (``evchain run ... --replay``).
 
     That run's ``pipeline.resolved.yaml`` (beside the file) must show the same scene and
-    emulator parameters, else the events would not be the ones this pipeline makes.
+    emulator parameters, else the events would not be the ones this pipeline makes (a
+    parameter the recording does not name, one added since, counts with its default).
     ``check_recording`` False skips that check, for a recording still to be made. The path is
     made absolute (relative to the current folder)."""
     import os
@@ -126,7 +136,9 @@ def _check_recording(spec, recorded: Path) -> None:
         theirs = chain[i] if i < len(chain) else {}
         mine = {k: v for k, v in stage.params.model_dump(mode="json").items()
                 if k not in RENDER_ONLY}
-        differ = sorted(k for k, v in mine.items() if theirs.get(k) != v)
+        # a parameter added since the recording was made had its default's effect there
+        defaults = type(stage.params)().model_dump(mode="json")
+        differ = sorted(k for k, v in mine.items() if theirs.get(k, defaults.get(k)) != v)
         if theirs.get("use") != stage.use or differ:
             shown = ", ".join(f"{k}: {theirs.get(k)!r} there, {mine[k]!r} here" for k in differ)
             raise ConfigError(f"the recorded run ({recorded}) is not this pipeline's "

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Literal
 
 import numpy as np
@@ -13,6 +14,8 @@ from evchain.core.series import FOE, TTC, TTC_CLUSTERS
 from evchain.errors import DataError
 
 TTC_DTYPE = TTC.dtype
+#: the largest relative spread of a credible cluster's samples (see Ttc.Params.max_rel_spread)
+MAX_REL_SPREAD = 1.0
 CLUSTER_DTYPE = TTC_CLUSTERS.dtype
 
 
@@ -35,6 +38,16 @@ class Ttc(Filter):
     K = f h / V, estimated from the events), inside a driving corridor, held between ticks),
     series ``ttc_clusters`` (t, cluster, x, y, size_px, tau_s, support, ground_ratio) every
     live cluster (ground_ratio = median(tau * dy) / K, -1 while K is unknown).
+
+    Only a credible cluster can be the obstacle: its recent samples agree (relative spread
+    1.4826 MAD / median at most ``max_rel_spread``; the samples of one approaching surface
+    share one TTC up to the flow's error, those of rotational flow read as expansion, or of
+    several objects in one square, do not) and its tau lies within what the per-event bounds
+    allow (at least ``min_tau_s``; the image speed it implies at the cluster, its distance from
+    the FOE over tau, at most ``max_speed_pxs``: the forward prediction and the fusion can leave
+    both). A tick without one emits no row; ``metrics.ttc_filter`` counts the ticks, the TTCs
+    and the ticks without one by reason (no FOE yet, no cluster, none credible, only road
+    clusters).
     """
 
     name = "ttc"
@@ -101,6 +114,10 @@ class Ttc(Filter):
         baseline_max_ms: float = Field(500.0, gt=0, description="longest baseline")
         ground_fallback: bool = Field(True, description="with no cluster off the road, select "
                                       "among all clusters (else: no obstacle at that tick)")
+        max_rel_spread: float | None = Field(
+            MAX_REL_SPREAD, gt=0, description="a cluster is credible (can be the obstacle) "
+            "only when the relative spread of its recent samples, 1.4826 MAD / median, is at "
+            "most this; null: any spread")
 
     def reset(self) -> None:
         from evchain.kernels.records import record
@@ -120,8 +137,10 @@ class Ttc(Filter):
             ground_tol=p.ground_tolerance, ground_memory_us=p.ground_memory_ms * 1000.0,
             ground_min_events=p.ground_min_events, ground_fallback=p.ground_fallback,
             corridor=p.corridor_half_width_h or 0.0, hold=p.select_hold,
-            base_px=p.baseline_px, base_age_us=p.baseline_max_ms * 1000.0)
+            base_px=p.baseline_px, base_age_us=p.baseline_max_ms * 1000.0,
+            max_spread=math.inf if p.max_rel_spread is None else p.max_rel_spread)
         self._state = None
+        self._ticks = self._rows = 0
 
     def process(self, packet: FlowPacket) -> FlowPacket:
         if not isinstance(packet, FlowPacket):
@@ -147,5 +166,20 @@ class Ttc(Filter):
         cl = np.zeros(n_ticks * p.max_clusters, CLUSTER_DTYPE)
         no, nc = kern.process((packet.x, packet.y, packet.t, packet.p, packet.vx, packet.vy),
                               (ft, fx, fy), self._state, self._prm, int(packet.t_end), ttc, cl)
+        self._ticks += n_ticks
+        self._rows += no
         return packet.with_series("ttc", ttc[:no].copy()).with_series("ttc_clusters",
                                                                        cl[:nc].copy())
+
+    def flush(self):
+        from evchain.kernels import ttc as kern
+
+        why = {"no FOE yet": 0, "no cluster": 0, "no credible cluster": 0,
+               "only road clusters": 0}
+        if self._state is not None:
+            n = kern.no_ttc_counts(self._state)
+            why = {"no FOE yet": n["no_foe"], "no cluster": n["no_cluster"],
+                   "no credible cluster": n["not_credible"], "only road clusters": n["on_road"]}
+        self.context.metrics[self.metrics_key("ttc_filter")] = {
+            "ticks": self._ticks, "estimates": self._rows, "no_estimate": why}
+        return None

@@ -1,8 +1,10 @@
 """AEDAT 2.0 (jAER) files: streaming reader and writer, and the ``aedat`` / ``aedat_writer`` stages.
 
 Format (see ``docs/explanation/aedat.md``): ASCII header lines that start with ``#`` and end in
-CRLF, the first one ``#!AER-DAT2.0``; then 8-byte big-endian records ``(int32 address, int32
-timestamp in µs)``. The address layout depends on the chip:
+CRLF, the first one ``#!AER-DAT2.0``, the last (as jAER writes it) ``#End Of ASCII Header``;
+then 8-byte big-endian records ``(int32 address, int32 timestamp in µs)``. The writer never
+starts the records with the byte ``#`` (:func:`first_without_hash`). The address layout depends
+on the chip:
 
 * DAVIS240 / DAVIS346 (jAER ``DavisChip``): bit 31 = 0 and bit 10 = 0 for DVS events (bit 31 =
   1 is APS/IMU, bit 10 = 1 an external-input "special" event), y in bits 22-30, x in bits 12-21,
@@ -34,8 +36,10 @@ from pydantic import Field
 
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import EventPacket, Geometry
+from evchain.core.series import IMU
 from evchain.errors import DataError
 from evchain.io.atomic import AtomicFile
+from evchain.io.davis_imu import ImuAssembler, is_imu
 
 MAGIC = b"#!AER-DAT"
 VERSION_LINE = b"#!AER-DAT2.0"
@@ -46,8 +50,13 @@ HALF = 1 << 31
 #: before it, is read as a timestamp reset
 RESET_WINDOW_US = 1_000_000
 #: DAVIS external-input ("special") event address, written before a first record that would
-#: start with the byte ``#`` (see :func:`encode_records`)
+#: start with the byte ``#`` when no other event of the same time can go first (see
+#: :class:`Writer`)
 DAVIS_SPECIAL_ADDRESS = 1 << 10
+#: the last header line jAER writes (since 2016) and stops reading at, whatever follows
+END_OF_HEADER = "End Of ASCII Header"
+#: raw DAVIS y rows whose address starts with the byte ``#`` (0x23): ``y_raw >> 2 == 0x23``
+HASH_ROWS_RAW = range(0x23 << 2, (0x23 << 2) + 4)
 
 ChipName = Literal["davis240", "davis346", "dvs128"]
 
@@ -113,7 +122,9 @@ class Header:
 
 
 def read_header(path: str | Path) -> Header:
-    """Parse the header: every line starting with ``#``; stops at the first byte that is not ``#``.
+    """Parse the header: lines starting with ``#``, up to and including the line
+    ``#End Of ASCII Header`` (as jAER: any case, and here also with spaces around it), else up to
+    the first byte that is not ``#``.
 
     Raises :class:`DataError` for a missing, empty or non-AEDAT-2.0 file and for a truncated
     last record.
@@ -138,6 +149,8 @@ def read_header(path: str | Path) -> Header:
         lines.append(first.rstrip(b"\r\n").decode("ascii", "replace")[1:])
         while fh.peek(1)[:1] == b"#":
             lines.append(fh.readline().rstrip(b"\r\n").decode("latin-1")[1:])
+            if lines[-1].strip().lower() == END_OF_HEADER.lower():
+                break
         offset = fh.tell()
     header = Header(path, lines, offset, size)
     header.chip = _chip_from_lines(lines)
@@ -164,7 +177,8 @@ def _chip_from_lines(lines: list[str]) -> Chip | None:
 
 
 def header_bytes(chip: Chip, extra: list[str] = ()) -> bytes:
-    """The header jAER writes (CRLF line ends), naming the chip's jAER class."""
+    """The header jAER writes (CRLF line ends), naming the chip's jAER class, ending with
+    ``#End Of ASCII Header``."""
     lines = [VERSION_LINE.decode(),
              "# This is a raw AE data file - do not edit",
              "# Data format is int32 address, int32 timestamp (8 bytes total), repeated for each "
@@ -175,7 +189,7 @@ def header_bytes(chip: Chip, extra: list[str] = ()) -> bytes:
         lines.append(f"# AEChip: {chip.jaer_class}")
     else:
         lines.append(f"# evchain-sensor: {chip.width}x{chip.height} (jAER DAVIS address layout)")
-    lines += [f"# {line}" for line in extra]
+    lines += [f"# {line}" for line in extra] + [f"#{END_OF_HEADER}"]
     return "".join(line + "\r\n" for line in lines).encode("ascii")
 
 
@@ -209,6 +223,8 @@ class DecodeStats:
     wraps: int = 0
     resets: int = 0
     clamped: int = 0
+    imu_samples: int = 0
+    imu_dropped_records: int = 0
 
     def as_dict(self) -> dict[str, int]:
         return dict(self.__dict__)
@@ -223,10 +239,14 @@ class Decoder:
     non_dvs: Literal["skip", "error"] = "skip"
     backstep_tolerance_us: int = 0
     stats: DecodeStats = field(default_factory=DecodeStats)
+    #: DAVIS IMU records: grouped into samples here (None: skipped like other non-DVS records)
+    imu: ImuAssembler | None = None
     first_reset_record: int | None = None
     _last_raw: int | None = None
     _last_t: int = 0
     _offset: int = 0
+    _imu: list[np.ndarray] = field(default_factory=list)
+    _imu_last_t: int | None = None
 
     def _where(self, record: int) -> str:
         off = self.header.data_offset + RECORD_BYTES * record
@@ -250,25 +270,70 @@ class Decoder:
         words = raw.reshape(-1).view("<u4")
         k, bad, back, skipped = decode(words, 0 if chip.layout == "davis" else 1, chip.width,
                                        chip.height, self._offset, last_t, x, y, t, p)
+        imu_rows = None
+        if skipped and self.imu is not None and chip.layout == "davis":
+            imu_rows = np.flatnonzero(is_imu(raw[:, 0].astype(np.uint32)))
+            skipped -= len(imu_rows)
         if bad >= 0 or back >= 0 or (skipped and self.non_dvs == "error"):
             return self.decode_numpy(raw, first_record)
         self.stats.skipped_non_dvs += skipped
         self.stats.events += k
+        if imu_rows is not None and len(imu_rows):
+            self._take_imu(raw, imu_rows, first_record, None, None, self._offset)
         if k:
             self._last_t = int(t[k - 1])
             self._last_raw = self._last_t - self._offset
         return x[:k], y[:k], t[:k], p[:k]
+
+    def _take_imu(self, raw: np.ndarray, rows: np.ndarray, first_record: int,
+                  event_rows: np.ndarray | None, event_offsets: np.ndarray | None,
+                  offset_before: int) -> None:
+        """Unwrap the IMU records at ``rows`` of the chunk with the offset of the DVS event
+        before each (``offset_before`` before the chunk's first event) and group them into
+        samples."""
+        ts = raw[rows, 1].astype(np.int64)
+        off = np.full(len(rows), offset_before, np.int64)
+        if event_rows is not None and len(event_rows):
+            pos = np.searchsorted(event_rows, rows) - 1
+            off = np.where(pos >= 0, event_offsets[np.maximum(pos, 0)], off)
+        t = ts + off
+        # an IMU record after a wrap but before the next DVS event falls 2^32 us behind
+        prev = np.maximum.accumulate(np.concatenate([[self._imu_last_t or t[0]], t]))[:-1]
+        t = np.where(t < prev - HALF, t + WRAP, t)
+        self._imu_last_t = int(t[-1])
+        self._imu.append(self.imu.add(raw[rows, 0].astype(np.uint32), t, first_record + rows))
+
+    def take_imu(self) -> np.ndarray:
+        """The IMU samples completed since the last call (:data:`~evchain.core.series.IMU`
+        entries, in file order)."""
+        out = (np.concatenate(self._imu) if len(self._imu) > 1 else
+               self._imu[0] if self._imu else np.zeros(0, IMU.dtype))
+        self._imu = []
+        if self.imu is not None:
+            self.stats.imu_samples = self.imu.samples
+            self.stats.imu_dropped_records = self.imu.dropped_records
+        return out
+
+    def finish(self) -> None:
+        """End of the file: an IMU sample cut off by it is dropped (and counted)."""
+        if self.imu is not None:
+            self.imu.finish()
+            self.stats.imu_dropped_records = self.imu.dropped_records
 
     def decode_numpy(self, raw: np.ndarray, first_record: int):
         """The same as :meth:`decode` in numpy, with the unwrapping of backward steps."""
         addr = raw[:, 0].astype(np.uint32)
         ts = raw[:, 1].astype(np.uint32)
         chip = self.chip
+        offset_before = self._offset
+        imu_rows = None
         if chip.layout == "davis":
             special = addr & np.uint32(0x80000400)
             keep = None
             if special.any():
                 keep = special == 0
+                if self.imu is not None:
+                    imu_rows = np.flatnonzero(is_imu(addr))
         else:
             high = addr >> np.uint32(15)
             keep = None
@@ -280,9 +345,13 @@ class Decoder:
                                     "DAVIS file? set chip")
                 keep = high == 0
         if keep is not None:
-            n_skip = len(keep) - int(np.count_nonzero(keep))
+            n_imu = 0 if imu_rows is None else len(imu_rows)
+            n_skip = len(keep) - int(np.count_nonzero(keep)) - n_imu
             if n_skip and self.non_dvs == "error":
-                i = int(np.argmin(keep))
+                other = ~keep
+                if n_imu:
+                    other[imu_rows] = False
+                i = int(np.argmax(other))
                 raise DataError(f"{self._where(first_record + i)}: non-DVS record (address "
                                 f"0x{addr[i]:08x}, APS/IMU/special) and non_dvs='error'")
             self.stats.skipped_non_dvs += n_skip
@@ -311,6 +380,9 @@ class Decoder:
         p = (pr.astype(np.int8) << np.int8(1)) - np.int8(1)
         t = self._unwrap(ts, first_record, index)
         self.stats.events += len(t)
+        if imu_rows is not None and len(imu_rows):
+            self._take_imu(raw, imu_rows, first_record, index, t - ts.astype(np.int64),
+                           offset_before)
         return x, y, t, p
 
     def _unwrap(self, ts: np.ndarray, first_record: int, index) -> np.ndarray:
@@ -420,16 +492,10 @@ def read_aedat2(path: str | Path, chip: ChipName | None = None, chunk_records: i
 # encoding
 
 
-def encode_records(chip: Chip, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray,
-                   first: bool = False) -> np.ndarray:
-    """Records ``[n, 2]`` as big-endian uint32 for events in evchain coordinates.
-
-    Timestamps are written modulo 2**32 (the reader unwraps them). With ``first`` (the file's
-    first records) and a DAVIS layout whose first address byte would be ``#`` (0x23, raw y in
-    140..143), a DAVIS external-input special event (address 0x400, same timestamp) is written
-    first: readers take a leading ``#`` byte for another header line. jAER marks such events
-    special; evchain's reader skips them (counted as non-DVS).
-    """
+def encode_records(chip: Chip, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray
+                   ) -> np.ndarray:
+    """Records ``[n, 2]`` as big-endian uint32 for events in evchain coordinates (timestamps
+    modulo 2**32; the reader unwraps them)."""
     n = len(x)
     if n and (int(x.max()) >= chip.width or int(y.max()) >= chip.height):
         raise DataError(f"event outside the {chip.width}x{chip.height} sensor of chip "
@@ -444,10 +510,30 @@ def encode_records(chip: Chip, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: n
     out = np.empty((n, 2), dtype=">u4")
     out[:, 0] = addr
     out[:, 1] = t.astype(np.uint64) & np.uint64(0xFFFFFFFF) if n else 0
-    if first and n and chip.layout == "davis" and (int(addr[0]) >> 24) == 0x23:
-        lead = np.array([[DAVIS_SPECIAL_ADDRESS, out[0, 1]]], dtype=">u4")
-        out = np.concatenate([lead, out]).astype(">u4", copy=False)
     return out
+
+
+def first_without_hash(chip: Chip, x: np.ndarray, y: np.ndarray, t: np.ndarray, p: np.ndarray
+                       ) -> tuple[tuple[np.ndarray, ...], bool]:
+    """The file's first events, arranged so that the data does not start with the byte ``#``.
+
+    Readers that end the header at the first byte that is not ``#`` (tonic, many scripts, and
+    jAER before it wrote ``#End Of ASCII Header``) swallow a first record starting with ``#``
+    (a DAVIS event in raw rows 140..143) as a header line. If another event of the same time
+    starts otherwise, it goes first (events of equal time have no order in the format). Returns
+    the columns and whether no such event exists: then the writer puts a DAVIS special event
+    first, which jAER marks special and evchain skips, but which readers that ignore the
+    special bit take for an OFF event at raw address 0.
+    """
+    if chip.layout != "davis" or not len(t) or chip.height - 1 - int(y[0]) not in HASH_ROWS_RAW:
+        return (x, y, t, p), False
+    k = int(np.searchsorted(t, t[0], side="right"))
+    rows = chip.height - 1 - y[:k].astype(np.int64)
+    free = np.flatnonzero((rows < HASH_ROWS_RAW.start) | (rows >= HASH_ROWS_RAW.stop))
+    if not len(free):
+        return (x, y, t, p), True
+    j = int(free[0])
+    return tuple(np.concatenate([c[j:j + 1], c[:j], c[j + 1:]]) for c in (x, y, t, p)), False
 
 
 class Writer:
@@ -469,6 +555,9 @@ class Writer:
         t = np.asarray(t, np.int64)
         prev = int(t[0]) if self._last_t is None else self._last_t
         chip = self.chip
+        lead = False
+        if self.events == 0:
+            (x, y, t, p), lead = first_without_hash(chip, x, y, t, p)
         words = np.empty(2 * len(t), "<u4")
         bad, gap = encode(x, y, t, p, 0 if chip.layout == "davis" else 1, chip.width,
                           chip.height, prev, words)
@@ -481,9 +570,9 @@ class Writer:
             raise DataError(f"{self.name}: event {gap} at {int(t[gap])} us follows {before} us: a "
                             "gap of 2^31 us or more cannot be written to AEDAT 2.0 (32-bit "
                             "timestamps)")
-        if self.events == 0 and chip.layout == "davis" and (int(words[0]) & 0xFF) == 0x23:
-            lead = encode_records(chip, x[:1], y[:1], t[:1], p[:1], first=True)[:1]
-            self.fh.write(lead.tobytes())  # the special record, see encode_records
+        if lead:  # the special record, see first_without_hash
+            self.fh.write(np.array([[DAVIS_SPECIAL_ADDRESS, int(t[0]) & 0xFFFFFFFF]],
+                                   ">u4").tobytes())
             self.specials += 1
         self.fh.write(words)
         self.events += len(t)
@@ -519,16 +608,21 @@ def chip_for(geometry: Geometry | None, chip: str | None) -> Chip:
 
 
 class AedatSource(Filter):
-    """Read DVS events from an AEDAT 2.0 (jAER) file in consecutive time slices.
+    """Read DVS events (and DAVIS IMU samples) from an AEDAT 2.0 (jAER) file in time slices.
 
     The chip (address layout and size) comes from the parameter ``chip`` or from the header's
-    ``# AEChip:`` line. Non-DVS records (APS, IMU, special events) are skipped and counted in
-    ``metrics[<id>]``; 32-bit timestamp wraps and resets are unwrapped into int64 µs.
+    ``# AEChip:`` line. DAVIS IMU samples become the series ``imu`` (camera axes, g and deg/s;
+    :mod:`evchain.io.davis_imu`; from the file's first sample on, none without IMU records),
+    with the full scales from jAER's preferences in the header
+    or, where it says none, from ``gyro_full_scale_dps`` and ``accel_full_scale_g``. Other
+    non-DVS records (APS, special events) are skipped and counted in ``metrics[<id>]``;
+    32-bit timestamp wraps and resets are unwrapped into int64 µs.
     """
 
     name = "aedat"
     consumes = None
     produces = EventPacket
+    adds_series = (IMU,)
     input_paths = ("path",)
 
     class Params(FilterParams):
@@ -539,14 +633,36 @@ class AedatSource(Filter):
         chunk_records: int = Field(1 << 20, ge=1, le=1 << 26,
                                    description="records read from disk at a time")
         non_dvs: Literal["skip", "error"] = Field(
-            "skip", description="what to do with APS/IMU/special records")
+            "skip", description="what to do with APS/special records (and IMU records when "
+                                "imu is false)")
         backstep_tolerance_us: int = Field(
             0, ge=0, description="backward timestamp steps up to this are clamped, not errors")
+        imu: bool = Field(True, description="read DAVIS IMU samples into the series imu; "
+                                            "false: skip them like other non-DVS records")
+        gyro_full_scale_dps: Literal[250, 500, 1000, 2000] | None = Field(
+            None, description="gyro full scale, deg/s, for files whose header does not say it "
+                              "(jAER's ImuGyroScale); must agree with the header if it does")
+        accel_full_scale_g: Literal[2, 4, 8, 16] | None = Field(
+            None, description="accelerometer full scale, g, for files whose header does not "
+                              "say it (jAER's ImuAccelScale); must agree with the header")
+
+    @classmethod
+    def series_added(cls, params):
+        """``imu`` unless ``imu`` is false."""
+        return (IMU,) if params.imu else ()
 
     def setup(self, params, context) -> None:
+        from evchain.io.davis_imu import resolve_scales, scales_from_header
+
         super().setup(params, context)
         self.header = read_header(params.path)
         self.chip = resolve_chip(self.header, params.chip)
+        try:
+            found = scales_from_header(self.header.lines)
+        except DataError as exc:
+            raise DataError(f"{self.header.path}: {exc}") from None
+        self.imu_scales = resolve_scales(found, params.gyro_full_scale_dps,
+                                         params.accel_full_scale_g, str(self.header.path))
         context.geometry = self.chip.geometry
 
     def reset(self) -> None:
@@ -569,15 +685,53 @@ class AedatSource(Filter):
     def packets(self) -> Iterator[EventPacket]:
         self.stats = DecodeStats()
         prm = self.params
-        dec = Decoder(self.header, self.chip, prm.non_dvs, prm.backstep_tolerance_us, self.stats)
-        yield from self._packets(dec)
+        imu = None
+        if prm.imu and self.chip.layout == "davis":
+            imu = ImuAssembler(self.imu_scales, str(self.header.path))
+        dec = Decoder(self.header, self.chip, prm.non_dvs, prm.backstep_tolerance_us, self.stats,
+                      imu)
+        self._imu_pending = np.zeros(0, IMU.dtype)
+        self._imu_late = 0
+        self._imu_seen = False
+        for packet in self._packets(dec):
+            yield self._with_imu(packet) if prm.imu else packet
         if self.stats.resets:
             self.context.warn(
                 f"{self.id}: {self.header.path}: the timestamps were reset {self.stats.resets} "
                 f"time(s) (first at record {dec.first_reset_record}); time continues from the "
                 "event before each reset, the pause at a reset is unknown and counted as 0")
-        self.context.metrics[self.id] = {"file": str(self.header.path), "chip": self.chip.name,
-                                         **self.stats.as_dict()}
+        if imu is not None and imu.dropped_records:
+            self.context.warn(
+                f"{self.id}: {self.header.path}: {imu.dropped_records} IMU record(s) formed no "
+                f"complete sample (7 records of types 0..6; first at record "
+                f"{imu.first_dropped}) and were dropped")
+        metrics = {"file": str(self.header.path), "chip": self.chip.name,
+                   **self.stats.as_dict()}
+        if prm.imu:
+            metrics["imu_late"] = self._imu_late
+            metrics["imu_full_scale"] = {"gyro_dps": self.imu_scales.gyro_dps,
+                                         "accel_g": self.imu_scales.accel_g,
+                                         "from": self.imu_scales.source}
+        self.context.metrics[self.id] = metrics
+
+    def _take_imu(self, dec: Decoder) -> None:
+        got = dec.take_imu()
+        if len(got):
+            self._imu_pending = np.concatenate([self._imu_pending, got])
+
+    def _with_imu(self, packet: EventPacket) -> EventPacket:
+        """``packet`` with the IMU samples of its slice as the series ``imu``, from the first
+        sample of the file on (a file without IMU records gives no series); samples that
+        arrive after their slice was emitted (written out of time order) are counted in
+        ``imu_late`` and dropped."""
+        pend = self._imu_pending
+        t = pend["t"]
+        late = t < packet.t_start
+        self._imu_late += int(np.count_nonzero(late))
+        mine = pend[~late & (t < packet.t_end)]
+        self._imu_pending = pend[t >= packet.t_end]
+        self._imu_seen = self._imu_seen or len(pend) > 0
+        return packet.with_series(IMU.name, mine) if self._imu_seen else packet
 
     def _packets(self, dec: Decoder) -> Iterator[EventPacket]:
         prm = self.params
@@ -588,10 +742,13 @@ class AedatSource(Filter):
         t0 = None
         for raw, first in iter_raw(self.header, prm.chunk_records):
             x, y, t, p = dec.decode(raw, first)
+            self._take_imu(dec)
             if len(t) == 0:
                 continue
             if t0 is None:
                 t0 = start = int(t[0])
+                if len(self._imu_pending):  # IMU samples before the first event
+                    t0 = start = min(t0, int(self._imu_pending["t"][0]))
             last_t = int(t[-1])
             cut = t0 + (last_t - t0) // P * P  # start of the slice holding the last event
             if cut <= start:
@@ -609,9 +766,12 @@ class AedatSource(Filter):
             yield from self._slices(geom, x[:done], y[:done], t[:done], p[:done], start, cut, t0)
             pending = [(x[done:], y[done:], t[done:], p[done:])]
             start = cut
+        dec.finish()
         if t0 is not None:
             x, y, t, p = (np.concatenate(c) for c in zip(*pending, strict=True))
             end = int(t[-1]) + 1 if len(t) else start + 1
+            if len(self._imu_pending):  # IMU samples after the last event
+                end = max(end, int(self._imu_pending["t"][-1]) + 1)
             yield EventPacket(geometry=geom, t_start=start, t_end=end, x=x, y=y, t=t, p=p)
 
     def _slices(self, geom, x, y, t, p, start: int, stop: int, t0: int):
@@ -686,3 +846,25 @@ class AedatWriter(Filter):
     def close(self) -> None:
         if self._out is not None and not self._committed:
             self._out.abort()
+
+
+def read_imu(path: str | Path, chip: ChipName | None = None,
+             gyro_full_scale_dps: int | None = None, accel_full_scale_g: int | None = None,
+             chunk_records: int = 1 << 20) -> np.ndarray:
+    """Every complete IMU sample of a DAVIS file as :data:`~evchain.core.series.IMU` entries
+    (camera axes, g and deg/s; full scales from the header, else the arguments)."""
+    from evchain.io.davis_imu import resolve_scales, scales_from_header
+
+    header = read_header(path)
+    c = resolve_chip(header, chip)
+    scales = resolve_scales(scales_from_header(header.lines), gyro_full_scale_dps,
+                            accel_full_scale_g, str(header.path))
+    if c.layout != "davis":
+        return np.zeros(0, IMU.dtype)
+    dec = Decoder(header, c, imu=ImuAssembler(scales, str(header.path)))
+    parts = []
+    for raw, first in iter_raw(header, chunk_records):
+        dec.decode(raw, first)
+        parts.append(dec.take_imu())
+    dec.finish()
+    return np.concatenate(parts) if parts else np.zeros(0, IMU.dtype)

@@ -31,8 +31,8 @@ State (:class:`FoeMapState`, from :func:`new_state`; constants: :func:`new_param
   :func:`refresh`; a renormalisation invalidates all);
 * ``carry``: one record of :data:`CARRY`: the weights' reference time ``t_ref`` (µs), the next
   read (µs), whether an estimate exists and whether votes arrived since the last read; the
-  votes covering all of A (``whole``), the last estimate (x, y, its maximum) and the total
-  weight of accepted votes (map units);
+  votes covering all of A (``whole``), the last estimate (x, y, its maximum), the total
+  weight of accepted votes (map units) and the sum of their squared weights (``total2``);
 * ``mbuf`` [rows, cols]: the dense map of a read.
 """
 
@@ -53,7 +53,7 @@ CONST_R, CAPS, TOUCH = range(3)
 ROW_MAX, ROW_MIN, ROW_WHOLE, ROW_TOUCH, ROW_VALID, ROW_FULL = range(6)
 CARRY = np.dtype([("t_ref", "i8"), ("next_read", "i8"), ("has_estimate", "i8"), ("dirty", "i8"),
                   ("whole", "f8"), ("est_x", "f8"), ("est_y", "f8"), ("est_max", "f8"),
-                  ("total", "f8")])
+                  ("total", "f8"), ("total2", "f8")])
 
 
 #: the constants of :func:`process` (one record, not a named tuple: numba types it faster per
@@ -574,7 +574,7 @@ def _accepted(px, py, fvx, fvy, s2, g, prm):
 
 
 @njit(cache=True, error_model="numpy")
-def process(x, y, t, vx, vy, state, prm, t_end, out):
+def process(x, y, t, vx, vy, state, prm, t_end, out, n_votes):
     """Vote with every flow event of a packet; read estimates at multiples of ``period_us``.
 
     A read at time T sees exactly the events with t < T. Reads happen before the first event at
@@ -599,6 +599,8 @@ def process(x, y, t, vx, vy, state, prm, t_end, out):
         End of the packet's time slice, µs.
     out : structured ndarray (t, x, y, support, total)
         Out: the estimates (t µs, position in cells, decayed support and total votes).
+    n_votes : float64 ndarray, shape (>= estimates,)
+        Out: per estimate, the effective number of votes (sum w)^2 / sum w^2.
 
     Returns
     -------
@@ -623,6 +625,7 @@ def process(x, y, t, vx, vy, state, prm, t_end, out):
     dirty = g.dirty
     whole = g.whole
     total = g.total
+    total2 = g.total2
     t_w = t_ref - 1  # w_t = the weight of a vote at time t_w
     w_t = math.exp((t_w - t_ref) / tau_us)
     i = 0
@@ -635,6 +638,7 @@ def process(x, y, t, vx, vy, state, prm, t_end, out):
                 sup = g.est_max * scale
                 if sup >= p.min_support and n_out < out.shape[0]:
                     _emit(out, n_out, t_read, g.est_x, g.est_y, sup, total * scale)
+                    n_votes[n_out] = total * total / total2 if total2 > 0.0 else 0.0
                     n_out += 1
             dirty = 0
             t_read = t_read + p.period_us
@@ -654,6 +658,7 @@ def process(x, y, t, vx, vy, state, prm, t_end, out):
                     _renormalise(st, s)
                     whole *= s
                     total *= s
+                    total2 *= s * s
                     t_ref = ti
                     e = 0.0
                 w_t = math.exp(e)
@@ -680,6 +685,7 @@ def process(x, y, t, vx, vy, state, prm, t_end, out):
                     _vote_rows(px, py, fvx, fvy, w, cy + dn * fvy * inv, sq * abs(fvx),
                                disc, diffR, rowv, lo, hi, x0, y0)
             total += w
+            total2 += w * w
             dirty = 1
         i += 1
     g.t_ref = t_ref
@@ -687,6 +693,7 @@ def process(x, y, t, vx, vy, state, prm, t_end, out):
     g.dirty = dirty
     g.whole = whole
     g.total = total
+    g.total2 = total2
     return n_out
 
 

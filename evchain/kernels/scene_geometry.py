@@ -19,9 +19,10 @@ Array layouts (all float64 unless said otherwise; built by :mod:`evchain.sim.wor
   sky at the zenith.
 * ``tex`` float32, ``tex_inv [3]``, ``tex_off [3, levels]`` int64: the mip-mapped ground
   textures (:func:`evchain.sim.world.ground_textures`).
-* ``traj [10]``: start arc length s, speed m/s, camera height m, pitch amplitude rad, pitch
+* ``traj [13]``: start arc length s, speed m/s, camera height m, pitch amplitude rad, pitch
   frequency Hz, interval between gear shifts s, pitch decay s, first shift s, pitch on (0/1),
-  number of segments used.
+  number of segments used, pan rate rad/s (to the right), tilt rate rad/s (up), time s from
+  which the camera pans and tilts.
 
 The renderer reads them as one record, :class:`WorldArrays`, and each frame's camera and
 visible boxes as another, :class:`FrameView` (named tuples: numba passes them like their fields).
@@ -180,12 +181,19 @@ def camera_state(t, segs, traj, pos, rot, vc, wc):
     Writes pos (world, 3), rot (camera-to-world rotation, 3x3: columns are the camera axes in
     world coordinates), vc and wc: linear and angular velocity of the camera in camera
     coordinates. The camera rides at height traj[2] above the driving line, optical axis along
-    the car's x (thesis eq. 3.4), pitched about its own centre."""
+    the car's x (thesis eq. 3.4), pitched about its own centre, turned by the pan and tilt
+    rates from traj[12] on."""
     speed = traj[1]
     s = traj[0] + speed * t
     px, py, psi, kap = path_pose(s, segs)
     th, dth = pitch_angle(t, traj)
     dpsi = speed * kap
+    if (traj[10] != 0.0 or traj[11] != 0.0) and t >= traj[12]:
+        # panning (to the right: the heading decreases) and tilting (nose up)
+        psi -= traj[10] * (t - traj[12])
+        dpsi -= traj[10]
+        th += traj[11] * (t - traj[12])
+        dth += traj[11]
     cp = math.cos(psi)
     sp = math.sin(psi)
     ct = math.cos(th)

@@ -26,18 +26,24 @@ from numba import njit
 
 #: one cluster: identity and ring bookkeeping (int64), then its square (centre, half-size px),
 #: decayed activity (events) at ``t_last`` (µs), fused tau (s) with variance (s^2) at ``t_tau``
-#: (µs), ``has_tau`` 1 once it has one, consecutive gated ``misses``, ground ratio ``rho``
+#: (µs), ``has_tau`` 1 once it has one, consecutive gated ``misses``, ground ratio ``rho``,
+#: ``spread``: the relative spread of its samples at its last measurement (1.4826 MAD / |median|)
 CLUSTER_STATE = np.dtype([("id", "i8"), ("active", "i8"), ("n_samples", "i8"), ("ring_pos", "i8"),
                           ("cx", "f8"), ("cy", "f8"), ("size", "f8"), ("activity", "f8"),
                           ("t_last", "f8"), ("tau", "f8"), ("var", "f8"), ("has_tau", "f8"),
-                          ("misses", "f8"), ("t_tau", "f8"), ("rho", "f8")])
+                          ("misses", "f8"), ("t_tau", "f8"), ("rho", "f8"), ("spread", "f8")])
 #: carried from packet to packet: ``has_foe`` 1 once an FOE is known, at (``foe_x``,
 #: ``foe_y``); the next tick (µs) and cluster id; the ground constant K (s px), the number of
 #: votes for it and their weights' reference time (µs); the id of the last selected cluster (-1:
-#: none)
+#: none); the ticks without an obstacle row, by reason (:data:`NO_TTC_REASONS`)
 CARRY = np.dtype([("has_foe", "f8"), ("foe_x", "f8"), ("foe_y", "f8"), ("next_tick", "f8"),
                   ("next_id", "f8"), ("k_ground", "f8"), ("n_votes", "f8"), ("held_id", "f8"),
-                  ("votes_t_ref", "f8")])
+                  ("votes_t_ref", "f8"), ("no_foe", "f8"), ("no_cluster", "f8"),
+                  ("not_credible", "f8"), ("on_road", "f8")])
+#: the fields of :data:`CARRY` counting ticks without a TTC: no FOE yet; no cluster with a tau
+#: active enough (and in the corridor); no credible one (:func:`_credible`); only clusters on the
+#: road (ground test without fallback)
+NO_TTC_REASONS = ("no_foe", "no_cluster", "not_credible", "on_road")
 
 KG_LN_MIN = math.log(0.01)  # ground histogram: bins of ln(tau * dy) from 0.01 s px
 KG_BIN = 0.02               # bin width in ln (2 %)
@@ -59,6 +65,7 @@ class TtcParams(NamedTuple):
     max_speed: float
     min_tau: float              #: per-event tau range, s
     max_tau: float
+    max_spread: float           #: credible clusters: relative spread of samples at most this
     init_size: float            #: half-size of a new cluster, px
     max_size: float             #: largest half-size, px
     join_margin: float          #: events this far outside a square still join it, px
@@ -112,6 +119,11 @@ def start(state: TtcState, first_tick_us: int) -> None:
 def next_tick(state: TtcState) -> int:
     """The next tick, µs."""
     return int(state.carry["next_tick"][0])
+
+
+def no_ttc_counts(state: TtcState) -> dict[str, int]:
+    """The ticks without a TTC so far, by reason (:data:`NO_TTC_REASONS`)."""
+    return {r: int(state.carry[r][0]) for r in NO_TTC_REASONS}
 
 
 def ground_constant(state: TtcState) -> float:
@@ -317,6 +329,7 @@ def _cluster_estimate(cl, k, ST, SV, SK, T, k_ground, buf, prm):
     if n < prm.min_samples:
         return
     med, mad = _median_mad(buf, n)
+    c.spread = 1.4826 * mad / med if med > 0.0 else math.inf
     sigma = 1.4826 * mad / math.sqrt(n) + prm.rel_floor * abs(med)
     _fuse(c, med, sigma * sigma + 1e-12, T, prm.gate)
 
@@ -341,6 +354,20 @@ def _candidate(c, a, g, prm, use_ground):
         ddy = max(0.0, abs(c.cy - g.foe_y) - c.size)
         d = math.sqrt(ddx * ddx + ddy * ddy)
     return True, d, not (use_ground and not (c.rho < 1.0 - prm.ground_tol))
+
+
+@njit(cache=True)
+def _credible(c, g, prm):
+    """Whether a cluster's tau can be reported: its samples agree (relative spread at most
+    ``max_spread``: one approaching surface has one TTC, a cluster of rotational flow or of
+    several objects does not) and its tau lies within the per-event bounds (at least
+    ``min_tau``, and its centre's distance from the FOE over tau, the image speed it implies,
+    at most ``max_speed``); fusion and the forward prediction can leave both bounds."""
+    if not (c.spread <= prm.max_spread) or c.tau < prm.min_tau:
+        return False
+    dx = c.cx - g.foe_x
+    dy = c.cy - g.foe_y
+    return dx * dx + dy * dy <= (c.tau * prm.max_speed) ** 2
 
 
 @njit(cache=True, inline="always")
@@ -393,6 +420,8 @@ def _tick(state, prm, half_bins, buf, ttc_out, no, clusters_out, nc):
     fb = -1  # the fallback choice (ground test ignored)
     fb_sup = 0.0
     fb_d = 1e300
+    n_considered = 0
+    n_credible = 0
     for k in range(cl.shape[0]):
         c = cl[k]
         if c.active == 0:
@@ -412,6 +441,10 @@ def _tick(state, prm, half_bins, buf, ttc_out, no, clusters_out, nc):
         considered, d, off_road = _candidate(c, a, g, prm, use_ground)
         if not considered:
             continue
+        n_considered += 1
+        if not _credible(c, g, prm):
+            continue
+        n_credible += 1
         if _better(d, a, fb_d, fb_sup):
             fb_d = d
             fb_sup = a
@@ -434,6 +467,15 @@ def _tick(state, prm, half_bins, buf, ttc_out, no, clusters_out, nc):
     if best >= 0 and no < ttc_out.shape[0]:
         _emit_obstacle(ttc_out, no, T, cl[best], best_sup)
         no += 1
+    elif best < 0:
+        if g.has_foe == 0.0:
+            g.no_foe += 1.0
+        elif n_considered == 0:
+            g.no_cluster += 1.0
+        elif n_credible == 0:
+            g.not_credible += 1.0
+        else:
+            g.on_road += 1.0
     g.next_tick = T + prm.period_us
     return no, nc
 
@@ -502,6 +544,7 @@ def _new_cluster(c, g, px, py, ti, prm):
     c.var = 0.0
     c.t_tau = ti
     c.rho = math.nan
+    c.spread = math.inf
 
 
 @njit(cache=True)
@@ -536,7 +579,9 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
     """Process one packet; returns (rows of ``ttc_out``, rows of ``clusters_out``) written.
 
     Ticks at multiples of ``period_us`` see the events before them (cut-independent). FOE
-    entries apply to the events at or after their time. With ``ground_test`` only clusters
+    entries apply to the events at or after their time. Only credible clusters
+    (:func:`_credible`) can be the obstacle; a tick without one has no obstacle row, and the
+    carry counts why (:data:`NO_TTC_REASONS`). With ``ground_test`` only clusters
     with rho < 1 - ground_tol (nearer than the road at their rows) can be the obstacle once K
     has seen ``ground_min_events`` events; when there is none, ``ground_fallback`` selects
     among all clusters, else the tick has no obstacle row. With ``corridor`` > 0 a cluster must

@@ -2,8 +2,10 @@
 
 Each pixel shows the mean flow vector of its flow events in the window, coloured by direction
 on the HSV colour wheel (hue = angle: 0° = right, 90° = down, image coordinates; full
-saturation and value); pixels without flow stay black. A colour-wheel legend goes in the
-bottom-right corner.
+saturation and value); pixels without flow stay black. Sampled flow arrows (white, one per
+``arrows_every_px`` grid cell with flow: the mean of its pixels' mean flow, see
+:func:`evchain.report.overlay.draw_flow_arrows`) and a colour-wheel legend in the bottom-right
+corner go on top.
 
 * :func:`flow_image` draws from plain arrays (any run's data),
 * :class:`FlowAccumulator` sums flow per pixel packet by packet (constant memory),
@@ -52,14 +54,17 @@ class FlowAccumulator:
         self.sy.ravel()[:] += np.bincount(flat, np.asarray(vy, np.float64)[keep], size)
         self.n.ravel()[:] += np.bincount(flat, minlength=size)
 
-    def image(self, scale: int = 1, wheel: bool = True) -> np.ndarray:
-        return render(self.sx, self.sy, self.n, scale=scale, wheel=wheel)
+    def image(self, scale: int = 1, wheel: bool = True, arrows_every_px: int = 16
+              ) -> np.ndarray:
+        return render(self.sx, self.sy, self.n, scale=scale, wheel=wheel,
+                      arrows_every_px=arrows_every_px)
 
 
 def render(sx: np.ndarray, sy: np.ndarray, n: np.ndarray, scale: int = 1,
-           wheel: bool = True) -> np.ndarray:
+           wheel: bool = True, arrows_every_px: int = 16) -> np.ndarray:
     """RGB uint8 ``[H*scale, W*scale, 3]`` from per-pixel flow sums and counts."""
-    from evchain.report.render import colour_wheel, direction_colours
+    from evchain.report.overlay import draw_flow_arrows, paste_wheel
+    from evchain.report.render import direction_colours
 
     h, w = n.shape
     img = np.zeros((h, w, 3), np.uint8)
@@ -68,19 +73,18 @@ def render(sx: np.ndarray, sy: np.ndarray, n: np.ndarray, scale: int = 1,
         img[has] = direction_colours(sx[has], sy[has])
     if scale > 1:
         img = np.repeat(np.repeat(img, scale, axis=0), scale, axis=1)
+    if arrows_every_px and has.any():
+        y, x = np.nonzero(has)
+        img = draw_flow_arrows(img, x, y, sx[has] / n[has], sy[has] / n[has], scale,
+                               arrows_every_px)
     if wheel:
-        size = max(15, min(img.shape[0], img.shape[1]) // 6) | 1
-        if size + 4 <= min(img.shape[0], img.shape[1]):
-            legend = colour_wheel(size)
-            mask = legend.any(axis=-1)
-            region = img[-size - 2:-2, -size - 2:-2]
-            region[mask] = legend[mask]
+        paste_wheel(img)
     return img
 
 
 def flow_image(x, y, vx, vy, width: int, height: int, t=None,
                t_window_us: tuple[int, int] | None = None, scale: int = 1,
-               wheel: bool = True) -> np.ndarray:
+               wheel: bool = True, arrows_every_px: int = 16) -> np.ndarray:
     """The picture of flow events (arrays) inside ``t_window_us = (start, end)`` (all if None)."""
     t0, t1 = (None, None) if t_window_us is None else (int(t_window_us[0]), int(t_window_us[1]))
     if t is None:
@@ -89,7 +93,7 @@ def flow_image(x, y, vx, vy, width: int, height: int, t=None,
         t = np.zeros(len(np.asarray(x)), np.int64)
     acc = FlowAccumulator(width, height, t0, t1)
     acc.add(x, y, t, vx, vy)
-    return acc.image(scale=scale, wheel=wheel)
+    return acc.image(scale=scale, wheel=wheel, arrows_every_px=arrows_every_px)
 
 
 def png_bytes(img: np.ndarray) -> bytes:

@@ -57,9 +57,18 @@ class SceneConfig(FilterParams):
     camera_height_m: float = Field(1.2, gt=0, le=50, description="camera height above ground")
     lane_offset_m: float = Field(
         -1.75, ge=-20, le=20, description="driving line relative to the road centre (left > 0)")
-    dynamics: Literal["constant", "pitch", "curves"] = Field(
+    dynamics: Literal["constant", "pitch", "curves", "rotation"] = Field(
         "constant", description="constant: pure translation; pitch: gear-shift pitch "
-                                "oscillation (thesis Fig. 4.10); curves: yaw following the road")
+                                "oscillation (thesis Fig. 4.10); curves: yaw following the road; "
+                                "rotation: the camera stands and pans and tilts (pan_dps, "
+                                "tilt_dps; speed_mps 0)")
+    pan_dps: float = Field(0.0, ge=-360, le=360, description=(
+        "dynamics rotation: pan rate, deg/s, to the right > 0 (the renderer cannot roll the "
+        "camera, so there is no roll rate)"))
+    tilt_dps: float = Field(0.0, ge=-360, le=360,
+                            description="dynamics rotation: tilt rate, deg/s, up > 0")
+    rotation_start_s: float = Field(0.0, ge=0, description=(
+        "dynamics rotation: the camera rests until then (a still start for a gyro bias)"))
     pitch_amplitude_deg: float = Field(1.0, ge=0, le=20, description="pitch oscillation amplitude")
     pitch_frequency_hz: float = Field(2.0, gt=0, le=50, description="pitch oscillation frequency")
     pitch_shift_interval_s: float = Field(3.0, gt=0, description="time between gear shifts")
@@ -72,6 +81,10 @@ class SceneConfig(FilterParams):
     sun_azimuth_deg: float = Field(40.0, description="sun azimuth from world x towards y")
     sun_elevation_deg: float = Field(35.0, ge=0, le=90, description="sun elevation")
     layout_seed: int = Field(0, ge=0, description="seed of the procedural layout and textures")
+    contrast: float = Field(
+        1.0, ge=0, le=1, description="log contrast of the frames: intensity I becomes "
+        "0.5 (I / 0.5)^contrast, so every log change shrinks by this factor; 0: a uniform grey "
+        "frame (no events; the geometry and the ground truth stay those of the scene)")
 
     @model_validator(mode="after")
     def _check_drive(self):
@@ -80,6 +93,21 @@ class SceneConfig(FilterParams):
                              "with the road)")
         if self.dynamics == "curves" and self.scenario != "curves":
             raise ValueError(f"dynamics 'curves' needs scenario 'curves', got {self.scenario!r}")
+        if self.dynamics == "rotation":
+            if self.speed_mps != 0:
+                raise ValueError("dynamics 'rotation' turns the camera in place: set speed_mps "
+                                 f"0 (got {self.speed_mps:g})")
+            if self.scenario == "curves":
+                raise ValueError("dynamics 'rotation' needs a straight scenario")
+            if self.duration_s is not None:
+                tilt = abs(self.tilt_dps) * max(self.duration_s - self.rotation_start_s, 0.0)
+                if tilt > 80.0:
+                    raise ValueError(f"tilt_dps {self.tilt_dps:g} tilts the camera by {tilt:g} "
+                                     "deg over the drive; at most 80 (the horizon must stay "
+                                     "ahead)")
+        elif self.pan_dps or self.tilt_dps or self.rotation_start_s:
+            raise ValueError("pan_dps, tilt_dps and rotation_start_s apply to dynamics "
+                             f"'rotation', not {self.dynamics!r}")
         if self.scenario == "curves" and self.route_m is not None:
             raise ValueError("route_m applies to straight scenarios; the curves route is fixed")
         route = route_length_m(self)

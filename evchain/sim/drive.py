@@ -38,7 +38,9 @@ class Scene:
             cfg.start_m, cfg.speed_mps, cfg.camera_height_m,
             math.radians(cfg.pitch_amplitude_deg), cfg.pitch_frequency_hz,
             cfg.pitch_shift_interval_s, cfg.pitch_decay_s, cfg.pitch_first_shift_s,
-            1.0 if cfg.dynamics == "pitch" else 0.0, float(len(self.segs))], np.float64)
+            1.0 if cfg.dynamics == "pitch" else 0.0, float(len(self.segs)),
+            math.radians(cfg.pan_dps), math.radians(cfg.tilt_dps), cfg.rotation_start_s],
+            np.float64)
         self.duration_s = cfg.drive_s
         #: the latest time the route supports (the drive may stop earlier)
         self.max_time_s = ((self.world.route_m - cfg.start_m) / cfg.speed_mps
@@ -113,7 +115,7 @@ class Scene:
             pool = self._pool_of(nt)
             jobs = [pool.submit(render_rows, *args, j, nt) for j in range(1, nt)]
             vmax = max([render_rows(*args, 0, nt)] + [job.result() for job in jobs])
-        return out, float(vmax)
+        return self._contrast(out), float(vmax)
 
     def _render_alone(self, t_s: float) -> tuple[np.ndarray, float]:
         """:meth:`render` on the calling thread only, with scratch of its own (thread-safe)."""
@@ -121,7 +123,19 @@ class Scene:
 
         cam = self.camera
         out = np.empty((cam.height, cam.width), np.float32)
-        return out, float(render(*self._frame_args(t_s, out, self._scratch())))
+        vmax = float(render(*self._frame_args(t_s, out, self._scratch())))
+        return self._contrast(out), vmax
+
+    def _contrast(self, frame: np.ndarray) -> np.ndarray:
+        """``frame`` (in place) with its log contrast scaled by ``cfg.contrast`` around mid grey
+        0.5; 0 gives a uniform grey frame."""
+        c = self.cfg.contrast
+        if c == 0.0:
+            frame.fill(0.5)
+        elif c != 1.0:
+            np.power(frame / np.float32(0.5), np.float32(c), out=frame)
+            frame *= np.float32(0.5)
+        return frame
 
     def _nthreads(self) -> int:
         return self.threads or (os.cpu_count() or 1)

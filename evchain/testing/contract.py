@@ -76,20 +76,19 @@ def _snapshot(packets: list[Packet]) -> list[dict[str, np.ndarray]]:
              **{f"series:{k}": v.copy() for k, v in p.series.items()}} for p in packets]
 
 
+def _equal(a: np.ndarray, b: np.ndarray) -> bool:
+    """Same dtype, shape and values, NaN equal to NaN (a series may hold NaN for undefined)."""
+    if a.dtype != b.dtype or a.shape != b.shape:
+        return False
+    if a.dtype.names:
+        return all(_equal(a[name], b[name]) for name in a.dtype.names)
+    return bool(np.array_equal(a, b, equal_nan=a.dtype.kind in "fc"))
+
+
 def _same_arrays(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> list[str]:
     if a.keys() != b.keys():
         return [f"keys {sorted(a)} vs {sorted(b)}"]
     return [k for k in a if not _equal(a[k], b[k])]
-
-
-def _equal(a: np.ndarray, b: np.ndarray) -> bool:
-    """Same shape, dtype and values, NaN equal to NaN (field by field in structured arrays:
-    a series may hold NaN for "no value")."""
-    if a.shape != b.shape or a.dtype != b.dtype:
-        return False
-    if a.dtype.names:
-        return all(_equal(a[n], b[n]) for n in a.dtype.names)
-    return bool(np.array_equal(a, b, equal_nan=a.dtype.kind in "fc"))
 
 
 def make_context(geometry, truth=None, out_dir: Path | None = None, seed: int = 0) -> Context:

@@ -187,3 +187,81 @@ def approach_flow_packets(foe=(60.0, 45.0), tau_s: float = 2.0, n: int = 20000,
                               p=np.ones(k.sum(), np.int8), vx=vx[k].astype(np.float32),
                               vy=vy[k].astype(np.float32)))
     return out
+
+
+class RollingCamera:
+    """A camera rolling about its optical axis in front of a pinwheel of ``sectors`` equal
+    black and white sectors centred on it: the image turns about ``centre`` at
+    ``-omega_z(t)``, ``omega_z(t) = w0 + amp sin(2 pi t / period)`` rad/s (constant sign).
+
+    :meth:`events` gives one event per pixel and sector edge crossing, at the exact time (µs,
+    floored), ON where a white sector arrives; :meth:`imu` the camera's IMU series (gyro with
+    ``bias_dps`` added and stamped ``offset_us`` late, optional Gaussian noise; the
+    accelerometer sees gravity turning in the image plane, upright at t = 0); :meth:`flow` the
+    true flow.
+    """
+
+    def __init__(self, geometry: Geometry = Geometry(80, 60), centre=(44.0, 27.0),
+                 w0: float = 1.2, amp: float = 0.6, period_s: float = 0.5,
+                 duration_us: int = 1_500_000, sectors: int = 16):
+        if abs(amp) >= abs(w0):
+            raise ValueError("the roll rate must keep its sign: |amp| < |w0|")
+        self.geometry, self.centre = geometry, (float(centre[0]), float(centre[1]))
+        self.w0, self.amp, self.period_s = w0, amp, period_s
+        self.duration_us, self.sectors = int(duration_us), int(sectors)
+
+    def omega_z(self, t_us) -> np.ndarray:
+        t = np.asarray(t_us, np.float64) * 1e-6
+        return self.w0 + self.amp * np.sin(2 * np.pi * t / self.period_s)
+
+    def angle(self, t_us) -> np.ndarray:
+        """The roll so far, rad: the integral of omega_z from 0."""
+        t = np.asarray(t_us, np.float64) * 1e-6
+        T = self.period_s
+        return self.w0 * t + self.amp * T / (2 * np.pi) * (1 - np.cos(2 * np.pi * t / T))
+
+    def flow(self, x, y, t_us):
+        w = self.omega_z(t_us)
+        return (w * (np.asarray(y, np.float64) - self.centre[1]),
+                -w * (np.asarray(x, np.float64) - self.centre[0]))
+
+    def events(self) -> EventPacket:
+        g = self.geometry
+        K = self.sectors
+        s = 1.0 if self.w0 > 0 else -1.0
+        grid = np.arange(0, self.duration_us + 10, 10, dtype=np.float64)
+        psi = s * self.angle(grid)                     # increasing
+        ys, xs = np.mgrid[0:g.height, 0:g.width].astype(np.float64)
+        keep = np.hypot(xs - self.centre[0], ys - self.centre[1]) >= 2.0
+        xs, ys = xs[keep], ys[keep]
+        phi = np.arctan2(ys - self.centre[1], xs - self.centre[0])
+        step = 2 * np.pi / K
+        first = np.mod(-s * phi, step)                 # the first edge to cross each pixel
+        n_cross = np.floor((psi[-1] - first) / step).astype(np.int64) + 1
+        n_cross = np.maximum(n_cross, 0)
+        pix = np.repeat(np.arange(len(xs)), n_cross)
+        m = np.arange(len(pix)) - np.repeat(np.cumsum(n_cross) - n_cross, n_cross)
+        target = first[pix] + m * step
+        t = np.floor(np.interp(target, psi, grid)).astype(np.int64)
+        sector = np.rint((target + s * phi[pix]) / step).astype(np.int64)
+        ok = t < self.duration_us
+        order = np.lexsort((pix[ok], t[ok]))
+        x = xs[pix[ok]][order].astype(np.uint16)
+        y = ys[pix[ok]][order].astype(np.uint16)
+        p = np.where(sector[ok][order] % 2 == 0, 1, -1).astype(np.int8)
+        return EventPacket(geometry=g, t_start=0, t_end=self.duration_us, x=x, y=y,
+                           t=t[ok][order], p=p)
+
+    def imu(self, rate_hz: float = 1000.0, offset_us: float = 0.0,
+            bias_dps=(0.0, 0.0, 0.0), noise_dps: float = 0.0, seed: int = 0) -> np.ndarray:
+        from evchain.core.series import IMU
+
+        rng = np.random.default_rng(seed)
+        t = np.arange(0, self.duration_us, 1e6 / rate_hz).astype(np.int64)
+        n = len(t)
+        wz = np.degrees(self.omega_z(t - offset_us))
+        noise = rng.normal(0.0, noise_dps, (n, 3)) if noise_dps else np.zeros((n, 3))
+        up = -np.pi / 2 - self.angle(t)               # gravity turns against the roll
+        return IMU.array(t=t, ax=np.cos(up), ay=np.sin(up), az=np.zeros(n),
+                         gx=bias_dps[0] + noise[:, 0], gy=bias_dps[1] + noise[:, 1],
+                         gz=wz + bias_dps[2] + noise[:, 2], temperature_c=np.full(n, 30.0))

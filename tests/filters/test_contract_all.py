@@ -31,6 +31,8 @@ PARAMS = {
                           "moving_edge_davis240.aedat")},
     "aedat_writer": lambda tmp: {"path": str(tmp / "out.aedat")},
     "aps": {"rate_hz": 500, "exposure_us": 1500, "read_noise_e": 10.0},
+    # the standard stream has no still stretch to take the gyro bias from
+    "imu_truth": {"gyro_bias_dps": [0.0, 0.0, 0.0]},
     "scene": {"width": 64, "height": 48, "supersample": 1, "duration_s": 0.04},
     # every noise process on (off by default: the contract would see the identity)
     "sensor_noise": {"leak_rate_hz": 20.0, "shot_rate_hz": 10.0, "hot_pixel_fraction": 0.01,

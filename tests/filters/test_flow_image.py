@@ -30,7 +30,7 @@ def flow_packet(t_start=0, t_end=1000):
 
 def test_direction_is_hue():
     p = flow_packet()
-    img = flow_image(p.x, p.y, p.vx, p.vy, G.width, G.height, wheel=False)
+    img = flow_image(p.x, p.y, p.vx, p.vy, G.width, G.height, wheel=False, arrows_every_px=0)
     assert img.shape == (30, 40, 3) and img.dtype == np.uint8
     assert tuple(img[5, 5]) == (255, 0, 0)        # right: hue 0, red
     assert tuple(img[5, 15]) == (0, 255, 255)     # left: hue 180, cyan
@@ -39,7 +39,7 @@ def test_direction_is_hue():
     assert img.sum() == img[5, [5, 10, 15, 20]].sum()   # nothing else drawn
     # the mean vector decides a pixel hit twice: right + down -> 45 deg (orange-yellow)
     two = flow_image(np.array([3, 3]), np.array([3, 3]), np.array([10.0, 0]),
-                     np.array([0, 10.0]), 8, 8, wheel=False)
+                     np.array([0, 10.0]), 8, 8, wheel=False, arrows_every_px=0)
     assert two[3, 3, 0] == 255 and 0 < two[3, 3, 1] < 255 and two[3, 3, 2] == 0
 
 

@@ -85,17 +85,19 @@ def test_no_flow_no_estimate():
 
 def _split(pk, n_packets):
     """The same flow events re-cut into ``n_packets`` packets (the buffer's growth and compaction
-    happen at different places); the first one carries one vote near the FOE."""
+    happen at different places), with a vote near the FOE every 10 ms."""
     one = FlowPacket.concat(pk)
     t0, t1 = pk[0].t_start, pk[-1].t_end
-    votes = FOE.array(t=[0], x=[163.0], y=[115.0], support=[1.0], total=[1.0])
+    votes = FOE.array(t=np.zeros((t1 - t0) // 10_000, np.int64))
+    votes["t"] = np.arange(t0, t1, 10_000)
+    votes["x"], votes["y"], votes["support"], votes["total"] = 163.0, 115.0, 1.0, 1.0
     out = []
     for i in range(n_packets):
         a, b = t0 + i * (t1 - t0) // n_packets, t0 + (i + 1) * (t1 - t0) // n_packets
         m = (one.t >= a) & (one.t < b)
         out.append(FlowPacket(geometry=one.geometry, t_start=a, t_end=b, t=one.t[m], x=one.x[m],
                               y=one.y[m], p=one.p[m], vx=one.vx[m], vy=one.vy[m],
-                              series={"foe": votes if i == 0 else votes[:0]}))
+                              series={"foe": votes[(votes["t"] >= a) & (votes["t"] < b)]}))
     return out
 
 
@@ -124,21 +126,18 @@ def test_keeps_fits_30_px_from_biased_votes():
     it is not a failure. With votes 30 px off the true FOE the fits stay on the truth."""
     foe = (159.5, 119.5)
     pk = packets(foe, G, n=60000, duration_us=600_000, n_packets=60, noise=0.2)
-    votes = FOE.array(t=[0], x=[foe[0] - 30.0], y=[foe[1]], support=[1.0], total=[1.0])
-    pk = [p.replace(series={"foe": votes if i == 0 else votes[:0]}) for i, p in enumerate(pk)]
+    pk = _with_votes(pk, lambda t: (foe[0] - 30.0, foe[1]))   # a vote every packet
 
     def fits(**params):
-        f = FoeFit()
-        f.setup(FoeFit.Params(**params), Context())
-        return np.concatenate([f.process(p).series["foe"] for p in pk])
+        return _fits(pk, **params)
 
     s = fits()
-    assert len(s) == 60 and s["x"][0] == votes["x"][0]  # nothing to fit at t = 0 yet
-    assert np.all(s["x"][1:] != votes["x"][0])  # then never fell back
+    assert len(s) == 60 and s["x"][0] == foe[0] - 30.0  # nothing to fit at t = 0 yet
+    assert np.all(s["x"][1:] != foe[0] - 30.0)  # then never fell back
     assert abs(s["x"][-1] - foe[0]) < 0.5 and abs(s["y"][-1] - foe[1]) < 0.5
     # a plain 20 px distance gate would fall back here; the fit explains more than one started
     # from the votes and is kept
-    assert np.all(fits(max_deviation_px=20.0)["x"][1:] != votes["x"][0])
+    assert np.all(fits(max_deviation_px=20.0)["x"][1:] != foe[0] - 30.0)
 
 
 def _with_votes(pk, votes_at):
@@ -240,6 +239,7 @@ def test_level_without_rotation():
     pk, times, fx, fy = rotating_packets(lambda t: (0.0, 0.0, 0.0))
     s = _fit_stream(pk)
     late = s["t"] >= 700_000
+    assert np.all(s["rotation"][late] == 1)
     assert np.all(s["wx_deg_s"][late] == 0) and np.all(s["wy_deg_s"][late] == 0)
     assert np.abs(s["x"][late] - _at(s[late], times, fx)).max() < 0.3
     assert np.abs(s["y"][late] - _at(s[late], times, fy)).max() < 0.3
@@ -290,6 +290,44 @@ def test_without_a_focal_length_no_rotation():
                                          geometry=Geometry(320, 240, f=380.6))
     pk = [p.replace(geometry=g) for p in pk]
     s = _fit_stream(pk)
-    assert np.isnan(s["wx_deg_s"]).all() and np.isnan(s["wz_deg_s"]).all()
+    assert (s["rotation"] == 0).all() and (s["wx_deg_s"] == 0).all()
     late = s["t"] >= 700_000
     assert np.abs(s["x"][late] - 159.5).max() < 0.3 and np.abs(s["y"][late] - 119.5).max() < 0.3
+
+
+def test_noise_flow_gives_no_fit_and_says_why():
+    """Flow with random directions and speeds: foe_map has no estimate, so foe_fit neither,
+    and metrics.foe_fit counts every fit time as one without a voting estimate."""
+    from tests.filters.test_foe_map import noise_packets
+
+    g = Geometry(128, 96, f=100.0)
+    pk = [p.replace(geometry=g) for p in noise_packets(n_packets=50)]
+    ctx = Context()
+    m, f = FoeMap(), FoeFit()
+    m.setup(FoeMap.Params(region_radius_px=60), ctx)
+    f.setup(FoeFit.Params(), ctx)
+    out = FlowPacket.concat([f.process(m.process(p)) for p in pk])
+    m.flush()
+    f.flush()
+    assert len(out.series["foe"]) == 0 and len(out.series["foe_votes"]) == 0
+    assert ctx.metrics["foe_fit"] == {"fit_times": 50, "fits_kept": 0, "voting_estimates": 0,
+                                      "no_estimate": {"no recent voting estimate": 50}}
+
+
+def test_no_estimate_once_the_votes_are_gone():
+    """Planar flow for 0.3 s, then random-direction flow, on which fits still find enough
+    inliers: once foe_map's votes stop (noise-level consensus, after its 300 ms memory of the
+    flow has faded), the fits stop within foe_fit's tau (200 ms)."""
+    from tests.filters.test_foe_map import noise_packets
+
+    flow = packets((159.5, 119.5), G, n=30000, duration_us=300_000, n_packets=30)
+    noise = [p.replace(geometry=G, x=(p.x * 2.5).astype(np.uint16),
+                       y=(p.y * 2.5).astype(np.uint16), t=p.t + 300_000,
+                       t_start=p.t_start + 300_000, t_end=p.t_end + 300_000)
+             for p in noise_packets(n=40_000, duration_us=1_500_000, n_packets=150)]
+    out = run(flow + noise)
+    s, v = out.series["foe"], out.series["foe_votes"]
+    assert len(s) and s["t"][0] < 50_000
+    assert 300_000 < v["t"][-1] < 1_700_000
+    assert v["t"][-1] < s["t"][-1] <= v["t"][-1] + 200_000
+    assert np.isfinite(s["x"]).all() and np.isfinite(s["y"]).all()

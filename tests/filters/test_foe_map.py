@@ -125,3 +125,93 @@ def test_contract():
                                 normal_only=True, noise_frac=0.1, n_packets=3)
     ref = check_filter(FoeMap, {"estimate_every_us": 3000, "max_angle_deg": 80.0}, packets)
     assert len(ref["series:foe"]) > 20
+
+
+# -- the noise test: no estimate from flow whose directions carry no FOE -----------------------
+
+
+def noise_packets(n=20_000, duration_us=500_000, n_packets=5, seed=0, cut=None):
+    """Flow events at random pixels and times with random directions and speeds (2-200 px/s):
+    no FOE anywhere."""
+    rng = np.random.default_rng(seed)
+    t = np.sort(rng.integers(0, duration_us, n))
+    ang = rng.uniform(0, 2 * np.pi, n)
+    s = rng.uniform(2.0, 200.0, n)
+    p = FlowPacket(geometry=G, t_start=0, t_end=duration_us,
+                   x=rng.integers(0, G.width, n).astype(np.uint16),
+                   y=rng.integers(0, G.height, n).astype(np.uint16), t=t,
+                   p=np.ones(n, np.int8), vx=(s * np.cos(ang)).astype(np.float32),
+                   vy=(s * np.sin(ang)).astype(np.float32))
+    cuts = np.linspace(0, duration_us, n_packets + 1).astype(int) if cut is None else cut
+    from evchain.testing.contract import slice_packet
+
+    return [slice_packet(p, int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
+
+
+@pytest.mark.parametrize("radius", [60.0, None])
+def test_no_estimate_from_flow_without_an_foe(radius):
+    """Random directions: without the test an estimate at every read (as before it existed),
+    with it none, and the metrics say why."""
+    packets = noise_packets()
+    # reads every ms; the one at 0 has no votes yet
+    assert len(run(packets, significance=None, region_radius_px=radius).series["foe"]) == 499
+    f = FoeMap()
+    ctx = Context()
+    f.setup(FoeMap.Params(region_radius_px=radius), ctx)
+    out = FlowPacket.concat([f.process(p) for p in packets])
+    f.flush()
+    assert len(out.series["foe"]) == 0
+    m = ctx.metrics["foe_map"]
+    assert m["reads"] == 500 and m["estimates"] == 0
+    assert m["no_estimate"] == {"no votes yet": 1, "consensus at noise level": 499}
+
+
+def test_expansion_in_noise_is_found():
+    """Expansion flow under three times as many noise votes still has its FOE (the consensus
+    at the FOE is about 1/4 + 3/4 * 1/2), from the first reads on."""
+    foe = (60.0, 45.0)
+    flow = expansion_packets(foe=foe, n=5000, geometry=G, duration_us=500_000, n_packets=5,
+                             normal_only=True)
+    noise = noise_packets(n=15_000)
+    both = [FlowPacket.concat([a, b]) for a, b in zip(flow, noise, strict=True)]
+    both = [p.replace(**{c: getattr(p, c)[np.argsort(p.t, kind="stable")]
+                         for c in ("x", "y", "t", "p", "vx", "vy")}) for p in both]
+    s = run(both).series["foe"]
+    assert len(s) >= 490
+    assert abs(s["x"][-1] - foe[0]) < 3 and abs(s["y"][-1] - foe[1]) < 3
+
+
+def test_noise_test_matches_a_plain_computation():
+    """The estimates kept are exactly those whose consensus exceeds the bound computed from
+    all votes before the read (weights exp(-(T - t) / tau) s0 / (s0 + |v|)), for any cuts;
+    the kernel's total is that sum of weights."""
+    foe = (60.0, 45.0)
+    flow = expansion_packets(foe=foe, n=600, geometry=G, duration_us=500_000, n_packets=1,
+                             normal_only=True)[0]
+    noise = noise_packets(n=3000, n_packets=1)[0]
+    allp = FlowPacket.concat([flow, noise])
+    order = np.argsort(allp.t, kind="stable")
+    allp = allp.replace(**{c: getattr(allp, c)[order] for c in ("x", "y", "t", "p", "vx", "vy")})
+    params = dict(tau_ms=50.0, estimate_every_us=5000)
+    every = run([allp], significance=None, **params).series["foe"]
+    s = np.hypot(allp.vx.astype(np.float64), allp.vy.astype(np.float64))
+    w0 = 5.0 / (5.0 + s)
+    cells = sum(1 for yy in range(G.height) for xx in range(G.width)
+                if (xx - G.cx) ** 2 + (yy - G.cy) ** 2 <= 60.0 ** 2)
+    want = []
+    for e in every:
+        before = allp.t < e["t"]
+        w = w0[before] * np.exp(-(e["t"] - allp.t[before]) / 50_000.0)
+        assert e["total"] == pytest.approx(w.sum(), rel=1e-9)
+        n_eff = w.sum() ** 2 / (w ** 2).sum()
+        if e["support"] / e["total"] > 0.5 + math.sqrt(math.log(cells / 1e-3) / (2 * n_eff)):
+            want.append(e["t"])
+    assert 0 < len(want) < len(every)     # the test decides both ways on this stream
+    for cut in ([0, 500_000], [0, 1234, 250_000, 250_001, 500_000], list(range(0, 500_001,
+                                                                          7000)) + [500_000]):
+        from evchain.testing.contract import slice_packet
+
+        packets = [slice_packet(allp, a, b) for a, b in zip(cut[:-1], cut[1:], strict=True)
+                   if b > a]
+        got = run(packets, **params).series["foe"]["t"]
+        np.testing.assert_array_equal(got, want)

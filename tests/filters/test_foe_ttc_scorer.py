@@ -280,16 +280,18 @@ class RotatingTruth(ExpansionTruth):
 
 def with_rotation(packets, offset_deg_s, every=1):
     """The packets' foe entries with the true rotation plus ``offset_deg_s`` (3 values) on every
-    ``every``-th entry and none (NaN) on the others."""
+    ``every``-th entry and none (``rotation`` 0) on the others."""
     out = []
     for p in packets:
         foe = p.series["foe"].copy()
         t = foe["t"] * 1e-6
         w = np.degrees(np.stack([np.full(t.shape, 0.1), -0.2 * np.sin(t), np.zeros(t.shape)], 1))
         w = w + np.asarray(offset_deg_s)
-        w[np.arange(len(t)) % every != 0] = np.nan
+        est = np.arange(len(t)) % every == 0
+        w[~est] = 0.0
         for i, c in enumerate(("wx_deg_s", "wy_deg_s", "wz_deg_s")):
             foe[c] = w[:, i]
+        foe["rotation"] = est
         out.append(p.replace(series={**p.series, "foe": foe}))
     return out
 
@@ -308,17 +310,22 @@ def test_rotation_rate_error(tmp_path):
     want = np.median(np.degrees(np.hypot(0.1, 0.2 * np.sin(t))))
     assert f["rotation_rate_true_deg_s"] == pytest.approx(want, rel=0.02)
     err = out.series["foe_error"]
-    est = np.isfinite(err["wx_deg_s"])
+    est = np.arange(len(err)) % 10 % 2 == 0  # every other entry of each packet's ten
     np.testing.assert_allclose(err["rotation_error_deg_s"][est], 5.0)
-    assert np.isnan(err["rotation_error_deg_s"][~est]).all()
+    assert (err["rotation_error_deg_s"][~est] == -1).all()
     np.testing.assert_allclose(err["wx_true_deg_s"], np.degrees(0.1))
+    assert "why_none" not in f
 
 
 def test_rotation_not_estimated_or_not_known(tmp_path):
-    packets, truth = stream()          # foe_map's entries carry no rotation (NaN)
+    packets, truth = stream()          # foe_map's entries carry no rotation
     f = score(packets, RotatingTruth(FOE, 4.0), tmp_path)[0]["foe"]
     assert f["rotation_rate_error_deg_s"] is None and f["rotation_coverage"] == 0.0
     assert "not_scored" not in f
+    assert set(f["why_none"]) == {"rotation_rate_error_deg_s", "rotation_rate_error_wx_deg_s",
+                                  "rotation_rate_error_wy_deg_s",
+                                  "rotation_rate_error_wz_deg_s", "rotation_rate_true_deg_s"}
+    assert f["why_none"]["rotation_rate_error_deg_s"].startswith("no scored FOE estimate")
 
     class NoRotation:                  # a truth that knows FOE and TTC only
         foe, ttc = truth.foe, truth.ttc
@@ -326,4 +333,84 @@ def test_rotation_not_estimated_or_not_known(tmp_path):
     f = score(with_rotation(packets, (1.0, 0.0, 0.0)), NoRotation(), tmp_path)[0]["foe"]
     assert f["rotation_rate_error_deg_s"] is None and f["rotation_coverage"] is None
     assert f["not_scored"].endswith("has no camera rotation (RotationTruth)")
+    assert f["why_none"]["rotation_coverage"] == f["not_scored"]
     assert f["dx_mean_px"] == 0
+
+
+# -- hard cases: short streams, no estimates, no obstacle ------------------------------------
+
+
+def score_ctx(packets, truth, tmp_path, **params):
+    """Like :func:`score`, also returning the context (its warnings)."""
+    ctx = Context(out_dir=tmp_path, truth=truth)
+    f = FoeTtcScorer()
+    f.setup(FoeTtcScorer.Params(**{"plots": False, **params}), ctx)
+    outs = [f.process(p) for p in packets]
+    f.flush()
+    return ctx, FlowPacket.concat(outs)
+
+
+def test_full_windows_say_their_length_and_warn_nothing(tmp_path):
+    ctx, _ = score_ctx(*stream(), tmp_path)
+    assert ctx.metrics["ttc"]["window_s"] == pytest.approx(3.0)
+    assert ctx.metrics["ttc"]["window_span_s"] == pytest.approx([0.89, 3.89])
+    assert ctx.metrics["foe"]["window_s"] == pytest.approx(2.9)   # 1 s warm-up of 3.9 s
+    assert ctx.warnings == []
+
+
+def test_a_stream_shorter_than_the_ttc_window_says_so(tmp_path):
+    """The last 1.2 s of a drive: the TTC window is those 1.2 s, not 3, and a warning says
+    so; the metrics are those of the 1.2 s."""
+    packets, truth = stream()
+    ctx, _ = score_ctx(packets[-12:], truth, tmp_path, warmup_s=0.5)
+    t = ctx.metrics["ttc"]
+    assert t["window_s"] == pytest.approx(1.19)
+    assert t["window_span_s"] == pytest.approx([2.7, 3.89])
+    assert t["share_within_20pct"] == 1.0
+    assert ctx.metrics["foe"]["window_s"] == pytest.approx(0.7)
+    assert len(ctx.warnings) == 1
+    assert "TTC window is 1.19 s, shorter than last_window_s 3 s" in ctx.warnings[0]
+
+
+def test_a_stream_under_the_foe_warmup_scores_no_foe_and_says_why(tmp_path):
+    packets, truth = stream()
+    ctx, _ = score_ctx(packets[-5:], truth, tmp_path, warmup_s=1.0)
+    f = ctx.metrics["foe"]
+    assert f["n"] == 0 and f["window_s"] == 0.0 and f["dx_mean_px"] is None
+    assert "not longer than the FOE warm-up" in f["why_none"]
+    assert any("FOE warm-up" in w for w in ctx.warnings)
+    assert any("TTC window is 0.49 s" in w for w in ctx.warnings)
+
+
+def test_no_estimates_give_none_medians_with_reasons(tmp_path):
+    """TTC estimates at under half of the window's times: the medians (a miss is an
+    infinite error) are None, not infinite, and why_none says why; no FOE at all: None and a
+    reason."""
+    packets, truth = stream(gap=(0.0, 2.5))
+    packets = [p.replace(series={k: v for k, v in p.series.items() if k != "foe"})
+               for p in packets]
+    ctx, _ = score_ctx(packets, truth, tmp_path)
+    t, f = ctx.metrics["ttc"], ctx.metrics["foe"]
+    assert 0.45 < t["coverage_last3s"] < 0.5
+    assert t["median_rel_error_last3s"] is None and t["median_rel_error_all"] is None
+    assert "estimates at 47% of the times" in t["why_none"]["median_rel_error_last3s"]
+    assert f["n"] == 0 and f["dx_mean_px"] is None
+    assert f["why_none"].startswith("no FOE estimate in the 2.9 s after the warm-up")
+
+
+class NoObstacleTruth(ExpansionTruth):
+    """An expansion with nothing ahead to contact: the TTC is undefined at every time."""
+
+    def ttc(self, t_us):
+        return np.full(np.shape(t_us), np.nan)
+
+
+def test_no_obstacle_scores_no_ttc_and_writes_no_nan(tmp_path):
+    packets, _ = stream()
+    ctx, out = score_ctx(packets, NoObstacleTruth(FOE, 4.0), tmp_path)
+    t = ctx.metrics["ttc"]
+    assert t["n"] == 0 and t["n_estimates"] == 390 and "no obstacle ahead" in t["why_none"]
+    err = out.series["ttc_error"]
+    assert len(err) == 390
+    assert (err["tau_true_s"] == -1).all() and (err["rel_error"] == -1).all()
+    assert ctx.metrics["foe"]["dx_mean_px"] == 0.0

@@ -362,3 +362,70 @@ def test_baseline_contract():
     ref = check_filter(Ttc, {"baseline_px": 6, "min_samples": 4},
                        with_true_foe(edge_approach(duration_s=1.0, jitter_us=2_000.0)))
     assert len(ref["series:ttc"]) > 5
+
+
+# -- credible clusters only ----------------------------------------------------------------
+
+
+def run_ttc_metrics(packets, **params):
+    params.setdefault("baseline_px", 0)
+    ctx = Context()
+    f = Ttc()
+    f.setup(Ttc.Params(**params), ctx)
+    out = FlowPacket.concat([f.process(p) for p in packets])
+    f.flush()
+    return out, ctx.metrics["ttc_filter"]
+
+
+def disagreeing(duration_us=1_000_000, n=40_000, seed=0):
+    """Radial flow below the FOE whose speeds vary a thousandfold at random: every event's tau
+    is (p - foe).v / |v|^2, so the samples of any cluster spread over three decades (a relative
+    spread far above 1, as with rotational flow read as expansion): no single surface
+    approaching."""
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(FOE[0] - 40, FOE[0] + 40, n)
+    y = rng.uniform(FOE[1] + 10, G.height - 1, n)
+    r = np.hypot(x - FOE[0], y - FOE[1])
+    s = np.exp(rng.uniform(np.log(3.0), np.log(3000.0), n))
+    t = np.sort(rng.integers(0, duration_us, n))
+    p = FlowPacket(geometry=G, t_start=0, t_end=duration_us, x=np.round(x).astype(np.uint16),
+                   y=np.round(y).astype(np.uint16), t=t, p=np.ones(n, np.int8),
+                   vx=((x - FOE[0]) / r * s).astype(np.float32),
+                   vy=((y - FOE[1]) / r * s).astype(np.float32))
+    from evchain.testing.contract import slice_packet
+
+    return with_true_foe([slice_packet(p, a, a + 100_000) for a in range(0, duration_us,
+                                                                           100_000)])
+
+
+def test_no_ttc_from_clusters_whose_samples_disagree():
+    packets = disagreeing()
+    out, m = run_ttc_metrics(packets)
+    assert len(out.series["ttc_clusters"]) > 100      # the clusters are there, with a tau
+    assert len(out.series["ttc"]) == 0
+    assert m["ticks"] == 100 and m["estimates"] == 0
+    assert m["no_estimate"]["no credible cluster"] >= 95
+    # without the test every tick reports one of them
+    old, _ = run_ttc_metrics(packets, max_rel_spread=None)
+    assert len(old.series["ttc"]) >= 95
+
+
+def test_consistent_clusters_stay_credible():
+    """Noisy normal flow of one approaching surface: its samples agree, every tick after
+    the first samples has a TTC."""
+    out, m = run_ttc_metrics(with_true_foe(approach(**NOISY)))
+    assert m["estimates"] >= m["ticks"] - 5
+    assert m["no_estimate"]["no credible cluster"] == 0
+
+
+def test_no_ttc_below_the_smallest_event_tau():
+    """An obstacle 0.3 s away whose events stop after 0.25 s: its cluster lives on (long
+    activity memory) with a tau predicted to fall 1 s/s; below min_tau_s (0.02 s) it is no
+    longer reported, though the cluster still is."""
+    packets = with_true_foe(approach(tau0=0.3, duration_us=250_000, n=40_000))
+    quiet = [FlowPacket.empty(G, t, t + 10_000) for t in range(250_000, 400_000, 10_000)]
+    out, m = run_ttc_metrics(packets + with_true_foe(quiet), activity_tau_ms=2000.0)
+    s, cl = out.series["ttc"], out.series["ttc_clusters"]
+    assert len(s) > 10 and s["tau_s"].min() >= 0.02
+    assert (cl["tau_s"] < 0.02).any()                 # predicted below, not reported
+    assert m["no_estimate"]["no credible cluster"] >= 1

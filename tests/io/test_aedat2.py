@@ -144,25 +144,106 @@ def test_header_lines_crlf_and_stop_at_first_non_hash_byte(tmp_path):
     assert header.n_records == 1
 
 
+def jaer_data_offset(data: bytes) -> int:
+    """Where jAER's AEFileInputStream starts reading records (its readHeaderLine, from its
+    description): line by line, a line equal to 'End Of ASCII Header' after its first byte (any
+    case) ends the header after itself, a line not starting with '#' ends it before itself;
+    each header line counts its length plus the '#' and CRLF."""
+    offset = 0
+    while True:
+        end = data.find(b"\n", offset)
+        if end < 0:  # a last line without line end: no data at all
+            return len(data) if data[offset:offset + 1] == b"#" else offset
+        line = data[offset + 1:end].rstrip(b"\r")
+        if line.decode("latin-1").lower() == "end of ascii header":
+            return offset + len(line) + 3
+        if data[offset:offset + 1] != b"#":
+            return offset
+        offset += len(line) + 3
+
+
+def hash_first(chip: str, y_raw: int, n_same: int, seed: int = 0) -> EventPacket:
+    """Events whose first one lies in raw row ``y_raw`` (140..143: its record starts with '#'),
+    with ``n_same`` events at the first time; the others of that time lie in other rows."""
+    g = CHIPS[chip].geometry
+    ev = random_events(300, g, 100, 50_000, seed=seed)
+    y = ev.y.copy()
+    y[0] = g.height - 1 - y_raw
+    y[1:n_same] = g.height - 1 - 20
+    t = ev.t.copy()
+    t[:n_same] = 100
+    t[n_same:] = np.maximum(t[n_same:], 101)
+    return ev.replace(y=y, t=np.sort(t), t_start=100)
+
+
+def test_header_ends_with_the_line_jaer_writes_and_stops_at(tmp_path):
+    head = header_bytes(CHIPS["davis240"])
+    assert head.endswith(b"\r\n#End Of ASCII Header\r\n")
+    hash_rec = davis([235], [141], [1])  # first byte 0x23 '#'
+    path = raw_file(tmp_path / "a.aedat", hash_rec, [7])
+    assert read_header(path).data_offset == len(head) == jaer_data_offset(path.read_bytes())
+    ev = read_aedat2(path)
+    assert (ev.x.tolist(), ev.y.tolist(), ev.p.tolist()) == ([4], [38], [1])
+    # jAER stops at the marker in any case; evchain also with spaces around it
+    for line in (b"#end of ascii header\r\n", b"# End Of ASCII Header \r\n"):
+        path = raw_file(tmp_path / "b.aedat", hash_rec, [7],
+                        header=b"#!AER-DAT2.0\r\n# AEChip: eu.seebetter.ini.chips.davis."
+                        b"DAVIS240C\r\n" + line)
+        assert read_header(path).n_records == 1
+    # without the marker every reader takes the '#' record for a header line
+    plain = raw_file(tmp_path / "c.aedat", hash_rec, [7], header=b"#!AER-DAT2.0\r\n# AEChip: "
+                     b"eu.seebetter.ini.chips.davis.DAVIS240C\r\n")
+    assert read_header(plain).n_records == 0
+    assert jaer_data_offset(plain.read_bytes()) == plain.stat().st_size
+
+
+@pytest.mark.parametrize("chip", ["davis240", "davis346"])
 @pytest.mark.parametrize("y_raw", [140, 141, 142, 143])
-def test_writer_never_starts_data_with_hash(tmp_path, y_raw):
-    # raw y 140..143 puts 0x23 '#' in the address' top byte on DAVIS chips
-    g = CHIPS["davis240"].geometry
-    y = 179 - y_raw
-    ev = EventPacket(geometry=g, t_start=0, t_end=100, x=np.array([4, 5], np.uint16),
-                     y=np.array([y, 3], np.uint16), t=np.array([7, 9], np.int64),
-                     p=np.array([1, -1], np.int8))
+def test_first_record_never_starts_with_hash(tmp_path, chip, y_raw):
+    """Another event of the first time goes first: no extra record, the data starts with
+    another byte, and jAER's rule, evchain and tonic all read exactly the written events (the
+    first two events of equal time swapped)."""
+    ev = hash_first(chip, y_raw, n_same=3, seed=y_raw)
     path = write_aedat2(tmp_path / "x.aedat", ev)
     header = read_header(path)
     data = path.read_bytes()
     assert data[header.data_offset] != ord("#")
-    assert header.n_records == 3  # a leading special event (address 0x400, same timestamp)
+    assert header.n_records == len(ev)
+    assert jaer_data_offset(data) == header.data_offset
+    stats = DecodeStats()
+    back = read_aedat2(path, stats=stats)
+    order = np.r_[1, 0, 2:len(ev)]
+    assert same(back, ev.select(order)) and stats.skipped_non_dvs == 0
+    tonic_io = pytest.importorskip("tonic.io")
+    version, start, *_ = tonic_io.read_aedat_header_from_file(str(path))
+    assert (version, start) == (2.0, header.data_offset)
+    raw = tonic_io.get_aer_events_from_file(str(path), version, start)
+    assert len(raw) == len(ev) and np.array_equal(raw["timeStamp"], ev.t[order])
+    if chip == "davis346":  # tonic decodes DAVIS346 addresses itself
+        _, _, xytp = tonic_io.read_davis_346(str(path))
+        assert np.array_equal(xytp["x"], back.x) and np.array_equal(xytp["y"], back.y)
+        assert np.array_equal(xytp["p"], back.p > 0)
+
+
+@pytest.mark.parametrize("y_raw", [140, 141, 142, 143])
+def test_lone_first_event_in_a_hash_row_gets_a_special_record(tmp_path, y_raw):
+    """No other event of the first time: a DAVIS special event goes first. jAER marks it
+    special and evchain skips it; a reader that ignores the special bit (tonic) sees it as one
+    OFF event at raw address 0 (the limit, documented)."""
+    ev = hash_first("davis346", y_raw, n_same=1, seed=y_raw)
+    path = write_aedat2(tmp_path / "x.aedat", ev)
+    header = read_header(path)
+    data = path.read_bytes()
+    assert data[header.data_offset] != ord("#") and header.n_records == len(ev) + 1
+    assert jaer_data_offset(data) == header.data_offset
     stats = DecodeStats()
     assert same(read_aedat2(path, stats=stats), ev)
     assert stats.skipped_non_dvs == 1
-    # without the special record, a header reader would swallow the event as a header line
-    plain = raw_file(tmp_path / "bad.aedat", davis([235], [y_raw], [1]), [7])
-    assert read_header(plain).n_records == 0
+    tonic_io = pytest.importorskip("tonic.io")
+    _, _, xytp = tonic_io.read_davis_346(str(path))
+    assert len(xytp) == len(ev) + 1
+    assert (xytp["x"][0], xytp["y"][0], xytp["p"][0]) == (345, 259, False)
+    assert np.array_equal(xytp["x"][1:], ev.x) and np.array_equal(xytp["t"][1:], ev.t)
 
 
 def test_generic_geometry_round_trip(tmp_path):

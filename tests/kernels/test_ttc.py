@@ -81,7 +81,12 @@ def compare(packets, **params):
     outs = [f.process(pk) for pk in packets]
     got = {name: np.concatenate([o.series[name] for o in outs])
            for name in ("ttc", "ttc_clusters")}
-    want_ttc, want_cl = ttc_naive(packets, q, G.width, G.height)
+    why = {}
+    want_ttc, want_cl = ttc_naive(packets, q, G.width, G.height, why)
+    from evchain.kernels.ttc import no_ttc_counts
+
+    if f._state is not None:
+        assert no_ttc_counts(f._state) == why
     for name, want in (("ttc", want_ttc), ("ttc_clusters", want_cl)):
         have = got[name]
         assert len(have) == len(want), (name, len(have), len(want))
@@ -110,16 +115,19 @@ def test_random_streams_match_reference(seed):
        max_clusters=st.sampled_from([1, 2, 3, 8, 32]), min_samples=st.sampled_from([1, 3, 8]),
        size=st.sampled_from([(3.0, 5.0, 1.0), (6.0, 15.0, 4.0), (10.0, 10.0, 0.0)]),
        activity=st.sampled_from([(30.0, 1.0), (100.0, 2.0), (400.0, 5.0)]),
-       ring=st.sampled_from([4, 16, 256]), period=st.sampled_from([3_000, 10_000, 25_000]))
+       ring=st.sampled_from([4, 16, 256]), period=st.sampled_from([3_000, 10_000, 25_000]),
+       spread=st.sampled_from([None, 0.02, 0.1, 0.5]),
+       tau_bounds=st.sampled_from([(0.02, 20_000.0), (0.5, 20_000.0), (0.02, 100.0)]))
 def test_random_parameters_match_reference(seed, select, ground, corridor, hold, fallback,
                                            baseline, max_clusters, min_samples, size, activity,
-                                           ring, period):
+                                           ring, period, spread, tau_bounds):
     compare(random_stream(seed, n=900), select=select, ground_test=ground,
             ground_min_events=40, corridor_half_width_h=corridor, select_hold=hold,
             ground_fallback=fallback, baseline_px=baseline, max_clusters=max_clusters,
             min_samples=min_samples, cluster_size_px=size[0], max_cluster_size_px=size[1],
             join_margin_px=size[2], activity_tau_ms=activity[0], min_activity=activity[1],
-            samples_per_cluster=ring, estimate_every_us=period, select_min_activity=2.0)
+            samples_per_cluster=ring, estimate_every_us=period, select_min_activity=2.0,
+            max_rel_spread=spread, min_tau_s=tau_bounds[0], max_speed_pxs=tau_bounds[1])
 
 
 def test_empty_packets():

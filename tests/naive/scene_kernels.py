@@ -176,7 +176,9 @@ def pose(t, segs, traj):
     else:
         h = h0 + kap * u
         p = (x0 + (np.sin(h) - np.sin(h0)) / kap, y0 - (np.cos(h) - np.cos(h0)) / kap)
-    return np.array([p[0], p[1], traj[2]]), rotation(h, pitch(t, traj))
+    turned = max(t - traj[12], 0.0)           # pan right (heading down), tilt up
+    return (np.array([p[0], p[1], traj[2]]),
+            rotation(h - traj[10] * turned, pitch(t, traj) + traj[11] * turned))
 
 
 def rays(xs, ys, f, cx, cy, rot):

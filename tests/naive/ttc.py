@@ -98,16 +98,18 @@ class Cluster:
         self.t_tau = float(t)
         self.misses = 0
         self.rho = math.nan      # median(tau * dy) / K
+        self.spread = math.inf   # 1.4826 MAD / median of the samples at the last measurement
 
     def activity_at(self, t, tau_us):
         return self.activity * math.exp(-(t - self.t_last) / tau_us)
 
 
-def ttc_naive(packets, q, width, height):
+def ttc_naive(packets, q, width, height, no_ttc=None):
     """The ``ttc`` filter in plain Python, packet by packet (FOE entries count from the first
     event at or after their time, and from the end of the packet that carries them; a tick at T
     sees the events before T). ``q``: a ``Ttc.Params``. Returns (ttc rows, cluster rows) as
-    lists of tuples in the order of the series' fields."""
+    lists of tuples in the order of the series' fields; ``no_ttc`` (a dict, filled if given)
+    counts the ticks without a row by reason."""
     slots = [None] * q.max_clusters        # None or a Cluster (inactive slots are None)
     next_id = 0
     foe = None
@@ -118,6 +120,8 @@ def ttc_naive(packets, q, width, height):
     period = q.estimate_every_us
     tick = None
     ttc_rows, cluster_rows = [], []
+    reasons = {"no_foe": 0, "no_cluster": 0, "not_credible": 0, "on_road": 0}
+    max_spread = math.inf if q.max_rel_spread is None else q.max_rel_spread
 
     def apply_foe(entries, upto):
         nonlocal foe
@@ -136,6 +140,7 @@ def ttc_naive(packets, q, width, height):
             k_now = k_ground
         use_ground = q.ground_test and k_now > 0.0
         best = fb = held_k = None
+        considered = credible = 0
         for k, c in enumerate(slots):
             if c is None:
                 continue
@@ -161,6 +166,11 @@ def ttc_naive(packets, q, width, height):
             if q.select == "nearest_foe":
                 gy = max(0.0, abs(c.cy - foe[1]) - c.size)
                 d = math.sqrt(gx * gx + gy * gy)
+            considered += 1
+            if not (c.spread <= max_spread and c.tau >= q.min_tau_s
+                    and math.hypot(c.cx - foe[0], c.cy - foe[1]) <= c.tau * q.max_speed_pxs):
+                continue
+            credible += 1
             if fb is None or d < fb[0] or (d == fb[0] and a > fb[1]):
                 fb = (d, a, k)
             if use_ground and not (c.rho < 1.0 - q.ground_tolerance):
@@ -177,6 +187,9 @@ def ttc_naive(packets, q, width, height):
         if best is not None:
             c = slots[best[2]]
             ttc_rows.append((T, c.tau, c.id, c.cx, c.cy, best[1]))
+        else:
+            reasons["no_foe" if foe is None else "no_cluster" if not considered
+                    else "not_credible" if not credible else "on_road"] += 1
 
     def estimate(c, T, k_now):
         recent = [s for s in c.samples if T - s[0] <= q.sample_max_age_ms * 1000.0]
@@ -192,6 +205,7 @@ def ttc_naive(packets, q, width, height):
             return
         med = median(taus)
         mad = median([abs(v - med) for v in taus])
+        c.spread = 1.4826 * mad / med if med > 0.0 else math.inf
         sigma = 1.4826 * mad / math.sqrt(len(taus)) + q.rel_noise_floor * abs(med)
         r = sigma * sigma + 1e-12
         if c.tau is None:
@@ -283,6 +297,8 @@ def ttc_naive(packets, q, width, height):
             do_tick(float(tick))
             tick += period
         apply_foe(entries, math.inf)
+    if no_ttc is not None:
+        no_ttc.update(reasons)
     return ttc_rows, cluster_rows
 
 

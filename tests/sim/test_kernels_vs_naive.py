@@ -34,6 +34,8 @@ SCENES = {
     "open-field": dict(scenario="open-field", start_m=40.0),
     "curves": dict(scenario="curves", dynamics="curves", start_m=80.0),
     "pitch": dict(scenario="high-rise", dynamics="pitch", pitch_amplitude_deg=4.0),
+    "rotation": dict(scenario="high-rise", dynamics="rotation", speed_mps=0.0, duration_s=4.0,
+                     start_m=150.0, pan_dps=15.0, tilt_dps=5.0, rotation_start_s=0.2),
 }
 
 
@@ -262,7 +264,8 @@ def test_render_tiny_vs_naive(name):
         frame, vmax = sc.render(t)
         want = N.render(sc, t)
         np.testing.assert_allclose(frame, want, rtol=2e-6, atol=2e-6)
-        assert vmax > 0
+        resting = t < SCENES[name].get("rotation_start_s", 0.0)   # standing still
+        assert (vmax == 0) if resting else (vmax > 0)
 
 
 def test_truth_depth_and_flow_vs_naive():

@@ -116,3 +116,29 @@ def test_sweep_over_a_recorded_drive(recorded, tmp_path):
     with pytest.raises(ConfigError, match="not this pipeline's emulator: threshold_on"):
         run_sweep(load_sweep(sweep_file), tmp_path / "out2", workers=1, echo=lambda _: None)
     assert not (tmp_path / "out2").exists()
+
+
+def test_replay_takes_a_parameter_the_recording_predates_as_its_default(recorded, tmp_path):
+    """A recording made before a scene parameter existed (its resolved pipeline does not name
+    it) replays under that parameter's default, and is refused under any other value."""
+    import shutil
+
+    import yaml
+
+    from evchain.core.config import load_pipeline
+    from evchain.core.registry import make_registry
+    from evchain.errors import ConfigError
+    from evchain.filters.scene_events import replay_spec
+
+    old = tmp_path / "old"
+    shutil.copytree(recorded.parent, old)
+    resolved = old / "pipeline.resolved.yaml"
+    doc = yaml.safe_load(resolved.read_text())
+    del doc["chain"][0]["contrast"]
+    resolved.write_text(yaml.safe_dump(doc))
+    registry = make_registry()
+    spec = load_pipeline(_flow_pipeline(tmp_path / "f.yaml"), registry)
+    assert replay_spec(spec, old / "events.aedat").stages[0].use == "scene_events"
+    spec = load_pipeline(_flow_pipeline(tmp_path / "f.yaml"), registry, ["scene.contrast=0.5"])
+    with pytest.raises(ConfigError, match=r"contrast: None there, 0\.5 here"):
+        replay_spec(spec, old / "events.aedat")

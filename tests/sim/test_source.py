@@ -186,3 +186,21 @@ def test_speculative_frames_match_one_thread(threads):
     for (ta, fa, va), (tb, fb, vb) in zip(one, many, strict=True):
         assert ta == tb and va == vb
         np.testing.assert_array_equal(fa, fb)
+
+
+def test_contrast_scales_log_intensity_and_zero_is_uniform_grey():
+    full = Scene.from_params(**SMALL)
+    half = Scene.from_params(**SMALL, contrast=0.5)
+    grey = Scene.from_params(**SMALL, contrast=0.0)
+    a, va = full.render(0.01)
+    b, vb = half.render(0.01)
+    g, vg = grey.render(0.01)
+    assert np.ptp(a) > 0.1     # the scene has structure
+    np.testing.assert_allclose(np.log(b / 0.5), 0.5 * np.log(a / 0.5), rtol=1e-5, atol=1e-6)
+    assert np.all(g == np.float32(0.5))
+    # the motion (adaptive step) and the ground truth are the scene's
+    assert va == vb == vg
+    from evchain.sim.truth import SceneTruth
+
+    t = np.array([0.0, 15_000.0])
+    np.testing.assert_array_equal(SceneTruth(grey).ttc(t), SceneTruth(full).ttc(t))

@@ -198,3 +198,28 @@ def test_pipeline_through_the_registry(tmp_path):
         """))
     evchain.run(yaml, out_dir=tmp_path / "out")
     assert_same_events(read_all(tmp_path / "out" / "copy.aedat4")[0], packets)
+
+
+def _dv_events(t, x, y, polarity):
+    a = np.zeros(len(t), [("timestamp", "<i8"), ("x", "<i2"), ("y", "<i2"), ("polarity", "i1")])
+    a["timestamp"], a["x"], a["y"], a["polarity"] = t, x, y, polarity
+    return a
+
+
+def test_event_columns_convert_and_check():
+    """dv-processing's event arrays (file and network sources) to evchain columns."""
+    from evchain_dv.aedat4 import event_columns
+
+    g = Geometry(10, 8)
+    cols = event_columns(_dv_events([1, 1, 2], [0, 9, 3], [7, 0, 1], [1, 0, 1]), g, "w", 0, None)
+    assert cols["p"].tolist() == [1, -1, 1] and cols["p"].dtype == np.int8
+    assert cols["x"].tolist() == [0, 9, 3] and cols["x"].dtype == np.uint16
+    assert cols["t"].dtype == np.int64
+    with pytest.raises(DataError, match="w: event 2: timestamp goes backwards"):
+        event_columns(_dv_events([1, 3, 2], [0] * 3, [0] * 3, [1] * 3), g, "w", 0, None)
+    with pytest.raises(DataError, match="w: event 5: timestamp goes backwards"):
+        event_columns(_dv_events([1, 3], [0] * 2, [0] * 2, [1] * 2), g, "w", 5, 2)
+    with pytest.raises(DataError, match=r"w: event 1 at \(-1, 0\) outside the 10x8 sensor"):
+        event_columns(_dv_events([1, 3], [0, -1], [0, 0], [1, 1]), g, "w", 0, None)
+    with pytest.raises(DataError, match=r"w: event 4 at \(0, 8\) outside"):
+        event_columns(_dv_events([1, 3], [0, 0], [0, 8], [1, 1]), g, "w", 3, None)

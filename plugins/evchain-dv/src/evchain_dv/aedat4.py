@@ -61,6 +61,39 @@ def dv_message(exc: BaseException) -> str:
     return " ".join(lines) or type(exc).__name__
 
 
+def event_columns(a: np.ndarray, g: Geometry, where: str, done: int, last: int | None,
+                  before: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+    """evchain's ``x, y, t, p`` columns of dv-processing's event array ``a`` (fields
+    ``timestamp, x, y, polarity``, from ``EventStore.numpy()``), checked: time does not go
+    backwards (``last``: the previous event's time, if any) and every event is on the sensor
+    ``g``. Errors name ``where`` and the event's index in the stream (``done`` came before).
+    ``before``: columns to put in front (converted with them, so nothing is copied twice)."""
+    m = 0 if before is None else len(before["t"])
+    n = len(a)
+    cols = {"x": np.empty(m + n, np.uint16), "y": np.empty(m + n, np.uint16),
+            "t": np.empty(m + n, np.int64), "p": np.empty(m + n, np.int8)}
+    if m:
+        for c, v in cols.items():
+            v[:m] = before[c]
+    t, x, y = cols["t"][m:], cols["x"][m:], cols["y"][m:]
+    t[:] = a["timestamp"]
+    if n and ((last is not None and t[0] < last) or np.any(t[1:] < t[:-1])):
+        back = np.diff(t if last is None else np.concatenate([[last], t])) < 0
+        i = done + int(np.argmax(back)) + (1 if last is None else 0)
+        raise DataError(f"{where}: event {i}: timestamp goes backwards")
+    x[:] = a["x"]  # a negative int16 becomes >= 32768: off any sensor
+    y[:] = a["y"]
+    if n and (x.max() >= g.width or y.max() >= g.height):
+        i = int(np.argmax((x >= g.width) | (y >= g.height)))
+        raise DataError(f"{where}: event {done + i} at ({a['x'][i]}, {a['y'][i]}) outside the "
+                        f"{g.width}x{g.height} sensor")
+    p = cols["p"][m:]
+    np.greater(a["polarity"], 0, out=p.view(np.bool_))  # 1 or 0, then +1 or -1 in place
+    p *= 2
+    p -= 1
+    return cols
+
+
 class Aedat4Source(Filter):
     """Read events from an AEDAT 4.0 file (iniVation DV) with dv-processing."""
 
@@ -137,21 +170,9 @@ class Aedat4Source(Filter):
             a = batch.numpy()
             if not len(a):
                 continue
-            t = a["timestamp"].astype(np.int64)
-            back = np.diff(t if last is None else np.concatenate([[last], t])) < 0
-            if back.any():
-                i = done + int(np.argmax(back)) + (1 if last is None else 0)
-                raise DataError(f"{self.path}: event {i}: timestamp goes backwards")
-            x, y = a["x"], a["y"]
-            bad = (x < 0) | (y < 0) | (x >= g.width) | (y >= g.height)
-            if bad.any():
-                i = int(np.argmax(bad))
-                raise DataError(f"{self.path}: event {done + i} at ({x[i]}, {y[i]}) outside "
-                                f"the {g.width}x{g.height} sensor")
-            yield {"x": x.astype(np.uint16), "y": y.astype(np.uint16), "t": t,
-                   "p": np.where(a["polarity"] > 0, 1, -1).astype(np.int8)}
-            done += len(t)
-            last = int(t[-1])
+            yield event_columns(a, g, str(self.path), done, last)
+            done += len(a)
+            last = int(a["timestamp"][-1])
 
     def close(self):
         self.recording = None

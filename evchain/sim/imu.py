@@ -1,0 +1,59 @@
+"""The simulated camera's inertial unit: the true gyro and accelerometer of a scene's camera.
+
+In the camera's axes (x right, y down, z forward) and the units of the series
+:data:`~evchain.core.series.IMU`, as the ``aedat`` source reads a DAVIS camera's: the gyro is
+the camera's angular velocity (deg/s), the accelerometer its specific force (g: acceleration
+minus gravity, so an upright camera at rest reads ay = -1), from the trajectory the renderer
+uses. The acceleration is a central difference of the velocity over ±ACCEL_STEP_US.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from evchain.core.series import IMU
+
+#: standard gravity, m/s^2
+GRAVITY = 9.80665
+#: step of the velocity's central difference, µs
+ACCEL_STEP_US = 100.0
+
+
+def _states(scene, t_us: np.ndarray):
+    from evchain.kernels.scene_geometry import camera_states
+
+    t = np.ascontiguousarray(np.asarray(t_us, np.float64).ravel()) * 1e-6
+    n = len(t)
+    pos, rot, vc, wc = np.empty((n, 3)), np.empty((n, 3, 3)), np.empty((n, 3)), np.empty((n, 3))
+    if n:
+        camera_states(t, scene.segs, scene.traj, pos, rot, vc, wc)
+    return rot, vc, wc
+
+
+def true_imu(scene, t_us) -> tuple[np.ndarray, np.ndarray]:
+    """``(gyro deg/s [n, 3], accelerometer g [n, 3])`` of ``scene``'s camera at ``t_us``."""
+    t = np.asarray(t_us, np.float64).ravel()
+    rot, _, wc = _states(scene, t)
+    r0, v0, _ = _states(scene, t - ACCEL_STEP_US)
+    r1, v1, _ = _states(scene, t + ACCEL_STEP_US)
+    vw0 = np.einsum("nij,nj->ni", r0, v0)
+    vw1 = np.einsum("nij,nj->ni", r1, v1)
+    acc = (vw1 - vw0) / (2 * ACCEL_STEP_US * 1e-6)
+    acc[:, 2] += GRAVITY                              # specific force: minus gravity (-z)
+    return np.degrees(wc), np.einsum("nji,nj->ni", rot, acc) / GRAVITY
+
+
+def imu_samples(scene, t_us, rng: np.random.Generator | None = None,
+                gyro_noise_dps: float = 0.0, gyro_bias_dps=(0.0, 0.0, 0.0),
+                accel_noise_g: float = 0.0, temperature_c: float = 25.0) -> np.ndarray:
+    """IMU series entries at ``t_us``: the true readings plus ``gyro_bias_dps`` and Gaussian
+    noise (standard deviations per sample; drawn from ``rng``, needed when noise is on)."""
+    t = np.asarray(t_us, np.int64).ravel()
+    gyro, accel = true_imu(scene, t)
+    gyro = gyro + np.asarray(gyro_bias_dps, np.float64)
+    if gyro_noise_dps:
+        gyro = gyro + rng.normal(0.0, gyro_noise_dps, gyro.shape)
+    if accel_noise_g:
+        accel = accel + rng.normal(0.0, accel_noise_g, accel.shape)
+    return IMU.array(t=t, ax=accel[:, 0], ay=accel[:, 1], az=accel[:, 2], gx=gyro[:, 0],
+                     gy=gyro[:, 1], gz=gyro[:, 2], temperature_c=np.full(len(t), temperature_c))
