@@ -53,10 +53,16 @@ class SeriesDef:
         return ", ".join(self.dtype.names)
 
 
+#: the camera's angular velocity in the FOE series, deg/s about its axes (x right, y down, z
+#: forward; :class:`~evchain.core.truth.RotationTruth`'s convention)
+ROTATION_FIELDS = ("wx_deg_s", "wy_deg_s", "wz_deg_s")
+
 FOE = SeriesDef("foe", [("t", "i8"), ("x", "f8"), ("y", "f8"), ("support", "f8"),
-                        ("total", "f8")],
-                "focus of expansion estimates: x, y in px, support and total weight of the "
-                "estimate")
+                        ("total", "f8"), *((c, "f8") for c in ROTATION_FIELDS),
+                        ("rotation", "i1")],
+                "focus of expansion (the heading) estimates: x, y in px, support and total "
+                "weight of the estimate; the camera's angular velocity wx, wy, wz in deg/s "
+                "where rotation is 1 (estimated), else 0 and rotation 0")
 FOE_VOTES = FOE.renamed("foe_votes", "the voting FOE estimates (foe_map's foe entries) that "
                         "foe_fit refined")
 
@@ -75,10 +81,15 @@ FLOW_ERROR = SeriesDef("flow_error", [("t", "i8"), ("n", "i8"), ("aee_pxs", "f8"
                                       ("aee_normal_pxs", "f8"), ("aae_deg", "f8"),
                                       ("invalid_rate", "f8")],
                        "flow errors per time bin (t = bin end): px/s, degrees, share 0-1")
+_ROTATION_TRUE = ("wx_true_deg_s", "wy_true_deg_s", "wz_true_deg_s")
 FOE_ERROR = SeriesDef("foe_error", [("t", "i8"), ("x", "f8"), ("y", "f8"), ("x_true", "f8"),
                                     ("y_true", "f8"), ("dx", "f8"), ("dy", "f8"),
-                                    ("angle_deg", "f8")],
-                      "per foe entry: estimate, truth and error in px, ray angle in degrees")
+                                    ("angle_deg", "f8"),
+                                    *((c, "f8") for c in ROTATION_FIELDS + _ROTATION_TRUE),
+                                    ("rotation_error_deg_s", "f8")],
+                      "per foe entry: estimate, truth and error in px, ray angle in degrees; "
+                      "the estimated and the true angular velocity (0 where unknown) and the "
+                      "norm of their difference in deg/s (-1 where either is unknown)")
 TTC_ERROR = SeriesDef("ttc_error", [("t", "i8"), ("tau_s", "f8"), ("tau_true_s", "f8"),
                                     ("rel_error", "f8"), ("cluster", "i8"), ("x", "f8"),
                                     ("y", "f8"), ("on_obstacle", "i1")],

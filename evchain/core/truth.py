@@ -54,8 +54,24 @@ class FoeTruth(Protocol):
     """The focus of expansion."""
 
     def foe(self, t_us) -> tuple[np.ndarray, np.ndarray]:
-        """(x, y): the focus of expansion in pixels at ``t_us`` (the projection of the camera's
-        translation, thesis eq. 3.5); NaN unless the camera moves forward."""
+        """(x, y): the focus of expansion in pixels at ``t_us``: the projection of the camera's
+        translation (thesis eq. 3.5), i.e. its heading; a rotating camera's flow does not
+        vanish there. NaN unless the camera moves forward."""
+        ...
+
+
+@runtime_checkable
+class RotationTruth(Protocol):
+    """The camera's rotation."""
+
+    def angular_velocity(self, t_us) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(wx, wy, wz): the camera's angular velocity in rad/s at ``t_us`` about its own axes
+        (x right, y down, z forward; right-handed: ``wx > 0`` tilts it up, so the image moves
+        down; ``wy > 0`` pans it right; ``wz > 0`` rolls it clockwise as seen from behind).
+        The rotational part of the motion field at normalised coordinates
+        ``X = (x - cx) / f``, ``Y = (y - cy) / f`` is then
+        ``u = f (X Y wx - (1 + X^2) wy + Y wz)``, ``v = f ((1 + Y^2) wx - X Y wy - X wz)``
+        px/s, whatever the depth (Longuet-Higgins and Prazdny 1980)."""
         ...
 
 
@@ -94,14 +110,15 @@ class ObjectTruth(Protocol):
 
 
 #: every protocol, in the order messages list them
-PROTOCOLS: tuple[type, ...] = (FlowTruth, FoeTruth, TtcTruth, DepthTruth, ObjectTruth)
+PROTOCOLS: tuple[type, ...] = (FlowTruth, FoeTruth, RotationTruth, TtcTruth, DepthTruth,
+                               ObjectTruth)
 
 #: what each protocol is, in words
-KIND: dict[type, str] = {FlowTruth: "flow", FoeTruth: "FOE", TtcTruth: "TTC",
-                         DepthTruth: "depth", ObjectTruth: "object ids"}
+KIND: dict[type, str] = {FlowTruth: "flow", FoeTruth: "FOE", RotationTruth: "camera rotation",
+                         TtcTruth: "TTC", DepthTruth: "depth", ObjectTruth: "object ids"}
 
 #: what ``context.truth`` holds: a provider of one or more of the protocols, or None
-Truth = FlowTruth | FoeTruth | TtcTruth | DepthTruth | ObjectTruth
+Truth = FlowTruth | FoeTruth | RotationTruth | TtcTruth | DepthTruth | ObjectTruth
 
 
 def describe(protocols: Iterable[type]) -> str:

@@ -1,35 +1,61 @@
-"""``foe_fit``: the FOE refined from normal-flow magnitudes with a piecewise-planar scene model."""
+"""``foe_fit``: the FOE (the heading) and the camera's rotation from normal-flow magnitudes with a
+piecewise-planar scene model."""
 
 from __future__ import annotations
 
 import math
+from collections import deque
 
 import numpy as np
 from pydantic import Field
 
 from evchain.core.filter import Filter, FilterParams
-from evchain.core.packets import FlowPacket
+from evchain.core.packets import FlowPacket, Geometry
 from evchain.core.series import FOE, FOE_VOTES
 from evchain.errors import DataError
 
-FOE_DTYPE = FOE.dtype
+_COLUMNS = ("x", "y", "nx", "ny", "s", "e", "c0", "c1", "c2")
+#: the modes of :class:`FoeFit`: no rotation, or the rotation axis that is free (its index)
+LEVEL, PITCHING, TURNING = -1, 0, 1
 
 
 class FoeFit(Filter):
     """Refines the ``foe`` series of ``foe_map`` by fitting the flow speeds of a road and two
-    facades (robust Gauss-Newton; see docs/explanation/foe_ttc.md).
+    facades seen by a translating and turning camera (robust Gauss-Newton; see
+    docs/explanation/foe_ttc.md).
 
-    Under pure translation a road point ``dy`` rows below the FOE (level camera) has inverse
-    time to contact ``a0 dy``, a facade point ``dx`` columns beside it ``a1 |dx|`` (left) or
-    ``a2 |dx|`` (right), so its normal flow speed is ``(p - foe).n`` times that. Every
-    ``estimate_every_us`` the five unknowns are fitted to the flow events of the last
-    ``3 tau_ms`` (weights decaying with ``tau_ms``, Tukey on the relative speed residual), from
-    the previous fit, else from the latest ``foe_map`` estimate. When the fit fails (singular,
-    fewer than ``min_inliers`` decayed inliers, or farther than ``max_deviation_px`` from the
-    voting estimate while a fit started from the votes explains more of the flow: a larger
-    decayed inlier weight) the voting estimate is emitted and the next fit starts from it again.
-    The ``foe_map`` entries move to series ``foe_votes``; series ``foe`` gets one entry per
-    fit (t, x, y, support = decayed inlier weight, total = decayed weight of modelled events).
+    A road point ``dy`` rows below the FOE (level camera) has inverse time to contact ``a0 dy``,
+    a facade point ``dx`` columns beside it ``a1 |dx|`` (left) or ``a2 |dx|`` (right), so its
+    normal flow speed is ``(p - foe).n`` times that, plus the normal component of the rotational
+    flow of the camera's angular velocity ``w`` (independent of depth; needs the focal length).
+    Every ``estimate_every_us`` the FOE, the scales and ``w`` are fitted jointly to the flow
+    events of the last ``3 tau_ms`` (weights decaying with ``tau_ms``, Tukey on the relative
+    speed residual), ``w`` constant within each ``estimate_every_us`` of that stretch, and every
+    event seen in the camera frame of the fit time, turned by the pitch since its time (a
+    car's heading follows its yaw, not its pitch).
+
+    Rotation unknowns are only fitted while the camera turns: normal flow tells a yaw from a
+    sideways shift of the FOE only poorly (both move the image sideways), and a pitch from a
+    shift of the horizon; an axis fitted while it does not turn gives the flow's errors a way
+    to move the FOE. The fit runs in one of three modes. *Level* (the start): no rotation, the
+    FOE from the flow. *Pitching*: pitch free. *Turning*: yaw free, pitch held (under fast yaw
+    the flow's errors pass for pitch) and the FOE's column held at the median of the settled
+    level (or pitching) fits over the last ``heading_memory_s`` before the turn (a car's heading
+    stays fixed in its camera). After each fit the newest ``estimate_every_us`` is refitted
+    with every axis free (the probe); once the fits have run warm for 3 ``tau_ms``, the mode
+    turns to turning (first) or pitching when the median of the last 5 probes turns about that
+    axis faster than ``rotation_threshold_deg_s``, and back to level once that axis stayed
+    below it for 3 ``tau_ms``. Roll is not fitted (held at 0).
+
+    Each fit starts from the previous one, else from the latest ``foe_map`` estimate. When the
+    fit fails (singular, fewer than ``min_inliers`` decayed inliers, or farther than
+    ``max_deviation_px`` from the voting estimate while a fit started from the votes explains
+    more of the flow: a larger decayed inlier weight) the voting estimate is emitted and the
+    next fit starts from it again. The ``foe_map`` entries move to series ``foe_votes``; series
+    ``foe`` gets one entry per fit (t, x, y, support = decayed inlier weight, total = decayed
+    weight of modelled events, the angular velocity wx, wy, wz of the latest
+    ``estimate_every_us`` in deg/s, 0 on an axis the mode holds, and ``rotation`` 1; 0 and
+    ``rotation`` 0 when the votes are emitted or the geometry has no focal length).
 
     A fit needs a voting estimate at most ``tau_ms`` old: with none yet, or none for longer
     (``foe_map`` withholds its estimates while the flow's directions agree no better than
@@ -48,7 +74,16 @@ class FoeFit(Filter):
     class Params(FilterParams):
         tau_ms: float = Field(200.0, gt=0, description="decay time constant of the events' "
                               "weights; events older than 3 tau are dropped")
-        estimate_every_us: int = Field(10000, ge=1, description="period of the fits")
+        estimate_every_us: int = Field(10000, ge=1, description="period of the fits; the "
+                                       "camera's rotation is constant within each such "
+                                       "stretch of the fitted events")
+        rotation_threshold_deg_s: float = Field(
+            3.0, gt=0, description="pitch or yaw is fitted from when the newest rotation "
+            "refitted with every axis free turns about it faster than this, until it stayed "
+            "below for 3 tau (else it is held at 0)")
+        heading_memory_s: float = Field(
+            0.5, gt=0, description="while turning the FOE's column is held at the median of "
+            "the fits over this last stretch before the turn")
         margin_px: float = Field(10.0, ge=0, description="events closer than this to a "
                                  "plane's vanishing line (the FOE's row or column) are left "
                                  "out of that plane")
@@ -67,12 +102,11 @@ class FoeFit(Filter):
 
     def reset(self) -> None:
         from evchain.kernels import foe_fit as k
-        from evchain.kernels.records import record
 
         p = self.params
-        self._prm = record(k.FitParams, margin=p.margin_px, tolerance=p.tolerance,
-                           max_iter=p.max_iter, max_step=3.0)
-        self._buf = {c: np.zeros(0, np.float64) for c in ("x", "y", "nx", "ny", "s", "e")}
+        self._geometry: Geometry | None = None
+        self._prm = None
+        self._buf = {c: np.zeros(0, np.float64) for c in _COLUMNS}
         self._tref = 0  # e = exp((t - tref) / tau): the decay weights, computed once per event
         self._t = np.zeros(0, np.int64)
         self._lo = self._hi = 0  # the buffer's live events: [lo, hi)
@@ -80,16 +114,43 @@ class FoeFit(Filter):
         self._th = k.initial_theta(math.nan, math.nan)
         self._vote: tuple[int, float, float] | None = None
         self._won = -math.inf  # time a far fit last beat a fit started from the votes
+        n_slabs = math.ceil(3 * p.tau_ms * 1000.0 / p.estimate_every_us) + 1
+        self._om = np.zeros((n_slabs, 3))  # rotation Om = f w per slab (px/s), latest first
+        self._om_t: int | None = None  # the fit time of _om
+        self._mode = LEVEL
+        self._probes: deque[np.ndarray] = deque(maxlen=5)  # the latest probed rotations, px/s
+        self._moved = -math.inf  # last time the mode's axis turned faster than the threshold
+        self._level_x: deque[tuple[int, float]] = deque()  # (t, FOE column) of settled fits
+        self._held_x = math.nan  # the FOE column while turning
+        self._warm_since: int | None = None  # time of the first fit since the last cold start
         self._counts = {"fit times": 0, "fits": 0, "votes": 0, "no voting estimate": 0}
+
+    def _start(self, geometry: Geometry) -> None:
+        from evchain.kernels import foe_fit as k
+        from evchain.kernels.records import record
+
+        p = self.params
+        self._geometry = geometry
+        self._rotation = geometry.f is not None
+        self._prm = record(k.FitParams, margin=p.margin_px, tolerance=p.tolerance,
+                           max_iter=p.max_iter, max_step=3.0, slab_us=p.estimate_every_us,
+                           f=geometry.f if self._rotation else 1.0, cx=geometry.cx,
+                           cy=geometry.cy)
+        self._turn_pxs = math.radians(p.rotation_threshold_deg_s) * self._prm.f
 
     def process(self, packet: FlowPacket) -> FlowPacket:
         if not isinstance(packet, FlowPacket):
             raise DataError(f"foe_fit needs a FlowPacket, got {type(packet).__name__}")
         from evchain.kernels import foe_fit as k
 
+        if self._geometry is None:
+            self._start(packet.geometry)
+        elif packet.geometry != self._geometry:
+            raise DataError(f"foe_fit: sensor geometry changed from {self._geometry} to "
+                            f"{packet.geometry}")
         p = self.params
         period, tau_us = int(p.estimate_every_us), p.tau_ms * 1000.0
-        votes = packet.series.get("foe", np.zeros(0, FOE_DTYPE))
+        votes = packet.series.get("foe", np.zeros(0, FOE.dtype))
         vx, vy = packet.vx.astype(np.float64), packet.vy.astype(np.float64)
         s = np.hypot(vx, vy)
         ok = s > 0
@@ -98,11 +159,17 @@ class FoeFit(Filter):
             v = self._buf["e"][self._lo:self._hi]
             v *= math.exp(-(tref - self._tref) / tau_us)
             self._tref = tref
-        new = {"x": packet.x[ok].astype(np.float64), "y": packet.y[ok].astype(np.float64),
-               "nx": vx[ok] / s[ok], "ny": vy[ok] / s[ok], "s": s[ok],
-               "e": np.exp((packet.t[ok] - self._tref) / tau_us)}
+        x, y = packet.x[ok].astype(np.float64), packet.y[ok].astype(np.float64)
+        nx, ny = vx[ok] / s[ok], vy[ok] / s[ok]
+        g = self._geometry
+        if self._rotation:
+            c0, c1, c2 = k.rotation_coefficients(x, y, nx, ny, g.f, g.cx, g.cy)
+        else:
+            c0 = c1 = c2 = np.zeros(len(x))
+        new = {"x": x, "y": y, "nx": nx, "ny": ny, "s": s[ok],
+               "e": np.exp((packet.t[ok] - self._tref) / tau_us), "c0": c0, "c1": c1,
+               "c2": c2}
         self._append(new, packet.t[ok], packet.t_start - int(3 * tau_us))
-        buf, t = self._buf, self._t
         if self._next is None:
             self._next = -(-packet.t_start // period) * period
         rows = []
@@ -114,12 +181,12 @@ class FoeFit(Filter):
                 self._vote = (int(votes["t"][j - 1]), float(votes["x"][j - 1]),
                               float(votes["y"][j - 1]))
             self._counts["fit times"] += 1
-            r = None if self._vote is None else self._fit(k, buf, t, T, tau_us)
+            r = None if self._vote is None else self._fit(k, T, tau_us)
             if r is None:
                 self._counts["no voting estimate"] += 1
                 continue
             rows.append((T, *r))
-        out = np.zeros(len(rows), FOE_DTYPE)
+        out = np.zeros(len(rows), FOE.dtype)
         for i, r in enumerate(rows):
             out[i] = r
         series = dict(packet.series)
@@ -148,30 +215,45 @@ class FoeFit(Filter):
         self._t[hi:hi + m] = t_new
         self._lo, self._hi = lo, hi + m
 
-    def _fit(self, k, buf, t, T, tau_us):
-        """(x, y, support, total) of the fit at T, or the voting estimate's; None when the
-        latest voting estimate is older than tau."""
+    def _index(self, t_us: int) -> int:
+        """The first live event at or after ``t_us``."""
+        return self._lo + int(np.searchsorted(self._t[self._lo:self._hi], t_us))
+
+    def _free(self) -> np.ndarray:
+        """The unknowns of the mode: FOE column, pitch, yaw, roll (:func:`fit`'s ``free``)."""
+        if self._mode == TURNING:
+            return np.array([math.isnan(self._held_x), False, True, False])
+        return np.array([True, self._mode == PITCHING, False, False])
+
+    def _fit(self, k, T, tau_us):
+        """(x, y, support, total, wx, wy, wz) of the fit at T, or the voting estimate's; None
+        when the latest voting estimate is older than tau."""
         p = self.params
         t_vote, vx, vy = self._vote
         if T - t_vote > tau_us:  # the flow has shown no FOE for tau: wait, resume from here
             return None
+        self._shift_slabs(T)
         warm = not math.isnan(self._th[k.FOE_X])
         if not warm:
             self._th = k.initial_theta(vx, vy)
-        lo, hi = self._lo, self._hi
-        i0 = lo + int(np.searchsorted(t[lo:hi], T - int(3 * tau_us)))
-        i1 = lo + int(np.searchsorted(t[lo:hi], T))
+        free = self._free()
+        if not free[0]:
+            self._th[k.FOE_X] = self._held_x
+        i0, i1 = self._index(T - int(3 * tau_us)), self._index(T)
         g = math.exp(-(T - self._tref) / tau_us)
+        events = k.FitEvents(*(self._buf[c] for c in _COLUMNS), self._t)
+        probe = np.zeros(3)
 
-        events = k.FitEvents(buf["x"], buf["y"], buf["nx"], buf["ny"], buf["s"], buf["e"])
-
-        def run(th):
-            ok, inl, tot = k.fit(events, i0, i1, g, th, self._prm)
+        def run(th, om):
+            ok, inl, tot = k.fit(events, i0, i1, T, g, th, om, free, probe, self._prm)
             return ok and inl >= p.min_inliers, inl, tot
 
-        th = self._th.copy()
-        ok, inl, tot = run(th)
-        far = math.hypot(th[k.FOE_X] - vx, th[k.FOE_Y] - vy) > p.max_deviation_px
+        th, om = self._th.copy(), self._om.copy()
+        ok, inl, tot = run(th, om)
+        found = probe.copy()
+        # a held FOE column is not the fit's: only the row can run away
+        far = math.hypot(th[k.FOE_X] - vx if free[0] else 0.0,
+                         th[k.FOE_Y] - vy) > p.max_deviation_px
         if ok and far and warm:
             # Far from the votes: the votes may be the wrong ones (at 15 m/s they err by 30-50 px
             # for seconds). Refit from them; keep the warm fit unless the votes' fit explains
@@ -180,7 +262,9 @@ class FoeFit(Filter):
             # 1/e), which keeps the extra fits to a few per cent while the votes are off.
             if T - self._won >= tau_us:
                 tv = k.initial_theta(vx, vy)
-                okv, inlv, _ = run(tv)
+                if not free[0]:
+                    tv[k.FOE_X] = self._held_x
+                okv, inlv, _ = run(tv, self._om.copy())
                 ok = not okv or inl >= inlv
                 if ok:
                     self._won = T
@@ -189,13 +273,19 @@ class FoeFit(Filter):
         if not far:
             self._won = -math.inf
         if ok:
-            self._th = th
+            self._th, self._om = th, om
             self._counts["fits"] += 1
-            return th[k.FOE_X], th[k.FOE_Y], inl, tot
+            if not warm:
+                self._warm_since = T
+            if self._rotation:
+                self._update_mode(T, th[k.FOE_X], found)
+            if self._rotation:
+                return (th[k.FOE_X], th[k.FOE_Y], inl, tot, *np.degrees(om[0] / self._prm.f), 1)
+            return (th[k.FOE_X], th[k.FOE_Y], inl, tot, 0.0, 0.0, 0.0, 0)
         self._th[:] = np.nan
         self._won = -math.inf
         self._counts["votes"] += 1
-        return vx, vy, inl, tot
+        return (vx, vy, inl, tot, 0.0, 0.0, 0.0, 0)
 
     def flush(self):
         c = self._counts
@@ -203,3 +293,51 @@ class FoeFit(Filter):
             "fit_times": c["fit times"], "fits_kept": c["fits"], "voting_estimates": c["votes"],
             "no_estimate": {"no recent voting estimate": c["no voting estimate"]}}
         return None
+
+    def _update_mode(self, T: int, x: float, probe: np.ndarray) -> None:
+        """Record the fit (its FOE column while not turning, its probed rotation) and switch
+        mode. Only once the fits have run warm for 3 tau (a cold start's FOE is still on its
+        way, and its probes see rotation where there is none): to turning (yaw free) or
+        pitching (pitch free) when the median of the last probes turns about that axis faster
+        than the threshold (turning first, and only with a full memory of settled level FOE
+        columns to hold), back to level once the mode's axis stayed below the threshold for
+        3 tau."""
+        p = self.params
+        memory = int(p.heading_memory_s * 1e6)
+        window = 3 * p.tau_ms * 1000.0
+        settled = T - self._warm_since >= window
+        if self._mode != TURNING and settled:
+            self._level_x.append((T, x))
+            while self._level_x[0][0] < T - memory:
+                self._level_x.popleft()
+        self._probes.append(probe)
+        rate = np.abs(np.median(np.array(self._probes), axis=0))
+        if self._mode != LEVEL and rate[self._mode] >= self._turn_pxs:
+            self._moved = T
+        if not settled:
+            return
+        if (self._mode != TURNING and rate[TURNING] > self._turn_pxs and self._level_x
+                and T - self._level_x[0][0] >= 0.9 * memory):
+            self._mode, self._moved = TURNING, T
+            self._held_x = float(np.median([c for _, c in self._level_x]))
+        elif self._mode == LEVEL and rate[PITCHING] > self._turn_pxs:
+            self._mode, self._moved = PITCHING, T
+        elif self._mode != LEVEL and T - self._moved >= window:
+            if self._mode == TURNING:
+                self._level_x.clear()
+            self._mode, self._held_x = LEVEL, math.nan
+
+    def _shift_slabs(self, T: int) -> None:
+        """Move the slabs' rotations to fit time T: each slab's by the whole slabs since the
+        last fit; new slabs start with the latest rotation, 0 on the axes the mode holds."""
+        if self._om_t is not None:
+            m = (T - self._om_t) // self.params.estimate_every_us
+            latest = self._om[0] * self._free()[1:]
+            if m >= len(self._om):
+                self._om[:] = latest
+            elif m > 0:
+                self._om[m:] = self._om[:-m].copy()
+                self._om[:m] = latest
+            self._om_t += m * self.params.estimate_every_us
+        else:
+            self._om_t = T

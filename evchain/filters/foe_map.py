@@ -12,8 +12,6 @@ from evchain.core.packets import FlowPacket, Geometry
 from evchain.core.series import FOE
 from evchain.errors import DataError
 
-_FOE = FOE.dtype
-
 
 def region_cells(geometry: Geometry, radius_px: float | None):
     """Region A: ``(x0, y0, lo, hi, clo, chi)``: its bounding box origin, the absolute column
@@ -177,7 +175,7 @@ class FoeMap(Filter):
             self._started = True
         n_max = max(0, -(-(packet.t_end - k.next_read(self._state)) // period))
         self._counts["reads"] += n_max
-        out = np.empty(n_max, dtype=_FOE)  # the kernel writes its fields
+        out = np.zeros(n_max, FOE.dtype)  # the kernel writes position and weights; no rotation
         n_votes = np.empty(n_max)
         cell = self.params.cell_px
         if cell == 1:

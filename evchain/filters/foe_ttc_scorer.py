@@ -9,8 +9,8 @@ from pydantic import Field
 
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import FlowPacket
-from evchain.core.series import FOE, FOE_ERROR, TTC, TTC_CLUSTERS, TTC_ERROR
-from evchain.core.truth import FoeTruth, ObjectTruth, TtcTruth, not_scored
+from evchain.core.series import FOE, FOE_ERROR, ROTATION_FIELDS, TTC, TTC_CLUSTERS, TTC_ERROR
+from evchain.core.truth import FoeTruth, ObjectTruth, RotationTruth, TtcTruth, not_scored
 
 
 def _truth_foe(truth: FoeTruth, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -19,6 +19,16 @@ def _truth_foe(truth: FoeTruth, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     x, y = truth.foe(t.astype(np.float64))
     return (np.broadcast_to(np.asarray(x, np.float64), t.shape).copy(),
             np.broadcast_to(np.asarray(y, np.float64), t.shape).copy())
+
+
+def _truth_rotation_deg_s(truth, t: np.ndarray) -> np.ndarray:
+    """The true angular velocity at times ``t`` as ``[len(t), 3]`` deg/s (NaN when the truth
+    has no :class:`~evchain.core.truth.RotationTruth`)."""
+    if not isinstance(truth, RotationTruth) or len(t) == 0:
+        return np.full((len(t), 3), np.nan)
+    w = truth.angular_velocity(t.astype(np.float64))
+    return np.degrees(np.stack([np.broadcast_to(np.asarray(c, np.float64), t.shape)
+                                for c in w], axis=1))
 
 
 def _truth_ttc(truth: TtcTruth, t: np.ndarray) -> np.ndarray:
@@ -144,12 +154,14 @@ class FoeTtcScorer(Filter):
     truth has no TTC). At the end writes ``metrics.foe`` (``dx_mean_px``,
     ``dx_std_px``, ``dy_mean_px``, ``dy_std_px``, ``angle_mean_deg`` after ``warmup_s``;
     thesis eq. 4.1; ``lag_ms``: how late the estimate follows the true FOE where that moves,
-    :func:`foe_lag_ms`; ``window_s``: the seconds after the warm-up that were scored) and
-    ``metrics.ttc`` over the last ``last_window_s`` before collision, sampled every
-    ``sample_every_us`` (a time without an estimate of at most ``max_age_us`` counts as a miss;
-    ``window_s`` and ``window_span_s``: the window actually scored, which is shorter than asked
-    when the stream has a true TTC for less time, and then a warning in ``report.json`` says
-    so; so does a stream no longer than the FOE warm-up):
+    :func:`foe_lag_ms`; ``window_s``: the seconds after the warm-up that were scored;
+    ``rotation_rate_error_deg_s``: the median norm of the difference between the estimated and
+    the true angular velocity, where the ``foe`` entries carry one and the truth knows it,
+    :meth:`_rotation_metrics`) and ``metrics.ttc`` over the last ``last_window_s`` before
+    collision, sampled every ``sample_every_us`` (a time without an estimate of at most
+    ``max_age_us`` counts as a miss; ``window_s`` and ``window_span_s``: the window actually
+    scored, which is shorter than asked when the stream has a true TTC for less time, and then
+    a warning in ``report.json`` says so; so does a stream no longer than the FOE warm-up):
 
     * ``share_on_obstacle_within_20pct`` (the headline): share of the times at which the
       reported cluster lies on the obstacle (the truth's ``object_id`` sees one of its
@@ -180,7 +192,7 @@ class FoeTtcScorer(Filter):
     optional_series = (FOE, TTC, TTC_CLUSTERS)
     adds_series = (FOE_ERROR, TTC_ERROR)
     needs_truth = (FoeTruth, TtcTruth)
-    uses_truth = (ObjectTruth,)
+    uses_truth = (ObjectTruth, RotationTruth)
     output_paths = ("plot_dir",)
 
     class Params(FilterParams):
@@ -230,6 +242,15 @@ class FoeTtcScorer(Filter):
             x, y = np.asarray(foe["x"], np.float64), np.asarray(foe["y"], np.float64)
             err = FOE_ERROR.array(t=t, x=x, y=y, x_true=xt, y_true=yt, dx=x - xt, dy=y - yt,
                                   angle_deg=foe_angle_deg(x, y, xt, yt, g.f, g.cx, g.cy))
+            w = np.stack([np.asarray(foe[c], np.float64) for c in ROTATION_FIELDS], 1)
+            wt = _truth_rotation_deg_s(truth, t)
+            known = np.isfinite(wt).all(axis=1)
+            wt[~known] = 0.0
+            for i, c in enumerate(ROTATION_FIELDS):
+                err[c] = w[:, i]
+                err[c.replace("_deg", "_true_deg")] = wt[:, i]
+            err["rotation_error_deg_s"] = np.where((foe["rotation"] == 1) & known,
+                                                   np.linalg.norm(w - wt, axis=1), -1.0)
             self._foe.append(err)
             self._last_foe = (float(x[-1]), float(y[-1]))
             out = out.with_series(FOE_ERROR.name, err)
@@ -307,14 +328,47 @@ class FoeTtcScorer(Filter):
                 why = (f"no FOE estimate in the {window_s:g} s after the warm-up (the "
                        "estimators' own metrics say why)")
             return {**dict.fromkeys(FOE_KEYS), "n": 0, **base, "lag_ms": None,
-                    "lag_axis": None, "why_none": why}
+                    "lag_axis": None, **self._rotation_metrics(foe[k])[0], "why_none": why}
         adx, ady = np.abs(foe["dx"][k]), np.abs(foe["dy"][k])
         ang = foe["angle_deg"][k]
-        return {"dx_mean_px": float(adx.mean()), "dx_std_px": float(adx.std()),
-                "dy_mean_px": float(ady.mean()), "dy_std_px": float(ady.std()),
-                "angle_mean_deg": float(np.nanmean(ang)) if np.isfinite(ang).any() else None,
-                "angle_std_deg": float(np.nanstd(ang)) if np.isfinite(ang).any() else None,
-                "n": int(k.sum()), **base, **foe_lag_metrics(foe[k])}
+        rotation, why = self._rotation_metrics(foe[k])
+        m = {"dx_mean_px": float(adx.mean()), "dx_std_px": float(adx.std()),
+             "dy_mean_px": float(ady.mean()), "dy_std_px": float(ady.std()),
+             "angle_mean_deg": float(np.nanmean(ang)) if np.isfinite(ang).any() else None,
+             "angle_std_deg": float(np.nanstd(ang)) if np.isfinite(ang).any() else None,
+             "n": int(k.sum()), **base, **foe_lag_metrics(foe[k]), **rotation}
+        if why is not None:
+            m["why_none"] = {key: why for key, v in rotation.items() if v is None}
+        return m
+
+    def _rotation_metrics(self, foe: np.ndarray) -> tuple[dict, str | None]:
+        """The camera's rotation rate against the truth over the scored ``foe_error`` entries,
+        and why they are None (else None): ``rotation_rate_error_deg_s``, the median of
+        |w - w_true| (the norm of the difference of the angular velocity vectors, deg/s) over
+        the entries that carry an estimate; ``rotation_rate_error_wx_deg_s`` (wy, wz): the
+        median of each axis' |difference|; ``rotation_rate_true_deg_s``: the median |w_true|,
+        the scale of what was estimated; ``rotation_coverage``: the share of entries with an
+        estimate. None where nothing was estimated or the truth knows no rotation."""
+        keys = ("rotation_rate_error_deg_s", *(f"rotation_rate_error_{c}" for c in
+                                               ROTATION_FIELDS),
+                "rotation_rate_true_deg_s")
+        if not isinstance(self.truth, RotationTruth):
+            why = not_scored(keys, self.truth, RotationTruth)
+            return {**dict.fromkeys(keys), "rotation_coverage": None, "not_scored": why}, why
+        have = foe["rotation_error_deg_s"] >= 0
+        cover = float(have.mean()) if len(foe) else None
+        if not have.any():
+            return ({**dict.fromkeys(keys), "rotation_coverage": cover},
+                    "no scored FOE estimate carries the camera's angular velocity (foe_map's "
+                    "and foe_lines' never do, foe_fit's only with a focal length and where it "
+                    "fitted)")
+        true = np.stack([foe[c.replace("_deg", "_true_deg")][have] for c in ROTATION_FIELDS], 1)
+        d = np.abs(np.stack([foe[c][have] for c in ROTATION_FIELDS], 1) - true)
+        return {"rotation_rate_error_deg_s": float(np.median(foe["rotation_error_deg_s"][have])),
+                **{f"rotation_rate_error_{c}": float(np.median(d[:, i]))
+                   for i, c in enumerate(ROTATION_FIELDS)},
+                "rotation_rate_true_deg_s": float(np.median(np.linalg.norm(true, axis=1))),
+                "rotation_coverage": cover}, None
 
     def _ttc_metrics(self, ttc: np.ndarray) -> tuple[dict, dict]:
         p = self.params

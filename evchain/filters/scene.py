@@ -10,7 +10,14 @@ from pydantic import Field, model_validator
 from evchain.core.filter import Filter
 from evchain.core.packets import FramePacket
 from evchain.core.series import IMU
-from evchain.core.truth import DepthTruth, FlowTruth, FoeTruth, ObjectTruth, TtcTruth
+from evchain.core.truth import (
+    DepthTruth,
+    FlowTruth,
+    FoeTruth,
+    ObjectTruth,
+    RotationTruth,
+    TtcTruth,
+)
 from evchain.sim.config import SceneConfig
 
 
@@ -21,8 +28,8 @@ class SceneSource(Filter):
     (from the exact motion field at the earlier frame), bounded by ``dt_min_us``/``dt_max_us``;
     ``dt_us`` fixes the step instead (thesis Table 4.4: 20 or 40 µs). Packets cover
     ``packet_us`` slices (shorter when ``max_frames_per_packet`` is reached). Sets
-    ``context.geometry`` (with f, cx, cy), ``context.truth`` (flow, FOE, TTC, depth, object
-    ids) and ``context.renderer`` (frames at any time, for picture sinks). With
+    ``context.geometry`` (with f, cx, cy), ``context.truth`` (flow, FOE, camera rotation, TTC,
+    depth, object ids) and ``context.renderer`` (frames at any time, for picture sinks). With
     ``imu_rate_hz`` the packets carry the camera's simulated IMU as the series ``imu`` (true
     gyro and accelerometer in the camera's axes, with optional bias and seeded noise;
     :mod:`evchain.sim.imu`), as a DAVIS recording does.
@@ -32,7 +39,8 @@ class SceneSource(Filter):
     consumes = None
     produces = FramePacket
     adds_series = (IMU,)
-    provides_truth = (FlowTruth, FoeTruth, TtcTruth, DepthTruth, ObjectTruth)
+    provides_truth = (FlowTruth, FoeTruth, RotationTruth, TtcTruth, DepthTruth,
+                      ObjectTruth)
 
     class Params(SceneConfig):
         packet_us: int = Field(10_000, ge=1, le=10_000_000, description="slice per packet, µs")

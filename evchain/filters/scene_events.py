@@ -11,7 +11,14 @@ from pydantic import Field
 
 from evchain.core.filter import Context, Filter
 from evchain.core.packets import EventPacket
-from evchain.core.truth import DepthTruth, FlowTruth, FoeTruth, ObjectTruth, TtcTruth
+from evchain.core.truth import (
+    DepthTruth,
+    FlowTruth,
+    FoeTruth,
+    ObjectTruth,
+    RotationTruth,
+    TtcTruth,
+)
 from evchain.errors import DataError
 from evchain.sim.config import SceneConfig
 
@@ -21,16 +28,18 @@ class SceneEvents(Filter):
     ground truth, so flow, FOE and TTC experiments on a drive need not render it again.
 
     Give the scene parameters of the run that wrote the file (see its
-    ``pipeline.resolved.yaml``): the truth (flow, depth, FOE, TTC) is computed from them, not
-    read from the file. Sets ``context.geometry`` (with f, cx, cy) and ``context.truth`` (flow,
-    FOE, TTC, depth, object ids). Packets cover the file's events in ``packet_us`` slices from
-    the first; a file without events gives empty slices over the drive's duration.
+    ``pipeline.resolved.yaml``): the truth (flow, depth, FOE, rotation, TTC) is computed from
+    them, not read from the file. Sets ``context.geometry`` (with f, cx, cy) and
+    ``context.truth`` (flow, FOE, camera rotation, TTC, depth, object ids). Packets cover the
+    file's events in ``packet_us`` slices from the first; a file without events gives empty
+    slices over the drive's duration.
     """
 
     name = "scene_events"
     consumes = None
     produces = EventPacket
-    provides_truth = (FlowTruth, FoeTruth, TtcTruth, DepthTruth, ObjectTruth)
+    provides_truth = (FlowTruth, FoeTruth, RotationTruth, TtcTruth, DepthTruth,
+                      ObjectTruth)
     input_paths = ("path",)
 
     class Params(SceneConfig):

@@ -1,22 +1,49 @@
-"""Numba kernel of ``foe_fit``: the FOE from normal-flow magnitudes with a piecewise-planar scene.
+"""Numba kernel of ``foe_fit``: the heading and the rotation of the camera from normal-flow
+magnitudes with a piecewise-planar scene.
 
-For pure translation a point at image position p with inverse time to contact ``g`` has flow
-``(p - foe) g``; its normal flow along the unit normal n has speed ``s = (p - foe).n g``. Three
-planes are modelled, each with its own scale: the road seen by a level camera (``g = a0 dy``,
-``dy = y - y_foe`` rows below the FOE), a facade left of the FOE (``g = a1 (x_foe - x)``) and one
-right of it (``g = a2 (x - x_foe)``). Unknowns ``th = (x_foe, y_foe, a0, a1, a2)``.
+A point at image position p with inverse time to contact ``g`` seen by a camera translating
+towards the FOE and turning at ``w`` has flow ``(p - foe) g + B(p) w``, where ``B(p) w`` is the
+rotational flow of a pinhole camera (independent of depth). Its normal flow along the unit
+normal n has speed ``s = (p - foe).n g + c.Om`` with ``Om = f w`` in px/s (the rotational flow
+at the principal point) and ``c = n.B(p) / f`` (:func:`rotation_coefficients`). Three planes
+are modelled, each with its own scale: the road seen by a level camera (``g = a0 dy``,
+``dy = y - y_foe`` rows below the FOE), a facade left of the FOE (``g = a1 (x_foe - x)``) and
+one right of it (``g = a2 (x - x_foe)``). Unknowns ``th = (x_foe, y_foe, a0, a1, a2)`` and the
+rotation ``om[k]`` of every slab ``k``: the events of a fit span several hundred ms while the
+rotation changes faster (a pitch oscillation at 2 Hz), so it is piecewise constant in time,
+one ``Om`` per slab of ``slab_us`` counted back from the fit time T (slab k: times in
+``[T - (k + 1) slab_us, T - k slab_us)``). Everything is fitted jointly every time, nothing is
+carried from earlier fits but the starting point: rotation and a shifted FOE explain much of
+each other's flow, and a rotation fixed from earlier fits lets that shared part drift.
+
+Pitch (turning about the camera's x axis) also moves the heading in the image, since a car's
+heading does not follow its pitch: every event is first mapped into the camera frame of the
+fit time by the rotation about the x axis between its time and T, integrated from the slabs'
+pitch rates at the start of the fit (:func:`warp_pitch`); there the FOE and the road plane are
+those of time T. Yaw is not undone: a car's heading turns with its yaw, so in the camera frame
+the FOE stays.
 
 A fit is iteratively reweighted Gauss-Newton: every event within ``margin`` px of a plane's
 vanishing line is left out of that plane; each remaining event is assigned to the plane that
 predicts its speed best and weighs ``w_t (1 - (e/c)^2)^2 / pred^2`` (Tukey on the residual
 relative to the predicted speed, ``e = |s - pred| / pred``, decay ``w_t`` by age): the flow's
-error grows with the true speed, of which ``pred`` is the model's estimate; dividing by the
-measured ``s`` instead favours speeds measured too slow. Converging events (``(p - foe).n <=
-0``) and events without a positive prediction are left out. A plane's scale without a value
-starts as the weighted median of ``s / ((p - foe).n d)`` of its events; for the facades only
-of events above the FOE's row, where a level camera sees no road (below it the road's events,
-far more numerous, would set the facades' scales several times too large, a wrong local
-minimum the fit does not leave).
+error grows with the true speed, of which ``pred`` (translation and rotation) is the model's
+estimate; dividing by the measured ``s`` instead favours speeds measured too slow. Events
+without a positive prediction are left out. The normal equations have an arrow shape (each
+slab's 3 x 3 block, the 5 shared unknowns coupling all) and are solved through the Schur
+complement of the slab blocks. A plane's scale without a value starts as the weighted median
+of ``(s - c.Om) / ((p - foe).n d)`` over its events with ``(p - foe).n > 0``; for the facades
+only of events above the FOE's row, where a level camera sees no road (below it the road's
+events, far more numerous, would set the facades' scales several times too large, a wrong
+local minimum the fit does not leave).
+
+The unknowns a fit may change are chosen per call (``free``: the FOE's column, each rotation
+axis); the others keep their values. Rotation and scales feed each other's starting values:
+a cold start (scales unknown) alternates scales from the rotations and each slab's rotation
+from the scales by least absolute residuals (:func:`_slab_l1`), which reaches a rotation far
+from its start where the Tukey weights would reject the whole slab; a warm start does that for
+the newest slab only (a curve's sudden yaw). After the fit, the same is done for the newest
+slab with every axis free (``probe``): how fast the camera turns about the axes the fit held.
 """
 
 from __future__ import annotations
@@ -27,20 +54,32 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-#: the unknowns ``th``: the FOE (px) and the three planes' scales (road, left, right facade)
+#: the shared unknowns ``th``: the FOE (px) and the three planes' scales (road, left, right
+#: facade; 1/(s px))
 FOE_X, FOE_Y, ROAD, LEFT, RIGHT = range(5)
 NP = 5
+#: rounds of scales from the rotations and rotations from the scales in a cold start, and
+#: iterations of :func:`_slab_l1`
+COLD_ROUNDS = 3
+L1_ITER = 8
+#: sums per slab of :func:`_pass`: 6 of the 3 x 3 block, 6 with the FOE, 9 with the planes
+#: (road, left, right x the 3 axes), 3 of the right-hand side
+NS = 24
 
 
 class FitEvents(NamedTuple):
-    """The flow events a fit sees (float64 arrays, one entry per event, in time order)."""
+    """The flow events a fit sees (one entry per event, in time order)."""
 
-    x: np.ndarray   #: position, px
+    x: np.ndarray   #: position, px (float64)
     y: np.ndarray
     nx: np.ndarray  #: unit normal (the flow's direction)
     ny: np.ndarray
     s: np.ndarray   #: normal flow speed, px/s (> 0)
     e: np.ndarray   #: decay weight exp((t - t_ref) / tau)
+    c0: np.ndarray  #: rotational normal speed per unit ``Om`` (:func:`rotation_coefficients`)
+    c1: np.ndarray
+    c2: np.ndarray
+    t: np.ndarray   #: time, µs (int64)
 
 
 class FitParams(NamedTuple):
@@ -50,14 +89,30 @@ class FitParams(NamedTuple):
     tolerance: float  #: Tukey constant on the relative speed residual
     max_iter: int     #: Gauss-Newton iterations
     max_step: float   #: largest FOE step per iteration, px
+    slab_us: int      #: the rotation is constant within slabs of this length, µs
+    f: float          #: focal length, px
+    cx: float         #: principal point, px
+    cy: float
 
 
 def initial_theta(foe_x: float, foe_y: float) -> np.ndarray:
-    """Unknowns for a fit starting at the FOE (foe_x, foe_y), the planes' scales unknown."""
+    """Shared unknowns for a fit starting at the FOE (foe_x, foe_y), the planes' scales
+    unknown."""
     th = np.full(NP, np.nan)
     th[FOE_X] = foe_x
     th[FOE_Y] = foe_y
     return th
+
+
+def rotation_coefficients(x, y, nx, ny, f: float, cx: float, cy: float):
+    """``(c0, c1, c2)``: the normal speed (px/s) that a rotation ``Om = f w`` (px/s) gives an
+    event at (x, y) with unit normal (nx, ny) is ``c0 Om_x + c1 Om_y + c2 Om_z``. With
+    ``X = (x - cx) / f``, ``Y = (y - cy) / f`` the rotational flow is
+    ``u = f (X Y wx - (1 + X^2) wy + Y wz)``, ``v = f ((1 + Y^2) wx - X Y wy - X wz)``
+    (Longuet-Higgins and Prazdny 1980; :class:`~evchain.core.truth.RotationTruth`)."""
+    X = (np.asarray(x, np.float64) - cx) / f
+    Y = (np.asarray(y, np.float64) - cy) / f
+    return (nx * X * Y + ny * (1.0 + Y * Y), -nx * (1.0 + X * X) - ny * X * Y, nx * Y - ny * X)
 
 
 @njit(cache=True, error_model="numpy")
@@ -87,6 +142,52 @@ def solve(A, b):
             acc -= A[k, j] * b[j]
         b[k] = acc / A[k, k]
     return True
+
+
+@njit(cache=True, error_model="numpy")
+def slab_bounds(t, i0, i1, T, slab_us, n_slabs):
+    """``lo[k], hi[k]``: the events ``i0 <= i < i1`` of slab k (times in ``[T - (k + 1)
+    slab_us, T - k slab_us)``), as indices from ``i0``; ``t`` sorted."""
+    lo = np.zeros(n_slabs, np.int64)
+    hi = np.zeros(n_slabs, np.int64)
+    tt = t[i0:i1]
+    for k in range(n_slabs):
+        hi[k] = np.searchsorted(tt, T - k * slab_us)
+        lo[k] = np.searchsorted(tt, T - (k + 1) * slab_us)
+    return lo, hi
+
+
+@njit(cache=True, error_model="numpy", fastmath={"reassoc", "contract"})
+def warp_pitch(events, i0, T, lo, hi, om, prm, xw, yw, mx, my):
+    """Each event seen in the camera frame of time T: turned about the camera's x axis by the
+    pitch ``b`` from T back to its time, integrated from the slabs' pitch rates
+    ``om[k, 0] / f`` (rad/s), a ray (X, Y, 1) becomes (X, Y cos b - sin b, Y sin b + cos b).
+    Writes for the event ``i0 + j`` the position (px) ``xw[j]``, ``yw[j]`` and ``m = J^-T n``
+    into ``mx[j]``, ``my[j]``, the normal mapped so that ``m . v' = n . v`` for a flow v' in the
+    new frame (J: the map's Jacobian; m is not unit). ``|b|`` is small (a fraction of a
+    radian): sine and cosine by their series to 5th and 4th order (error below 1e-8 at
+    0.1 rad)."""
+    x, y, nx, ny, t = events.x, events.y, events.nx, events.ny, events.t
+    inv_f = 1.0 / prm.f
+    cx, cy, f = prm.cx, prm.cy, prm.f
+    end = 0.0  # pitch at the slab's later end, relative to T (rad)
+    for k in range(len(lo)):
+        rate = om[k, 0] * inv_f * 1e-6  # rad/us
+        t_end = T - k * prm.slab_us
+        for j in range(lo[k], hi[k]):
+            b = end - rate * (t_end - t[i0 + j])
+            b2 = b * b
+            sb = b * (1.0 - b2 * (1.0 / 6.0 - b2 * (1.0 / 120.0)))
+            cb = 1.0 - b2 * (0.5 - b2 * (1.0 / 24.0))
+            X = (x[i0 + j] - cx) * inv_f
+            Y = (y[i0 + j] - cy) * inv_f
+            D = sb * Y + cb
+            iD = 1.0 / D
+            xw[j] = cx + f * X * iD
+            yw[j] = cy + f * (cb * Y - sb) * iD
+            mx[j] = D * nx[i0 + j]
+            my[j] = X * sb * D * nx[i0 + j] + D * D * ny[i0 + j]
+        end -= rate * prm.slab_us
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -122,109 +223,296 @@ def _weighted_median(r, w, m):
 
 
 @njit(cache=True, error_model="numpy")
-def _init_scales(x, y, nx, ny, s, e, g, i0, i1, th, margin):
-    """Each plane scale without a value: the weighted median of s / ((p - foe).n d) over the
-    plane's events (the facades' only above the FOE's row); left NaN without events."""
+def _init_scales(w, lo, hi, om, g, th, margin):
+    """Each plane scale without a value: the weighted median of (s - c.Om) / ((p - foe).n d)
+    over the plane's events with (p - foe).n > 0 (the facades' only above the FOE's row); left
+    NaN without events. ``w``: the window of :func:`_window`."""
+    xw, yw, mx, my, s, e, c0, c1, c2 = w
+    n = len(xw)
     for k in range(3):
         if not math.isnan(th[ROAD + k]):
             continue
-        r = np.empty(i1 - i0)
-        w = np.empty(i1 - i0)
+        rr = np.empty(n)
+        ww = np.empty(n)
         m = 0
-        for i in range(i0, i1):
-            dxx = x[i] - th[FOE_X]
-            dyy = y[i] - th[FOE_Y]
-            dn = dxx * nx[i] + dyy * ny[i]
-            if dn > 0.0 and _applies(k, dxx, dyy, margin) and (k == 0 or dyy < -margin):
-                r[m] = s[i] / (dn * _lever(k, dxx, dyy))
-                w[m] = e[i] * g
-                m += 1
+        for q in range(len(lo)):
+            for j in range(lo[q], hi[q]):
+                dxx = xw[j] - th[FOE_X]
+                dyy = yw[j] - th[FOE_Y]
+                dn = dxx * mx[j] + dyy * my[j]
+                if dn > 0.0 and _applies(k, dxx, dyy, margin) and (k == 0 or dyy < -margin):
+                    rot = c0[j] * om[q, 0] + c1[j] * om[q, 1] + c2[j] * om[q, 2]
+                    rr[m] = (s[j] - rot) / (dn * _lever(k, dxx, dyy))
+                    ww[m] = e[j] * g
+                    m += 1
         if m > 0:
-            med = _weighted_median(r, w, m)
+            med = _weighted_median(rr, ww, m)
             if not math.isnan(med):
                 th[ROAD + k] = med
 
 
-@njit(cache=True, error_model="numpy", fastmath={"reassoc", "contract"})
-def _sums(x, y, nx, ny, s, e, i0, i1, g, th, margin, c):
-    """One pass of the Gauss-Newton normal equations at ``th``: the 19 sums
-    (a00, a01, a11, b0, b1, inlier weight, applicable weight, then per plane road / left /
-    right: w J0 Ja, w J1 Ja, w Ja Ja, w r Ja). Branch-free (selects, one accumulator per sum,
-    reassociated) so that LLVM vectorises it; the sums' order differs from a plain loop only
-    in rounding."""
-    xf, yf = th[0], th[1]
+@njit(cache=True, error_model="numpy")
+def _slab_l1(w, a, b, g, th, om, k, margin, c, n_iter, free):
+    """A robust start for slab k's rotation with the shared unknowns held: ``n_iter``
+    iteratively reweighted least-squares steps towards the least relative residual
+    ``sum w_t rho(|s - pred| / s)`` over the slab's events ``a <= j < b`` (each assigned to the
+    plane predicting it best), rho Huber's: squared up to the Tukey constant ``c``, absolute
+    beyond (a pure absolute residual passes through a few events and is ill-conditioned).
+    Unlike the Tukey weights of the fit, this reaches a rotation far from the start (a curve's
+    sudden yaw, a cold start) and is pulled little by outliers. Axes that are not ``free`` keep
+    their values."""
+    xw, yw, mx, my, s, e, c0, c1, c2 = w
+    K = np.empty((3, 3))
+    h = np.empty(3)
+    C = np.empty((3, NP))
+    for _ in range(n_iter):
+        K[:] = 0.0
+        h[:] = 0.0
+        o0, o1, o2 = om[k, 0], om[k, 1], om[k, 2]
+        h0 = 0.0 if free[1] else o0  # the held axes' part of the rotation
+        h1 = 0.0 if free[2] else o1
+        h2 = 0.0 if free[3] else o2
+        for j in range(a, b):
+            dxx = xw[j] - th[FOE_X]
+            dyy = yw[j] - th[FOE_Y]
+            dn = dxx * mx[j] + dyy * my[j]
+            rot = c0[j] * o0 + c1[j] * o1 + c2[j] * o2
+            err = np.inf
+            pt = 0.0
+            for q in range(3):
+                if math.isnan(th[ROAD + q]) or not _applies(q, dxx, dyy, margin):
+                    continue
+                pq = th[ROAD + q] * dn * _lever(q, dxx, dyy)
+                eq = abs(s[j] - pq - rot)
+                if eq < err:
+                    err, pt = eq, pq
+            if err == np.inf:
+                continue
+            wt = e[j] * g / (s[j] * max(err, c * s[j]))
+            z0, z1, z2 = c0[j], c1[j], c2[j]
+            rr = s[j] - pt - (z0 * h0 + z1 * h1 + z2 * h2)
+            K[0, 0] += wt * z0 * z0
+            K[0, 1] += wt * z0 * z1
+            K[0, 2] += wt * z0 * z2
+            K[1, 1] += wt * z1 * z1
+            K[1, 2] += wt * z1 * z2
+            K[2, 2] += wt * z2 * z2
+            h[0] += wt * z0 * rr
+            h[1] += wt * z1 * rr
+            h[2] += wt * z2 * rr
+        K[1, 0], K[2, 0], K[2, 1] = K[0, 1], K[0, 2], K[1, 2]
+        _hold(K, C, h, free)
+        tr = K[0, 0] + K[1, 1] + K[2, 2]
+        if not tr > 0.0:
+            return
+        for q in range(3):
+            K[q, q] += 1e-9 * tr
+        good, inv = _inverse3(K)
+        if not good:
+            return
+        for q in range(3):
+            if free[1 + q]:
+                om[k, q] = inv[q, 0] * h[0] + inv[q, 1] * h[1] + inv[q, 2] * h[2]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _event(dxx, dyy, mxj, myj, sj, rot, wti, a0, al, ar, has_road, has_l, has_r, margin, c):
+    """The model at one event (translational part from the FOE offset ``dxx, dyy`` and the
+    normal ``mxj, myj``, rotational part ``rot``, decay weight ``wti``), assigned to the plane
+    predicting it best (road wins ties): (applicable weight, inlier weight, robust weight,
+    residual, J0, J1, Ja, is road, is left facade, is right facade). Branch-free."""
+    dn = dxx * mxj + dyy * myj
+    road_ok = has_road and dyy > margin
+    left = dxx < 0.0
+    adx = abs(dxx)
+    a_s = al if left else ar
+    side_ok = adx > margin and (has_l if left else has_r)
+    pr = a0 * dn * dyy + rot
+    ps = a_s * dn * adx + rot
+    er = abs(sj - pr) if road_ok else np.inf
+    es = abs(sj - ps) if side_ok else np.inf
+    use_side = es < er
+    re = es if use_side else er
+    pred = ps if use_side else pr
+    valid = re < np.inf and pred > 0.0
+    u = re / (pred * c) if valid else 1.0
+    inlier = u < 1.0
+    v = 1.0 - u * u
+    wt = wti * v * v / (pred * pred) if inlier else 0.0
+    sg = 1.0 if left else -1.0
+    j0 = sg * a_s * (mxj * dxx + dn) if use_side else -a0 * mxj * dyy
+    j1 = sg * a_s * myj * dxx if use_side else -a0 * (myj * dyy + dn)
+    ja = dn * adx if use_side else dn * dyy
+    mr = 0.0 if use_side else 1.0
+    ml = 1.0 if use_side and left else 0.0
+    mq = 1.0 if use_side and not left else 0.0
+    return (wti if valid else 0.0, wti if inlier else 0.0, wt, sj - pred, j0, j1, ja, mr, ml,
+            mq)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _scales(th):
+    """(a0, al, ar, has_road, has_l, has_r): the planes' scales, 0 where unknown."""
     has_road = not math.isnan(th[2])
     has_l = not math.isnan(th[3])
     has_r = not math.isnan(th[4])
-    a0 = th[2] if has_road else 0.0
-    al = th[3] if has_l else 0.0
-    ar = th[4] if has_r else 0.0
+    return (th[2] if has_road else 0.0, th[3] if has_l else 0.0, th[4] if has_r else 0.0,
+            has_road, has_l, has_r)
+
+
+@njit(cache=True, error_model="numpy", fastmath={"reassoc", "contract"})
+def _shared_sums(w, a, b, om0, om1, om2, g, th, margin, c, out):
+    """One Gauss-Newton pass over the events ``a <= j < b`` of one slab with rotation
+    ``(om0, om1, om2)`` held: adds the 19 shared sums to ``out[:19]`` (a00, a01, a11, b0, b1,
+    inlier weight, applicable weight, then per plane road / left / right: w J0 Ja, w J1 Ja,
+    w Ja Ja, w r Ja). Branch-free (selects, one accumulator per sum, reassociated) so that LLVM
+    vectorises it; the sums' order differs from a plain loop only in rounding."""
+    xw, yw, mx, my, s, e, cc0, cc1, cc2 = w
+    xf, yf = th[0], th[1]
+    a0, al, ar, has_road, has_l, has_r = _scales(th)
     a00 = a01 = a11 = b0 = b1 = inl = tot = 0.0
     r0 = r1 = r2 = r3 = l0 = l1 = l2 = l3 = q0 = q1 = q2 = q3 = 0.0
-    for i in range(i0, i1):
-        dxx = x[i] - xf
-        dyy = y[i] - yf
-        dn = dxx * nx[i] + dyy * ny[i]
-        si = s[i]
-        road_ok = has_road and dyy > margin
-        left = dxx < 0.0
-        adx = abs(dxx)
-        a_s = al if left else ar
-        side_ok = adx > margin and (has_l if left else has_r)
-        pr = a0 * dn * dyy
-        ps = a_s * dn * adx
-        er = abs(si - pr) if road_ok else np.inf
-        es = abs(si - ps) if side_ok else np.inf
-        use_side = es < er  # road wins ties
-        re = es if use_side else er
-        pred = ps if use_side else pr
-        valid = dn > 0.0 and re < np.inf and pred > 0.0
-        u = re / (pred * c) if valid else 1.0
-        wti = e[i] * g
-        tot += wti if valid else 0.0
-        inlier = u < 1.0
-        inl += wti if inlier else 0.0
-        v = 1.0 - u * u
-        w = wti * v * v / (pred * pred) if inlier else 0.0
-        sg = 1.0 if left else -1.0
-        j0 = sg * a_s * (nx[i] * dxx + dn) if use_side else -a0 * nx[i] * dyy
-        j1 = sg * a_s * ny[i] * dxx if use_side else -a0 * (ny[i] * dyy + dn)
-        ja = dn * adx if use_side else dn * dyy
-        wr = w * (si - pred)
-        wj0 = w * j0
-        wj1 = w * j1
+    for j in range(a, b):
+        rot = cc0[j] * om0 + cc1[j] * om1 + cc2[j] * om2
+        vw, iw, wt, res, j0, j1, ja, mr, ml, mq = _event(
+            xw[j] - xf, yw[j] - yf, mx[j], my[j], s[j], rot, e[j] * g, a0, al, ar, has_road,
+            has_l, has_r, margin, c)
+        tot += vw
+        inl += iw
+        wr = wt * res
+        wj0 = wt * j0
+        wj1 = wt * j1
         a00 += wj0 * j0
         a01 += wj0 * j1
         a11 += wj1 * j1
         b0 += wr * j0
         b1 += wr * j1
-        c0 = wj0 * ja
-        c1 = wj1 * ja
-        c2 = w * ja * ja
-        c3 = wr * ja
-        mr = 0.0 if use_side else 1.0
-        ml = 1.0 if use_side and left else 0.0
-        mq = 1.0 if use_side and not left else 0.0
-        r0 += mr * c0
-        r1 += mr * c1
-        r2 += mr * c2
-        r3 += mr * c3
-        l0 += ml * c0
-        l1 += ml * c1
-        l2 += ml * c2
-        l3 += ml * c3
-        q0 += mq * c0
-        q1 += mq * c1
-        q2 += mq * c2
-        q3 += mq * c3
-    return (a00, a01, a11, b0, b1, inl, tot, r0, r1, r2, r3, l0, l1, l2, l3, q0, q1, q2, q3)
+        d0 = wj0 * ja
+        d1 = wj1 * ja
+        d2 = wt * ja * ja
+        d3 = wr * ja
+        r0 += mr * d0
+        r1 += mr * d1
+        r2 += mr * d2
+        r3 += mr * d3
+        l0 += ml * d0
+        l1 += ml * d1
+        l2 += ml * d2
+        l3 += ml * d3
+        q0 += mq * d0
+        q1 += mq * d1
+        q2 += mq * d2
+        q3 += mq * d3
+    shared = (a00, a01, a11, b0, b1, inl, tot, r0, r1, r2, r3, l0, l1, l2, l3, q0, q1, q2, q3)
+    for i in range(19):
+        out[i] += shared[i]
+
+
+@njit(cache=True, error_model="numpy", fastmath={"reassoc", "contract"})
+def _slab_sums(w, a, b, om0, om1, om2, g, th, margin, c, out):
+    """As :func:`_shared_sums`, and writes the slab's :data:`NS` sums of its rotation to
+    ``out[19:]`` (w c c^T: 00 01 02 11 12 22; w c J0, w c J1 per axis; w c Ja per plane and
+    axis; w r c per axis)."""
+    xw, yw, mx, my, s, e, cc0, cc1, cc2 = w
+    xf, yf = th[0], th[1]
+    a0, al, ar, has_road, has_l, has_r = _scales(th)
+    a00 = a01 = a11 = b0 = b1 = inl = tot = 0.0
+    r0 = r1 = r2 = r3 = l0 = l1 = l2 = l3 = q0 = q1 = q2 = q3 = 0.0
+    k00 = k01 = k02 = k11 = k12 = k22 = 0.0
+    f00 = f01 = f10 = f11 = f20 = f21 = 0.0
+    p0r = p1r = p2r = p0l = p1l = p2l = p0q = p1q = p2q = 0.0
+    h0 = h1 = h2 = 0.0
+    for j in range(a, b):
+        z0, z1, z2 = cc0[j], cc1[j], cc2[j]
+        rot = z0 * om0 + z1 * om1 + z2 * om2
+        vw, iw, wt, res, j0, j1, ja, mr, ml, mq = _event(
+            xw[j] - xf, yw[j] - yf, mx[j], my[j], s[j], rot, e[j] * g, a0, al, ar, has_road,
+            has_l, has_r, margin, c)
+        tot += vw
+        inl += iw
+        wr = wt * res
+        wj0 = wt * j0
+        wj1 = wt * j1
+        a00 += wj0 * j0
+        a01 += wj0 * j1
+        a11 += wj1 * j1
+        b0 += wr * j0
+        b1 += wr * j1
+        d0 = wj0 * ja
+        d1 = wj1 * ja
+        d2 = wt * ja * ja
+        d3 = wr * ja
+        r0 += mr * d0
+        r1 += mr * d1
+        r2 += mr * d2
+        r3 += mr * d3
+        l0 += ml * d0
+        l1 += ml * d1
+        l2 += ml * d2
+        l3 += ml * d3
+        q0 += mq * d0
+        q1 += mq * d1
+        q2 += mq * d2
+        q3 += mq * d3
+        w0 = wt * z0
+        w1 = wt * z1
+        w2 = wt * z2
+        k00 += w0 * z0
+        k01 += w0 * z1
+        k02 += w0 * z2
+        k11 += w1 * z1
+        k12 += w1 * z2
+        k22 += w2 * z2
+        f00 += w0 * j0
+        f01 += w0 * j1
+        f10 += w1 * j0
+        f11 += w1 * j1
+        f20 += w2 * j0
+        f21 += w2 * j1
+        p0r += w0 * ja * mr
+        p1r += w1 * ja * mr
+        p2r += w2 * ja * mr
+        p0l += w0 * ja * ml
+        p1l += w1 * ja * ml
+        p2l += w2 * ja * ml
+        p0q += w0 * ja * mq
+        p1q += w1 * ja * mq
+        p2q += w2 * ja * mq
+        h0 += wr * z0
+        h1 += wr * z1
+        h2 += wr * z2
+    shared = (a00, a01, a11, b0, b1, inl, tot, r0, r1, r2, r3, l0, l1, l2, l3, q0, q1, q2, q3)
+    for i in range(19):
+        out[i] += shared[i]
+    slab = (k00, k01, k02, k11, k12, k22, f00, f01, f10, f11, f20, f21,
+            p0r, p1r, p2r, p0l, p1l, p2l, p0q, p1q, p2q, h0, h1, h2)
+    for i in range(NS):
+        out[19 + i] = slab[i]
 
 
 @njit(cache=True, error_model="numpy")
-def _normal_equations(sm, A, b):
-    """The Gauss-Newton system from the sums of :func:`_sums` (J is 0 off each event's
-    plane)."""
+def _pass(w, lo, hi, om, g, th, margin, c, rotating, shared, slabs):
+    """One Gauss-Newton pass over every slab: the 19 shared sums into ``shared`` and, when
+    some rotation axis is free (``rotating``), each slab's :data:`NS` sums into ``slabs[k]``
+    (see :func:`_slab_sums`; else they are 0)."""
+    out = np.zeros(19 + NS)
+    slabs[:] = 0.0
+    for k in range(len(lo)):
+        if rotating:
+            out[19:] = 0.0
+            _slab_sums(w, lo[k], hi[k], om[k, 0], om[k, 1], om[k, 2], g, th, margin, c, out)
+            slabs[k, :] = out[19:]
+        else:
+            _shared_sums(w, lo[k], hi[k], om[k, 0], om[k, 1], om[k, 2], g, th, margin, c, out)
+    shared[:] = out[:19]
+
+
+@njit(cache=True, error_model="numpy")
+def _shared_system(sm, A, b):
+    """The 5 x 5 Gauss-Newton system of the shared unknowns from the sums of
+    :func:`_slab_sums` (J is 0 off each event's plane)."""
     A[:] = 0.0
+    b[:] = 0.0
     A[0, 0], A[0, 1], A[1, 0], A[1, 1] = sm[0], sm[1], sm[1], sm[2]
     b[0], b[1] = sm[3], sm[4]
     for k in range(3):  # per plane: w J0 Ja, w J1 Ja, w Ja Ja, w r Ja
@@ -235,16 +523,34 @@ def _normal_equations(sm, A, b):
 
 
 @njit(cache=True, error_model="numpy")
-def _condition(A, b):
-    """Keep the scale of a plane without events (its row and column become the identity, no
-    step) and add a 1e-9 ridge relative to the trace; False when the trace is not positive."""
+def _slab_system(sl, K, C, h):
+    """A slab's block ``K`` (3 x 3, w c c^T), its coupling ``C`` to the shared unknowns
+    (3 x 5, w c J^T) and right-hand side ``h`` (w r c) from its sums."""
+    K[0, 0], K[0, 1], K[0, 2] = sl[0], sl[1], sl[2]
+    K[1, 0], K[1, 1], K[1, 2] = sl[1], sl[3], sl[4]
+    K[2, 0], K[2, 1], K[2, 2] = sl[2], sl[4], sl[5]
+    for a in range(3):
+        C[a, FOE_X] = sl[6 + 2 * a]
+        C[a, FOE_Y] = sl[7 + 2 * a]
+        for p in range(3):
+            C[a, ROAD + p] = sl[12 + 3 * p + a]
+        h[a] = sl[21 + a]
+
+
+@njit(cache=True, error_model="numpy")
+def _condition(A, b, free_x):
+    """Keep a plane's scale without events, and the FOE's column unless ``free_x`` (their row
+    and column become the identity, no step), and add a 1e-9 ridge relative to the trace;
+    False when the trace is not positive. Returns the kept unknowns as a mask."""
+    keep = np.zeros(NP, np.bool_)
     tr = 0.0
     for p in range(NP):
         tr += A[p, p]
     if not tr > 0.0:
-        return False
+        return False, keep
     for p in range(NP):
-        if A[p, p] <= 1e-12 * tr:  # a plane without events: keep its scale
+        if A[p, p] <= 1e-12 * tr or (p == FOE_X and not free_x):  # keep the value
+            keep[p] = True
             for q in range(NP):
                 A[p, q] = 0.0
                 A[q, p] = 0.0
@@ -252,26 +558,144 @@ def _condition(A, b):
             b[p] = 0.0
         else:
             A[p, p] += 1e-9 * tr
+    return True, keep
+
+
+@njit(cache=True, error_model="numpy")
+def _hold(K, C, h, free):
+    """Hold the rotation axes that are not free (``free[1 + a]`` False): their rows and
+    columns of a slab's block become the identity, their coupling and right-hand side 0."""
+    for a in range(3):
+        if not free[1 + a]:
+            K[a, :] = 0.0
+            K[:, a] = 0.0
+            K[a, a] = 1.0
+            C[a, :] = 0.0
+            h[a] = 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def _inverse3(K):
+    """(True, the inverse) of a symmetric 3 x 3 matrix with a positive determinant (adjugate
+    over determinant), else (False, undefined values)."""
+    a, b_, c = K[0, 0], K[0, 1], K[0, 2]
+    d, e, f = K[1, 1], K[1, 2], K[2, 2]
+    i00 = d * f - e * e
+    i01 = c * e - b_ * f
+    i02 = b_ * e - c * d
+    det = a * i00 + b_ * i01 + c * i02
+    inv = np.empty((3, 3))
+    if not det > 0.0:
+        return False, inv
+    inv[0, 0] = i00 / det
+    inv[0, 1] = inv[1, 0] = i01 / det
+    inv[0, 2] = inv[2, 0] = i02 / det
+    inv[1, 1] = (a * f - c * c) / det
+    inv[1, 2] = inv[2, 1] = (b_ * c - a * e) / det
+    inv[2, 2] = (a * d - b_ * b_) / det
+    return True, inv
+
+
+@njit(cache=True, error_model="numpy")
+def _step(shared, slabs, A, b, d_om, free):
+    """The Gauss-Newton step: ``b`` (the shared unknowns' step) and ``d_om`` (each slab's)
+    from the arrow-shaped system, by the Schur complement of the slab blocks. A slab without
+    events (a block with no positive trace) keeps its rotation. False when singular."""
+    _shared_system(shared, A, b)
+    ok, keep = _condition(A, b, free[0])
+    if not ok:
+        return False
+    n = slabs.shape[0]
+    K = np.empty((3, 3))
+    C = np.empty((3, NP))
+    h = np.empty(3)
+    invs = np.zeros((n, 3, 3))
+    live = np.zeros(n, np.bool_)
+    for k in range(n):
+        _slab_system(slabs[k], K, C, h)
+        tr = K[0, 0] + K[1, 1] + K[2, 2]
+        if not tr > 0.0:
+            continue
+        _hold(K, C, h, free)
+        for a in range(3):
+            K[a, a] += 1e-9 * tr
+        good, inv = _inverse3(K)
+        if not good:
+            continue
+        live[k] = True
+        invs[k] = inv
+        for a in range(3):
+            for p in range(NP):
+                if keep[p]:
+                    C[a, p] = 0.0
+        # A -= C^T K^-1 C, b -= C^T K^-1 h
+        KC = inv @ C
+        Kh = inv @ h
+        for p in range(NP):
+            for q in range(NP):
+                A[p, q] -= C[0, p] * KC[0, q] + C[1, p] * KC[1, q] + C[2, p] * KC[2, q]
+            b[p] -= C[0, p] * Kh[0] + C[1, p] * Kh[1] + C[2, p] * Kh[2]
+    if not solve(A, b):
+        return False
+    for k in range(n):
+        if not live[k]:
+            d_om[k, :] = 0.0
+            continue
+        _slab_system(slabs[k], K, C, h)
+        _hold(K, C, h, free)
+        for a in range(3):
+            acc = h[a]
+            for p in range(NP):
+                if not keep[p]:
+                    acc -= C[a, p] * b[p]
+            h[a] = acc
+        for a in range(3):
+            d_om[k, a] = invs[k, a, 0] * h[0] + invs[k, a, 1] * h[1] + invs[k, a, 2] * h[2]
     return True
 
 
 @njit(cache=True, error_model="numpy")
-def _apply_step(th, b, max_step):
-    """th += the step b, the FOE's part shortened to ``max_step`` px; returns (the FOE step
+def _apply_step(th, om, b, d_om, max_step):
+    """th += b, om += d_om, the FOE's part shortened to ``max_step`` px; returns (the FOE step
     before shortening, px; every value finite, or NaN for a scale without a value)."""
-    step = max(abs(b[0]), abs(b[1]))
+    step = max(abs(b[FOE_X]), abs(b[FOE_Y]))
     scale = 1.0 if step <= max_step else max_step / step
     for p in range(NP):
         th[p] += b[p] * (scale if p < 2 else 1.0)
     for p in range(NP):
-        if not math.isfinite(th[p]) and not (p >= 2 and math.isnan(th[p])):
+        if not math.isfinite(th[p]) and not (p >= ROAD and math.isnan(th[p])):
             return step, False
+    for k in range(om.shape[0]):
+        for a in range(3):
+            om[k, a] += d_om[k, a]
+            if not math.isfinite(om[k, a]):
+                return step, False
     return step, True
 
 
 @njit(cache=True, error_model="numpy")
-def fit(events, i0, i1, g, th, prm):
-    """Fit the unknowns ``th`` to the events ``i0..i1``; robust Gauss-Newton (module docstring).
+def _window(events, i0, i1, T, lo, hi, om, prm):
+    """The fitted events ``i0 <= i < i1`` as seen in the camera frame of the fit time (warped
+    positions and normals, :func:`warp_pitch`) with their speeds, weights and rotation
+    coefficients, indexed from 0."""
+    s, e = events.s[i0:i1], events.e[i0:i1]
+    c0, c1, c2 = events.c0[i0:i1], events.c1[i0:i1], events.c2[i0:i1]
+    if not np.any(om[:, 0] != 0.0):  # no pitch: the events as they are
+        return (events.x[i0:i1], events.y[i0:i1], events.nx[i0:i1], events.ny[i0:i1], s, e,
+                c0, c1, c2)
+    n = i1 - i0
+    xw = np.empty(n)
+    yw = np.empty(n)
+    mx = np.empty(n)
+    my = np.empty(n)
+    warp_pitch(events, i0, T, lo, hi, om, prm, xw, yw, mx, my)
+    return (xw, yw, mx, my, s, e, c0, c1, c2)
+
+
+@njit(cache=True, error_model="numpy")
+def fit(events, i0, i1, T, g, th, om, free, probe, prm):
+    """Fit the shared unknowns ``th`` and the slabs' rotations ``om`` to the events
+    ``i0..i1``; robust Gauss-Newton (module docstring).
 
     NaN scales are initialised first. The events weigh ``e g``: ``e = exp((t - t_ref) / tau)``
     is kept per event (computed once), ``g = exp(-(T - t_ref) / tau)`` per fit, so an event at
@@ -280,15 +704,27 @@ def fit(events, i0, i1, g, th, prm):
     Parameters
     ----------
     events : FitEvents
-        float64 arrays: positions (px), unit normals, speeds (px/s, > 0), decay weights.
+        float64 arrays: positions (px), unit normals, speeds (px/s, > 0), decay weights,
+        rotation coefficients; int64 times (µs), sorted.
     i0, i1 : int
-        The events fitted: ``i0 <= i < i1``.
+        The events fitted: ``i0 <= i < i1``, all before T.
+    T : int
+        The fit time, µs.
     g : float
         The fit time's decay factor (see above).
     th : float64 ndarray, shape (5,)
         In/out: the FOE (px, entries :data:`FOE_X`, :data:`FOE_Y`) and the road's, left and
         right facades' scales (1/(s px): :data:`ROAD`, :data:`LEFT`, :data:`RIGHT`; NaN:
         unknown).
+    om : float64 ndarray, shape (n_slabs, 3)
+        In/out: the rotation ``Om = f w`` (px/s) of every slab, ``om[0]`` the latest; the
+        pitch rates at entry set the warp. Slabs without events keep their values.
+    free : bool ndarray, shape (4,)
+        Which unknowns the fit may change: ``free[0]`` the FOE's column, ``free[1 + a]``
+        rotation axis a in every slab; the others keep their values.
+    probe : float64 ndarray, shape (3,)
+        Out: the newest slab's rotation refitted with every axis free and the rest held (the
+        robust start of :func:`_slab_l1`), px/s; whether a held axis turns.
     prm : FitParams
         The constants.
 
@@ -298,21 +734,44 @@ def fit(events, i0, i1, g, th, prm):
         ok (False when a system is singular or a value is not finite), the decayed inlier
         weight and the decayed weight of the events the model applies to.
     """
-    x, y, nx, ny, s, e = events
-    _init_scales(x, y, nx, ny, s, e, g, i0, i1, th, prm.margin)
+    n_slabs = om.shape[0]
+    lo, hi = slab_bounds(events.t, i0, i1, T, prm.slab_us, n_slabs)
+    w = _window(events, i0, i1, T, lo, hi, om, prm)
+    unknown = np.isnan(th[ROAD:])
+    if unknown.any():  # a cold start: scales and rotations from each other, robustly
+        for _ in range(COLD_ROUNDS):
+            th[ROAD:][unknown] = np.nan
+            _init_scales(w, lo, hi, om, g, th, prm.margin)
+            for k in range(n_slabs):
+                _slab_l1(w, lo[k], hi[k], g, th, om, k, prm.margin, prm.tolerance, L1_ITER,
+                         free)
+            w = _window(events, i0, i1, T, lo, hi, om, prm)
+        th[ROAD:][unknown] = np.nan
+        _init_scales(w, lo, hi, om, g, th, prm.margin)
+    elif n_slabs and (free[1] or free[2] or free[3]):  # the newest slab: however far its
+        # rotation jumped
+        _slab_l1(w, lo[0], hi[0], g, th, om, 0, prm.margin, prm.tolerance, L1_ITER, free)
+    rotating = free[1] or free[2] or free[3]
     A = np.zeros((NP, NP))
     b = np.zeros(NP)
+    shared = np.zeros(19)
+    slabs = np.zeros((n_slabs, NS))
+    d_om = np.zeros((n_slabs, 3))
     inl = 0.0
     tot = 0.0
     for _ in range(prm.max_iter):
-        sm = _sums(x, y, nx, ny, s, e, i0, i1, g, th, prm.margin, prm.tolerance)
-        inl, tot = sm[5], sm[6]
-        _normal_equations(sm, A, b)
-        if not _condition(A, b) or not solve(A, b):
+        _pass(w, lo, hi, om, g, th, prm.margin, prm.tolerance, rotating, shared, slabs)
+        inl, tot = shared[5], shared[6]
+        if not _step(shared, slabs, A, b, d_om, free):
             return False, inl, tot
-        step, finite = _apply_step(th, b, prm.max_step)
+        step, finite = _apply_step(th, om, b, d_om, prm.max_step)
         if not finite:
             return False, inl, tot
         if step < 0.05:  # px: a warm-started fit moves less than this after 1-2 iterations
             break
+    if n_slabs:  # the newest slab's rotation with every axis free, the rest held
+        first = om[:1].copy()
+        _slab_l1(w, lo[0], hi[0], g, th, first, 0, prm.margin, prm.tolerance, L1_ITER,
+                 np.ones(4, np.bool_))
+        probe[:] = first[0]
     return True, inl, tot

@@ -1,10 +1,11 @@
 """Exact ground truth of a simulated drive, at any pixel position and time.
 
 :class:`SceneTruth` implements every protocol of :mod:`evchain.core.truth` (``flow``, ``foe``,
-``ttc``, ``depth``, ``object_id`` and ``obstacle_ids``; times in µs, floats allowed, scalars
-or arrays that broadcast); it answers questions, it does not render (the ``scene`` source's
-:class:`~evchain.sim.renderer.SceneRenderer` does). Depth uses the renderer's own ray
-caster; flow is the motion field of the camera's translation and rotation at that depth:
+``angular_velocity``, ``ttc``, ``depth``, ``object_id`` and ``obstacle_ids``; times in µs,
+floats allowed, scalars or arrays that broadcast); it answers questions, it does not render
+(the ``scene`` source's :class:`~evchain.sim.renderer.SceneRenderer` does). Depth uses the
+renderer's own ray caster; flow is the motion field of the camera's translation and rotation
+at that depth:
 
     u' = f [(-vX + x̄ vZ) / Z + ωX x̄ ȳ - ωY (1 + x̄²) + ωZ ȳ]
     v' = f [(-vY + ȳ vZ) / Z + ωX (1 + ȳ²) - ωY x̄ ȳ - ωZ x̄]
@@ -12,8 +13,9 @@ caster; flow is the motion field of the camera's translation and rotation at tha
 with x̄ = (x - cx)/f, ȳ = (y - cy)/f and (v, ω) the camera's velocities in camera coordinates.
 Sky pixels have Z = inf and only the rotational part. All objects are static, so no object
 motion enters. FOE = projection of the translational velocity (thesis eq. 3.5), NaN unless
-moving forward; TTC = (obstacle - camera)·v / |v|² (thesis eq. 3.6), NaN without an obstacle,
-at rest, or once passed.
+moving forward: the heading (under pitch and in curves the flow does not vanish there, its
+rotational part remains); angular velocity = ω; TTC = (obstacle - camera)·v / |v|² (thesis
+eq. 3.6), NaN without an obstacle, at rest, or once passed.
 
 Objects: ``object_id`` names the surface seen at (x, y): the index of its box in the world's
 boxes (>= 0), ``OBJECT_GROUND`` (-2) or ``OBJECT_SKY`` (-1); ``obstacle_ids`` are the boxes of
@@ -32,7 +34,7 @@ __all__ = ["OBJECT_GROUND", "OBJECT_SKY", "SceneTruth"]
 
 class SceneTruth:
     """Ground-truth provider of a :class:`~evchain.sim.drive.Scene`: a ``FlowTruth``,
-    ``FoeTruth``, ``TtcTruth``, ``DepthTruth`` and ``ObjectTruth``."""
+    ``FoeTruth``, ``RotationTruth``, ``TtcTruth``, ``DepthTruth`` and ``ObjectTruth``."""
 
     def __init__(self, scene: Scene):
         self._scene = scene
@@ -90,8 +92,14 @@ class SceneTruth:
         shape, _, _, vc, wc = self._states(t_us)
         return vc.reshape(*shape, 3), wc.reshape(*shape, 3)
 
+    def angular_velocity(self, t_us) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The camera's angular velocity (wx, wy, wz) in rad/s about its own axes."""
+        shape, _, _, _, wc = self._states(t_us)
+        return _shaped(wc[:, 0], shape), _shaped(wc[:, 1], shape), _shaped(wc[:, 2], shape)
+
     def foe(self, t_us) -> tuple[np.ndarray, np.ndarray]:
-        """Focus of expansion (x, y) in pixels (thesis eq. 3.5); NaN unless moving forward."""
+        """Focus of expansion (x, y) in pixels (thesis eq. 3.5): the heading, the projection of
+        the translational velocity, also while the camera rotates; NaN unless moving forward."""
         shape, _, _, vc, _ = self._states(t_us)
         fwd = vc[:, 2] > 1e-9
         vz = np.where(fwd, vc[:, 2], 1.0)

@@ -93,8 +93,8 @@ def textured_frames(n: int, geometry: Geometry = Geometry(64, 48), dt_us: int = 
 
 class ExpansionTruth:
     """Ground truth of a pure expansion towards a fixed FOE: the camera approaches a
-    fronto-parallel plane and collides at ``t_collision_s``; flow v = (p - foe) / tau(t) with
-    tau(t) = t_collision - t."""
+    fronto-parallel plane without rotating and collides at ``t_collision_s``; flow
+    v = (p - foe) / tau(t) with tau(t) = t_collision - t."""
 
     def __init__(self, foe: tuple[float, float], t_collision_s: float, depth_m: float = 10.0):
         self.foe_xy = foe
@@ -108,6 +108,10 @@ class ExpansionTruth:
     def foe(self, t_us):
         shape = np.shape(t_us)
         return np.full(shape, self.foe_xy[0]), np.full(shape, self.foe_xy[1])
+
+    def angular_velocity(self, t_us):
+        z = np.zeros(np.shape(t_us))
+        return z, z.copy(), z.copy()
 
     def flow(self, x, y, t_us):
         tau = self.ttc(t_us)

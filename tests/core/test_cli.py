@@ -73,7 +73,8 @@ def test_validate_rejects_ttc_without_foe(tmp_path, capsys):
 def test_filters_shows_series(capsys):
     assert cli.main(["filters", "ttc"]) == 0
     out = capsys.readouterr().out
-    assert ("series:\n  needs foe (t, x, y, support, total)\n"
+    assert ("series:\n  needs foe (t, x, y, support, total, wx_deg_s, wy_deg_s, wz_deg_s, "
+            "rotation)\n"
             "  adds ttc (t, tau_s, cluster, x, y, support)\n"
             "  adds ttc_clusters (t, cluster, x, y, size_px, tau_s, support, ground_ratio)\n"
             in out)

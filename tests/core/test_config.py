@@ -144,8 +144,9 @@ def test_series_of_another_dtype_is_a_wiring_error():
     registry = make_registry(discover=False, plugins=(toy_filters, _Plugin()))
     text = "chain:\n  - use: toy_source\n  - use: toy_other_foe\n  - use: toy_foe_reader\n"
     with pytest.raises(WiringError, match=r"p.yaml:4:5: stage 'toy_foe_reader' reads series "
-                                          r"'foe' with fields \(t, x, y, support, total\) but "
-                                          r"stage 'toy_other_foe' \(line 3\) adds it with "
+                                          r"'foe' with fields \(t, x, y, support, total, "
+                                          r"wx_deg_s, wy_deg_s, wz_deg_s, rotation\) but stage "
+                                          r"'toy_other_foe' \(line 3\) adds it with "
                                           r"fields \(t, x\)"):
         load(text, registry)
 

@@ -18,6 +18,7 @@ from evchain.core.truth import (
     FlowTruth,
     FoeTruth,
     ObjectTruth,
+    RotationTruth,
     TtcTruth,
     describe,
 )
@@ -43,7 +44,8 @@ def implemented(truth) -> list[type]:
 def test_providers_implement_their_protocols(tmp_path):
     scene = Scene.from_params(width=40, height=30, supersample=1, start_m=200.0, duration_s=0.1)
     assert implemented(SceneTruth(scene)) == list(PROTOCOLS)
-    assert implemented(ExpansionTruth((20.0, 15.0), 2.0)) == [FlowTruth, FoeTruth, TtcTruth,
+    assert implemented(ExpansionTruth((20.0, 15.0), 2.0)) == [FlowTruth, FoeTruth,
+                                                              RotationTruth, TtcTruth,
                                                               DepthTruth]
     assert implemented(BarTruth(Bar(width=40, height=4))) == [FlowTruth]
     path = tmp_path / "gt.mat"
@@ -128,7 +130,7 @@ def test_scorers_declare_their_truth():
     assert REGISTRY.get("flow_scorer").needs_truth == (FlowTruth,)
     assert REGISTRY.get("flow_scorer").uses_truth == (FoeTruth,)
     assert REGISTRY.get("foe_ttc_scorer").needs_truth == (FoeTruth, TtcTruth)
-    assert REGISTRY.get("foe_ttc_scorer").uses_truth == (ObjectTruth,)
+    assert REGISTRY.get("foe_ttc_scorer").uses_truth == (ObjectTruth, RotationTruth)
 
 
 def test_algorithm_filters_declare_no_truth():

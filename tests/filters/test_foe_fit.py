@@ -88,7 +88,7 @@ def _split(pk, n_packets):
     happen at different places), with a vote near the FOE every 10 ms."""
     one = FlowPacket.concat(pk)
     t0, t1 = pk[0].t_start, pk[-1].t_end
-    votes = np.zeros((t1 - t0) // 10_000, FOE.dtype)
+    votes = FOE.array(t=np.zeros((t1 - t0) // 10_000, np.int64))
     votes["t"] = np.arange(t0, t1, 10_000)
     votes["x"], votes["y"], votes["support"], votes["total"] = 163.0, 115.0, 1.0, 1.0
     out = []
@@ -144,8 +144,8 @@ def _with_votes(pk, votes_at):
     """``pk`` with one vote per packet, at ``votes_at(t_start)``."""
     out = []
     for p in pk:
-        v = np.zeros(1, FOE.dtype)
-        v[0] = (p.t_start, *votes_at(p.t_start), 1.0, 1.0)
+        vx, vy = votes_at(p.t_start)
+        v = FOE.array(t=[p.t_start], x=[vx], y=[vy], support=[1.0], total=[1.0])
         out.append(p.replace(series={"foe": v}))
     return out
 
@@ -190,6 +190,109 @@ def test_falls_back_when_the_votes_fit_explains_more():
     far = np.hypot(s["x"] - b[0], s["y"] - b[1]) > 40.0
     # the far old fit is kept only while the old flow still explains more (its events decay)
     assert not np.any(far & (s["t"] >= 900_000))
+
+
+def rotating_packets(om_of_t, foe=(159.5, 119.5), duration_us=2_000_000, rate=60_000, seed=0,
+                     slab_us=10_000, geometry=G):
+    """Flow packets of 10 ms of the road and facades of ``planar_flow`` seen by a camera turning
+    at ``om_of_t(t_s)`` (Om = f w, px/s, 3 values) in each 10 ms, and the true FOE at the fit
+    times (the FOE ``foe`` belongs to the camera frame at the stream's end; earlier frames are
+    turned by the pitch since)."""
+    from tests.naive.foe_fit import pitch_back, rotating_planar_flow, warp
+
+    T = duration_us
+    n_slabs = duration_us // slab_us
+    om = np.array([om_of_t((T - (k + 0.5) * slab_us) * 1e-6) for k in range(n_slabs)])
+    rng = np.random.default_rng(seed)
+    x, y, nx, ny, s, t = rotating_planar_flow(rate * duration_us // 1_000_000, foe, A, om, T,
+                                              slab_us, geometry.f, rng, noise=0.1, outliers=0.05)
+    out = []
+    for i in range(n_slabs):
+        t0, t1 = i * slab_us, (i + 1) * slab_us
+        m = (t >= t0) & (t < t1)
+        out.append(FlowPacket(geometry=geometry, t_start=t0, t_end=t1, t=t[m].astype(np.int64),
+                              x=np.round(x[m]).astype(np.uint16),
+                              y=np.round(y[m]).astype(np.uint16), p=np.ones(m.sum(), np.int8),
+                              vx=(s * nx)[m].astype(np.float32),
+                              vy=(s * ny)[m].astype(np.float32),
+                              series={"foe": FOE.array(t=[t0], x=[foe[0] + 3], y=[foe[1] - 3],
+                                                       support=[1.0], total=[1.0])}))
+    times = np.arange(slab_us, T, slab_us)
+    b = pitch_back(times, T, slab_us, om, geometry.f)
+    one = np.ones(len(times))
+    fx, fy, _, _ = warp(foe[0] * one, foe[1] * one, one, one, -b, geometry.f, geometry.cx,
+                        geometry.cy)
+    return out, times, fx, fy
+
+
+def _fit_stream(pk, **params):
+    f = FoeFit()
+    f.setup(FoeFit.Params(**params), Context())
+    return np.concatenate([f.process(p).series["foe"] for p in pk])
+
+
+def _at(s, times, values):
+    return values[np.searchsorted(times, s["t"])]
+
+
+def test_level_without_rotation():
+    pk, times, fx, fy = rotating_packets(lambda t: (0.0, 0.0, 0.0))
+    s = _fit_stream(pk)
+    late = s["t"] >= 700_000
+    assert np.all(s["rotation"][late] == 1)
+    assert np.all(s["wx_deg_s"][late] == 0) and np.all(s["wy_deg_s"][late] == 0)
+    assert np.abs(s["x"][late] - _at(s[late], times, fx)).max() < 0.3
+    assert np.abs(s["y"][late] - _at(s[late], times, fy)).max() < 0.3
+
+
+def test_pitching_follows_a_pitch_oscillation():
+    """From 1 s on the camera pitches at 2 Hz (8 deg/s amplitude): the fits follow the pitch
+    rate and the heading (which moves with the pitch in the image), yaw stays 0."""
+    amp = np.radians(8.0) * G.f
+
+    def om(t):
+        return (amp * np.sin(2 * np.pi * 2.0 * (t - 1.0)) if t >= 1.0 else 0.0, 0.0, 0.0)
+
+    pk, times, fx, fy = rotating_packets(om)
+    s = _fit_stream(pk)
+    late = s["t"] >= 1_150_000
+    true_wx = np.degrees([om(t * 1e-6)[0] / G.f for t in s["t"][late]])
+    assert np.median(np.abs(s["wx_deg_s"][late] - true_wx)) < 0.5
+    assert np.all(s["wy_deg_s"][late] == 0)
+    assert np.ptp(fy) > 6.0  # the heading moves by several pixels ...
+    assert np.median(np.abs(s["y"][late] - _at(s[late], times, fy))) < 0.3  # ... and is followed
+    assert np.median(np.abs(s["x"][late] - _at(s[late], times, fx))) < 0.3
+
+
+def test_turning_fits_the_yaw_and_holds_the_column():
+    """From 1 s on the camera yaws at 15 deg/s: the fits find the yaw and keep the FOE's
+    column where the level fits had it; after the turn they return to level."""
+    yaw = np.radians(15.0) * G.f
+
+    def om(t):
+        return (0.0, yaw if 1.0 <= t < 1.8 else 0.0, 0.0)
+
+    pk, times, fx, fy = rotating_packets(om, duration_us=3_000_000)
+    s = _fit_stream(pk)
+    turning = (s["t"] >= 1_100_000) & (s["t"] < 1_800_000)
+    assert np.median(np.abs(s["wy_deg_s"][turning] - 15.0)) < 0.5
+    assert np.all(s["wx_deg_s"][turning] == 0)
+    assert np.abs(s["x"][turning] - 159.5).max() < 0.5
+    assert np.abs(s["y"][turning] - 119.5).max() < 0.5
+    after = s["t"] >= 2_500_000  # 3 tau after the turn ended: level again
+    assert np.all(s["wy_deg_s"][after] == 0)
+    assert np.abs(s["x"][after] - 159.5).max() < 0.5
+
+
+def test_without_a_focal_length_no_rotation():
+    g = Geometry(320, 240)
+    pk, times, fx, fy = rotating_packets(lambda t: (0.0, 0.0, 0.0), duration_us=1_000_000,
+                                         geometry=Geometry(320, 240, f=380.6))
+    pk = [p.replace(geometry=g) for p in pk]
+    s = _fit_stream(pk)
+    assert (s["rotation"] == 0).all() and (s["wx_deg_s"] == 0).all()
+    late = s["t"] >= 700_000
+    assert np.abs(s["x"][late] - 159.5).max() < 0.3 and np.abs(s["y"][late] - 119.5).max() < 0.3
 
 
 def test_noise_flow_gives_no_fit_and_says_why():

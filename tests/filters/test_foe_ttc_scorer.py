@@ -270,6 +270,73 @@ def test_foe_lag_is_undefined_where_the_truth_does_not_move():
     assert m["lag_axis"] == "y" and m["lag_ms"] == pytest.approx(50.0, abs=2.0)
 
 
+class RotatingTruth(ExpansionTruth):
+    """The expansion seen by a camera turning at (0.1, -0.2 sin t, 0) rad/s."""
+
+    def angular_velocity(self, t_us):
+        t = np.asarray(t_us, np.float64) * 1e-6
+        return np.full(t.shape, 0.1), -0.2 * np.sin(t), np.zeros(t.shape)
+
+
+def with_rotation(packets, offset_deg_s, every=1):
+    """The packets' foe entries with the true rotation plus ``offset_deg_s`` (3 values) on every
+    ``every``-th entry and none (``rotation`` 0) on the others."""
+    out = []
+    for p in packets:
+        foe = p.series["foe"].copy()
+        t = foe["t"] * 1e-6
+        w = np.degrees(np.stack([np.full(t.shape, 0.1), -0.2 * np.sin(t), np.zeros(t.shape)], 1))
+        w = w + np.asarray(offset_deg_s)
+        est = np.arange(len(t)) % every == 0
+        w[~est] = 0.0
+        for i, c in enumerate(("wx_deg_s", "wy_deg_s", "wz_deg_s")):
+            foe[c] = w[:, i]
+        foe["rotation"] = est
+        out.append(p.replace(series={**p.series, "foe": foe}))
+    return out
+
+
+def test_rotation_rate_error(tmp_path):
+    packets, _ = stream()
+    truth = RotatingTruth(FOE, 4.0)
+    m, out = score(with_rotation(packets, (3.0, -4.0, 0.0), every=2), truth, tmp_path)
+    f = m["foe"]
+    assert f["rotation_rate_error_deg_s"] == pytest.approx(5.0)
+    assert f["rotation_rate_error_wx_deg_s"] == pytest.approx(3.0)
+    assert f["rotation_rate_error_wy_deg_s"] == pytest.approx(4.0)
+    assert f["rotation_rate_error_wz_deg_s"] == pytest.approx(0.0, abs=1e-9)
+    assert f["rotation_coverage"] == pytest.approx(0.5, abs=0.01)
+    t = np.arange(1_000_000, 3_900_000, 10_000) * 1e-6           # after the warm-up
+    want = np.median(np.degrees(np.hypot(0.1, 0.2 * np.sin(t))))
+    assert f["rotation_rate_true_deg_s"] == pytest.approx(want, rel=0.02)
+    err = out.series["foe_error"]
+    est = np.arange(len(err)) % 10 % 2 == 0  # every other entry of each packet's ten
+    np.testing.assert_allclose(err["rotation_error_deg_s"][est], 5.0)
+    assert (err["rotation_error_deg_s"][~est] == -1).all()
+    np.testing.assert_allclose(err["wx_true_deg_s"], np.degrees(0.1))
+    assert "why_none" not in f
+
+
+def test_rotation_not_estimated_or_not_known(tmp_path):
+    packets, truth = stream()          # foe_map's entries carry no rotation
+    f = score(packets, RotatingTruth(FOE, 4.0), tmp_path)[0]["foe"]
+    assert f["rotation_rate_error_deg_s"] is None and f["rotation_coverage"] == 0.0
+    assert "not_scored" not in f
+    assert set(f["why_none"]) == {"rotation_rate_error_deg_s", "rotation_rate_error_wx_deg_s",
+                                  "rotation_rate_error_wy_deg_s",
+                                  "rotation_rate_error_wz_deg_s", "rotation_rate_true_deg_s"}
+    assert f["why_none"]["rotation_rate_error_deg_s"].startswith("no scored FOE estimate")
+
+    class NoRotation:                  # a truth that knows FOE and TTC only
+        foe, ttc = truth.foe, truth.ttc
+
+    f = score(with_rotation(packets, (1.0, 0.0, 0.0)), NoRotation(), tmp_path)[0]["foe"]
+    assert f["rotation_rate_error_deg_s"] is None and f["rotation_coverage"] is None
+    assert f["not_scored"].endswith("has no camera rotation (RotationTruth)")
+    assert f["why_none"]["rotation_coverage"] == f["not_scored"]
+    assert f["dx_mean_px"] == 0
+
+
 # -- hard cases: short streams, no estimates, no obstacle ------------------------------------
 
 

@@ -39,8 +39,15 @@ x, y = rng.uniform(0, 320, n), rng.uniform(0, 240, n)
 a = rng.uniform(0, 2 * np.pi, n)
 nx, ny = np.cos(a), np.sin(a)
 s, e = rng.uniform(0.1, 50, n), rng.uniform(0.2, 1, n)
+c = k.rotation_coefficients(x, y, nx, ny, 380.0, 159.5, 119.5)
 th = np.array([160.0, 120.0, 0.002, 0.003, 0.004])
-out = k._sums(x, y, nx, ny, s, e, 0, n, 1.0, th, 10.0, 0.5)
+lo, hi = np.array([0, 2000]), np.array([2000, n])
+om = rng.normal(0, 30, (2, 3))
+out = []
+for rotating in (True, False):
+    shared, slabs = np.zeros(19), np.zeros((2, k.NS))
+    k._pass((x, y, nx, ny, s, e, *c), lo, hi, om, 1.0, th, 10.0, 0.5, rotating, shared, slabs)
+    out += [*shared, *slabs.ravel()]
 print([float(v).hex() for v in out])
 """
 

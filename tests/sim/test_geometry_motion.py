@@ -146,3 +146,39 @@ def test_yaw_and_pitch_present():
     curves = Scene.from_params(scenario="curves", dynamics="curves", start_m=70.0)
     _, _, _, wc = curves.state(0.1)
     assert wc[1] == pytest.approx(-20.0 / 40.0)          # left turn: yaw about -Y (up)
+
+
+def _rotational_flow(truth, x, y, t_us):
+    wx, wy, wz = truth.angular_velocity(t_us)
+    X, Y = (x - truth.cx) / truth.f, (y - truth.cy) / truth.f
+    return (truth.f * (X * Y * wx - (1 + X * X) * wy + Y * wz),
+            truth.f * ((1 + Y * Y) * wx - X * Y * wy - X * wz))
+
+
+@pytest.mark.parametrize("kw,times_s", [
+    (dict(scenario="high-rise", dynamics="pitch", pitch_amplitude_deg=2.0,
+          pitch_first_shift_s=0.1), (0.15, 0.2, 0.33)),
+    (dict(scenario="curves", dynamics="curves", start_m=70.0), (0.1, 0.5)),
+])
+def test_foe_is_the_heading_and_rotation_is_the_cameras(kw, times_s):
+    """Under pitch and in curves the true FOE is the projection of the translation (the
+    heading): the flow there is the rotational flow of ``angular_velocity`` alone, at whatever
+    depth, and not zero; ``angular_velocity`` is the rate of the camera's orientation."""
+    sc = Scene.from_params(width=160, height=120, supersample=1, **kw)
+    truth = SceneTruth(sc)
+    for t in times_s:
+        fx, fy = truth.foe(t * 1e6)
+        vx, vy = truth.flow(fx, fy, t * 1e6)
+        rx, ry = _rotational_flow(truth, fx, fy, t * 1e6)
+        assert np.hypot(rx, ry) > 5.0                          # px/s: the camera turns
+        assert abs(vx - rx) < 1e-6 * abs(rx) + 1e-9 and abs(vy - ry) < 1e-6 * np.hypot(rx, ry)
+        # a point far ahead along the velocity projects onto the FOE
+        pos, rot, vc, _ = sc.state(t)
+        far = pos + 1e7 * (rot @ vc) / np.linalg.norm(vc)
+        np.testing.assert_allclose(sc.project(far[None], t)[0], (fx, fy), atol=1e-3)
+        # orientation change over +-dt: R(t)^T R(t + dt) = exp([w]x dt)
+        dt = 1e-4
+        r0, r1 = sc.state(t - dt)[1], sc.state(t + dt)[1]
+        skew = (r0.T @ r1 - r1.T @ r0) / (4 * dt)
+        w = np.array(truth.angular_velocity(t * 1e6), float)
+        np.testing.assert_allclose([skew[2, 1], skew[0, 2], skew[1, 0]], w, atol=1e-6)
