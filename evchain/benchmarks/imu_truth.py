@@ -128,7 +128,7 @@ def imu_packets(samples: int, geometry: Geometry, t0: int = 0, seed: int = 0
                 ) -> list[EventPacket]:
     """10 ms packets of ``samples`` IMU samples at 1 kHz from ``t0`` (random readings within
     a DAVIS IMU's ranges, exact in float32 and as 16-bit readings at 8 g and 1000 deg/s) with
-    one random DVS event 0.5 ms after each."""
+    one random DVS event at the time of each."""
     from evchain.io.davis_imu import ACCEL_LSB_PER_G, GYRO_LSB_PER_DPS
 
     rng = np.random.default_rng(seed)
@@ -140,7 +140,7 @@ def imu_packets(samples: int, geometry: Geometry, t0: int = 0, seed: int = 0
     ev = EventPacket(geometry=geometry, t_start=int(t[0]), t_end=int(t[-1]) + 1000,
                      x=rng.integers(0, geometry.width, samples).astype(np.uint16),
                      y=rng.integers(0, geometry.height, samples).astype(np.uint16),
-                     t=t + 500, p=rng.choice(np.array([-1, 1], np.int8), samples))
+                     t=t.copy(), p=rng.choice(np.array([-1, 1], np.int8), samples))
     return cut_every(ev.with_series(IMU.name, imu))
 
 
