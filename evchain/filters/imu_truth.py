@@ -43,10 +43,10 @@ class ImuTruth(Filter):
     angular velocity (the gyro's, wherever it has samples) and, since the gyro tells no
     heading, a FOE and TTC that are NaN throughout (:class:`~evchain.imu.truth.ImuFlowTruth`).
     Passes the events on, late by up to a bin plus ``max_offset_us`` (and by the calibration
-    lead-in at the start),
-    with the series ``imu_rate`` (gyro rate against the rate fitted to the measured flow per
-    bin). ``metrics.imu_truth`` reports the camera model used, the estimates, the checks of the
-    axis signs and of the roll against gravity, and the share of events with truth.
+    lead-in at the start), with the series ``imu_rate`` (gyro rate against the rate fitted to
+    the measured flow per bin). ``metrics.imu_truth`` reports the camera model used, the
+    estimates, the checks of the axis signs and of the roll against gravity, and the share of
+    events with truth.
     """
 
     name = "imu_truth"
