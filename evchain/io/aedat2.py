@@ -716,20 +716,20 @@ class AedatSource(Filter):
 
     def _take_imu(self, dec: Decoder) -> None:
         got = dec.take_imu()
-        if len(got):
-            self._imu_pending = np.concatenate([self._imu_pending, got])
+        if len(got):   # kept in time order (stable), so that each slice's are found by bisection
+            pend = np.concatenate([self._imu_pending, got])
+            self._imu_pending = pend[np.argsort(pend["t"], kind="stable")]
 
     def _with_imu(self, packet: EventPacket) -> EventPacket:
-        """``packet`` with the IMU samples of its slice as the series ``imu``, from the first
-        sample of the file on (a file without IMU records gives no series); samples that
-        arrive after their slice was emitted (written out of time order) are counted in
-        ``imu_late`` and dropped."""
+        """``packet`` with the IMU samples of its slice (in time order) as the series ``imu``,
+        from the first sample of the file on (a file without IMU records gives no series);
+        samples that arrive after their slice was emitted (written out of time order) are
+        counted in ``imu_late`` and dropped."""
         pend = self._imu_pending
-        t = pend["t"]
-        late = t < packet.t_start
-        self._imu_late += int(np.count_nonzero(late))
-        mine = pend[~late & (t < packet.t_end)]
-        self._imu_pending = pend[t >= packet.t_end]
+        i0, i1 = np.searchsorted(pend["t"], [packet.t_start, packet.t_end], side="left")
+        self._imu_late += int(i0)
+        mine = pend[i0:max(i0, i1)]
+        self._imu_pending = pend[max(i0, i1):]
         self._imu_seen = self._imu_seen or len(pend) > 0
         return packet.with_series(IMU.name, mine) if self._imu_seen else packet
 
