@@ -86,6 +86,15 @@ class LKFlow(Filter):
             "calibrated mode with max_window_us: the distance, px, an edge must cross within "
             "its window to be resolved"))
 
+        min_window_us: int = Field(0, ge=0, le=100_000_000, description=(
+            "calibrated mode: two time scales, off at 0 (else shorter than window_us). Each "
+            "event is first estimated with min_window_us; that estimate stands when the edge "
+            "crosses at least fast_px px within it, else the event is estimated as without it "
+            "(window_us, then the speed-adaptive window), µs"))
+        fast_px: float = Field(8.0, gt=0.0, le=100.0, description=(
+            "calibrated mode with min_window_us: the distance, px, an edge must cross within "
+            "min_window_us for the short window's estimate to stand"))
+
         @model_validator(mode="after")
         def _adaptive_window(self):
             if self.max_window_us and self.max_window_us <= self.window_us:
@@ -94,6 +103,11 @@ class LKFlow(Filter):
             if self.max_window_us and self.mode == "faithful":
                 raise ValueError("max_window_us (speed-adaptive window) is calibrated mode "
                                  "only")
+            if self.min_window_us and self.min_window_us >= self.window_us:
+                raise ValueError(f"min_window_us ({self.min_window_us}) must be shorter than "
+                                 f"window_us ({self.window_us}), or be 0 (off)")
+            if self.min_window_us and self.mode == "faithful":
+                raise ValueError("min_window_us (short window) is calibrated mode only")
             return self
 
     def reset(self) -> None:
@@ -108,7 +122,7 @@ class LKFlow(Filter):
             mix=q.speed_control_mix, max_factor=q.max_speed_factor,
             max_speed_pxs=q.max_speed_pxs, refit_tolerance=q.refit_tolerance,
             centre_check_px=q.centre_check_px, max_window_us=q.max_window_us,
-            slow_px=q.slow_px)
+            slow_px=q.slow_px, min_window_us=q.min_window_us, fast_px=q.fast_px)
         self._density = DensityCounter(DENSITY_BIN_US)
         self._last = None
         g = self.context.geometry

@@ -83,6 +83,12 @@ class PlaneFlow(Filter):
             True, description="adaptive window: also refit with max_window_us when the fit "
                               "with window_us gives no estimate")
 
+        min_window_us: int = Field(
+            0, ge=0, description="shorter windows for fast edges: refit an edge that moved more "
+                                 "than fast_px within window_us with the window in which it "
+                                 "moves fast_px, down to this, µs (0: off)")
+        fast_px: float = Field(4.0, gt=0, description="short window: the distance, px")
+
         @model_validator(mode="after")
         def _adaptive_window(self):
             if self.max_window_us and self.max_window_us <= self.window_us:
@@ -91,6 +97,12 @@ class PlaneFlow(Filter):
             if self.max_window_us and self.variant == "original":
                 raise ValueError("max_window_us (speed-adaptive window) does not apply to "
                                  "variant original (it fits velocities, not a time plane)")
+            if self.min_window_us and self.min_window_us >= self.window_us:
+                raise ValueError(f"min_window_us ({self.min_window_us}) must be shorter than "
+                                 f"window_us ({self.window_us}), or be 0 (off)")
+            if self.min_window_us and self.variant == "original":
+                raise ValueError("min_window_us (short window) does not apply to variant "
+                                 "original")
             return self
 
     def reset(self) -> None:
@@ -107,7 +119,8 @@ class PlaneFlow(Filter):
             min_points=q.min_points, th1=q.th1, th2=q.th2_s, max_speed=q.max_speed_pxs,
             max_iter=q.max_iterations, min_spread=q.min_spread_px, centre_check=q.centre_check,
             max_window_us=q.max_window_us, slow_px=q.slow_px, refit_failed=q.refit_failed,
-            refractory_updates=q.refractory_updates)
+            refractory_updates=q.refractory_updates, min_window_us=q.min_window_us,
+            fast_px=q.fast_px)
         self._density = DensityCounter(DENSITY_BIN_US)
         self._end = None
         self._geometry = g
