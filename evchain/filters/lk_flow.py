@@ -25,7 +25,9 @@ class LKFlow(Filter):
     structure tensor's eigenvalues choosing full flow, normal flow or none. ``mode: faithful``
     reproduces jAER's LucasKanadeFlow (speeds not physically scaled: count x 20 heuristic);
     ``mode: calibrated`` (default) replaces the count image by each active pixel's onset time
-    scaled to the window, whose time derivative is known exactly, which gives px/s. Emits only
+    scaled to the window, whose time derivative is known exactly, which gives px/s. Calibrated
+    mode can adapt the window to the edge's speed: longer for slow edges (``max_window_us``),
+    and a short first window for fast ones (``min_window_us``). Emits only
     events with non-zero flow, and appends the series ``flow_density`` (t, n_in, n_out per 100 ms
     bin) for the scorer. See docs/explanation/lk_flow.md.
     """

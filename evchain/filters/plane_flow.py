@@ -32,7 +32,10 @@ class PlaneFlow(Filter):
     the wrong way on the reference scene). With ``max_window_us`` > ``window_us`` the window
     adapts to slow edges: a fit whose edge moved less than ``slow_px`` within the window (or,
     with ``refit_failed``, no fit) is redone with the window in which it moves ``slow_px``,
-    up to ``max_window_us``, the centre check's limit scaled with the window. Degenerate fits
+    up to ``max_window_us``, the centre check's limit scaled with the window. With
+    ``min_window_us`` a fit whose edge moved more than ``fast_px`` within the window is redone
+    with the shorter window in which it moves ``fast_px`` (at least ``min_window_us``), so that
+    older edges that crossed the neighbourhood leave the fit. Degenerate fits
     (collinear or too few points, flat surfaces) are skipped, never NaN. Appends the series
     ``flow_density`` (t, n_in, n_out per 100 ms bin).
     """
@@ -84,10 +87,12 @@ class PlaneFlow(Filter):
                               "with window_us gives no estimate")
 
         min_window_us: int = Field(
-            0, ge=0, description="shorter windows for fast edges: refit an edge that moved more "
-                                 "than fast_px within window_us with the window in which it "
-                                 "moves fast_px, down to this, µs (0: off)")
-        fast_px: float = Field(4.0, gt=0, description="short window: the distance, px")
+            0, ge=0, description="short window for fast edges (0: off; else shorter than "
+                                 "window_us; needs no max_window_us): a first fit whose edge "
+                                 "moved more than fast_px within window_us is redone with the "
+                                 "window in which it moves fast_px, at least this, µs; the "
+                                 "first fit stands when the shorter one fails")
+        fast_px: float = Field(3.0, gt=0, description="short window: the distance, px")
 
         @model_validator(mode="after")
         def _adaptive_window(self):

@@ -545,6 +545,11 @@ def lk_flow_run(x, y, t, p, state, prm, out_idx, out_vx, out_vy):
     kept only if it is slow enough to need it (the edge crosses fewer than ``slow_px`` px within
     the previous window), and the last such estimate is the event's flow.
 
+    0 < ``prm.min_window_us`` < ``prm.window_us`` (calibrated mode only) adds a shorter time
+    scale: each event is first estimated with ``min_window_us``; when that succeeds and the
+    edge crosses at least ``fast_px`` px within it, it is the event's flow (no further
+    estimates), else the event is estimated as above.
+
     Parameters
     ----------
     x, y : uint16 ndarray, shape (n,)

@@ -639,6 +639,12 @@ def plane_flow_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy):
     (the same fraction of the time per pixel). The last fit is the result; a failed refit gives
     no flow. Runs :func:`plane_flow_adaptive_kernel`.
 
+    Short window (on when 0 < ``min_window_us`` < ``window_us``; not for ``original``): a first
+    fit whose edge moved more than ``fast_px`` px within ``window_us`` is redone with the window
+    in which it moves ``fast_px``, W = fast_px |g|, at least ``min_window_us``, instead of any
+    longer refit; when that fit fails the first one stands. Also runs
+    :func:`plane_flow_adaptive_kernel`.
+
     ``refractory_updates`` (jAER: true): an event within ``refractory_us`` still updates the
     surface; false: it is dropped entirely (the thesis's description), so the surface holds the
     onset of each pixel's burst and the refractory period counts from the last onset.
