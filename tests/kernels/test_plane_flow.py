@@ -519,7 +519,7 @@ def test_short_window_fast_edges_match_reference(variant, ang):
 @pytest.mark.parametrize("variant", list(VARIANTS))
 def test_short_window_hard_inputs(variant):
     """Flat surfaces, an axis edge too fast for any window (3 µs per column), a line, one
-    pixel, timestamps near the end of the clock: finite output, kernel = reference."""
+    pixel, timestamps across the 32-bit wrap point: finite output, kernel = reference."""
     g = Geometry(20, 16)
     ys, xs = np.mgrid[0:g.height, 0:g.width]
     cases = {"flat": (xs.ravel(), ys.ravel(), np.full(xs.size, 1000)),
@@ -527,8 +527,9 @@ def test_short_window_hard_inputs(variant):
              "axis_fast": (xs.ravel(), ys.ravel(), (xs * 2000).ravel()),
              "line": (np.arange(14), np.arange(14), np.arange(14) * 1000),
              "one_pixel": (np.full(50, 9), np.full(50, 8), np.arange(50) * 100),
-             # near the end of the int64 µs clock: ages stay exact, no wrap
-             "late_clock": (xs.ravel(), ys.ravel(), (np.int64(1) << 61) + (xs * 2000).ravel())}
+             # across the point where 32-bit µs timestamps wrap (int64 here: no wrap)
+             "wrap32": (xs.ravel(), ys.ravel(), (np.int64(1) << 32) - 20_000
+                        + (xs * 2000).ravel())}
     for name, (x, y, t) in cases.items():
         o = np.argsort(t, kind="stable")
         ev = SimpleNamespace(x=x[o], y=y[o], t=t[o], p=np.ones(len(t), np.int8))
