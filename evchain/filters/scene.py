@@ -49,6 +49,11 @@ class SceneSource(Filter):
         dt_min_us: int = Field(5, ge=1, description="smallest adaptive frame interval, µs")
         dt_max_us: int = Field(10_000, ge=1, description="largest adaptive frame interval, µs")
         dt_us: int | None = Field(None, ge=1, description="fixed frame interval (no adaptation)")
+        band_rows: int = Field(0, ge=0, le=8192, description=(
+            "rows per band rendered at its own step (max_motion_px over its own fastest pixel; "
+            "frames in between interpolated linearly per band): fewer rows rendered where the "
+            "image moves slowly, events close to those of whole frames; 0 (or dt_us): every "
+            "frame rendered whole"))
         max_frames_per_packet: int = Field(64, ge=1, le=100_000,
                                            description="bound on memory per packet")
         # threads != 1 also renders packets ahead in a background thread (_render_ahead)
@@ -99,6 +104,8 @@ class SceneSource(Filter):
         one, then stacked; float32), for four packets when rendering ahead (two queued, one
         being rendered, one being consumed)."""
         packets = 1 if params.threads == 1 else 4
+        if params.band_rows and params.dt_us is None:
+            packets += 1        # the frames waiting for their bands' next renders
         return params.width * params.height * 4 * 2 * params.max_frames_per_packet * packets
 
     def time_span_us(self) -> tuple[int, int]:
@@ -186,20 +193,30 @@ class SceneSource(Filter):
         t = 0           # time of the next frame
         t_start = 0
         dts: list[int] = []
+        bands = None
+        if p.band_rows and p.dt_us is None:
+            from evchain.sim.bands import BandFrames
 
-        def step(vmax: float) -> int:
-            dts.append(self.next_dt_us(vmax))
-            return dts[-1]
+            bands = BandFrames(self.scene, p.band_rows, p.max_frames_per_packet)
+            seq = bands.frames(0, end, self.next_dt_us)
+        else:
+            def step(vmax: float) -> int:
+                dts.append(self.next_dt_us(vmax))
+                return dts[-1]
 
-        seq = self.scene.frames(0, end, step)
+            seq = ((t_f, frame, dts[-1]) for t_f, frame, _ in self.scene.frames(0, end, step))
         while t_start < end:
             boundary = min(t_start - t_start % p.packet_us + p.packet_us, end)
             frames, times = [], []
             while t < boundary and len(frames) < p.max_frames_per_packet:
-                _, frame, _ = next(seq)          # the frame at t (a new array)
+                t_f, frame, dt = next(seq)          # the frame at t (a new array)
+                if t_f != t:
+                    raise RuntimeError(f"scene frame at {t_f} µs, expected {t} µs")
                 frames.append(frame)
                 times.append(t)
-                t += dts[-1]
+                if bands is not None:
+                    dts.append(dt)
+                t += dt
             t_end = boundary if t >= boundary else t
             stack = (np.stack(frames) if frames
                      else np.zeros((0, geom.height, geom.width), np.float32))
@@ -217,6 +234,9 @@ class SceneSource(Filter):
             "scenario": p.scenario,
             "speed_mps": p.speed_mps,
             "f_px": geom.f,
+            # share of the pixel rows of the emitted frames that were rendered (1: all)
+            "rendered_share": (bands.rows_rendered / (bands.frames_emitted * geom.height)
+                               if bands is not None and bands.frames_emitted else 1.0),
         }
 
 
