@@ -1,11 +1,11 @@
 """How far the scene's row bands (``band_rows``) move the events from those of frames rendered
 whole: the same stretch of a drive through scene -> emulator in both modes, compared.
 
-* ``scene-bands``: one row per stretch (the reference drive's first second and its last second
-  before the obstacle, and the evaluation cells ``speed-27`` and ``pitch``; quick: 0.25 s of
-  each): throughput = the banded run's simulated s per wall s; error = the median |time
-  difference| of matched events (µs); extra: :func:`compare_events`'s table and both runs'
-  wall time and rendered share.
+* ``scene-bands``: bands of 16 rows, one row per stretch (the reference drive's first second
+  and its last second before the obstacle, and the evaluation cells ``speed-27`` and
+  ``pitch``; quick: 0.25 s of each): throughput = the banded run's simulated s per wall s;
+  error = the median |time difference| of matched events (µs); extra:
+  :func:`compare_events`'s table and both runs' wall time and rendered share.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ import numpy as np
 
 from evchain.bench import BenchRow
 from evchain.benchmarks.drive_inputs import relative
+from evchain.benchmarks.scene_render import BAND_ROWS
 from evchain.core.packets import EventPacket
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -91,12 +92,11 @@ def agreement(overrides: list[str], band_rows: int, registry=None) -> dict:
 
 
 def scene_bands(quick: bool) -> list[BenchRow]:
-    from evchain.core.config import load_pipeline
     from evchain.core.registry import make_registry
 
     registry = make_registry()
     duration = 0.25 if quick else 1.0
-    band_rows = load_pipeline(PIPELINE, registry).stages[0].params.band_rows or 16
+    band_rows = BAND_ROWS
     drive_events(["scene.duration_s=0.002"], registry)          # compile
     rows = []
     for name, overrides in STRETCHES.items():

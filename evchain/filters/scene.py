@@ -26,7 +26,9 @@ class SceneSource(Filter):
 
     Frames are emitted so that no pixel moves more than ``max_motion_px`` between two frames
     (from the exact motion field at the earlier frame), bounded by ``dt_min_us``/``dt_max_us``;
-    ``dt_us`` fixes the step instead (thesis Table 4.4: 20 or 40 µs). Packets cover
+    ``dt_us`` fixes the step instead (thesis Table 4.4: 20 or 40 µs). ``band_rows`` renders
+    each band of rows only at its own step and fills the frames between by interpolation
+    (:mod:`evchain.sim.bands`). Packets cover
     ``packet_us`` slices (shorter when ``max_frames_per_packet`` is reached). Sets
     ``context.geometry`` (with f, cx, cy), ``context.truth`` (flow, FOE, camera rotation, TTC,
     depth, object ids) and ``context.renderer`` (frames at any time, for picture sinks). With
@@ -50,10 +52,12 @@ class SceneSource(Filter):
         dt_max_us: int = Field(10_000, ge=1, description="largest adaptive frame interval, µs")
         dt_us: int | None = Field(None, ge=1, description="fixed frame interval (no adaptation)")
         band_rows: int = Field(0, ge=0, le=8192, description=(
-            "rows per band rendered at its own step (max_motion_px over its own fastest pixel; "
-            "frames in between interpolated linearly per band): fewer rows rendered where the "
-            "image moves slowly, events close to those of whole frames; 0 (or dt_us): every "
-            "frame rendered whole"))
+            "rows per band rendered only at its own step (max_motion_px over the band's "
+            "fastest pixel; in the frames between, the band is the straight line between its "
+            "renders): a fraction of the rows rendered where the image moves slowly, at the "
+            "cost of events that differ from whole frames' (changes faster than a band's step "
+            "are smoothed or lost; docs/explanation/scene.md); 0 (or dt_us): every frame "
+            "rendered whole"))
         max_frames_per_packet: int = Field(64, ge=1, le=100_000,
                                            description="bound on memory per packet")
         # threads != 1 also renders packets ahead in a background thread (_render_ahead)

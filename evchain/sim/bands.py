@@ -54,6 +54,7 @@ class BandFrames:
         v = np.zeros(nb)
         band_dt = np.zeros(nb, np.int64)
         row_v2 = np.zeros(h)
+        band_rows = [np.arange(edges[b], edges[b + 1]) for b in range(nb)]
         head = count = 0
         t = t_us
         while t < end_us:
@@ -67,24 +68,25 @@ class BandFrames:
                                | (t + dt > last_t + band_dt))
                 if not due.any():
                     break
-                rows = np.concatenate([np.arange(edges[b], edges[b + 1])
-                                       for b in np.flatnonzero(due)])
+                due_bands = np.flatnonzero(due)
+                rows = np.concatenate([band_rows[b] for b in due_bands])
                 self._render_rows(t, ring[slot], rows, row_v2)
-                for b in np.flatnonzero(due):
+                for b in due_bands:
                     v[b] = np.sqrt(row_v2[edges[b]:edges[b + 1]].max())
                     band_dt[b] = next_dt_us(float(v[b]))
                 done |= due
             ring_dt[slot] = dt
+            pending = (np.arange(head, head + count) % cap)
+            pending_t = ring_t[pending]
             for b in np.flatnonzero(done):
                 r0, r1 = edges[b], edges[b + 1]
                 if last_t[b] >= 0 and count:
-                    between = (np.arange(head, head + count) % cap)
-                    between = between[ring_t[between] > last_t[b]]
-                    if len(between):
-                        interpolate_band(ring, between, ring_t[between], r0, r1, start,
-                                         last_t[b], t, slot)
+                    between = pending_t > last_t[b]
+                    if between.any():
+                        interpolate_band(ring, pending[between], pending_t[between], r0, r1,
+                                         start, last_t[b], t, slot)
                 start[r0:r1] = ring[slot, r0:r1]
-                last_t[b] = t
+            last_t[done] = t
             count += 1
             complete = last_t.min()
             while count and ring_t[head] <= complete:
