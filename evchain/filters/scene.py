@@ -52,8 +52,9 @@ class SceneSource(Filter):
         dt_max_us: int = Field(10_000, ge=1, description="largest adaptive frame interval, µs")
         dt_us: int | None = Field(None, ge=1, description="fixed frame interval (no adaptation)")
         band_rows: int = Field(0, ge=0, le=8192, description=(
-            "rows per band rendered only at its own step (max_motion_px over the band's "
-            "fastest pixel; in the frames between, the band is the straight line between its "
+            "rows per band rendered only at its own step (max_motion_px over 1.5 times the "
+            "band's fastest pixel speed; in the frames between, the band is the straight line "
+            "between its "
             "renders): a fraction of the rows rendered where the image moves slowly, at the "
             "cost of events that differ from whole frames' (changes faster than a band's step "
             "are smoothed or lost; docs/explanation/scene.md); 0 (or dt_us): every frame "

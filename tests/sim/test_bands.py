@@ -110,8 +110,9 @@ def _whole(sc, end_us, next_dt):
 def test_bands_render_where_due_and_interpolate_between(band_rows):
     """Every band's rows equal the whole frame at the times it renders, lie on the straight
     line between its renders in the frames between (within float32), no band moves more than
-    max_motion_px between its renders (exact flow at the earlier render), the image's height
-    (30) is not a multiple of every band size, and the global times are the fastest band's."""
+    max_motion_px / 1.5 between renders more than one frame apart (exact flow at the earlier
+    render), the image's height (30) is not a multiple of every band size, and the global
+    times are the fastest band's."""
     sc = Scene.from_params(**SMALL)
     next_dt = _dt_rule()
     bands = BandFrames(sc, band_rows, capacity=64)
@@ -138,7 +139,8 @@ def test_bands_render_where_due_and_interpolate_between(band_rows):
             np.testing.assert_array_equal(frames[i, r0:r1], whole[i, r0:r1])
         for i0, i1 in zip(renders[:-1], renders[1:], strict=True):
             vx, vy = sc_flow(sc, xs[r0:r1], ys[r0:r1], t[i0])
-            assert np.hypot(vx, vy).max() * (t[i1] - t[i0]) * 1e-6 <= 0.5 + 1e-9
+            bound = 0.5 if i1 == i0 + 1 else 0.5 / 1.5     # consecutive frames: the global step
+            assert np.hypot(vx, vy).max() * (t[i1] - t[i0]) * 1e-6 <= bound + 1e-9
             a, c = frames[i0, r0:r1], frames[i1, r0:r1]
             for i in range(i0 + 1, i1):
                 w = (t[i] - t[i0]) / (t[i1] - t[i0])
