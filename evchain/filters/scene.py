@@ -54,11 +54,10 @@ class SceneSource(Filter):
         band_rows: int = Field(0, ge=0, le=8192, description=(
             "rows per band rendered only at its own step (max_motion_px over 1.5 times the "
             "band's fastest pixel speed; in the frames between, the band is the straight line "
-            "between its "
-            "renders): a fraction of the rows rendered where the image moves slowly, at the "
-            "cost of events that differ from whole frames' (changes faster than a band's step "
-            "are smoothed or lost; docs/explanation/scene.md); 0 (or dt_us): every frame "
-            "rendered whole"))
+            "between its renders): a fraction of the rows rendered where the image moves "
+            "slowly, at the cost of events that differ from whole frames' (changes faster than "
+            "a band's step are smoothed or lost; docs/explanation/scene.md) and one packet "
+            "more of frame memory; 0 (or dt_us): every frame rendered whole"))
         max_frames_per_packet: int = Field(64, ge=1, le=100_000,
                                            description="bound on memory per packet")
         # threads != 1 also renders packets ahead in a background thread (_render_ahead)
@@ -231,7 +230,7 @@ class SceneSource(Filter):
             imu = self._imu(t_start, t_end)
             yield packet if imu is None else packet.with_series(IMU.name, imu)
             t_start = t_end
-        self.context.metrics["scene"] = {
+        metrics = {
             "frames": self.frames_emitted,
             "duration_s": end * 1e-6,
             "mean_dt_us": float(np.mean(dts)) if dts else None,
@@ -239,10 +238,12 @@ class SceneSource(Filter):
             "scenario": p.scenario,
             "speed_mps": p.speed_mps,
             "f_px": geom.f,
-            # share of the pixel rows of the emitted frames that were rendered (1: all)
-            "rendered_share": (bands.rows_rendered / (bands.frames_emitted * geom.height)
-                               if bands is not None and bands.frames_emitted else 1.0),
         }
+        if bands is not None:     # share of the emitted frames' pixel rows that were rendered
+            metrics["rendered_share"] = (bands.rows_rendered / (bands.frames_emitted
+                                                                * geom.height)
+                                         if bands.frames_emitted else 1.0)
+        self.context.metrics["scene"] = metrics
 
 
 def check_memory(params) -> None:
