@@ -89,6 +89,7 @@ class FitParams(NamedTuple):
     tolerance: float  #: Tukey constant on the relative speed residual
     max_iter: int     #: Gauss-Newton iterations
     max_step: float   #: largest FOE step per iteration, px
+    min_step: float   #: a fit whose FOE step is below this has converged, px
     slab_us: int      #: the rotation is constant within slabs of this length, µs
     f: float          #: focal length, px
     cx: float         #: principal point, px
@@ -728,7 +729,7 @@ def fit(events, i0, i1, T, g, th, om, free, probe, prm):
         step, finite = _apply_step(th, om, b, d_om, prm.max_step)
         if not finite:
             return False, inl, tot
-        if step < 0.05:  # px: a warm-started fit moves less than this after 1-2 iterations
+        if step < prm.min_step:  # a warm-started fit moves less after 1-2 iterations
             break
     if n_slabs:  # the newest slab's rotation with every axis free, the rest held
         first = om[:1].copy()
