@@ -8,7 +8,6 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from evchain.core.camera_scale import derived
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import FlowPacket, Geometry
 from evchain.core.series import FOE, ROTATION_FIELDS, TTC, TTC_CLUSTERS
@@ -59,29 +58,21 @@ class Ttc(Filter):
 
     class Params(FilterParams):
         estimate_every_us: int = Field(10_000, ge=1, description="period of the TTC output")
-        region_b_half_width_px: float | None = Field(
-            None, gt=0, description="region B: largest horizontal offset from the FOE, px; "
-            "null: 60 px x f / 380.6 px (9 deg of view; 60 px on the reference camera, "
-            "camera_scale.px_scale)")
+        region_b_half_width_px: float = Field(
+            60.0, gt=0, description="region B: largest horizontal offset from the FOE")
         region_b_min_below_px: float = Field(
             0.0, description="region B: events at least this far below the FOE (y down)")
-        min_distance_px: float | None = Field(
-            None, ge=0, description="ignore events this close to the FOE (tau is "
-            "ill-conditioned there), px; null: 8 px x f / 380.6 px")
-        min_speed_pxs: float | None = Field(None, ge=0, description="ignore slower flow, px/s; "
-                                            "null: 2 px/s x f / 380.6 px")
-        max_speed_pxs: float | None = Field(None, gt=0, description="ignore faster flow, px/s; "
-                                            "null: 20000 px/s x f / 380.6 px")
+        min_distance_px: float = Field(8.0, ge=0, description="ignore events this close to "
+                                       "the FOE (tau is ill-conditioned there)")
+        min_speed_pxs: float = Field(2.0, ge=0, description="ignore slower flow")
+        max_speed_pxs: float = Field(20_000.0, gt=0, description="ignore faster flow")
         min_tau_s: float = Field(0.02, ge=0, description="ignore per-event tau below this")
         max_tau_s: float = Field(60.0, gt=0, description="ignore per-event tau above this")
-        cluster_size_px: float | None = Field(
-            None, gt=0, description="half-size of a new cluster, px; null: 6 px x f / 380.6 px")
-        max_cluster_size_px: float | None = Field(
-            None, gt=0, description="largest half-size (small: the obstacle is not swallowed "
-            "by road clusters), px; null: 15 px x f / 380.6 px")
-        join_margin_px: float | None = Field(
-            None, ge=0, description="events this far outside a cluster's square still join it "
-            "(and grow it), px; null: 4 px x f / 380.6 px")
+        cluster_size_px: float = Field(6.0, gt=0, description="half-size of a new cluster")
+        max_cluster_size_px: float = Field(15.0, gt=0, description="largest half-size (small: "
+                                           "the obstacle is not swallowed by road clusters)")
+        join_margin_px: float = Field(4.0, ge=0, description="events this far outside a "
+                                      "cluster's square still join it (and grow it)")
         activity_tau_ms: float = Field(100.0, gt=0, description="decay of cluster activity")
         min_activity: float = Field(2.0, gt=0, description="clusters whose decayed activity "
                                     "(events) falls below this are removed")
@@ -132,32 +123,19 @@ class Ttc(Filter):
         self._state = None
         self._ticks = self._rows = 0
 
-    #: the px and px/s parameters and their values on the reference camera
-    #: (:mod:`evchain.core.camera_scale`)
-    REFERENCE_PX = {"region_b_half_width_px": 60.0, "min_distance_px": 8.0,
-                    "min_speed_pxs": 2.0, "max_speed_pxs": 20_000.0, "cluster_size_px": 6.0,
-                    "max_cluster_size_px": 15.0, "join_margin_px": 4.0}
-
-    def pixels(self, g: Geometry) -> dict[str, float]:
-        """The px and px/s parameters for the sensor geometry ``g``: as given, or derived from
-        their values on the reference camera (scaled by f / 380.6 px)."""
-        return {k: derived(getattr(self.params, k), v, g) for k, v in self.REFERENCE_PX.items()}
-
     def _constants(self, g: Geometry):
         """The kernel's constants for the sensor geometry ``g``."""
         from evchain.kernels.records import record
         from evchain.kernels.ttc import TtcParams
 
         p = self.params
-        px = self.pixels(g)
         return record(
             TtcParams, period_us=p.estimate_every_us, select_nearest=p.select == "nearest_foe",
-            select_min_activity=p.select_min_activity, half_width=px["region_b_half_width_px"],
-            min_below=p.region_b_min_below_px, min_dist=px["min_distance_px"],
-            min_speed=px["min_speed_pxs"], max_speed=px["max_speed_pxs"], min_tau=p.min_tau_s,
-            max_tau=p.max_tau_s, init_size=px["cluster_size_px"],
-            max_size=px["max_cluster_size_px"], join_margin=px["join_margin_px"],
-            act_tau_us=p.activity_tau_ms * 1000.0,
+            select_min_activity=p.select_min_activity, half_width=p.region_b_half_width_px,
+            min_below=p.region_b_min_below_px, min_dist=p.min_distance_px,
+            min_speed=p.min_speed_pxs, max_speed=p.max_speed_pxs, min_tau=p.min_tau_s,
+            max_tau=p.max_tau_s, init_size=p.cluster_size_px, max_size=p.max_cluster_size_px,
+            join_margin=p.join_margin_px, act_tau_us=p.activity_tau_ms * 1000.0,
             min_activity=p.min_activity, max_age_us=p.sample_max_age_ms * 1000.0,
             min_samples=p.min_samples, rel_floor=p.rel_noise_floor,
             q_s2_per_s=p.process_noise_s2_per_s, gate=p.gate_sigma, ground_test=p.ground_test,

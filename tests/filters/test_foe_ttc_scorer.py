@@ -102,8 +102,7 @@ def test_whole_chain_writes_pictures(tmp_path):
     ctx = Context(out_dir=tmp_path, truth=truth)
     chain = [FoeMap(), Ttc(), FoeTtcScorer()]
     for f in chain:  # random points with exact flow, no moving edges: ttc's tau from the flow
-        f.setup(f.Params(**({**Ttc.REFERENCE_PX, "baseline_px": 0} if isinstance(f, Ttc)
-                            else {})), ctx)
+        f.setup(f.Params(**({"baseline_px": 0} if isinstance(f, Ttc) else {})), ctx)
     for p in packets:
         for f in chain:
             p = f.process(p)

@@ -24,14 +24,8 @@ def with_true_foe(packets, foe=FOE):
             for p in packets]
 
 
-#: the toy sensor (f = 100 px) uses the reference camera's px values of the parameters that
-#: otherwise follow the focal length
-PX = Ttc.REFERENCE_PX
-
-
 def run_ttc(packets, **params):
     # the random-point fields below have exact flow but no moving edges: tau from the flow
-    params = {**PX, **params}
     params.setdefault("baseline_px", 0)
     f = Ttc()
     f.setup(Ttc.Params(**params), Context())
@@ -173,8 +167,7 @@ def test_event_tau_matches_reference():
 
 def test_contract():
     packets, truth = expansion_stream(foe_series=True)
-    ref = check_filter(Ttc, {**PX, "estimate_every_us": 5000, "min_samples": 3,
-                             "baseline_px": 0},
+    ref = check_filter(Ttc, {"estimate_every_us": 5000, "min_samples": 3, "baseline_px": 0},
                        packets, truth=truth)
     assert len(ref["series:ttc"]) > 5
 
@@ -212,8 +205,7 @@ def test_ground_plane_test_selects_the_obstacle(ground):
     packets = with_true_foe(road_and_obstacle())
     f = Ttc()
     # random points (tau from the flow); large clusters, as the scenario was built for
-    f.setup(Ttc.Params(**{**PX, "max_cluster_size_px": 60.0}, ground_test=ground,
-                       baseline_px=0), Context())
+    f.setup(Ttc.Params(ground_test=ground, baseline_px=0, max_cluster_size_px=60.0), Context())
     out = FlowPacket.concat([f.process(p) for p in packets])
     s = out.series["ttc"]
     s = s[s["t"] >= 500_000]
@@ -285,9 +277,8 @@ def test_ground_constant_leaves_a_wrong_start():
 def test_ground_plane_contract():
     packets = with_true_foe(road_and_obstacle(duration_us=300_000, n_road=12_000, n_obs=3_000,
                                               n_packets=4))
-    ref = check_filter(Ttc, {**PX, "ground_test": True, "ground_min_events": 50,
-                             "select_hold": True, "corridor_half_width_h": 2.0,
-                             "baseline_px": 0}, packets)
+    ref = check_filter(Ttc, {"ground_test": True, "ground_min_events": 50, "select_hold": True,
+                             "corridor_half_width_h": 2.0, "baseline_px": 0}, packets)
     assert len(ref["series:ttc"]) > 5
 
 
@@ -401,7 +392,7 @@ def test_baseline_tau_matches_reference():
 
 def test_baseline_contract():
     # the pixels' last times carry over packet cuts: the output must not depend on them
-    ref = check_filter(Ttc, {**PX, "baseline_px": 6, "min_samples": 4},
+    ref = check_filter(Ttc, {"baseline_px": 6, "min_samples": 4},
                        with_true_foe(edge_approach(duration_s=1.0, jitter_us=2_000.0)))
     assert len(ref["series:ttc"]) > 5
 
@@ -410,7 +401,6 @@ def test_baseline_contract():
 
 
 def run_ttc_metrics(packets, **params):
-    params = {**PX, **params}
     params.setdefault("baseline_px", 0)
     ctx = Context()
     f = Ttc()
@@ -472,19 +462,3 @@ def test_no_ttc_below_the_smallest_event_tau():
     assert len(s) > 10 and s["tau_s"].min() >= 0.02
     assert (cl["tau_s"] < 0.02).any()                 # predicted below, not reported
     assert m["no_estimate"]["no credible cluster"] >= 1
-
-
-def test_px_parameters_follow_the_focal_length():
-    """Left null, the px and px/s parameters are their reference camera values times
-    f / 380.6 px: as given on the reference camera, twice that on a 640x480 sensor with its
-    field of view; a value given stays."""
-    from evchain.core.camera_scale import REFERENCE_FOCAL_PX
-
-    f = Ttc()
-    f.setup(Ttc.Params(join_margin_px=3.0), Context())
-    ref = f.pixels(Geometry(320, 240, f=REFERENCE_FOCAL_PX))
-    big = f.pixels(Geometry(640, 480, f=2 * REFERENCE_FOCAL_PX))
-    nof = f.pixels(Geometry(640, 480))  # no focal length: the reference field of view
-    assert ref == {**Ttc.REFERENCE_PX, "join_margin_px": 3.0}
-    assert big == nof == {k: 3.0 if k == "join_margin_px" else 2 * v
-                          for k, v in Ttc.REFERENCE_PX.items()}

@@ -20,9 +20,6 @@ from tests.naive.ttc import ttc_naive
 G = Geometry(96, 72, f=80.0)
 FOE = (48.0, 20.0)
 EXACT = ("t", "cluster")
-#: the toy sensor (f = 80 px) uses the reference camera's px values of the parameters that
-#: otherwise follow the focal length (test_derived_pixels: the derivation)
-PX = Ttc.REFERENCE_PX
 
 
 def packet(t_start, t_end, x=(), y=(), t=(), p=(), vx=(), vy=(), foe=None):
@@ -104,7 +101,7 @@ def random_stream(seed, duration_us=600_000, n_packets=8, n_blobs=5, n=1500, nan
 
 def compare(packets, **params):
     """Kernel (through the filter) and reference give the same rows; returns them."""
-    q = Ttc.Params(**{**PX, **params})
+    q = Ttc.Params(**params)
     f = Ttc()
     f.setup(q, Context(geometry=G))
     outs = [f.process(pk) for pk in packets]

@@ -126,14 +126,6 @@ def ttc_naive(packets, q, width, height, no_ttc=None, f=None, cx=None, cy=None):
     angular velocity (``rotation`` 1) and the geometry a focal length ``f`` (principal point
     ``cx``, ``cy``), each event's tau is that of its flow less the rotational flow's normal
     component."""
-    # px and px/s parameters left null: their values on the reference camera (f = 380.6 px,
-    # 320x240 with a 35 deg vertical field of view) times f / 380.6 px
-    scale = (f if f else height * 380.59137628358553 / 240.0) / 380.59137628358553
-    reference = {"region_b_half_width_px": 60.0, "min_distance_px": 8.0, "min_speed_pxs": 2.0,
-                 "max_speed_pxs": 20_000.0, "cluster_size_px": 6.0, "max_cluster_size_px": 15.0,
-                 "join_margin_px": 4.0}
-    q = q.model_copy(update={k: v * scale for k, v in reference.items()
-                              if getattr(q, k) is None})
     slots = [None] * q.max_clusters        # None or a Cluster (inactive slots are None)
     next_id = 0
     foe = None
