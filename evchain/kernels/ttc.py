@@ -672,7 +672,9 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
         evy = np.float64(vy[i])
         sp = math.sqrt(evx * evx + evy * evy)
         rot = 0.0
-        if prm.f > 0.0 and sp > 0.0:  # the flow's rotational part along its normal
+        if prm.f > 0.0 and sp > 0.0 and (g.foe_wx != 0.0 or g.foe_wy != 0.0
+                                         or g.foe_wz != 0.0):
+            # the flow's rotational part along its normal
             rot = rotational_speed(px, py, evx / sp, evy / sp, g.foe_wx, g.foe_wy, g.foe_wz,
                                    prm.f, prm.cx, prm.cy)
         tau = -1.0
