@@ -4,6 +4,7 @@ model does not hold, and region A off the true FOE."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from evchain.core.filter import Context
 from evchain.core.packets import FlowPacket, Geometry
@@ -331,3 +332,21 @@ def test_no_estimate_once_the_votes_are_gone():
     assert 300_000 < v["t"][-1] < 1_700_000
     assert v["t"][-1] < s["t"][-1] <= v["t"][-1] + 200_000
     assert np.isfinite(s["x"]).all() and np.isfinite(s["y"]).all()
+
+
+def test_px_parameters_follow_the_focal_length():
+    """margin_px and max_deviation_px left null (and the kernel's step bounds) are their
+    reference camera values times f / 380.6 px."""
+    from evchain.core.camera_scale import REFERENCE_FOCAL_PX
+
+    for scale in (1.0, 2.0, 0.75):
+        f = FoeFit()
+        f.setup(FoeFit.Params(), Context())
+        f._start(Geometry(int(320 * scale), int(240 * scale), f=scale * REFERENCE_FOCAL_PX))
+        assert f._prm.margin == pytest.approx(10.0 * scale, rel=1e-12)
+        assert f._max_deviation == pytest.approx(40.0 * scale, rel=1e-12)
+        assert (f._prm.max_step, f._prm.min_step) == pytest.approx((3 * scale, 0.05 * scale))
+    f = FoeFit()
+    f.setup(FoeFit.Params(margin_px=7.0, max_deviation_px=30.0), Context())
+    f._start(Geometry(640, 480, f=2 * REFERENCE_FOCAL_PX))
+    assert (f._prm.margin, f._max_deviation) == (7.0, 30.0)
