@@ -71,7 +71,7 @@ def _run(frames, times, params, record=False):
     if not record:
         return count
     outs.append(out)
-    return outs, np.concatenate(f.float_times)
+    return outs, np.concatenate(f.float_times) if f.float_times else np.zeros(0)
 
 
 def _copy_time(frames) -> float:
