@@ -41,6 +41,9 @@ class Emulator(Filter):
     consumes = FramePacket
     produces = EventPacket
     sensor = True
+    #: pixels per strip of the event loop (a multiple of 64; default
+    #: ``emulator_state.STRIP``); the events do not depend on it
+    strip_pixels: int | None = None
 
     class Params(FilterParams):
         threshold_on: float = Field(0.2, gt=0, description="ON threshold, natural log units "
@@ -142,7 +145,8 @@ class Emulator(Filter):
         self._state = st
         self._eps = eps
         self._held = np.zeros((0, h, w), np.float32)
-        self._scratch = K.new_scratch(npix, 4096)
+        self._strip = min(npix + (-npix % 64), self.strip_pixels or K.STRIP)
+        self._scratch = K.new_scratch(self._strip, 4096)
 
     @property
     def thresholds(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -238,7 +242,8 @@ class Emulator(Filter):
         else:
             cx, cy, ct, cp, ctf = self._carry
             carry = (cx, cy, ct, ctf, cp)
-        rule = make_rule(cubic, self._eps, p.tie_tolerance, float(p.refractory_us), cap)
+        rule = make_rule(cubic, self._eps, p.tie_tolerance, float(p.refractory_us), cap,
+                         self._strip)
         x, y, tt, tf, pol, n, err, ef, ey, ex, self._scratch = emulate(
             FrameList(self._held, frames, times, base, total), j0, j1, rule,
             Pixels(self._rows, self._irows, st["hi"], st["lo"]), Noise(*nf), self._cap_hint,
