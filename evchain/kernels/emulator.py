@@ -282,6 +282,8 @@ def _interval(iv, rule, pixels, first, last, sc, u):
     llm = logs[2]
     llp = logs[3]
     nc, bad = _candidates(f1, iv.fp, hi, lo, first, last, cand)
+    if nc == 0 and bad < 0:
+        return u, -1, ERR_NONE, 0          # a quiet strip: nothing more to do
     _gather(iv, sc, rows, nc)
     _logs(iv, rule, sc, rows, nc)
     q = np.uint64(0)
