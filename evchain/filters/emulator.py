@@ -44,6 +44,8 @@ class Emulator(Filter):
     #: pixels per strip of the event loop (a multiple of 64; default
     #: ``emulator_state.STRIP``); the events do not depend on it
     strip_pixels: int | None = None
+    #: frame intervals run strip by strip at a time (default ``emulator_state.BLOCK``)
+    block_intervals: int | None = None
 
     class Params(FilterParams):
         threshold_on: float = Field(0.2, gt=0, description="ON threshold, natural log units "
@@ -217,6 +219,7 @@ class Emulator(Filter):
 
     def _run(self, frames, t, seen_new, j_stop, packet) -> None:
         """Process intervals ``self._next_j .. j_stop - 1`` (global indices)."""
+        from evchain.kernels import emulator_state as K
         from evchain.kernels.emulator import emulate
         from evchain.kernels.emulator_state import FrameList, Noise, Pixels, make_rule
 
@@ -243,7 +246,7 @@ class Emulator(Filter):
             cx, cy, ct, cp, ctf = self._carry
             carry = (cx, cy, ct, ctf, cp)
         rule = make_rule(cubic, self._eps, p.tie_tolerance, float(p.refractory_us), cap,
-                         self._strip)
+                         self._strip, self.block_intervals or K.BLOCK)
         x, y, tt, tf, pol, n, err, ef, ey, ex, self._scratch = emulate(
             FrameList(self._held, frames, times, base, total), j0, j1, rule,
             Pixels(self._rows, self._irows, st["hi"], st["lo"]), Noise(*nf), self._cap_hint,

@@ -115,6 +115,10 @@ def _candidates(f1, fp, hi, lo, first, last, cand):
     c_start = first - (first % CHUNK)
     nc = 0
     bad = -1
+    # the start of the strip, which the prefetches ahead of the scan do not reach
+    for q in range(c_start, min(c_start + PREFETCH_AHEAD + CHUNK, last), 16):
+        prefetch(f1, q)
+        prefetch(fp, q)
     for c0 in range(c_start, last, CHUNK):
         c1 = min(c0 + CHUNK, last)
         # the frame comes from memory: ask for it ahead of the compares (one hint per 64-byte
@@ -229,25 +233,26 @@ def _logs(iv, rule, sc, rows, nc):
 
 
 @njit(cache=True, error_model="numpy")
-def _interval(iv, rule, pixels, first, last, sc, u):
-    """Events of one frame interval ``iv`` for pixels ``first .. last - 1``, appended to the
-    scratch's ``ui`` (flat pixel index), ``utf``, ``up_`` from position ``u`` (their pieces in
-    ``piece`` from column 0). A pixel's state is committed only when all its events fit, so on
-    a full buffer the call stops before that pixel. The log cache (row columns ``S_LC`` ..
+def _interval(iv, rule, pixels, nc, sc, u):
+    """Events of one frame interval ``iv`` for the ``nc`` candidates ``sc.cand[:nc]`` (listed
+    by :func:`_candidates`), appended to the scratch's ``ui`` (flat pixel index), ``utf``,
+    ``up_`` from position ``u`` (their pieces in ``piece`` from column 0). A pixel's state is
+    committed only when all its events fit, so on a full buffer the call stops before that
+    pixel. The log cache (row columns ``S_LC`` ..
     ``S_LC + 3``) holds (jg, slope at frame jg+1 [cubic], L of frames jg+1, jg+2 [cubic]) of
     the last interval jg in which the pixel was examined. The state is read through the 2-D
     ``rows`` with an unsigned row index: one address computation per pixel for all fields
     (strided 1-D views per field cost one multiply, a wraparound test and, with so many
     arrays, stack reloads of their pointers and strides per access).
 
-    Passes: :func:`_candidates`, :func:`_gather`, :func:`_logs`, then the exact rule per
+    Passes (after :func:`_candidates`): :func:`_gather`, :func:`_logs`, then the exact rule per
     candidate, written out here (as an inlined helper its interpolation piece ran 1.5x
     slower): crossings are listed first (``piece`` rows: level, la, lb, m0, m1; row 6 the
     pixel's ``last_t``) and timed together by ``_times``, which also applies the refractory
     period.
 
-    Returns ``(u, resume, err, err_pixel)``: ``resume`` is -1 when done, else the pixel to
-    restart from after growing the buffers. (numpy error model: every divisor here is a frame
+    Returns ``(u, resume)``: ``resume`` is -1 when done, else the candidate to restart from
+    after growing the buffers. (numpy error model: every divisor here is a frame
     interval > 0, so the python model's zero test per division only cost time, ~2 %.)
     """
     rows = pixels.rows
@@ -268,7 +273,6 @@ def _interval(iv, rule, pixels, first, last, sc, u):
     cap = rule.cap
     t0 = iv.t0
     dt = iv.dt
-    f1 = iv.f1
     cap_u = min(ui.shape[0], u + piece.shape[1])
     u_in = u
     jg = iv.jg
@@ -281,9 +285,6 @@ def _interval(iv, rule, pixels, first, last, sc, u):
     lla = logs[1]
     llm = logs[2]
     llp = logs[3]
-    nc, bad = _candidates(f1, iv.fp, hi, lo, first, last, cand)
-    if nc == 0 and bad < 0:
-        return u, -1, ERR_NONE, 0          # a quiet strip: nothing more to do
     _gather(iv, sc, rows, nc)
     _logs(iv, rule, sc, rows, nc)
     q = np.uint64(0)
@@ -373,7 +374,7 @@ def _interval(iv, rule, pixels, first, last, sc, u):
             if uu >= cap_u:
                 # pixel i not committed
                 return _times(u_in, u, cubic, t0, dt, rule.refractory_us, ui, utf, up_,
-                              piece, rows), i, ERR_NONE, 0
+                              piece, rows), k
             ui[np.uint64(uu)] = i
             up_[np.uint64(uu)] = pol
             v = np.uint64(uu - u_in)
@@ -389,11 +390,7 @@ def _interval(iv, rule, pixels, first, last, sc, u):
         irows[r, S_NOFF] = k_off
         rows[r, S_EREF] = e
         hi[r], lo[r] = gates(e, ron, roff, eps, k_hi, k_lo)
-    u = _times(u_in, u, cubic, t0, dt, rule.refractory_us, ui, utf, up_, piece, rows)
-    if bad >= 0:
-        v1 = f1[bad]
-        return u, -1, (ERR_NONFINITE if not np.isfinite(v1) else ERR_NEGATIVE), bad
-    return u, -1, ERR_NONE, 0
+    return _times(u_in, u, cubic, t0, dt, rule.refractory_us, ui, utf, up_, piece, rows), -1
 
 
 @njit(cache=True)
@@ -495,15 +492,20 @@ def _pixel_events(frames, j_first, j_last, rule, pixels, sc):
                 # comes first
                 continue
             iv = _interval_of(frames, j_first + k, rule.cubic)
-            resume = p0
-            while resume >= 0:
-                u, resume, err, ep = _interval(iv, rule, pixels, resume, p1, sc, u)
-                if err != ERR_NONE:
-                    err_k = k
-                    err_pixel = ep
+            nc, bad = _candidates(iv.f1, iv.fp, pixels.hi, pixels.lo, p0, p1, sc.cand)
+            while nc > 0:
+                u, resume = _interval(iv, rule, pixels, nc, sc, u)
+                if resume < 0:
                     break
-                if resume >= 0:
-                    sc = _grow_events(sc, u + 1)
+                # the candidates not done to the front, after growing the buffers
+                sc = _grow_events(sc, u + 1)
+                cand = sc.cand
+                for q in range(nc - resume):
+                    cand[q] = cand[resume + q]
+                nc -= resume
+            if bad >= 0:
+                err_k = k
+                err_pixel = bad
         seg[st, nk] = u
     return sc, seg, u, (err_k if err_k < nk else -1), err_pixel
 
@@ -567,63 +569,68 @@ def emulate(frames, j_first, j_last, rule, pixels, noise, cap_hint, carry, keep_
     if keep_tf:
         otf[:nc0] = ctf
     n = nc0
-    sc, seg, u, err_k, ep = _pixel_events(frames, j_first, j_last, rule, pixels, scratch)
-    if err_k >= 0:
-        return ox, oy, ot, otf, op, n, ERR_NONFINITE if not np.isfinite(
-            _frame(frames, j_first + err_k + 1)[ep]) else ERR_NEGATIVE, j_first + err_k + 1, \
-            ep // w, ep % w, sc
-    # the noise after the pixels' events, as one more strip
-    nnoise = noise.off[j_last - j_first] - noise.off[0]
-    if u + nnoise > sc.ui.shape[0]:
-        sc = _grow_events(sc, u + nnoise)
-    ui = sc.ui
-    utf = sc.utf
-    up_ = sc.up_
-    for q in range(noise.off[0], noise.off[j_last - j_first]):
-        ui[u] = np.int64(noise.y[q]) * w + noise.x[q]
-        utf[u] = noise.t[q]
-        up_[u] = noise.p[q]
-        u += 1
-    ns = seg.shape[0]
-    for k in range(j_last - j_first):
-        j = j_first + k
-        # pass B: the interval's events in generation order (strips in pixel order, then its
-        # noise), listed by their place in the event list, sorted by rounded time
-        lst = sc.lst
-        ub = sc.ub
-        it0 = np.int64(times[j])
-        m = 0
-        for st in range(ns):
-            for b in range(seg[st, k], seg[st, k + 1]):
+    sc = scratch
+    for jb in range(j_first, j_last, rule.block):
+        je = min(jb + rule.block, j_last)
+        sc, seg, u, err_k, ep = _pixel_events(frames, jb, je, rule, pixels, sc)
+        if err_k >= 0:
+            jf = jb + err_k + 1
+            err = ERR_NONFINITE if not np.isfinite(_frame(frames, jf)[ep]) else ERR_NEGATIVE
+            return ox, oy, ot, otf, op, n, err, jf, ep // w, ep % w, sc
+        # the block's noise after the pixels' events, as one more strip
+        k0 = jb - j_first
+        k1 = je - j_first
+        nnoise = noise.off[k1] - noise.off[k0]
+        if u + nnoise > sc.ui.shape[0]:
+            sc = _grow_events(sc, u + nnoise)
+        ui = sc.ui
+        utf = sc.utf
+        up_ = sc.up_
+        for q in range(noise.off[k0], noise.off[k1]):
+            ui[u] = np.int64(noise.y[q]) * w + noise.x[q]
+            utf[u] = noise.t[q]
+            up_[u] = noise.p[q]
+            u += 1
+        ns = seg.shape[0]
+        noise0 = seg[ns - 1, je - jb] - noise.off[k0]   # noise event q is at noise0 + q
+        for k in range(je - jb):
+            # pass B: the interval's events in generation order (strips in pixel order, then
+            # its noise), listed by their place in the event list, sorted by rounded time
+            j = jb + k
+            lst = sc.lst
+            ub = sc.ub
+            it0 = np.int64(times[j])
+            m = 0
+            for st in range(ns):
+                for b in range(seg[st, k], seg[st, k + 1]):
+                    lst[m] = b
+                    m += 1
+            for b in range(noise0 + noise.off[k0 + k], noise0 + noise.off[k0 + k + 1]):
                 lst[m] = b
                 m += 1
-        base = seg[ns - 1, j_last - j_first]
-        for b in range(base + noise.off[k] - noise.off[0], base + noise.off[k + 1] - noise.off[0]):
-            lst[m] = b
-            m += 1
-        if m == 0:
-            continue
-        for q in range(np.uint64(m)):
-            ub[q] = np.int64(np.floor(utf[lst[q]] + 0.5)) - it0
-        nb = np.int64(times[j + 1]) - it0 + 2
-        if n + m > ox.shape[0]:
-            ox = _grow(ox, n + m)
-            oy = _grow(oy, n + m)
-            ot = _grow(ot, n + m)
-            if keep_tf:
-                otf = _grow(otf, n + m)
-            op = _grow(op, n + m)
-        sc, perm = _sort_order(sc, m, it0, nb)
-        for r in range(np.uint64(m)):        # unsigned indices: no wraparound tests
-            qq = np.uint64(perm[r])
-            q = np.uint64(lst[qq])
-            pos = np.uint64(n) + r
-            yy = ui[q] // w
-            ox[pos] = ui[q] - yy * w
-            oy[pos] = yy
-            ot[pos] = ub[qq] + it0
-            if keep_tf:
-                otf[pos] = utf[q]
-            op[pos] = up_[q]
-        n += m
+            if m == 0:
+                continue
+            for q in range(np.uint64(m)):
+                ub[q] = np.int64(np.floor(utf[lst[q]] + 0.5)) - it0
+            nb = np.int64(times[j + 1]) - it0 + 2
+            if n + m > ox.shape[0]:
+                ox = _grow(ox, n + m)
+                oy = _grow(oy, n + m)
+                ot = _grow(ot, n + m)
+                if keep_tf:
+                    otf = _grow(otf, n + m)
+                op = _grow(op, n + m)
+            sc, perm = _sort_order(sc, m, it0, nb)
+            for r in range(np.uint64(m)):        # unsigned indices: no wraparound tests
+                qq = np.uint64(perm[r])
+                q = np.uint64(lst[qq])
+                pos = np.uint64(n) + r
+                yy = ui[q] // w
+                ox[pos] = ui[q] - yy * w
+                oy[pos] = yy
+                ot[pos] = ub[qq] + it0
+                if keep_tf:
+                    otf[pos] = utf[q]
+                op[pos] = up_[q]
+            n += m
     return ox, oy, ot, otf, op, n, ERR_NONE, 0, 0, 0, sc

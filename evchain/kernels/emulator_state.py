@@ -34,10 +34,13 @@ LO_NONE = -1.1754944e-38
 #: columns of a pixel's state row (``rows``: float64 [H*W, 16]; ``irows``: its int64 view):
 #: l0, c_on, c_off, r_on, r_off, e_ref, last_t, n_on, n_off (int64), the log cache (4 columns)
 S_L0, S_CON, S_COFF, S_RON, S_ROFF, S_EREF, S_LAST, S_NON, S_NOFF, S_LC = range(10)
-#: pixels per strip: the event loop runs all intervals of a call on one strip before the next,
-#: so that the strip's state stays in the core's cache (gates 8 bytes, state row 128 bytes
-#: per pixel: 544 KiB)
-STRIP = 4096
+#: pixels per strip: the event loop runs a block of intervals on one strip before the next, so
+#: that the strip's state (gates 8 bytes, state row 128 bytes per pixel: 8.5 MiB) stays in
+#: the last-level cache from one interval to the next, as a 320x240 sensor's whole state does
+STRIP = 1 << 16
+#: frame intervals run strip by strip at a time: their events wait in a list until every strip
+#: is done, so the list holds a block's events
+BLOCK = 8
 
 
 class Rule(NamedTuple):
@@ -51,6 +54,7 @@ class Rule(NamedTuple):
     k_hi: float             #: gate factors of the tolerance (:func:`gate_factors`)
     k_lo: float
     strip: int              #: pixels per strip (a multiple of the scan's chunk, 64)
+    block: int              #: frame intervals run strip by strip at a time
 
 
 class Pixels(NamedTuple):
@@ -124,10 +128,10 @@ def gate_factors(tol):
 
 
 @njit(cache=True)
-def make_rule(cubic, eps, tol, refractory_us, cap, strip=STRIP):
+def make_rule(cubic, eps, tol, refractory_us, cap, strip=STRIP, block=BLOCK):
     """The :class:`Rule` of these parameters (its gate factors computed here)."""
     k_hi, k_lo = gate_factors(tol)
-    return Rule(cubic, eps, tol, refractory_us, cap, k_hi, k_lo, strip)
+    return Rule(cubic, eps, tol, refractory_us, cap, k_hi, k_lo, strip, block)
 
 
 @njit(cache=True)
