@@ -10,12 +10,14 @@ rounding in a running sum. The float32 gates are only a conservative prefilter (
 margin of 1e-6 below/above the exact intensity thresholds): a pixel with ``lo < I1 < hi`` cannot
 fire, which costs two float32 compares and no logarithm per pixel and frame.
 
-Per interval (``_interval``): pass 1 scans chunks of ``CHUNK`` pixels (the frame prefetched
-``PREFETCH_AHEAD`` pixels ahead) with a branch-free,
-vectorised bit mask of the pixels outside their gates and lists these candidates from the set
-bits, in pixel order; pass 2
-gathers their values of the other frames (independent loads, so cache misses overlap); pass 2b
-computes the logarithms the rule needs in vectorised passes over the candidates
+A call runs in blocks of ``rule.block`` intervals, each block strip by strip (``rule.strip``
+pixels; :func:`_pixel_events`), so that a strip's state stays in cache from one interval to the
+next; the intervals' events are then merged in pixel order and sorted by rounded time
+(:func:`emulate`). Per strip and interval: pass 1 scans chunks of ``CHUNK`` pixels (the
+frame prefetched ``PREFETCH_AHEAD`` pixels ahead) with a branch-free, vectorised bit mask
+of the pixels outside their gates and lists these candidates from the set bits, in pixel
+order; pass 2 gathers their values of the other frames (independent loads, so cache misses
+overlap); pass 2b computes the logarithms the rule needs in vectorised passes over the candidates
 (``veclog.log_pass``, within 1 ulp of libm; ``l0`` comes from the same function, ``veclog.ln``,
 so a pixel back at its first intensity has exactly its first level); pass 3
 runs the exact rule per candidate. ``lcache`` keeps, per pixel, the logs of the last interval
