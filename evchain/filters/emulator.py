@@ -147,7 +147,8 @@ class Emulator(Filter):
         self._state = st
         self._eps = eps
         self._held = np.zeros((0, h, w), np.float32)
-        self._strip = min(npix + (-npix % 64), self.strip_pixels or K.STRIP)
+        strip = self.strip_pixels or K.STRIP
+        self._strip = min(npix, strip) + (-min(npix, strip) % 64)   # whole chunks of the scan
         self._scratch = K.new_scratch(self._strip, 4096)
 
     @property
