@@ -817,6 +817,22 @@ class AedatWriter(Filter):
     _out: AtomicFile | None = None
     _writer: Writer | None = None
 
+    @classmethod
+    def check_sensor(cls, params: Params, width: int, height: int) -> str | None:
+        """AEDAT 2.0 addresses (DAVIS layout) hold at most 1024x512 pixels; a named chip at
+        most its own size."""
+        if params.chip is not None:
+            c = CHIPS[params.chip]
+            if width > c.width or height > c.height:
+                return (f"chip: a {width}x{height} sensor does not fit chip {c.name} "
+                        f"({c.width}x{c.height})")
+            return None
+        if width > DAVIS_MAX_WIDTH or height > DAVIS_MAX_HEIGHT:
+            return (f"a {width}x{height} sensor does not fit AEDAT 2.0, whose addresses hold at "
+                    f"most {DAVIS_MAX_WIDTH}x{DAVIS_MAX_HEIGHT} pixels; write the events with "
+                    "aedat4_writer (AEDAT 4, plugin evchain-dv) or hdf5_writer instead")
+        return None
+
     def reset(self) -> None:
         if self._out is not None:
             self._out.abort()
