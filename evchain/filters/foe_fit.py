@@ -46,7 +46,11 @@ class FoeFit(Filter):
     with every axis free (the probe); once the fits have run warm for 3 ``tau_ms``, the mode
     turns to turning (first) or pitching when the median of the last 5 probes turns about that
     axis faster than ``rotation_threshold_deg_s``, and back to level once that axis stayed
-    below it for 3 ``tau_ms``. Roll is not fitted (held at 0).
+    below it for 3 ``tau_ms``. A car's body pitches about its rest angle, so pitching is
+    entered and kept only while the probes' mean pitch rate over the last ``heading_memory_s``
+    stays below the threshold: a pitch of one sign that lasts is the flow of a ground plane
+    whose FOE row is off (normal flow on a plane tells the two apart poorly), not the camera.
+    Roll is not fitted (held at 0).
 
     Each fit starts from the previous one, else from the latest ``foe_map`` estimate. When the
     fit fails (singular, fewer than ``min_inliers`` decayed inliers, or farther than
@@ -121,6 +125,7 @@ class FoeFit(Filter):
         self._om_t: int | None = None  # the fit time of _om
         self._mode = LEVEL
         self._probes: deque[np.ndarray] = deque(maxlen=5)  # the latest probed rotations, px/s
+        self._pitch_probes: deque[tuple[int, float]] = deque()  # (t, probed pitch) over memory
         self._moved = -math.inf  # last time the mode's axis turned faster than the threshold
         self._level_x: deque[tuple[int, float]] = deque()  # (t, FOE column) of settled fits
         self._held_x = math.nan  # the FOE column while turning
@@ -319,6 +324,12 @@ class FoeFit(Filter):
                 self._level_x.popleft()
         self._probes.append(probe)
         rate = np.abs(np.median(np.array(self._probes), axis=0))
+        self._pitch_probes.append((T, float(probe[PITCHING])))
+        while self._pitch_probes[0][0] < T - memory:
+            self._pitch_probes.popleft()
+        one_way = abs(np.mean([w for _, w in self._pitch_probes])) >= self._turn_pxs
+        if self._mode == PITCHING and one_way:  # not the body's pitch (see the class doc)
+            self._mode = LEVEL
         if self._mode != LEVEL and rate[self._mode] >= self._turn_pxs:
             self._moved = T
         if not settled:
@@ -327,7 +338,7 @@ class FoeFit(Filter):
                 and T - self._level_x[0][0] >= 0.9 * memory):
             self._mode, self._moved = TURNING, T
             self._held_x = float(np.median([c for _, c in self._level_x]))
-        elif self._mode == LEVEL and rate[PITCHING] > self._turn_pxs:
+        elif self._mode == LEVEL and rate[PITCHING] > self._turn_pxs and not one_way:
             self._mode, self._moved = PITCHING, T
         elif self._mode != LEVEL and T - self._moved >= window:
             if self._mode == TURNING:
