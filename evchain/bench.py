@@ -124,6 +124,27 @@ def source_row(workload: str, cls, params: dict[str, Any], path: Path, events: i
                                         **(extra or {})}, data=data)
 
 
+def imu_source_row(workload: str, cls, params: dict[str, Any], path: Path, samples: int,
+                   events: int, data: str) -> BenchRow:
+    """Row for a source reading the IMU samples of ``path`` (``samples`` of them, beside
+    ``events`` events, all read) in samples per CPU second of the whole read; checks that every
+    sample arrives in the series ``imu``."""
+    from evchain.testing.contract import run_source
+
+    def stage():
+        packets = run_source(cls, params, path.parent)[0]
+        got = sum(len(p.series.get("imu", ())) for p in packets)
+        if got != samples:
+            raise RuntimeError(f"{cls.name} read {got} IMU samples from {path}, expected "
+                               f"{samples}")
+
+    cpu = best_cpu_time(stage, warmup=True)
+    wall = best_time(stage, repeat=1)
+    return BenchRow(workload, cls.name, samples / cpu, "samples/s (CPU)", None, None, None,
+                    {"samples": samples, "events": events, "throughput_wall": samples / wall,
+                     "bytes": sum(f.stat().st_size for f in _file_parts(path))}, data=data)
+
+
 def sink_row(workload: str, cls, packets: list, out_dir: Path, name: str,
              params: dict[str, Any] | None = None,
              extra: dict[str, Any] | None = None, data: str | None = None) -> BenchRow:

@@ -9,6 +9,8 @@
 * ``reference-drive``: pipelines/reference.yaml (scene -> emulator -> aedat_writer, its
   parameters) over the whole 14 s drive (quick: the first 1 s), rendered in the run, as
   simulated seconds per wall second; reports the event rate next to the thesis's 259 k events/s.
+  ``reference-drive-bands``: the same with row bands (``band_rows: 16``; the pipeline renders
+  every frame whole), measured in the same run.
 """
 
 from __future__ import annotations
@@ -71,35 +73,53 @@ def scene_render(quick: bool) -> list[BenchRow]:
     return rows
 
 
-def reference_drive(quick: bool) -> list[BenchRow]:
+def _drive_row(name: str, overrides: list[str], registry) -> BenchRow:
+    """One run of pipelines/reference.yaml with ``overrides``, timed (compiled beforehand)."""
     from evchain.core.chain import run_pipeline
     from evchain.core.config import load_pipeline
-    from evchain.core.registry import make_registry
 
-    registry = make_registry()
-    overrides = ["scene.duration_s=1.0"] if quick else []
     spec = load_pipeline(PIPELINE, registry, overrides)
     have_emulator = any(s.use == "emulator" for s in spec.stages)
     with tempfile.TemporaryDirectory() as tmp:
         # compile outside the timing: a few frames through the same chain
-        warm = load_pipeline(PIPELINE, registry, ["scene.duration_s=0.002"])
+        warm = load_pipeline(PIPELINE, registry, [*overrides, "scene.duration_s=0.002"])
         run_pipeline(warm, registry, Path(tmp) / "warm")
         t0 = time.perf_counter()
         result = run_pipeline(spec, registry, Path(tmp) / "run")
         wall = time.perf_counter() - t0
     rep = result.report
-    sim_s = rep["metrics"]["scene"]["duration_s"]
+    scene = rep["metrics"]["scene"]
+    sim_s = scene["duration_s"]
     stages = {s["name"]: s for s in rep["filters"]}
     events = stages["emulator"]["events_out"] if have_emulator else 0
-    extra = {"simulated_s": sim_s, "wall_s": wall, "frames": rep["metrics"]["scene"]["frames"],
+    extra = {"simulated_s": sim_s, "wall_s": wall, "frames": scene["frames"],
+             "rendered_share": scene.get("rendered_share", 1.0),
+             "band_rows": spec.stages[0].params.band_rows,
              "events": events, "event_rate_eps": events / sim_s,
              "thesis_event_rate_eps": 259_000,
              "scene_wall_s": stages["scene"]["wall_s"],
              "emulator_wall_s": stages.get("emulator", {}).get("wall_s")}
-    return [BenchRow("reference-drive", "scene+emulator", sim_s / wall, "sim s/s",
-                     error=events / sim_s, error_name="event rate (events/s)", extra=extra,
-                     data=f"reference drive 0-{sim_s:g} s, rendered in the run",
-                     params_from=relative(PIPELINE))]
+    return BenchRow(name, "scene+emulator", sim_s / wall, "sim s/s",
+                    error=events / sim_s, error_name="event rate (events/s)", extra=extra,
+                    data=f"reference drive 0-{sim_s:g} s, rendered in the run"
+                         + (f", bands of {BAND_ROWS} rows" if "bands" in name else ""),
+                    params_from=relative(PIPELINE))
+
+
+#: rows per band of the banded rows (``reference-drive-bands``, ``scene-bands``)
+BAND_ROWS = 16
+
+
+def reference_drive(quick: bool) -> list[BenchRow]:
+    """The drive as the pipeline sets it (every frame rendered whole), then with row bands
+    (``band_rows`` :data:`BAND_ROWS`), in one run so that both see the same load."""
+    from evchain.core.registry import make_registry
+
+    registry = make_registry()
+    base = ["scene.duration_s=1.0"] if quick else []
+    return [_drive_row("reference-drive", base, registry),
+            _drive_row("reference-drive-bands", [*base, f"scene.band_rows={BAND_ROWS}"],
+                       registry)]
 
 
 WORKLOADS = {"scene-render": scene_render, "reference-drive": reference_drive}

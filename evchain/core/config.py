@@ -199,6 +199,7 @@ def pipeline_from_text(text: str, file: str, registry: Registry, overrides: list
     if problems:
         raise _all_of(problems)
     check_wiring(stages, registry)
+    check_sensor_size(stages)
     _check_ids(stages)
     stages = _check_files(stages, Path(base_dir or "."), Path(set_dir or "."))
     return PipelineSpec(name=name or Path(file).stem, seed=seed, stages=stages, file=file,
@@ -398,6 +399,21 @@ def check_wiring(stages: list[StageSpec], registry: Registry) -> None:
                    f"before it produces {getattr(given, '__name__', 'nothing')}", s.mark,
                    f"{s.id}.use", WiringError)
     _check_series(stages, registry)
+
+
+def check_sensor_size(stages: list[StageSpec]) -> None:
+    """Every stage can take the sensor size that the source's parameters fix (if they do):
+    e.g. a writer whose format cannot address so many pixels fails here, before rendering."""
+    source = stages[0]
+    size = source.cls.sensor_size(source.params)
+    if size is None:
+        return
+    for s in stages[1:]:
+        problem = s.cls.check_sensor(s.params, *size)
+        if problem:
+            _raise(f"stage {s.id!r} ({s.use}): {problem} (the size is set by "
+                   f"{source.id}.width and {source.id}.height, line {source.mark.line})",
+                   s.mark, f"{source.id}.width")
 
 
 def _check_series(stages: list[StageSpec], registry: Registry) -> None:

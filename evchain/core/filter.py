@@ -137,13 +137,21 @@ class Filter:
     id: str
 
     def setup(self, params: FilterParams, context: Context) -> None:
-        """Store parameters and context, check the ground truth that ``needs_truth`` asks for
-        (a ConfigError naming the stage without it), then :meth:`reset`. Override to open
+        """Store parameters and context, check the sensor size (:meth:`check_sensor`, if the
+        source has set ``context.geometry``) and the ground truth that ``needs_truth`` asks
+        for (a ConfigError naming the stage without it), then :meth:`reset`. Override to open
         files etc."""
         self.params = params
         self.context = context
         if not hasattr(self, "id"):
             self.id = self.name
+        g = context.geometry
+        problem = None if g is None else self.check_sensor(params, g.width, g.height)
+        if problem:
+            from evchain.errors import ConfigError
+
+            raise ConfigError(f"{problem} (the source's sensor is {g.width}x{g.height})",
+                              key=self.id)
         if self.needs_truth or self.uses_truth:
             self.truth = self.truth_for(params, context)
             stage = repr(self.id) if self.id == self.name else f"{self.id!r} ({self.name})"
@@ -189,6 +197,26 @@ class Filter:
         """The series a stage with ``params`` adds: ``adds_series`` unless a parameter renames
         them."""
         return cls.adds_series
+
+    @classmethod
+    def sensor_size(cls, params: FilterParams) -> tuple[int, int] | None:
+        """Sources: the sensor's (width, height) when the parameters fix it before anything
+        runs: the parameters ``width`` and ``height`` of a source that always has both (plain
+        ints). None for other stages and for sources whose size comes from their input
+        (optional ``width``/``height`` only fill in what a file lacks)."""
+        fields = type(params).model_fields
+        if not cls.is_source() or any(k not in fields or fields[k].annotation is not int
+                                      for k in ("width", "height")):
+            return None
+        return params.width, params.height
+
+    @classmethod
+    def check_sensor(cls, params: FilterParams, width: int, height: int) -> str | None:
+        """What is wrong with a stage with ``params`` on a ``width`` x ``height`` sensor (a
+        sentence naming the limit and what to use instead), or None if nothing is. Checked
+        when a pipeline is loaded (if the source's parameters fix the size) and again at
+        setup (from ``context.geometry``), before any packet flows."""
+        return None
 
     def metrics_key(self, group: str) -> str:
         """Where this stage writes its ``group`` of metrics in ``context.metrics``: ``group``,

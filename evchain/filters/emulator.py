@@ -41,6 +41,11 @@ class Emulator(Filter):
     consumes = FramePacket
     produces = EventPacket
     sensor = True
+    #: pixels per strip of the event loop (a multiple of 64; default
+    #: ``emulator_state.STRIP``); the events do not depend on it
+    strip_pixels: int | None = None
+    #: frame intervals run strip by strip at a time (default ``emulator_state.BLOCK``)
+    block_intervals: int | None = None
 
     class Params(FilterParams):
         threshold_on: float = Field(0.2, gt=0, description="ON threshold, natural log units "
@@ -142,7 +147,9 @@ class Emulator(Filter):
         self._state = st
         self._eps = eps
         self._held = np.zeros((0, h, w), np.float32)
-        self._scratch = K.new_scratch(npix, 4096)
+        strip = self.strip_pixels or K.STRIP
+        self._strip = min(npix, strip) + (-min(npix, strip) % 64)   # whole chunks of the scan
+        self._scratch = K.new_scratch(self._strip, 4096)
 
     @property
     def thresholds(self) -> tuple[np.ndarray, np.ndarray] | None:
@@ -213,6 +220,7 @@ class Emulator(Filter):
 
     def _run(self, frames, t, seen_new, j_stop, packet) -> None:
         """Process intervals ``self._next_j .. j_stop - 1`` (global indices)."""
+        from evchain.kernels import emulator_state as K
         from evchain.kernels.emulator import emulate
         from evchain.kernels.emulator_state import FrameList, Noise, Pixels, make_rule
 
@@ -238,7 +246,8 @@ class Emulator(Filter):
         else:
             cx, cy, ct, cp, ctf = self._carry
             carry = (cx, cy, ct, ctf, cp)
-        rule = make_rule(cubic, self._eps, p.tie_tolerance, float(p.refractory_us), cap)
+        rule = make_rule(cubic, self._eps, p.tie_tolerance, float(p.refractory_us), cap,
+                         self._strip, self.block_intervals or K.BLOCK)
         x, y, tt, tf, pol, n, err, ef, ey, ex, self._scratch = emulate(
             FrameList(self._held, frames, times, base, total), j0, j1, rule,
             Pixels(self._rows, self._irows, st["hi"], st["lo"]), Noise(*nf), self._cap_hint,

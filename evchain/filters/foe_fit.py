@@ -9,6 +9,7 @@ from collections import deque
 import numpy as np
 from pydantic import Field
 
+from evchain.core.camera_scale import derived, px_scale
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import FlowPacket, Geometry
 from evchain.core.series import FOE, FOE_VOTES
@@ -45,7 +46,11 @@ class FoeFit(Filter):
     with every axis free (the probe); once the fits have run warm for 3 ``tau_ms``, the mode
     turns to turning (first) or pitching when the median of the last 5 probes turns about that
     axis faster than ``rotation_threshold_deg_s``, and back to level once that axis stayed
-    below it for 3 ``tau_ms``. Roll is not fitted (held at 0).
+    below it for 3 ``tau_ms``. A car's body pitches about its rest angle, so pitching is
+    entered and kept only while the probes' mean pitch rate over the last ``heading_memory_s``
+    stays below the threshold: a pitch of one sign that lasts is the flow of a ground plane
+    whose FOE row is off (normal flow on a plane tells the two apart poorly), not the camera.
+    Roll is not fitted (held at 0).
 
     Each fit starts from the previous one, else from the latest ``foe_map`` estimate. When the
     fit fails (singular, fewer than ``min_inliers`` decayed inliers, or farther than
@@ -84,19 +89,20 @@ class FoeFit(Filter):
         heading_memory_s: float = Field(
             0.5, gt=0, description="while turning the FOE's column is held at the median of "
             "the fits over this last stretch before the turn")
-        margin_px: float = Field(10.0, ge=0, description="events closer than this to a "
-                                 "plane's vanishing line (the FOE's row or column) are left "
-                                 "out of that plane")
+        margin_px: float | None = Field(
+            None, ge=0, description="events closer than this to a plane's vanishing line (the "
+            "FOE's row or column) are left out of that plane, px; null: 10 px x f / 380.6 px "
+            "(1.5 deg of view; 10 px on the reference camera, camera_scale.px_scale)")
         tolerance: float = Field(0.25, gt=0, description="Tukey constant on the relative "
                                  "speed residual |s - predicted| / predicted (with a looser "
                                  "one an approaching obstacle's lower rows fit the road and "
                                  "pull the FOE up as it fills the view)")
         max_iter: int = Field(4, ge=1, description="Gauss-Newton iterations per fit")
-        max_deviation_px: float = Field(40.0, gt=0, description="a fit farther than this "
-                                        "from the voting estimate is checked against a fit "
-                                        "started from the votes and falls back to them if "
-                                        "that one has the larger inlier weight (the votes can "
-                                        "err by tens of px for seconds)")
+        max_deviation_px: float | None = Field(
+            None, gt=0, description="a fit farther than this from the voting estimate is "
+            "checked against a fit started from the votes and falls back to them if that one "
+            "has the larger inlier weight (the votes can err by tens of px for seconds), px; "
+            "null: 40 px x f / 380.6 px")
         min_inliers: float = Field(50.0, ge=0, description="fall back when the decayed "
                                    "inlier weight is below this")
 
@@ -119,6 +125,7 @@ class FoeFit(Filter):
         self._om_t: int | None = None  # the fit time of _om
         self._mode = LEVEL
         self._probes: deque[np.ndarray] = deque(maxlen=5)  # the latest probed rotations, px/s
+        self._pitch_probes: deque[tuple[int, float]] = deque()  # (t, probed pitch) over memory
         self._moved = -math.inf  # last time the mode's axis turned faster than the threshold
         self._level_x: deque[tuple[int, float]] = deque()  # (t, FOE column) of settled fits
         self._held_x = math.nan  # the FOE column while turning
@@ -132,8 +139,13 @@ class FoeFit(Filter):
         p = self.params
         self._geometry = geometry
         self._rotation = geometry.f is not None
-        self._prm = record(k.FitParams, margin=p.margin_px, tolerance=p.tolerance,
-                           max_iter=p.max_iter, max_step=3.0, slab_us=p.estimate_every_us,
+        scale = px_scale(geometry)
+        self._max_deviation = derived(p.max_deviation_px, 40.0, geometry)
+        # a Gauss-Newton step moves the FOE by at most 3 px, and a fit has converged once it
+        # moves less than 0.05 px (on the reference camera)
+        self._prm = record(k.FitParams, margin=derived(p.margin_px, 10.0, geometry),
+                           tolerance=p.tolerance, max_iter=p.max_iter, max_step=3.0 * scale,
+                           min_step=0.05 * scale, slab_us=p.estimate_every_us,
                            f=geometry.f if self._rotation else 1.0, cx=geometry.cx,
                            cy=geometry.cy)
         self._turn_pxs = math.radians(p.rotation_threshold_deg_s) * self._prm.f
@@ -253,7 +265,7 @@ class FoeFit(Filter):
         found = probe.copy()
         # a held FOE column is not the fit's: only the row can run away
         far = math.hypot(th[k.FOE_X] - vx if free[0] else 0.0,
-                         th[k.FOE_Y] - vy) > p.max_deviation_px
+                         th[k.FOE_Y] - vy) > self._max_deviation
         if ok and far and warm:
             # Far from the votes: the votes may be the wrong ones (at 15 m/s they err by 30-50 px
             # for seconds). Refit from them; keep the warm fit unless the votes' fit explains
@@ -312,6 +324,12 @@ class FoeFit(Filter):
                 self._level_x.popleft()
         self._probes.append(probe)
         rate = np.abs(np.median(np.array(self._probes), axis=0))
+        self._pitch_probes.append((T, float(probe[PITCHING])))
+        while self._pitch_probes[0][0] < T - memory:
+            self._pitch_probes.popleft()
+        one_way = abs(np.mean([w for _, w in self._pitch_probes])) >= self._turn_pxs
+        if self._mode == PITCHING and one_way:  # not the body's pitch (see the class doc)
+            self._mode = LEVEL
         if self._mode != LEVEL and rate[self._mode] >= self._turn_pxs:
             self._moved = T
         if not settled:
@@ -320,7 +338,7 @@ class FoeFit(Filter):
                 and T - self._level_x[0][0] >= 0.9 * memory):
             self._mode, self._moved = TURNING, T
             self._held_x = float(np.median([c for _, c in self._level_x]))
-        elif self._mode == LEVEL and rate[PITCHING] > self._turn_pxs:
+        elif self._mode == LEVEL and rate[PITCHING] > self._turn_pxs and not one_way:
             self._mode, self._moved = PITCHING, T
         elif self._mode != LEVEL and T - self._moved >= window:
             if self._mode == TURNING:

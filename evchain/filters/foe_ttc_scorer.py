@@ -315,7 +315,11 @@ class FoeTtcScorer(Filter):
         start = self._t0 + int(round(p.warmup_s * 1e6))
         window_s = max(0.0, (self._t_end - start) * 1e-6)
         base = {"warmup_s": p.warmup_s, "window_s": window_s}
-        k = (foe["t"] >= start) & np.isfinite(foe["dx"]) & np.isfinite(foe["dy"])
+        after = foe["t"] >= start
+        # the rotation is scored wherever the truth knows it, also where the FOE is undefined
+        # (a camera turning in place, a recording whose truth is the gyro's)
+        rotation, why_rotation = self._rotation_metrics(foe[after])
+        k = after & np.isfinite(foe["dx"]) & np.isfinite(foe["dy"])
         if not k.any():
             stream_s = (self._t_end - self._t0) * 1e-6
             if window_s == 0.0:
@@ -328,17 +332,16 @@ class FoeTtcScorer(Filter):
                 why = (f"no FOE estimate in the {window_s:g} s after the warm-up (the "
                        "estimators' own metrics say why)")
             return {**dict.fromkeys(FOE_KEYS), "n": 0, **base, "lag_ms": None,
-                    "lag_axis": None, **self._rotation_metrics(foe[k])[0], "why_none": why}
+                    "lag_axis": None, **rotation, "why_none": why}
         adx, ady = np.abs(foe["dx"][k]), np.abs(foe["dy"][k])
         ang = foe["angle_deg"][k]
-        rotation, why = self._rotation_metrics(foe[k])
         m = {"dx_mean_px": float(adx.mean()), "dx_std_px": float(adx.std()),
              "dy_mean_px": float(ady.mean()), "dy_std_px": float(ady.std()),
              "angle_mean_deg": float(np.nanmean(ang)) if np.isfinite(ang).any() else None,
              "angle_std_deg": float(np.nanstd(ang)) if np.isfinite(ang).any() else None,
              "n": int(k.sum()), **base, **foe_lag_metrics(foe[k]), **rotation}
-        if why is not None:
-            m["why_none"] = {key: why for key, v in rotation.items() if v is None}
+        if why_rotation is not None:
+            m["why_none"] = {key: why_rotation for key, v in rotation.items() if v is None}
         return m
 
     def _rotation_metrics(self, foe: np.ndarray) -> tuple[dict, str | None]:

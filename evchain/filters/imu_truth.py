@@ -17,7 +17,7 @@ from pydantic import Field
 from evchain.core.filter import Context, Filter, FilterParams
 from evchain.core.packets import EventPacket
 from evchain.core.series import IMU, IMU_RATE
-from evchain.core.truth import FlowTruth
+from evchain.core.truth import FlowTruth, FoeTruth, RotationTruth, TtcTruth
 from evchain.errors import DataError
 
 #: DAVIS240C (18.5 µm pixels) behind the 4.5 mm lens of the DVSFLOW16 recordings, px
@@ -39,11 +39,14 @@ class ImuTruth(Filter):
     median relative difference is at most ``max_normal_error`` (with at least
     ``min_measurements`` measurements), and where the true flow is at least ``min_speed_pxs``;
     elsewhere it is NaN (camera translation, moving objects, too slow, no gyro). Sets
-    ``context.truth`` (flow) for later stages, replacing the source's. Passes the events on,
-    late by up to a bin plus ``max_offset_us`` (and by the calibration lead-in at the start),
-    with the series ``imu_rate`` (gyro rate against the rate fitted to the measured flow per
-    bin). ``metrics.imu_truth`` reports the camera model used, the estimates, the checks of the
-    axis signs and of the roll against gravity, and the share of events with truth.
+    ``context.truth`` for later stages, replacing the source's: the flow, the camera's
+    angular velocity (the gyro's, wherever it has samples) and, since the gyro tells no
+    heading, a FOE and TTC that are NaN throughout (:class:`~evchain.imu.truth.ImuFlowTruth`).
+    Passes the events on, late by up to a bin plus ``max_offset_us`` (and by the calibration
+    lead-in at the start), with the series ``imu_rate`` (gyro rate against the rate fitted to
+    the measured flow per bin). ``metrics.imu_truth`` reports the camera model used, the
+    estimates, the checks of the axis signs and of the roll against gravity, and the share of
+    events with truth.
     """
 
     name = "imu_truth"
@@ -51,7 +54,7 @@ class ImuTruth(Filter):
     produces = EventPacket
     needs_series = (IMU,)
     adds_series = (IMU_RATE,)
-    provides_truth = (FlowTruth,)
+    provides_truth = (FlowTruth, FoeTruth, RotationTruth, TtcTruth)
 
     class Params(FilterParams):
         focal_px: float | None = Field(

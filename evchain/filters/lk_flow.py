@@ -25,7 +25,9 @@ class LKFlow(Filter):
     structure tensor's eigenvalues choosing full flow, normal flow or none. ``mode: faithful``
     reproduces jAER's LucasKanadeFlow (speeds not physically scaled: count x 20 heuristic);
     ``mode: calibrated`` (default) replaces the count image by each active pixel's onset time
-    scaled to the window, whose time derivative is known exactly, which gives px/s. Emits only
+    scaled to the window, whose time derivative is known exactly, which gives px/s. Calibrated
+    mode can adapt the window to the edge's speed: longer for slow edges (``max_window_us``),
+    and a short first window for fast ones (``min_window_us``). Emits only
     events with non-zero flow, and appends the series ``flow_density`` (t, n_in, n_out per 100 ms
     bin) for the scorer. See docs/explanation/lk_flow.md.
     """
@@ -86,6 +88,15 @@ class LKFlow(Filter):
             "calibrated mode with max_window_us: the distance, px, an edge must cross within "
             "its window to be resolved"))
 
+        min_window_us: int = Field(0, ge=0, le=100_000_000, description=(
+            "calibrated mode: two time scales, off at 0 (else shorter than window_us). Each "
+            "event is first estimated with min_window_us; that estimate stands when the edge "
+            "crosses at least fast_px px within it, else the event is estimated as without it "
+            "(window_us, then the speed-adaptive window), µs"))
+        fast_px: float = Field(8.0, gt=0.0, le=100.0, description=(
+            "calibrated mode with min_window_us: the distance, px, an edge must cross within "
+            "min_window_us for the short window's estimate to stand"))
+
         @model_validator(mode="after")
         def _adaptive_window(self):
             if self.max_window_us and self.max_window_us <= self.window_us:
@@ -94,6 +105,11 @@ class LKFlow(Filter):
             if self.max_window_us and self.mode == "faithful":
                 raise ValueError("max_window_us (speed-adaptive window) is calibrated mode "
                                  "only")
+            if self.min_window_us and self.min_window_us >= self.window_us:
+                raise ValueError(f"min_window_us ({self.min_window_us}) must be shorter than "
+                                 f"window_us ({self.window_us}), or be 0 (off)")
+            if self.min_window_us and self.mode == "faithful":
+                raise ValueError("min_window_us (short window) is calibrated mode only")
             return self
 
     def reset(self) -> None:
@@ -108,7 +124,7 @@ class LKFlow(Filter):
             mix=q.speed_control_mix, max_factor=q.max_speed_factor,
             max_speed_pxs=q.max_speed_pxs, refit_tolerance=q.refit_tolerance,
             centre_check_px=q.centre_check_px, max_window_us=q.max_window_us,
-            slow_px=q.slow_px)
+            slow_px=q.slow_px, min_window_us=q.min_window_us, fast_px=q.fast_px)
         self._density = DensityCounter(DENSITY_BIN_US)
         self._last = None
         g = self.context.geometry

@@ -32,7 +32,10 @@ class PlaneFlow(Filter):
     the wrong way on the reference scene). With ``max_window_us`` > ``window_us`` the window
     adapts to slow edges: a fit whose edge moved less than ``slow_px`` within the window (or,
     with ``refit_failed``, no fit) is redone with the window in which it moves ``slow_px``,
-    up to ``max_window_us``, the centre check's limit scaled with the window. Degenerate fits
+    up to ``max_window_us``, the centre check's limit scaled with the window. With
+    ``min_window_us`` a fit whose edge moved more than ``fast_px`` within the window is redone
+    with the shorter window in which it moves ``fast_px`` (at least ``min_window_us``), so that
+    older edges that crossed the neighbourhood leave the fit. Degenerate fits
     (collinear or too few points, flat surfaces) are skipped, never NaN. Appends the series
     ``flow_density`` (t, n_in, n_out per 100 ms bin).
     """
@@ -83,6 +86,14 @@ class PlaneFlow(Filter):
             True, description="adaptive window: also refit with max_window_us when the fit "
                               "with window_us gives no estimate")
 
+        min_window_us: int = Field(
+            0, ge=0, description="short window for fast edges (0: off; else shorter than "
+                                 "window_us; needs no max_window_us): a first fit whose edge "
+                                 "moved more than fast_px within window_us is redone with the "
+                                 "window in which it moves fast_px, at least this, µs; the "
+                                 "first fit stands when the shorter one fails")
+        fast_px: float = Field(3.0, gt=0, description="short window: the distance, px")
+
         @model_validator(mode="after")
         def _adaptive_window(self):
             if self.max_window_us and self.max_window_us <= self.window_us:
@@ -91,6 +102,12 @@ class PlaneFlow(Filter):
             if self.max_window_us and self.variant == "original":
                 raise ValueError("max_window_us (speed-adaptive window) does not apply to "
                                  "variant original (it fits velocities, not a time plane)")
+            if self.min_window_us and self.min_window_us >= self.window_us:
+                raise ValueError(f"min_window_us ({self.min_window_us}) must be shorter than "
+                                 f"window_us ({self.window_us}), or be 0 (off)")
+            if self.min_window_us and self.variant == "original":
+                raise ValueError("min_window_us (short window) does not apply to variant "
+                                 "original")
             return self
 
     def reset(self) -> None:
@@ -107,7 +124,8 @@ class PlaneFlow(Filter):
             min_points=q.min_points, th1=q.th1, th2=q.th2_s, max_speed=q.max_speed_pxs,
             max_iter=q.max_iterations, min_spread=q.min_spread_px, centre_check=q.centre_check,
             max_window_us=q.max_window_us, slow_px=q.slow_px, refit_failed=q.refit_failed,
-            refractory_updates=q.refractory_updates)
+            refractory_updates=q.refractory_updates, min_window_us=q.min_window_us,
+            fast_px=q.fast_px)
         self._density = DensityCounter(DENSITY_BIN_US)
         self._end = None
         self._geometry = g

@@ -26,7 +26,9 @@ class SceneSource(Filter):
 
     Frames are emitted so that no pixel moves more than ``max_motion_px`` between two frames
     (from the exact motion field at the earlier frame), bounded by ``dt_min_us``/``dt_max_us``;
-    ``dt_us`` fixes the step instead (thesis Table 4.4: 20 or 40 µs). Packets cover
+    ``dt_us`` fixes the step instead (thesis Table 4.4: 20 or 40 µs). ``band_rows`` renders
+    each band of rows only at its own step and fills the frames between by interpolation
+    (:mod:`evchain.sim.bands`). Packets cover
     ``packet_us`` slices (shorter when ``max_frames_per_packet`` is reached). Sets
     ``context.geometry`` (with f, cx, cy), ``context.truth`` (flow, FOE, camera rotation, TTC,
     depth, object ids) and ``context.renderer`` (frames at any time, for picture sinks). With
@@ -49,6 +51,13 @@ class SceneSource(Filter):
         dt_min_us: int = Field(5, ge=1, description="smallest adaptive frame interval, µs")
         dt_max_us: int = Field(10_000, ge=1, description="largest adaptive frame interval, µs")
         dt_us: int | None = Field(None, ge=1, description="fixed frame interval (no adaptation)")
+        band_rows: int = Field(0, ge=0, le=8192, description=(
+            "rows per band rendered only at its own step (max_motion_px over 1.5 times the "
+            "band's fastest pixel speed; in the frames between, the band is the straight line "
+            "between its renders): a fraction of the rows rendered where the image moves "
+            "slowly, at the cost of events that differ from whole frames' (changes faster than "
+            "a band's step are smoothed or lost; docs/explanation/scene.md) and one packet "
+            "more of frame memory; 0 (or dt_us): every frame rendered whole"))
         max_frames_per_packet: int = Field(64, ge=1, le=100_000,
                                            description="bound on memory per packet")
         # threads != 1 also renders packets ahead in a background thread (_render_ahead)
@@ -99,6 +108,8 @@ class SceneSource(Filter):
         one, then stacked; float32), for four packets when rendering ahead (two queued, one
         being rendered, one being consumed)."""
         packets = 1 if params.threads == 1 else 4
+        if params.band_rows and params.dt_us is None:
+            packets += 1        # the frames waiting for their bands' next renders
         return params.width * params.height * 4 * 2 * params.max_frames_per_packet * packets
 
     def time_span_us(self) -> tuple[int, int]:
@@ -186,20 +197,30 @@ class SceneSource(Filter):
         t = 0           # time of the next frame
         t_start = 0
         dts: list[int] = []
+        bands = None
+        if p.band_rows and p.dt_us is None:
+            from evchain.sim.bands import BandFrames
 
-        def step(vmax: float) -> int:
-            dts.append(self.next_dt_us(vmax))
-            return dts[-1]
+            bands = BandFrames(self.scene, p.band_rows, p.max_frames_per_packet)
+            seq = bands.frames(0, end, self.next_dt_us)
+        else:
+            def step(vmax: float) -> int:
+                dts.append(self.next_dt_us(vmax))
+                return dts[-1]
 
-        seq = self.scene.frames(0, end, step)
+            seq = ((t_f, frame, dts[-1]) for t_f, frame, _ in self.scene.frames(0, end, step))
         while t_start < end:
             boundary = min(t_start - t_start % p.packet_us + p.packet_us, end)
             frames, times = [], []
             while t < boundary and len(frames) < p.max_frames_per_packet:
-                _, frame, _ = next(seq)          # the frame at t (a new array)
+                t_f, frame, dt = next(seq)          # the frame at t (a new array)
+                if t_f != t:
+                    raise RuntimeError(f"scene frame at {t_f} µs, expected {t} µs")
                 frames.append(frame)
                 times.append(t)
-                t += dts[-1]
+                if bands is not None:
+                    dts.append(dt)
+                t += dt
             t_end = boundary if t >= boundary else t
             stack = (np.stack(frames) if frames
                      else np.zeros((0, geom.height, geom.width), np.float32))
@@ -209,7 +230,7 @@ class SceneSource(Filter):
             imu = self._imu(t_start, t_end)
             yield packet if imu is None else packet.with_series(IMU.name, imu)
             t_start = t_end
-        self.context.metrics["scene"] = {
+        metrics = {
             "frames": self.frames_emitted,
             "duration_s": end * 1e-6,
             "mean_dt_us": float(np.mean(dts)) if dts else None,
@@ -218,6 +239,11 @@ class SceneSource(Filter):
             "speed_mps": p.speed_mps,
             "f_px": geom.f,
         }
+        if bands is not None:     # share of the emitted frames' pixel rows that were rendered
+            metrics["rendered_share"] = (bands.rows_rendered / (bands.frames_emitted
+                                                                * geom.height)
+                                         if bands.frames_emitted else 1.0)
+        self.context.metrics["scene"] = metrics
 
 
 def check_memory(params) -> None:

@@ -9,8 +9,8 @@ import numpy as np
 from pydantic import Field
 
 from evchain.core.filter import Filter, FilterParams
-from evchain.core.packets import FlowPacket
-from evchain.core.series import FOE, TTC, TTC_CLUSTERS
+from evchain.core.packets import FlowPacket, Geometry
+from evchain.core.series import FOE, ROTATION_FIELDS, TTC, TTC_CLUSTERS
 from evchain.errors import DataError
 
 TTC_DTYPE = TTC.dtype
@@ -120,11 +120,16 @@ class Ttc(Filter):
             "most this; null: any spread")
 
     def reset(self) -> None:
+        self._state = None
+        self._ticks = self._rows = 0
+
+    def _constants(self, g: Geometry):
+        """The kernel's constants for the sensor geometry ``g``."""
         from evchain.kernels.records import record
         from evchain.kernels.ttc import TtcParams
 
         p = self.params
-        self._prm = record(
+        return record(
             TtcParams, period_us=p.estimate_every_us, select_nearest=p.select == "nearest_foe",
             select_min_activity=p.select_min_activity, half_width=p.region_b_half_width_px,
             min_below=p.region_b_min_below_px, min_dist=p.min_distance_px,
@@ -138,9 +143,8 @@ class Ttc(Filter):
             ground_min_events=p.ground_min_events, ground_fallback=p.ground_fallback,
             corridor=p.corridor_half_width_h or 0.0, hold=p.select_hold,
             base_px=p.baseline_px, base_age_us=p.baseline_max_ms * 1000.0,
-            max_spread=math.inf if p.max_rel_spread is None else p.max_rel_spread)
-        self._state = None
-        self._ticks = self._rows = 0
+            max_spread=math.inf if p.max_rel_spread is None else p.max_rel_spread,
+            f=g.f or 0.0, cx=g.cx, cy=g.cy)
 
     def process(self, packet: FlowPacket) -> FlowPacket:
         if not isinstance(packet, FlowPacket):
@@ -151,21 +155,24 @@ class Ttc(Filter):
         period = int(p.estimate_every_us)
         if self._state is None:
             g = packet.geometry
+            self._prm = self._constants(g)
             self._state = kern.new_state(p.max_clusters, p.samples_per_cluster, g.height,
                                          g.width, p.baseline_px > 0)
             kern.start(self._state, -(-packet.t_start // period) * period)
         foe = packet.series.get("foe")
         if foe is None:
-            ft, fx, fy = np.zeros(0, np.int64), np.zeros(0), np.zeros(0)
-        else:
-            ft = np.ascontiguousarray(foe["t"], np.int64)
-            fx = np.ascontiguousarray(foe["x"], np.float64)
-            fy = np.ascontiguousarray(foe["y"], np.float64)
+            foe = np.zeros(0, FOE.dtype)
+        rotating = foe["rotation"] > 0
+        entries = (np.ascontiguousarray(foe["t"], np.int64),
+                   np.ascontiguousarray(foe["x"], np.float64),
+                   np.ascontiguousarray(foe["y"], np.float64),
+                   *(np.where(rotating, np.radians(foe[c].astype(np.float64)), 0.0)
+                     for c in ROTATION_FIELDS))
         n_ticks = max(0, -(-(packet.t_end - kern.next_tick(self._state)) // period))
         ttc = np.zeros(n_ticks, TTC_DTYPE)
         cl = np.zeros(n_ticks * p.max_clusters, CLUSTER_DTYPE)
         no, nc = kern.process((packet.x, packet.y, packet.t, packet.p, packet.vx, packet.vy),
-                              (ft, fx, fy), self._state, self._prm, int(packet.t_end), ttc, cl)
+                              entries, self._state, self._prm, int(packet.t_end), ttc, cl)
         self._ticks += n_ticks
         self._rows += no
         return packet.with_series("ttc", ttc[:no].copy()).with_series("ttc_clusters",

@@ -1,4 +1,5 @@
-"""The gyro's motion field as ground truth (a :class:`~evchain.core.truth.FlowTruth`)."""
+"""The gyro's motion field and rate as ground truth (:class:`~evchain.core.truth.FlowTruth`,
+:class:`~evchain.core.truth.RotationTruth`)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,8 @@ from evchain.imu.rotflow import rotational_flow
 
 
 class ImuFlowTruth:
-    """``flow(x, y, t_us)``: the flow a purely rotating camera sees, from its gyro.
+    """``flow(x, y, t_us)``: the flow a purely rotating camera sees, from its gyro;
+    ``angular_velocity(t_us)``: the gyro's rate itself.
 
     The rate at event time ``t`` is the gyro's at ``t + camera.offset_us`` (bias removed, axis
     signs applied, interpolated); the flow follows from it, the focal length and the principal
@@ -18,6 +20,13 @@ class ImuFlowTruth:
     the gyro has no samples, in time bins that are not marked valid (:meth:`set_bin`: the
     events there disagree with a pure rotation, or were not checked), and where the flow is
     slower than ``min_speed_pxs`` (there the gyro's noise and bias are a large part of it).
+
+    The angular velocity is the truth wherever the gyro has samples, translation or not (a
+    gyro measures rotation alone): NaN only before a camera is set and where the gyro has no
+    samples. The gyro says nothing about translation: ``foe`` and ``ttc`` are NaN throughout
+    (where the bins pass the rotation check the camera does not translate, so it has no
+    heading and approaches nothing; elsewhere they are unknown), so that FOE scorers run on a
+    recording and score the rotation rate alone.
     """
 
     def __init__(self, bin_us: int = 100_000, min_speed_pxs: float = 0.0):
@@ -58,6 +67,29 @@ class ImuFlowTruth:
                                     cam.interpolation)
         u, v = rotational_flow(x, y, w, cam.f, cam.cx, cam.cy)
         return u, v, covered
+
+    def angular_velocity(self, t_us) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(wx, wy, wz)`` rad/s about the camera's axes at ``t_us``: the gyro's at
+        ``t_us + offset_us``, bias removed, axis signs applied; NaN where the gyro has no
+        samples or no camera is set (:class:`~evchain.core.truth.RotationTruth`)."""
+        t = np.asarray(t_us, np.float64)
+        cam = self.camera
+        if cam is None:
+            nan = np.full(t.shape, np.nan)[()]
+            return nan, nan, nan
+        w, covered = self.gyro.rate(t + cam.offset_us, cam.bias_dps, cam.signs,
+                                    cam.interpolation)
+        w = np.where(covered[..., None], w, np.nan)
+        return w[..., 0][()], w[..., 1][()], w[..., 2][()]
+
+    def foe(self, t_us) -> tuple[np.ndarray, np.ndarray]:
+        """NaN: the gyro tells no heading (see the class docstring)."""
+        nan = np.full(np.shape(t_us), np.nan)[()]
+        return nan, nan
+
+    def ttc(self, t_us) -> np.ndarray:
+        """NaN: the gyro tells no approach (see the class docstring)."""
+        return np.full(np.shape(t_us), np.nan)[()]
 
     def valid(self, x, y, t_us) -> np.ndarray:
         """Where :meth:`flow` is finite."""

@@ -716,20 +716,20 @@ class AedatSource(Filter):
 
     def _take_imu(self, dec: Decoder) -> None:
         got = dec.take_imu()
-        if len(got):
-            self._imu_pending = np.concatenate([self._imu_pending, got])
+        if len(got):   # kept in time order (stable), so that each slice's are found by bisection
+            pend = np.concatenate([self._imu_pending, got])
+            self._imu_pending = pend[np.argsort(pend["t"], kind="stable")]
 
     def _with_imu(self, packet: EventPacket) -> EventPacket:
-        """``packet`` with the IMU samples of its slice as the series ``imu``, from the first
-        sample of the file on (a file without IMU records gives no series); samples that
-        arrive after their slice was emitted (written out of time order) are counted in
-        ``imu_late`` and dropped."""
+        """``packet`` with the IMU samples of its slice (in time order) as the series ``imu``,
+        from the first sample of the file on (a file without IMU records gives no series);
+        samples that arrive after their slice was emitted (written out of time order) are
+        counted in ``imu_late`` and dropped."""
         pend = self._imu_pending
-        t = pend["t"]
-        late = t < packet.t_start
-        self._imu_late += int(np.count_nonzero(late))
-        mine = pend[~late & (t < packet.t_end)]
-        self._imu_pending = pend[t >= packet.t_end]
+        i0, i1 = np.searchsorted(pend["t"], [packet.t_start, packet.t_end], side="left")
+        self._imu_late += int(i0)
+        mine = pend[i0:max(i0, i1)]
+        self._imu_pending = pend[max(i0, i1):]
         self._imu_seen = self._imu_seen or len(pend) > 0
         return packet.with_series(IMU.name, mine) if self._imu_seen else packet
 
@@ -816,6 +816,22 @@ class AedatWriter(Filter):
 
     _out: AtomicFile | None = None
     _writer: Writer | None = None
+
+    @classmethod
+    def check_sensor(cls, params: Params, width: int, height: int) -> str | None:
+        """AEDAT 2.0 addresses (DAVIS layout) hold at most 1024x512 pixels; a named chip at
+        most its own size."""
+        if params.chip is not None:
+            c = CHIPS[params.chip]
+            if width > c.width or height > c.height:
+                return (f"chip: a {width}x{height} sensor does not fit chip {c.name} "
+                        f"({c.width}x{c.height})")
+            return None
+        if width > DAVIS_MAX_WIDTH or height > DAVIS_MAX_HEIGHT:
+            return (f"a {width}x{height} sensor does not fit AEDAT 2.0, whose addresses hold at "
+                    f"most {DAVIS_MAX_WIDTH}x{DAVIS_MAX_HEIGHT} pixels; write the events with "
+                    "aedat4_writer (AEDAT 4, plugin evchain-dv) or hdf5_writer instead")
+        return None
 
     def reset(self) -> None:
         if self._out is not None:

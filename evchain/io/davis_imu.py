@@ -30,6 +30,12 @@ accelZ unchecked). In the camera frame the series carries:
   so an upright camera reads ``ay`` near -1);
 * ``temperature_c``.
 
+libcaer (and so iniVation's DV and its AEDAT 4.0 ``IMUS`` stream) gives the same chip axes,
+already in g and deg/s; the ROS driver of rpg_dvs_ros turns them into the camera frame with
+the same signs (x and z negated, "align axes with camera frame") before it publishes
+``sensor_msgs/Imu``, so its messages are in evchain's camera axes already (in m/s² and rad/s).
+:func:`camera_axes` and :func:`sensor_axes` convert between the two.
+
 On the DVSFLOW16 recording ``IMU_rotDisk`` these conventions agree with the data: the camera
 starts upright (``ay`` = -1.01 g), and the gravity direction in the image plane turns with the
 sign and rate of ``gz`` (see ``docs/explanation/imu_truth.md``).
@@ -221,3 +227,20 @@ def encode_samples(t: np.ndarray, raw: np.ndarray) -> np.ndarray:
     out[:, 0] = addr.ravel()
     out[:, 1] = np.repeat(np.asarray(t, np.int64) & 0xFFFFFFFF, SAMPLE_RECORDS).astype(np.uint32)
     return out
+
+
+def camera_axes(t, accel_g, gyro_dps, temperature_c) -> np.ndarray:
+    """IMU series entries (camera axes) from a DAVIS IMU's readings in its chip's axes, as
+    libcaer and DV give them: ``accel_g`` and ``gyro_dps`` ``[n, 3]`` (x, y, z)."""
+    a = np.asarray(accel_g, np.float64).reshape(-1, 3) * CAMERA_SIGNS[0:3]
+    g = np.asarray(gyro_dps, np.float64).reshape(-1, 3) * CAMERA_SIGNS[4:7]
+    return IMU.array(t=t, ax=a[:, 0], ay=a[:, 1], az=a[:, 2], gx=g[:, 0], gy=g[:, 1],
+                     gz=g[:, 2], temperature_c=temperature_c)
+
+
+def sensor_axes(entries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(accel_g, gyro_dps)`` ``[n, 3]`` in a DAVIS IMU's chip axes from IMU series entries:
+    the inverse of :func:`camera_axes`."""
+    a = np.stack([entries["ax"], entries["ay"], entries["az"]], 1) * CAMERA_SIGNS[0:3]
+    g = np.stack([entries["gx"], entries["gy"], entries["gz"]], 1) * CAMERA_SIGNS[4:7]
+    return a, g

@@ -10,12 +10,14 @@ rounding in a running sum. The float32 gates are only a conservative prefilter (
 margin of 1e-6 below/above the exact intensity thresholds): a pixel with ``lo < I1 < hi`` cannot
 fire, which costs two float32 compares and no logarithm per pixel and frame.
 
-Per interval (``_interval``): pass 1 scans chunks of ``CHUNK`` pixels (the frame prefetched
-``PREFETCH_AHEAD`` pixels ahead) with a branch-free,
-vectorised bit mask of the pixels outside their gates and lists these candidates from the set
-bits, in pixel order; pass 2
-gathers their values of the other frames (independent loads, so cache misses overlap); pass 2b
-computes the logarithms the rule needs in vectorised passes over the candidates
+A call runs in blocks of ``rule.block`` intervals, each block strip by strip (``rule.strip``
+pixels; :func:`_pixel_events`), so that a strip's state stays in cache from one interval to the
+next; the intervals' events are then merged in pixel order and sorted by rounded time
+(:func:`emulate`). Per strip and interval: pass 1 scans chunks of ``CHUNK`` pixels (the
+frame prefetched ``PREFETCH_AHEAD`` pixels ahead) with a branch-free, vectorised bit mask
+of the pixels outside their gates and lists these candidates from the set bits, in pixel
+order; pass 2 gathers their values of the other frames (independent loads, so cache misses
+overlap); pass 2b computes the logarithms the rule needs in vectorised passes over the candidates
 (``veclog.log_pass``, within 1 ulp of libm; ``l0`` comes from the same function, ``veclog.ln``,
 so a pixel back at its first intensity has exactly its first level); pass 3
 runs the exact rule per candidate. ``lcache`` keeps, per pixel, the logs of the last interval
@@ -103,25 +105,28 @@ def _chunk_mask(f, hi, lo):
 
 
 @njit(cache=True, error_model="numpy")
-def _candidates(f1, fp, hi, lo, first, cand):
-    """Pass 1: the pixels ``first ..`` outside their gates in frame f1, in pixel order, into
-    ``cand``; returns (their number, the first pixel whose value is not finite or negative, or
-    -1).
+def _candidates(f1, fp, hi, lo, first, last, cand):
+    """Pass 1: the pixels ``first .. last - 1`` outside their gates in frame f1, in pixel order,
+    into ``cand``; returns (their number, the first pixel whose value is not finite or
+    negative, or -1).
 
     Chunks of ``CHUNK`` pixels are scanned with a branch-free, vectorised bit mask, the frame
     (and the look-ahead frame fp, which the gather reads at every candidate) prefetched
     ``PREFETCH_AHEAD`` pixels ahead. A pixel's gates change only when the pixel itself is
     processed, so the set is the same as when scanning and processing in one pass."""
-    npix = hi.shape[0]
     c_start = first - (first % CHUNK)
     nc = 0
     bad = -1
-    for c0 in range(c_start, npix, CHUNK):
-        c1 = min(c0 + CHUNK, npix)
+    # the start of the strip, which the prefetches ahead of the scan do not reach
+    for q in range(c_start, min(c_start + PREFETCH_AHEAD + CHUNK, last), 16):
+        prefetch(f1, q)
+        prefetch(fp, q)
+    for c0 in range(c_start, last, CHUNK):
+        c1 = min(c0 + CHUNK, last)
         # the frame comes from memory: ask for it ahead of the compares (one hint per 64-byte
         # line; 31 -> 23.5 us per 320x240 frame in isolation); likewise the look-ahead frame
         # fp, which the gather reads at every candidate (cubic; bar 1.10x; else fp is f1)
-        if c0 + (PREFETCH_AHEAD + CHUNK) <= npix:
+        if c0 + (PREFETCH_AHEAD + CHUNK) <= last:
             for q in range(0, CHUNK, 16):
                 prefetch(f1, c0 + PREFETCH_AHEAD + q)
                 prefetch(fp, c0 + PREFETCH_AHEAD + q)
@@ -230,25 +235,26 @@ def _logs(iv, rule, sc, rows, nc):
 
 
 @njit(cache=True, error_model="numpy")
-def _interval(iv, rule, pixels, first, sc, u):
-    """Events of one frame interval ``iv`` for pixels ``first ..``, appended to the scratch's
-    ``ui`` (flat pixel index), ``utf``, ``up_`` from position ``u``. A pixel's state is
+def _interval(iv, rule, pixels, nc, sc, u):
+    """Events of one frame interval ``iv`` for the ``nc`` candidates ``sc.cand[:nc]`` (listed
+    by :func:`_candidates`), appended to the scratch's ``ui`` (flat pixel index), ``utf``,
+    ``up_`` from position ``u`` (their pieces in ``piece`` from column 0). A pixel's state is
     committed only when all its events fit, so on a full buffer the call stops before that
-    pixel. The log cache (row columns ``S_LC`` .. ``S_LC + 3``) holds (jg, slope at frame jg+1
-    [cubic], L of frames jg+1, jg+2 [cubic]) of the last interval jg in which the pixel was
-    examined. The state is read through the 2-D ``rows`` with an unsigned row index: one
-    address computation per pixel for all fields (strided 1-D views per field cost one
-    multiply, a wraparound test and, with so many arrays, stack reloads of their pointers and
-    strides per access).
+    pixel. The log cache (row columns ``S_LC`` ..
+    ``S_LC + 3``) holds (jg, slope at frame jg+1 [cubic], L of frames jg+1, jg+2 [cubic]) of
+    the last interval jg in which the pixel was examined. The state is read through the 2-D
+    ``rows`` with an unsigned row index: one address computation per pixel for all fields
+    (strided 1-D views per field cost one multiply, a wraparound test and, with so many
+    arrays, stack reloads of their pointers and strides per access).
 
-    Passes: :func:`_candidates`, :func:`_gather`, :func:`_logs`, then the exact rule per
+    Passes (after :func:`_candidates`): :func:`_gather`, :func:`_logs`, then the exact rule per
     candidate, written out here (as an inlined helper its interpolation piece ran 1.5x
     slower): crossings are listed first (``piece`` rows: level, la, lb, m0, m1; row 6 the
     pixel's ``last_t``) and timed together by ``_times``, which also applies the refractory
     period.
 
-    Returns ``(u, resume, err, err_pixel)``: ``resume`` is -1 when done, else the pixel to
-    restart from after growing the buffers. (numpy error model: every divisor here is a frame
+    Returns ``(u, resume)``: ``resume`` is -1 when done, else the candidate to restart from
+    after growing the buffers. (numpy error model: every divisor here is a frame
     interval > 0, so the python model's zero test per division only cost time, ~2 %.)
     """
     rows = pixels.rows
@@ -269,8 +275,7 @@ def _interval(iv, rule, pixels, first, sc, u):
     cap = rule.cap
     t0 = iv.t0
     dt = iv.dt
-    f1 = iv.f1
-    cap_u = ui.shape[0]
+    cap_u = min(ui.shape[0], u + piece.shape[1])
     u_in = u
     jg = iv.jg
     jm = np.float64(jg - 1)
@@ -282,7 +287,6 @@ def _interval(iv, rule, pixels, first, sc, u):
     lla = logs[1]
     llm = logs[2]
     llp = logs[3]
-    nc, bad = _candidates(f1, iv.fp, hi, lo, first, cand)
     _gather(iv, sc, rows, nc)
     _logs(iv, rule, sc, rows, nc)
     q = np.uint64(0)
@@ -372,10 +376,10 @@ def _interval(iv, rule, pixels, first, sc, u):
             if uu >= cap_u:
                 # pixel i not committed
                 return _times(u_in, u, cubic, t0, dt, rule.refractory_us, ui, utf, up_,
-                              piece, rows), i, ERR_NONE, 0
-            v = np.uint64(uu)
-            ui[v] = i
-            up_[v] = pol
+                              piece, rows), k
+            ui[np.uint64(uu)] = i
+            up_[np.uint64(uu)] = pol
+            v = np.uint64(uu - u_in)
             piece[0, v] = lev
             piece[1, v] = la
             piece[2, v] = lb
@@ -388,11 +392,7 @@ def _interval(iv, rule, pixels, first, sc, u):
         irows[r, S_NOFF] = k_off
         rows[r, S_EREF] = e
         hi[r], lo[r] = gates(e, ron, roff, eps, k_hi, k_lo)
-    u = _times(u_in, u, cubic, t0, dt, rule.refractory_us, ui, utf, up_, piece, rows)
-    if bad >= 0:
-        v1 = f1[bad]
-        return u, -1, (ERR_NONFINITE if not np.isfinite(v1) else ERR_NEGATIVE), bad
-    return u, -1, ERR_NONE, 0
+    return _times(u_in, u, cubic, t0, dt, rule.refractory_us, ui, utf, up_, piece, rows), -1
 
 
 @njit(cache=True)
@@ -426,12 +426,12 @@ def _interval_of(frames, j, cubic):
 
 @njit(cache=True)
 def _grow_events(sc, n):
-    """``sc`` with room for at least n events per interval."""
-    ui = _grow(sc.ui, n)
-    piece = np.empty((sc.piece.shape[0], ui.shape[0]))
-    piece[:, :sc.piece.shape[1]] = sc.piece
-    return Scratch(sc.cand, sc.g0, sc.gm, sc.gp, ui, _grow(sc.utf, n), _grow(sc.up_, n),
-                   _grow(sc.ub, n), piece, sc.perm, sc.buckets, sc.logs, sc.unc)
+    """``sc`` with room for at least n events in the event list (kept) and twice the crossings
+    per :func:`_interval` call (``piece``: its columns are dead between calls)."""
+    return Scratch(sc.cand, sc.g0, sc.gm, sc.gp, _grow(sc.ui, n), _grow(sc.utf, n),
+                   _grow(sc.up_, n), _grow(sc.ub, n), np.empty((sc.piece.shape[0],
+                                                                 2 * sc.piece.shape[1])),
+                   sc.perm, sc.buckets, sc.logs, sc.unc, _grow(sc.lst, n))
 
 
 @njit(cache=True)
@@ -461,7 +461,55 @@ def _sort_order(sc, u, it0, nb):
     else:
         perm = np.argsort(ub[:u], kind="mergesort")
     return Scratch(sc.cand, sc.g0, sc.gm, sc.gp, sc.ui, sc.utf, sc.up_, ub, sc.piece, perm,
-                   buckets, sc.logs, sc.unc), perm
+                   buckets, sc.logs, sc.unc, sc.lst), perm
+
+
+@njit(cache=True)
+def _pixel_events(frames, j_first, j_last, rule, pixels, sc):
+    """Pass A of :func:`emulate`: every pixel's events of intervals ``j_first .. j_last - 1``,
+    strip by strip (``rule.strip`` pixels): all intervals of one strip before the next, so the
+    strip's state (gates, state rows, log cache) stays in cache from one interval to the next
+    and each frame comes from memory once. A pixel's events depend only on its own state and
+    values, so the order of strips and intervals does not change them.
+
+    Returns ``(sc, seg, u, err_k, err_pixel)``: the events of strip s in interval
+    ``j_first + k`` are ``sc.ui[seg[s, k]:seg[s, k + 1]]`` (``seg[s, nk]`` = start of strip
+    s + 1), ``u`` their total, and the first bad pixel value in interval order then pixel
+    order (``err_k`` = -1 if none; later intervals are then not all processed)."""
+    npix = pixels.hi.shape[0]
+    strip = rule.strip
+    ns = (npix + strip - 1) // strip
+    nk = j_last - j_first
+    seg = np.empty((ns, nk + 1), np.int64)
+    u = 0
+    err_k = nk                              # intervals before err_k are needed
+    err_pixel = 0
+    for st in range(ns):
+        p0 = st * strip
+        p1 = min(p0 + strip, npix)
+        for k in range(nk):
+            seg[st, k] = u
+            if k >= err_k:
+                # a bad pixel in an earlier strip (so at a lower index) or an earlier interval
+                # comes first
+                continue
+            iv = _interval_of(frames, j_first + k, rule.cubic)
+            nc, bad = _candidates(iv.f1, iv.fp, pixels.hi, pixels.lo, p0, p1, sc.cand)
+            while nc > 0:
+                u, resume = _interval(iv, rule, pixels, nc, sc, u)
+                if resume < 0:
+                    break
+                # the candidates not done to the front, after growing the buffers
+                sc = _grow_events(sc, u + 1)
+                cand = sc.cand
+                for q in range(nc - resume):
+                    cand[q] = cand[resume + q]
+                nc -= resume
+            if bad >= 0:
+                err_k = k
+                err_pixel = bad
+        seg[st, nk] = u
+    return sc, seg, u, (err_k if err_k < nk else -1), err_pixel
 
 
 @njit(cache=True, nogil=True)    # renders of the scene source's threads go on meanwhile
@@ -522,52 +570,69 @@ def emulate(frames, j_first, j_last, rule, pixels, noise, cap_hint, carry, keep_
     op[:nc0] = cp
     if keep_tf:
         otf[:nc0] = ctf
-    sc = scratch
     n = nc0
-    for j in range(j_first, j_last):
-        iv = _interval_of(frames, j, rule.cubic)
-        k = j - j_first
-        nnoise = noise.off[k + 1] - noise.off[k]
-        u = 0
-        resume = 0
-        while resume >= 0:
-            u, resume, err, ep = _interval(iv, rule, pixels, resume, sc, u)
-            if err != ERR_NONE:
-                return ox, oy, ot, otf, op, n, err, j + 1, ep // w, ep % w, sc
-            if resume >= 0 or u + nnoise > sc.ui.shape[0]:
-                sc = _grow_events(sc, u + nnoise + 1)
+    sc = scratch
+    for jb in range(j_first, j_last, rule.block):
+        je = min(jb + rule.block, j_last)
+        sc, seg, u, err_k, ep = _pixel_events(frames, jb, je, rule, pixels, sc)
+        if err_k >= 0:
+            jf = jb + err_k + 1
+            err = ERR_NONFINITE if not np.isfinite(_frame(frames, jf)[ep]) else ERR_NEGATIVE
+            return ox, oy, ot, otf, op, n, err, jf, ep // w, ep % w, sc
+        # the block's noise after the pixels' events, as one more strip
+        k0 = jb - j_first
+        k1 = je - j_first
+        nnoise = noise.off[k1] - noise.off[k0]
+        if u + nnoise > sc.ui.shape[0]:
+            sc = _grow_events(sc, u + nnoise)
         ui = sc.ui
         utf = sc.utf
         up_ = sc.up_
-        ub = sc.ub
-        for q in range(noise.off[k], noise.off[k + 1]):
+        for q in range(noise.off[k0], noise.off[k1]):
             ui[u] = np.int64(noise.y[q]) * w + noise.x[q]
             utf[u] = noise.t[q]
             up_[u] = noise.p[q]
             u += 1
-        if u == 0:
-            continue
-        it0 = np.int64(times[j])
-        nb = np.int64(times[j + 1]) - it0 + 2
-        for q in range(u):
-            ub[q] = np.int64(np.floor(utf[q] + 0.5)) - it0
-        if n + u > ox.shape[0]:
-            ox = _grow(ox, n + u)
-            oy = _grow(oy, n + u)
-            ot = _grow(ot, n + u)
-            if keep_tf:
-                otf = _grow(otf, n + u)
-            op = _grow(op, n + u)
-        sc, perm = _sort_order(sc, u, it0, nb)
-        for r in range(np.uint64(u)):        # unsigned indices: no wraparound tests
-            q = np.uint64(perm[r])
-            pos = np.uint64(n) + r
-            yy = ui[q] // w
-            ox[pos] = ui[q] - yy * w
-            oy[pos] = yy
-            ot[pos] = ub[q] + it0
-            if keep_tf:
-                otf[pos] = utf[q]
-            op[pos] = up_[q]
-        n += u
+        ns = seg.shape[0]
+        noise0 = seg[ns - 1, je - jb] - noise.off[k0]   # noise event q is at noise0 + q
+        for k in range(je - jb):
+            # pass B: the interval's events in generation order (strips in pixel order, then
+            # its noise), listed by their place in the event list, sorted by rounded time
+            j = jb + k
+            lst = sc.lst
+            ub = sc.ub
+            it0 = np.int64(times[j])
+            m = 0
+            for st in range(ns):
+                for b in range(seg[st, k], seg[st, k + 1]):
+                    lst[m] = b
+                    m += 1
+            for b in range(noise0 + noise.off[k0 + k], noise0 + noise.off[k0 + k + 1]):
+                lst[m] = b
+                m += 1
+            if m == 0:
+                continue
+            for q in range(np.uint64(m)):
+                ub[q] = np.int64(np.floor(utf[lst[q]] + 0.5)) - it0
+            nb = np.int64(times[j + 1]) - it0 + 2
+            if n + m > ox.shape[0]:
+                ox = _grow(ox, n + m)
+                oy = _grow(oy, n + m)
+                ot = _grow(ot, n + m)
+                if keep_tf:
+                    otf = _grow(otf, n + m)
+                op = _grow(op, n + m)
+            sc, perm = _sort_order(sc, m, it0, nb)
+            for r in range(np.uint64(m)):        # unsigned indices: no wraparound tests
+                qq = np.uint64(perm[r])
+                q = np.uint64(lst[qq])
+                pos = np.uint64(n) + r
+                yy = ui[q] // w
+                ox[pos] = ui[q] - yy * w
+                oy[pos] = yy
+                ot[pos] = ub[qq] + it0
+                if keep_tf:
+                    otf[pos] = utf[q]
+                op[pos] = up_[q]
+            n += m
     return ox, oy, ot, otf, op, n, ERR_NONE, 0, 0, 0, sc

@@ -90,8 +90,8 @@ def solve_crossing(level, la, lb, m0, m1, cubic):
 
 
 @njit(cache=True, error_model="numpy")
-def _fractions(u0, u1, cubic, lev, pa, pb, p0, p1, sv):
-    """``sv[q]``: the fraction of the interval where crossing q (u0 <= q < u1) occurs, or -1
+def _fractions(n, cubic, lev, pa, pb, p0, p1, sv):
+    """``sv[q]``: the fraction of the interval where crossing q (0 <= q < n) occurs, or -1
     where the cubic needs the safeguarded solver.
 
     Linear: the clipped linear solution. Cubic: ``NEWTON_LOCKSTEP`` plain Newton steps from
@@ -104,14 +104,14 @@ def _fractions(u0, u1, cubic, lev, pa, pb, p0, p1, sv):
     do not vectorise.)
     """
     if not cubic:
-        for q in range(np.uint64(u0), np.uint64(u1)):
+        for q in range(np.uint64(n)):
             la = pa[q]
             lb = pb[q]
             s0 = (lev[q] - la) / (lb - la)
             r = 1.0 if s0 >= 1.0 else s0
             sv[q] = 0.0 if (lb == la) | (s0 <= 0.0) else r
         return
-    for q in range(np.uint64(u0), np.uint64(u1)):
+    for q in range(np.uint64(n)):
         la = pa[q]
         lb = pb[q]
         s0 = (lev[q] - la) / (lb - la)
@@ -142,9 +142,9 @@ def _fractions(u0, u1, cubic, lev, pa, pb, p0, p1, sv):
 
 @njit(cache=True, error_model="numpy")
 def _times(u0, u1, cubic, t0, dt, refractory_us, ui, utf, up_, piece, rows):
-    """Times of the crossings ``u0 .. u1 - 1`` (``piece`` rows: level, la, lb, m0, m1, the
-    pixel's ``last_t`` when listed; row 5 is scratch), then the refractory period; returns the
-    new end of the event list.
+    """Times of the crossings ``u0 .. u1 - 1`` (their pieces in ``piece`` columns
+    ``0 .. u1 - u0 - 1``, rows: level, la, lb, m0, m1, the pixel's ``last_t`` when listed; row
+    5 is scratch), then the refractory period; returns the new end of the event list.
 
     The fractions come from ``_fractions`` (all crossings together); the few the cubic's
     checked step rejects are solved again by ``solve_crossing``. Events of one pixel are
@@ -160,19 +160,20 @@ def _times(u0, u1, cubic, t0, dt, refractory_us, ui, utf, up_, piece, rows):
     p1 = piece[4]
     sv = piece[5]
     plast = piece[6]
-    _fractions(u0, u1, cubic, lev, pa, pb, p0, p1, sv)
+    _fractions(u1 - u0, cubic, lev, pa, pb, p0, p1, sv)
     w = np.uint64(u0)                      # unsigned indices: no wraparound tests
     prev = -1
     last = 0.0
-    for q in range(np.uint64(u0), np.uint64(u1)):
-        s = sv[q]
+    for k in range(np.uint64(u1 - u0)):
+        q = np.uint64(u0) + k
+        s = sv[k]
         if s < 0.0:
-            s = solve_crossing(lev[q], pa[q], pb[q], p0[q], p1[q], True)
+            s = solve_crossing(lev[k], pa[k], pb[k], p0[k], p1[k], True)
         tf = t0 + s * dt
         i = ui[q]
         if i != prev:
             prev = i
-            last = plast[q]
+            last = plast[k]
         if tf - last < refractory_us:
             continue
         last = tf

@@ -34,6 +34,13 @@ LO_NONE = -1.1754944e-38
 #: columns of a pixel's state row (``rows``: float64 [H*W, 16]; ``irows``: its int64 view):
 #: l0, c_on, c_off, r_on, r_off, e_ref, last_t, n_on, n_off (int64), the log cache (4 columns)
 S_L0, S_CON, S_COFF, S_RON, S_ROFF, S_EREF, S_LAST, S_NON, S_NOFF, S_LC = range(10)
+#: pixels per strip: the event loop runs a block of intervals on one strip before the next, so
+#: that the strip's state (gates 8 bytes, state row 128 bytes per pixel: 8.5 MiB) stays in
+#: the last-level cache from one interval to the next, as a 320x240 sensor's whole state does
+STRIP = 1 << 16
+#: frame intervals run strip by strip at a time: their events wait in a list until every strip
+#: is done, so the list holds a block's events
+BLOCK = 8
 
 
 class Rule(NamedTuple):
@@ -46,6 +53,8 @@ class Rule(NamedTuple):
     cap: int                #: crossings per pixel per interval (-1: no cap)
     k_hi: float             #: gate factors of the tolerance (:func:`gate_factors`)
     k_lo: float
+    strip: int              #: pixels per strip (a multiple of the scan's chunk, 64)
+    block: int              #: frame intervals run strip by strip at a time
 
 
 class Pixels(NamedTuple):
@@ -79,11 +88,12 @@ class Noise(NamedTuple):
 
 class Scratch(NamedTuple):
     """Work arrays of :func:`emulate` (:func:`new_scratch`), kept between calls and grown when
-    needed: per candidate pixel (``cand``: their indices; ``g0``, ``gm``, ``gp``: their values
-    in three frames; ``logs`` [5, npix]: their logarithms; ``unc``: those without cached
-    logs), per crossing of an interval (``ui``, ``utf``, ``up_``: pixel, float time and
-    polarity; ``ub``: rounded time; ``piece`` [7, n]: its interpolation piece; ``perm``: the
-    sorted order) and ``buckets`` of the counting sort."""
+    needed: per candidate pixel of a strip (``cand``: their indices; ``g0``, ``gm``, ``gp``:
+    their values in three frames; ``logs`` [5, strip]: their logarithms; ``unc``: those
+    without cached logs), per event of a call (``ui``, ``utf``, ``up_``: pixel, float time and
+    polarity; ``lst``: one interval's events by their place in that list; ``ub``: their
+    rounded times; ``perm``: their sorted order), per crossing of a strip and interval
+    (``piece`` [7, n]: its interpolation piece) and ``buckets`` of the counting sort."""
 
     cand: np.ndarray
     g0: np.ndarray
@@ -98,6 +108,7 @@ class Scratch(NamedTuple):
     buckets: np.ndarray
     logs: np.ndarray
     unc: np.ndarray
+    lst: np.ndarray
 
 
 @njit(cache=True)
@@ -117,10 +128,10 @@ def gate_factors(tol):
 
 
 @njit(cache=True)
-def make_rule(cubic, eps, tol, refractory_us, cap):
+def make_rule(cubic, eps, tol, refractory_us, cap, strip=STRIP, block=BLOCK):
     """The :class:`Rule` of these parameters (its gate factors computed here)."""
     k_hi, k_lo = gate_factors(tol)
-    return Rule(cubic, eps, tol, refractory_us, cap, k_hi, k_lo)
+    return Rule(cubic, eps, tol, refractory_us, cap, k_hi, k_lo, strip, block)
 
 
 @njit(cache=True)
@@ -188,11 +199,12 @@ def init_state(frame, rule, con_in, coff_in, pixels):
 
 @njit(cache=True)
 def new_scratch(npix, ucap):
-    """The :class:`Scratch` of ``emulate`` for ``npix`` pixels and ``ucap`` events per
-    interval. The filter keeps it between calls (fresh memory costs a page fault per 4 KiB,
-    ~2.7 µs each on the benchmark machine)."""
+    """The :class:`Scratch` of ``emulate`` for ``npix`` pixels per strip and room for ``ucap``
+    events (it grows when needed). The filter keeps it between calls (fresh memory costs a
+    page fault per 4 KiB, ~2.7 µs each on the benchmark machine)."""
     return Scratch(np.empty(npix, np.int64), np.empty(npix, np.float32),
                    np.empty(npix, np.float32), np.empty(npix, np.float32),
                    np.empty(ucap, np.int64), np.empty(ucap, np.float64), np.empty(ucap, np.int8),
                    np.empty(ucap, np.int64), np.empty((7, ucap)), np.empty(ucap, np.int64),
-                   np.zeros(1, np.int64), np.empty((5, npix)), np.empty(npix, np.int64))
+                   np.zeros(1, np.int64), np.empty((5, npix)), np.empty(npix, np.int64),
+                   np.empty(ucap, np.int64))

@@ -52,7 +52,7 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
+from numba import literally, njit
 
 #: the shared unknowns ``th``: the FOE (px) and the three planes' scales (road, left, right
 #: facade; 1/(s px))
@@ -89,6 +89,7 @@ class FitParams(NamedTuple):
     tolerance: float  #: Tukey constant on the relative speed residual
     max_iter: int     #: Gauss-Newton iterations
     max_step: float   #: largest FOE step per iteration, px
+    min_step: float   #: a fit whose FOE step is below this has converged, px
     slab_us: int      #: the rotation is constant within slabs of this length, µs
     f: float          #: focal length, px
     cx: float         #: principal point, px
@@ -361,58 +362,17 @@ def _scales(th):
 
 
 @njit(cache=True, error_model="numpy", fastmath={"reassoc", "contract"})
-def _shared_sums(w, a, b, om0, om1, om2, g, th, margin, c, out):
+def _sums(w, a, b, om0, om1, om2, g, th, margin, c, out, with_slab):
     """One Gauss-Newton pass over the events ``a <= j < b`` of one slab with rotation
-    ``(om0, om1, om2)`` held: adds the 19 shared sums to ``out[:19]`` (a00, a01, a11, b0, b1,
+    ``(om0, om1, om2)``: adds the 19 shared sums to ``out[:19]`` (a00, a01, a11, b0, b1,
     inlier weight, applicable weight, then per plane road / left / right: w J0 Ja, w J1 Ja,
-    w Ja Ja, w r Ja). Branch-free (selects, one accumulator per sum, reassociated) so that LLVM
-    vectorises it; the sums' order differs from a plain loop only in rounding."""
-    xw, yw, mx, my, s, e, cc0, cc1, cc2 = w
-    xf, yf = th[0], th[1]
-    a0, al, ar, has_road, has_l, has_r = _scales(th)
-    a00 = a01 = a11 = b0 = b1 = inl = tot = 0.0
-    r0 = r1 = r2 = r3 = l0 = l1 = l2 = l3 = q0 = q1 = q2 = q3 = 0.0
-    for j in range(a, b):
-        rot = cc0[j] * om0 + cc1[j] * om1 + cc2[j] * om2
-        vw, iw, wt, res, j0, j1, ja, mr, ml, mq = _event(
-            xw[j] - xf, yw[j] - yf, mx[j], my[j], s[j], rot, e[j] * g, a0, al, ar, has_road,
-            has_l, has_r, margin, c)
-        tot += vw
-        inl += iw
-        wr = wt * res
-        wj0 = wt * j0
-        wj1 = wt * j1
-        a00 += wj0 * j0
-        a01 += wj0 * j1
-        a11 += wj1 * j1
-        b0 += wr * j0
-        b1 += wr * j1
-        d0 = wj0 * ja
-        d1 = wj1 * ja
-        d2 = wt * ja * ja
-        d3 = wr * ja
-        r0 += mr * d0
-        r1 += mr * d1
-        r2 += mr * d2
-        r3 += mr * d3
-        l0 += ml * d0
-        l1 += ml * d1
-        l2 += ml * d2
-        l3 += ml * d3
-        q0 += mq * d0
-        q1 += mq * d1
-        q2 += mq * d2
-        q3 += mq * d3
-    shared = (a00, a01, a11, b0, b1, inl, tot, r0, r1, r2, r3, l0, l1, l2, l3, q0, q1, q2, q3)
-    for i in range(19):
-        out[i] += shared[i]
-
-
-@njit(cache=True, error_model="numpy", fastmath={"reassoc", "contract"})
-def _slab_sums(w, a, b, om0, om1, om2, g, th, margin, c, out):
-    """As :func:`_shared_sums`, and writes the slab's :data:`NS` sums of its rotation to
-    ``out[19:]`` (w c c^T: 00 01 02 11 12 22; w c J0, w c J1 per axis; w c Ja per plane and
-    axis; w r c per axis)."""
+    w Ja Ja, w r Ja) and, with ``with_slab``, writes the slab's :data:`NS` sums of its rotation
+    to ``out[19:]`` (w c c^T: 00 01 02 11 12 22; w c J0, w c J1 per axis; w c Ja per plane and
+    axis; w r c per axis). ``with_slab`` is a compile-time constant (``literally``): each value
+    compiles its own loop, without the slab's sums when False. Branch-free (selects, one
+    accumulator per sum, reassociated) so that LLVM vectorises it; the sums' order differs from
+    a plain loop only in rounding."""
+    literally(with_slab)
     xw, yw, mx, my, s, e, cc0, cc1, cc2 = w
     xf, yf = th[0], th[1]
     a0, al, ar, has_road, has_l, has_r = _scales(th)
@@ -454,63 +414,65 @@ def _slab_sums(w, a, b, om0, om1, om2, g, th, margin, c, out):
         q1 += mq * d1
         q2 += mq * d2
         q3 += mq * d3
-        w0 = wt * z0
-        w1 = wt * z1
-        w2 = wt * z2
-        k00 += w0 * z0
-        k01 += w0 * z1
-        k02 += w0 * z2
-        k11 += w1 * z1
-        k12 += w1 * z2
-        k22 += w2 * z2
-        f00 += w0 * j0
-        f01 += w0 * j1
-        f10 += w1 * j0
-        f11 += w1 * j1
-        f20 += w2 * j0
-        f21 += w2 * j1
-        p0r += w0 * ja * mr
-        p1r += w1 * ja * mr
-        p2r += w2 * ja * mr
-        p0l += w0 * ja * ml
-        p1l += w1 * ja * ml
-        p2l += w2 * ja * ml
-        p0q += w0 * ja * mq
-        p1q += w1 * ja * mq
-        p2q += w2 * ja * mq
-        h0 += wr * z0
-        h1 += wr * z1
-        h2 += wr * z2
+        if with_slab:
+            w0 = wt * z0
+            w1 = wt * z1
+            w2 = wt * z2
+            k00 += w0 * z0
+            k01 += w0 * z1
+            k02 += w0 * z2
+            k11 += w1 * z1
+            k12 += w1 * z2
+            k22 += w2 * z2
+            f00 += w0 * j0
+            f01 += w0 * j1
+            f10 += w1 * j0
+            f11 += w1 * j1
+            f20 += w2 * j0
+            f21 += w2 * j1
+            p0r += w0 * ja * mr
+            p1r += w1 * ja * mr
+            p2r += w2 * ja * mr
+            p0l += w0 * ja * ml
+            p1l += w1 * ja * ml
+            p2l += w2 * ja * ml
+            p0q += w0 * ja * mq
+            p1q += w1 * ja * mq
+            p2q += w2 * ja * mq
+            h0 += wr * z0
+            h1 += wr * z1
+            h2 += wr * z2
     shared = (a00, a01, a11, b0, b1, inl, tot, r0, r1, r2, r3, l0, l1, l2, l3, q0, q1, q2, q3)
     for i in range(19):
         out[i] += shared[i]
-    slab = (k00, k01, k02, k11, k12, k22, f00, f01, f10, f11, f20, f21,
-            p0r, p1r, p2r, p0l, p1l, p2l, p0q, p1q, p2q, h0, h1, h2)
-    for i in range(NS):
-        out[19 + i] = slab[i]
+    if with_slab:
+        slab = (k00, k01, k02, k11, k12, k22, f00, f01, f10, f11, f20, f21,
+                p0r, p1r, p2r, p0l, p1l, p2l, p0q, p1q, p2q, h0, h1, h2)
+        for i in range(NS):
+            out[19 + i] = slab[i]
 
 
 @njit(cache=True, error_model="numpy")
 def _pass(w, lo, hi, om, g, th, margin, c, rotating, shared, slabs):
     """One Gauss-Newton pass over every slab: the 19 shared sums into ``shared`` and, when
     some rotation axis is free (``rotating``), each slab's :data:`NS` sums into ``slabs[k]``
-    (see :func:`_slab_sums`; else they are 0)."""
+    (see :func:`_sums`; else they are 0)."""
     out = np.zeros(19 + NS)
     slabs[:] = 0.0
     for k in range(len(lo)):
         if rotating:
             out[19:] = 0.0
-            _slab_sums(w, lo[k], hi[k], om[k, 0], om[k, 1], om[k, 2], g, th, margin, c, out)
+            _sums(w, lo[k], hi[k], om[k, 0], om[k, 1], om[k, 2], g, th, margin, c, out, True)
             slabs[k, :] = out[19:]
         else:
-            _shared_sums(w, lo[k], hi[k], om[k, 0], om[k, 1], om[k, 2], g, th, margin, c, out)
+            _sums(w, lo[k], hi[k], om[k, 0], om[k, 1], om[k, 2], g, th, margin, c, out, False)
     shared[:] = out[:19]
 
 
 @njit(cache=True, error_model="numpy")
 def _shared_system(sm, A, b):
     """The 5 x 5 Gauss-Newton system of the shared unknowns from the sums of
-    :func:`_slab_sums` (J is 0 off each event's plane)."""
+    :func:`_sums` (J is 0 off each event's plane)."""
     A[:] = 0.0
     b[:] = 0.0
     A[0, 0], A[0, 1], A[1, 0], A[1, 1] = sm[0], sm[1], sm[1], sm[2]
@@ -767,7 +729,7 @@ def fit(events, i0, i1, T, g, th, om, free, probe, prm):
         step, finite = _apply_step(th, om, b, d_om, prm.max_step)
         if not finite:
             return False, inl, tot
-        if step < 0.05:  # px: a warm-started fit moves less than this after 1-2 iterations
+        if step < prm.min_step:  # a warm-started fit moves less after 1-2 iterations
             break
     if n_slabs:  # the newest slab's rotation with every axis free, the rest held
         first = om[:1].copy()

@@ -71,6 +71,10 @@ class LKParams(NamedTuple):
     max_window_us: int       #: calibrated: speed-adaptive window up to this, µs (off unless >
     #: window_us)
     slow_px: float           #: adaptive window: distance an edge must cross within it, px
+    min_window_us: int       #: calibrated: short window tried first, µs (off unless 0 < it <
+    #: window_us)
+    fast_px: float           #: short window: its estimate stands when the edge crosses at least
+    #: this within it, px
 
 
 class LKState(NamedTuple):
@@ -541,6 +545,11 @@ def lk_flow_run(x, y, t, p, state, prm, out_idx, out_vx, out_vy):
     kept only if it is slow enough to need it (the edge crosses fewer than ``slow_px`` px within
     the previous window), and the last such estimate is the event's flow.
 
+    0 < ``prm.min_window_us`` < ``prm.window_us`` (calibrated mode only) adds a shorter time
+    scale: each event is first estimated with ``min_window_us``; when that succeeds and the
+    edge crosses at least ``fast_px`` px within it, it is the event's flow (no further
+    estimates), else the event is estimated as above.
+
     Parameters
     ----------
     x, y : uint16 ndarray, shape (n,)
@@ -591,6 +600,8 @@ def lk_flow_run(x, y, t, p, state, prm, out_idx, out_vx, out_vy):
     w_inv = 1.0 / prm.window_us
     w_inv_s = 1e6 / prm.window_us
     slow_us = prm.slow_px * 1e6  # px µs/s: speed x window below which the edge is too slow
+    shorten = not prm.faithful and 0 < prm.min_window_us < prm.window_us
+    fast_us = prm.fast_px * 1e6  # px µs/s: speed x short window from which its estimate stands
     r = prm.r
     # Savitzky-Golay (faithful): sum of i^2 over the full (2r+1)^2 window
     sg_norm = (2 * r + 1) * r * (r + 1) * (2 * r + 1) / 3.0
@@ -627,13 +638,24 @@ def lk_flow_run(x, y, t, p, state, prm, out_idx, out_vx, out_vy):
             vx, vy = _faithful(N, d, S, R, gradient, stencil_norm, sg_norm, prm.eig_threshold)
             mean, ok = _faithful_speed(mean, vx, vy, prm)
         else:
-            vx, vy, ok = _estimate_calibrated(last, second, fifo, k, xe, ye, te, prm.window_us,
-                                              w_inv, w_inv_s, R, S, d, min_active, prm, F, V,
-                                              LI, LJ, PU, PW, FV, keep, GX, GY)
+            # two time scales: first the short window, whose estimate stands for an edge fast
+            # enough to cross fast_px within it (onsets of older edges that crossed the pixels
+            # within window_us then stay out of the fit)
+            fast = False
+            if shorten:
+                vx, vy, ok = _reestimate(last, second, fifo, k, xe, ye, te,
+                                         np.int64(prm.min_window_us), R, S, d, min_active, prm,
+                                         F, V, LI, LJ, PU, PW, FV, keep, GX, GY)
+                fast = ok and np.sqrt(vx * vx + vy * vy) * prm.min_window_us >= fast_us
+            if not fast:
+                vx, vy, ok = _estimate_calibrated(last, second, fifo, k, xe, ye, te,
+                                                  prm.window_us, w_inv, w_inv_s, R, S, d,
+                                                  min_active, prm, F, V, LI, LJ, PU, PW, FV,
+                                                  keep, GX, GY)
             # speed-adaptive window: again with the window the estimate asks for; a longer
             # window's estimate is kept only if it is slow enough to need it
             win = prm.window_us
-            for _ in range(extra_passes):
+            for _ in range(0 if fast else extra_passes):
                 nxt = _next_window(ok, vx, vy, win, slow_us, prm.max_window_us)
                 if nxt <= win:
                     break

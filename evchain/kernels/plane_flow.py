@@ -60,6 +60,8 @@ class PlaneParams(NamedTuple):
     slow_px: float            #: adaptive window: the edge must move this far within it, px
     refit_failed: bool        #: adaptive window: also refit when the first fit fails
     refractory_updates: bool  #: a refractory event still updates the surface (jAER)
+    min_window_us: int        #: shorter windows for fast edges down to this, µs (0: off)
+    fast_px: float            #: short window: refit an edge that moved more than this, px
 
 
 def new_state(width: int, height: int) -> np.ndarray:
@@ -525,6 +527,8 @@ def event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, adaptive, gather):
     g_min2 = 1.0 / (prm.max_speed * prm.max_speed)
     spread2 = prm.min_spread * prm.min_spread
     k_us = prm.slow_px * 1e6  # W (µs) = k_us |g| (s/px): the window in which the edge moves k px
+    kf_us = prm.fast_px * 1e6
+    shorten = adaptive and 0 < prm.min_window_us < prm.window_us
     fits = MAX_REFITS + 1 if adaptive else 1
     n_out = 0
     for i in range(len(x)):
@@ -541,11 +545,20 @@ def event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, adaptive, gather):
         # fits with window w (µs) and residual / centre check limit lim (s); a failed fit
         # continues with the next, whose start decides whether to refit
         w, lim, ok, gx, gy = prm.window_us, prm.th2, False, 0.0, 0.0
+        shrunk, g0x, g0y = False, 0.0, 0.0
         for k in range(fits):
             if k > 0:  # adaptive: refit when the last fit asks for a longer window
                 w_new = _next_window(ok, gx, gy, w, prm.window_us, prm.max_window_us,
                                      prm.refit_failed, k_us)
-                if w_new <= w:
+                if k == 1 and shorten and ok:
+                    w_short = kf_us * math.sqrt(gx * gx + gy * gy)
+                    if w_short < w:  # the edge moved more than fast_px: a shorter window
+                        w_s = max(np.int64(prm.min_window_us), np.int64(math.ceil(w_short)))
+                        if w_s < w:
+                            w_new, shrunk, g0x, g0y = w_s, True, gx, gy
+                if w_new <= w and not shrunk:
+                    break
+                if k > 1 and shrunk:
                     break
                 w = w_new
                 lim = prm.th2 * w / prm.window_us
@@ -583,6 +596,8 @@ def event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, adaptive, gather):
             if gather != POINTS and ok and prm.centre_check:
                 # the plane with these slopes through the points' centroid, at the event
                 ok = not abs((st * 1e-6 - gx * sx - gy * sy) / n) > lim
+        if shrunk and not ok:  # the shorter window gave no estimate: the first one stands
+            ok, gx, gy = True, g0x, g0y
         if not ok:
             continue
         ok, vx, vy = _velocity(variant, gx, gy, prm.max_speed, g_min2)
@@ -624,6 +639,12 @@ def plane_flow_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy):
     (the same fraction of the time per pixel). The last fit is the result; a failed refit gives
     no flow. Runs :func:`plane_flow_adaptive_kernel`.
 
+    Short window (on when 0 < ``min_window_us`` < ``window_us``; not for ``original``): a first
+    fit whose edge moved more than ``fast_px`` px within ``window_us`` is redone with the window
+    in which it moves ``fast_px``, W = fast_px |g|, at least ``min_window_us``, instead of any
+    longer refit; when that fit fails the first one stands. Also runs
+    :func:`plane_flow_adaptive_kernel`.
+
     ``refractory_updates`` (jAER: true): an event within ``refractory_us`` still updates the
     surface; false: it is dropped entirely (the thesis's description), so the surface holds the
     onset of each pixel's burst and the refractory period counts from the last onset.
@@ -650,7 +671,8 @@ def plane_flow_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy):
     int
         The number of events with flow (the filled length of ``out_*``).
     """
-    if prm.max_window_us > prm.window_us and prm.variant != ORIGINAL:
+    if (prm.max_window_us > prm.window_us or 0 < prm.min_window_us < prm.window_us) \
+            and prm.variant != ORIGINAL:
         return plane_flow_adaptive_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy)
     gather = _gather_mode(prm.variant, prm.r)
     if gather == MASKS:

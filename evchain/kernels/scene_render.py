@@ -3,10 +3,11 @@ each sample row traced against the ground and the visible boxes (nearest first, 
 sample columns a box can cover) and shaded in passes; the largest image speed over the samples
 bounds the next time step.
 
-Entry points: :func:`render` (a frame) and :func:`render_rows` (every jstep-th row of a frame,
-for threads), both on a :class:`~evchain.kernels.scene_geometry.FrameView` (the frame's camera
-and visible boxes) and a :class:`~evchain.kernels.scene_geometry.WorldArrays` (array layouts
-in :mod:`evchain.kernels.scene_geometry`).
+Entry points: :func:`render` (a frame), :func:`render_rows` (every jstep-th row of a frame,
+for threads) and :func:`render_row_set` (chosen rows, each with its own speed bound), all on
+a :class:`~evchain.kernels.scene_geometry.FrameView` (the frame's camera and visible boxes) and
+a :class:`~evchain.kernels.scene_geometry.WorldArrays` (array layouts in
+:mod:`evchain.kernels.scene_geometry`).
 """
 
 from __future__ import annotations
@@ -334,6 +335,31 @@ def render_rows(frame, world, out, j0, jstep):
         if m2 > vmax2:
             vmax2 = m2
     return math.sqrt(vmax2)
+
+
+@njit(cache=True, error_model="numpy", nogil=True)
+def render_row_set(frame, world, out, rows, i0, istep, row_v2):
+    """Render the rows ``rows[i0], rows[i0 + istep], ...`` of a frame into ``out`` (the same
+    values as :func:`render` in those rows; threads take interleaved entries) and write each
+    one's largest squared motion-field magnitude, (px/s)^2 over its first sample row, into
+    ``row_v2[row]`` (float64 [H]); other rows of ``out`` and ``row_v2`` are left as they are."""
+    w = out.shape[1]
+    k = frame.k
+    xbs = sample_columns(w, k, frame.cx, frame.f)
+    tm = flow_terms(xbs, frame.vc, frame.wc)
+    pcol = pixel_columns(w, k)
+    fw, iw, bmax, rprev = row_work(w * k)
+    lv_inv, lv_off, lv_mask = level_work(world.tex_inv.shape[0])
+    acc = np.empty(w)
+    lit = face_light(world.light)
+    for i in range(i0, rows.shape[0], istep):
+        j = rows[i]
+        row_v2[j] = render_row(j, frame.pos, frame.rot, frame.vc, frame.wc, frame.f, frame.cx,
+                               frame.cy, k, world.boxes, world.box_mat, world.box_par,
+                               world.segs, world.ground, world.light, lit, world.tex,
+                               world.tex_inv, world.tex_off, frame.vis, frame.minz, frame.bbox,
+                               xbs, tm, pcol, fw, iw, bmax, rprev, lv_inv, lv_off, lv_mask, acc,
+                               out)
 
 
 @njit(cache=True, error_model="numpy", nogil=True)

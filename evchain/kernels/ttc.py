@@ -33,10 +33,13 @@ CLUSTER_STATE = np.dtype([("id", "i8"), ("active", "i8"), ("n_samples", "i8"), (
                           ("t_last", "f8"), ("tau", "f8"), ("var", "f8"), ("has_tau", "f8"),
                           ("misses", "f8"), ("t_tau", "f8"), ("rho", "f8"), ("spread", "f8")])
 #: carried from packet to packet: ``has_foe`` 1 once an FOE is known, at (``foe_x``,
-#: ``foe_y``); the next tick (µs) and cluster id; the ground constant K (s px), the number of
-#: votes for it and their weights' reference time (µs); the id of the last selected cluster (-1:
-#: none); the ticks without an obstacle row, by reason (:data:`NO_TTC_REASONS`)
-CARRY = np.dtype([("has_foe", "f8"), ("foe_x", "f8"), ("foe_y", "f8"), ("next_tick", "f8"),
+#: ``foe_y``), with the camera's angular velocity (``foe_wx``, ``foe_wy``, ``foe_wz``, rad/s;
+#: 0 where not estimated); the next tick (µs) and cluster id; the ground constant K (s px),
+#: the number of votes for it and their weights' reference time (µs); the id of the last
+#: selected cluster (-1: none); the ticks without an obstacle row, by reason
+#: (:data:`NO_TTC_REASONS`)
+CARRY = np.dtype([("has_foe", "f8"), ("foe_x", "f8"), ("foe_y", "f8"), ("foe_wx", "f8"),
+                  ("foe_wy", "f8"), ("foe_wz", "f8"), ("next_tick", "f8"),
                   ("next_id", "f8"), ("k_ground", "f8"), ("n_votes", "f8"), ("held_id", "f8"),
                   ("votes_t_ref", "f8"), ("no_foe", "f8"), ("no_cluster", "f8"),
                   ("not_credible", "f8"), ("on_road", "f8")])
@@ -85,6 +88,9 @@ class TtcParams(NamedTuple):
     hold: bool                  #: keep the previous obstacle while it qualifies
     base_px: int                #: baseline tau over up to this many px (0: from the flow)
     base_age_us: float          #: longest baseline, µs
+    f: float                    #: focal length, px (0: the flow is not derotated)
+    cx: float                   #: principal point, px
+    cy: float
 
 
 class TtcState(NamedTuple):
@@ -132,6 +138,20 @@ def ground_constant(state: TtcState) -> float:
 
 
 @njit(cache=True)
+def rotational_speed(px, py, nx, ny, wx, wy, wz, f, cx, cy):
+    """The normal speed (px/s, along the unit normal (nx, ny)) of the flow that a camera
+    turning at (wx, wy, wz) rad/s gives at (px, py): with ``X = (px - cx) / f``,
+    ``Y = (py - cy) / f`` the rotational flow is ``u = f (X Y wx - (1 + X^2) wy + Y wz)``,
+    ``v = f ((1 + Y^2) wx - X Y wy - X wz)`` (Longuet-Higgins and Prazdny 1980), whatever the
+    depth."""
+    X = (px - cx) / f
+    Y = (py - cy) / f
+    u = f * (X * Y * wx - (1.0 + X * X) * wy + Y * wz)
+    v = f * ((1.0 + Y * Y) * wx - X * Y * wy - X * wz)
+    return nx * u + ny * v
+
+
+@njit(cache=True)
 def event_tau(px, py, vx, vy, fx, fy, prm):
     """tau = (p - foe).v / |v|^2 for a flow event in region B, or -1 when it does not qualify.
 
@@ -158,15 +178,20 @@ def event_tau(px, py, vx, vy, fx, fy, prm):
 
 
 @njit(cache=True)
-def baseline_tau(S, pol, px, py, nx, ny, d0, ti, max_px, max_age_us):
+def baseline_tau(S, pol, px, py, nx, ny, d0, rot, ti, max_px, max_age_us):
     """tau from where the edge through (px, py) was earlier, or -1 when nothing qualifies.
 
     ``S[pol]`` holds each pixel's last flow-event time (µs). Walking back from p against the
-    unit normal n (away from the FOE, ``d0 = (p - foe).n``) by 1..``max_px`` px (nearest
-    pixels), the times must fall strictly and stay within ``max_age_us`` of ``ti``. For the
-    farthest such pixel q (``dd = (p - q).n`` px earlier, at time tq) an edge approaching at
-    constant speed has ``d(t) = D / (t_c - t)``, so ``tau = (d0 - dd) (ti - tq) / dd``: positions
-    and times only, over a baseline as long as the edge took, no flow magnitude.
+    unit normal n (the direction the edge moved in; ``d0 = (p - foe).n``) by 1..``max_px`` px
+    (nearest pixels), the times must fall strictly and stay within ``max_age_us`` of ``ti``.
+    For the farthest such pixel q (``dd = (p - q).n`` px earlier, at time tq) an edge
+    approaching at constant speed has the translational part of its position
+    ``d(t) = D / (t_c - t)``; the camera's rotation adds ``rot`` px/s along n (its rotational
+    normal speed), so the translational part moved ``dd - rot dt`` in ``dt = ti - tq`` and
+    ``tau = (d0 - dd + rot dt) dt / (dd - rot dt)``, which must be positive with the edge on the
+    same side of the FOE at tq (``(d0 - dd + rot dt) d0 > 0``): positions and times only, over
+    a baseline as long as the edge took, no flow magnitude. Without rotation (``rot`` 0)
+    ``tau = (d0 - dd) dt / dd``.
     """
     h = S.shape[1]
     w = S.shape[2]
@@ -185,10 +210,12 @@ def baseline_tau(S, pol, px, py, nx, ny, d0, ti, max_px, max_age_us):
         if not (tq < tprev) or ti - tq > max_age_us:
             break
         dd = (px - qx) * nx + (py - qy) * ny
-        dk = d0 - dd
-        if not (dd > 0.0) or not (dk > 0.0):
+        shift = rot * ((ti - tq) * 1e-6)
+        dk = d0 - dd + shift
+        dt = dd - shift
+        if not (dd > 0.0) or not (dk * d0 > 0.0) or not (dt * d0 > 0.0):
             break
-        tau = dk * (ti - tq) * 1e-6 / dd
+        tau = dk * (ti - tq) * 1e-6 / dt
         tprev = tq
     return tau
 
@@ -484,14 +511,18 @@ def _tick(state, prm, half_bins, buf, ttc_out, no, clusters_out, nc):
 
 
 @njit(cache=True)
-def _apply_foe(foe_t, foe_x, foe_y, j, t_us, g):
-    """Take the FOE entries from j on with time <= ``t_us`` (NaN entries are skipped); returns
-    the index of the first one left."""
+def _apply_foe(foe, j, t_us, g):
+    """Take the FOE entries from j on with time <= ``t_us`` (NaN entries are skipped), with
+    their angular velocities; returns the index of the first one left."""
+    foe_t, foe_x, foe_y, foe_wx, foe_wy, foe_wz = foe
     while j < foe_t.shape[0] and foe_t[j] <= t_us:
         if foe_x[j] == foe_x[j] and foe_y[j] == foe_y[j]:
             g.has_foe = 1.0
             g.foe_x = foe_x[j]
             g.foe_y = foe_y[j]
+            g.foe_wx = foe_wx[j]
+            g.foe_wy = foe_wy[j]
+            g.foe_wz = foe_wz[j]
         j += 1
     return j
 
@@ -595,8 +626,9 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
     events : tuple (x, y, t, p, vx, vy)
         The flow events in time order: x, y uint16 [n] px; t int64 [n] µs; p int8 [n]
         polarity; vx, vy float32 [n] flow, px/s.
-    foe : tuple (t, x, y)
-        FOE entries: t int64 [m] µs, x, y float64 [m] px (NaN: no estimate).
+    foe : tuple (t, x, y, wx, wy, wz)
+        FOE entries: t int64 [m] µs, x, y float64 [m] px (NaN: no estimate), the camera's
+        angular velocity wx, wy, wz float64 [m] rad/s (0 where not estimated).
     state : TtcState
         Updated in place (:func:`new_state`, :func:`start`).
     prm : TtcParams
@@ -615,7 +647,6 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
         The rows written into ``ttc_out`` and ``clusters_out``.
     """
     x, y, t, pol, vx, vy = events
-    foe_t, foe_x, foe_y = foe
     # the state's arrays as locals, passed on one by one (a tuple of arrays passed on costs
     # reference counts per event)
     cl, ST, SV, SK, carry, last_t, hist = state
@@ -634,18 +665,29 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
         if i >= n:
             break
         ti = t[i]
-        j = _apply_foe(foe_t, foe_x, foe_y, j, ti, g)
+        j = _apply_foe(foe, j, ti, g)
         px = float(x[i])
         py = float(y[i])
         evx = np.float64(vx[i])
         evy = np.float64(vy[i])
+        sp = math.sqrt(evx * evx + evy * evy)
+        rot = 0.0
+        if prm.f > 0.0 and sp > 0.0 and (g.foe_wx != 0.0 or g.foe_wy != 0.0
+                                         or g.foe_wz != 0.0):
+            # the flow's rotational part along its normal
+            rot = rotational_speed(px, py, evx / sp, evy / sp, g.foe_wx, g.foe_wy, g.foe_wz,
+                                   prm.f, prm.cx, prm.cy)
         tau = -1.0
-        if g.has_foe > 0.0:
-            tau = event_tau(px, py, evx, evy, g.foe_x, g.foe_y, prm)
+        if g.has_foe > 0.0:  # from the translational part of the normal flow, sp - rot
+            if rot != 0.0:
+                tau = event_tau(px, py, evx - rot * evx / sp, evy - rot * evy / sp, g.foe_x,
+                                g.foe_y, prm)
+            else:
+                tau = event_tau(px, py, evx, evy, g.foe_x, g.foe_y, prm)
         if tau > 0.0 and prm.base_px > 0:  # from where the edge was earlier
-            sp = math.sqrt(evx * evx + evy * evy)
+            d0 = tau * (sp - rot)  # (p - foe).n
             tau = baseline_tau(last_t, 1 if pol[i] > 0 else 0, px, py, evx / sp, evy / sp,
-                               tau * sp, float(ti), prm.base_px, prm.base_age_us)
+                               d0, rot, float(ti), prm.base_px, prm.base_age_us)
             if tau < prm.min_tau or tau > prm.max_tau:
                 tau = -1.0
         if tau > 0.0:  # to its cluster: the nearest whose widened square holds it, or a new one
@@ -662,7 +704,7 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
                 ground_vote(hist, carry, kg, float(ti), prm.ground_memory_us)
         _remember_time(last_t, x[i], y[i], pol[i], ti)
         i += 1
-    _apply_foe(foe_t, foe_x, foe_y, j, _FOREVER, g)  # entries after the last event count next
+    _apply_foe(foe, j, _FOREVER, g)  # entries after the last event count next
     return no, nc
 
 

@@ -4,6 +4,7 @@ model does not hold, and region A off the true FOE."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from evchain.core.filter import Context
 from evchain.core.packets import FlowPacket, Geometry
@@ -264,6 +265,21 @@ def test_pitching_follows_a_pitch_oscillation():
     assert np.median(np.abs(s["x"][late] - _at(s[late], times, fx))) < 0.3
 
 
+def test_a_pitch_of_one_sign_that_lasts_is_not_the_body_pitching():
+    """From 1 s on the flow says the camera pitches steadily one way at 10 deg/s, as the flow of
+    a ground plane whose FOE row is off can: a car's body cannot keep pitching, so the fits
+    stay level (no pitch fitted) instead of following it; the same rate oscillating is
+    followed (test above). A camera that really keeps pitching is outside this model: here the
+    probes' yaw then takes the flow's error (the turning mode starts), which is not checked."""
+    rate = np.radians(10.0) * G.f
+    pk, _, _, _ = rotating_packets(lambda t: (rate if t >= 1.0 else 0.0, 0.0, 0.0))
+    s = _fit_stream(pk)
+    assert np.all(s["wx_deg_s"] == 0)
+    s_osc = _fit_stream(rotating_packets(
+        lambda t: (rate * np.sin(2 * np.pi * 2.0 * (t - 1.0)) if t >= 1.0 else 0.0, 0.0, 0.0))[0])
+    assert np.any(s_osc["wx_deg_s"] != 0)  # the same rate, oscillating: pitch is fitted
+
+
 def test_turning_fits_the_yaw_and_holds_the_column():
     """From 1 s on the camera yaws at 15 deg/s: the fits find the yaw and keep the FOE's
     column where the level fits had it; after the turn they return to level."""
@@ -331,3 +347,21 @@ def test_no_estimate_once_the_votes_are_gone():
     assert 300_000 < v["t"][-1] < 1_700_000
     assert v["t"][-1] < s["t"][-1] <= v["t"][-1] + 200_000
     assert np.isfinite(s["x"]).all() and np.isfinite(s["y"]).all()
+
+
+def test_px_parameters_follow_the_focal_length():
+    """margin_px and max_deviation_px left null (and the kernel's step bounds) are their
+    reference camera values times f / 380.6 px."""
+    from evchain.core.camera_scale import REFERENCE_FOCAL_PX
+
+    for scale in (1.0, 2.0, 0.75):
+        f = FoeFit()
+        f.setup(FoeFit.Params(), Context())
+        f._start(Geometry(int(320 * scale), int(240 * scale), f=scale * REFERENCE_FOCAL_PX))
+        assert f._prm.margin == pytest.approx(10.0 * scale, rel=1e-12)
+        assert f._max_deviation == pytest.approx(40.0 * scale, rel=1e-12)
+        assert (f._prm.max_step, f._prm.min_step) == pytest.approx((3 * scale, 0.05 * scale))
+    f = FoeFit()
+    f.setup(FoeFit.Params(margin_px=7.0, max_deviation_px=30.0), Context())
+    f._start(Geometry(640, 480, f=2 * REFERENCE_FOCAL_PX))
+    assert (f._prm.margin, f._max_deviation) == (7.0, 30.0)

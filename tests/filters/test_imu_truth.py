@@ -233,3 +233,54 @@ def test_pipeline_on_a_file_without_imu_records_says_so(tmp_path, capsys):
     assert "imu_truth" in err and "no IMU samples" in err and "no IMU records" in err
     report = json.loads((tmp_path / "run" / "report.json").read_text())
     assert report["status"] == "failed" and "flow" not in report["metrics"]
+
+
+def test_rotation_truth_scores_an_estimated_rate():
+    """The gyro's rate is the stage's RotationTruth (the rolling camera's, offset and bias
+    removed), and foe_ttc_scorer after imu_truth scores a rate estimate against it: an
+    estimate off by (2, 0, -3) deg/s scores sqrt(13); the FOE is not scored (undefined)."""
+    from evchain.core.packets import FlowPacket
+    from evchain.core.series import FOE, ROTATION_FIELDS
+    from evchain.core.truth import RotationTruth
+    from evchain.filters.foe_ttc_scorer import FoeTtcScorer
+
+    cam = RollingCamera(duration_us=800_000)
+    f = ImuTruth()
+    f.id = "imu_truth"
+    ctx = Context(geometry=cam.geometry)
+    f.setup(ImuTruth.Params(gyro_bias_dps=BIAS, focal_px=70.0, principal_point_px=(44.0, 27.0),
+                            time_offset_us=-5000, calibration_us=300_000), ctx)
+    assert isinstance(ctx.truth, RotationTruth)
+    scorer = FoeTtcScorer()
+    scorer.id = "foe_ttc_scorer"
+    scorer.setup(FoeTtcScorer.Params(plots=False, warmup_s=0.0), ctx)
+    off = np.array([2.0, 0.0, -3.0])
+    n_ticks, rates = 0, []
+    for p in [*stream(cam, offset_us=-5000, bias_dps=BIAS), None]:
+        out = f.process(p) if p is not None else f.flush()
+        if out is None or out.t_end <= out.t_start:
+            continue
+        t = np.arange(out.t_start, out.t_end, 5_000, dtype=np.int64)
+        wx, wy, wz = ctx.truth.angular_velocity(t)
+        ok = np.isfinite(wz)
+        np.testing.assert_allclose(wz[ok], cam.omega_z(t[ok]), atol=1e-4)
+        np.testing.assert_allclose(np.hypot(wx[ok], wy[ok]), 0.0, atol=1e-9)
+        true_deg = np.degrees(np.stack([wx, wy, wz], 1))
+        foe = FOE.array(t=t, x=40.0, y=30.0, support=1.0, total=1.0,
+                        rotation=np.where(ok, 1, 0))
+        for i, c in enumerate(ROTATION_FIELDS):
+            foe[c] = np.where(ok, true_deg[:, i] + off[i], 0.0)
+        scorer.process(FlowPacket.empty(out.geometry, out.t_start, out.t_end)
+                       .with_series(FOE.name, foe))
+        n_ticks += int(ok.sum())
+        rates.append(np.degrees(np.abs(cam.omega_z(t[ok]))))
+    scorer.flush()
+    m = ctx.metrics["foe"]
+    assert n_ticks > 80
+    assert m["rotation_rate_error_deg_s"] == pytest.approx(np.sqrt(13.0), abs=1e-3)
+    assert m["rotation_rate_error_wz_deg_s"] == pytest.approx(3.0, abs=1e-3)
+    assert m["rotation_rate_true_deg_s"] == pytest.approx(np.median(np.concatenate(rates)),
+                                                          rel=1e-4)
+    assert m["n"] == 0 and "the true FOE is undefined" in m["why_none"]
+    x, y = ctx.truth.foe(np.array([1.0, 2.0]))
+    assert np.isnan(x).all() and np.isnan(y).all() and np.isnan(ctx.truth.ttc(3.0))

@@ -228,9 +228,11 @@ def test_centre_check_removes_flow_from_an_older_crossing_edge():
 
 @pytest.mark.parametrize("bad, says", [
     (dict(max_window_us=80_000), "must exceed window_us"),
+    (dict(min_window_us=80_000), "must be shorter than window_us"),
+    (dict(min_window_us=20_000, mode="faithful"), "calibrated mode only"),
     (dict(max_window_us=400_000, mode="faithful"), "calibrated mode only"),
 ])
 def test_adaptive_window_bad_settings_are_refused(bad, says):
     with pytest.raises(ValueError, match=says):
         LKFlow.Params(**bad)
-    LKFlow.Params(max_window_us=400_000)  # a valid setting passes
+    LKFlow.Params(max_window_us=400_000, min_window_us=20_000)  # a valid setting passes

@@ -112,9 +112,11 @@ def test_dvsflow16_square(variant):
 
 @pytest.mark.parametrize("bad, says", [
     (dict(max_window_us=80_000), "must exceed window_us"),
+    (dict(min_window_us=80_000), "must be shorter than window_us"),
+    (dict(min_window_us=20_000, variant="original"), "does not apply to variant original"),
     (dict(max_window_us=400_000, variant="original"), "does not apply to variant original"),
 ])
 def test_adaptive_window_bad_settings_are_refused(bad, says):
     with pytest.raises(ValueError, match=says):
         PlaneFlow.Params(**bad)
-    PlaneFlow.Params(max_window_us=400_000)  # a valid setting passes
+    PlaneFlow.Params(max_window_us=400_000, min_window_us=10_000)  # a valid setting passes

@@ -7,6 +7,7 @@ import pytest
 
 from evchain.core.filter import Context
 from evchain.core.packets import FlowPacket, Geometry
+from evchain.core.series import FOE as FOE_SERIES
 from evchain.filters.foe_map import FoeMap, foe_series
 from evchain.filters.ttc import Ttc
 from evchain.testing.contract import check_filter
@@ -69,6 +70,36 @@ def test_recovers_ttc(name):
     assert np.mean(rel <= 0.10) >= share
 
 
+@pytest.mark.parametrize("w", [(0.1, 0.0, 0.0), (0.0, 0.25, 0.0), (0.05, -0.1, 0.02)])
+def test_recovers_ttc_under_rotation(w):
+    """The camera turns (pitch 0.1 rad/s: 10 px/s at the principal point, the car's flow near
+    the FOE a few px/s): with its angular velocity in the FOE entries the rotational flow is
+    taken off each event's normal flow, and the TTC is as good as without rotation; the same
+    flow with entries that carry no rotation gives a wrong one."""
+    packets = approach(normal_only=True)
+    X = [(p.x.astype(float) - G.cx) / G.f for p in packets]
+    Y = [(p.y.astype(float) - G.cy) / G.f for p in packets]
+    turned = []
+    for p, x, y in zip(packets, X, Y, strict=True):
+        u = G.f * (x * y * w[0] - (1 + x * x) * w[1] + y * w[2])
+        v = G.f * ((1 + y * y) * w[0] - x * y * w[1] - x * w[2])
+        s = np.hypot(p.vx, p.vy)
+        n = (p.vx / np.where(s > 0, s, 1), p.vy / np.where(s > 0, s, 1))
+        r = n[0] * u + n[1] * v  # normal flow: the rotation's normal component
+        turned.append(p.replace(vx=(p.vx + r * n[0]).astype(np.float32),
+                                vy=(p.vy + r * n[1]).astype(np.float32)))
+    errors = []
+    for flag in (1, 0):
+        foe = [p.with_series("foe", FOE_SERIES.array(
+            t=[p.t_start], x=[FOE[0]], y=[FOE[1]], support=[1.0], total=[1.0],
+            wx_deg_s=[np.degrees(w[0])], wy_deg_s=[np.degrees(w[1])],
+            wz_deg_s=[np.degrees(w[2])], rotation=[flag])) for p in turned]
+        out = run_ttc(foe)
+        errors.append(np.median(rel_errors(out)) if len(out.series["ttc"]) else np.inf)
+    assert errors[0] <= 0.02, errors
+    assert errors[1] > 5 * errors[0], errors
+
+
 def test_tau_falls_one_second_per_second_without_updates():
     packets = with_true_foe(approach(duration_us=1_000_000, n=80_000))
     quiet = FlowPacket.empty(G, 1_000_000, 1_100_000)
@@ -128,7 +159,7 @@ def test_event_tau_matches_reference():
     f.setup(Ttc.Params(region_b_half_width_px=30.0, region_b_min_below_px=2.0,
                        min_distance_px=8.0, min_speed_pxs=1.0, max_speed_pxs=500.0,
                        min_tau_s=0.05, max_tau_s=20.0), Context())
-    got = np.array([event_tau(px[i], py[i], vx[i], vy[i], 60.0, 40.0, f._prm)
+    got = np.array([event_tau(px[i], py[i], vx[i], vy[i], 60.0, 40.0, f._constants(G))
                     for i in range(n)])
     np.testing.assert_allclose(got, want, rtol=1e-12)
     assert (want > 0).sum() > 50
@@ -347,8 +378,10 @@ def test_baseline_tau_matches_reference():
         ang = rng.uniform(0, 2 * np.pi) if i % 3 else rng.integers(0, 4) * np.pi / 2
         nx, ny = np.cos(ang), np.sin(ang)
         d0 = float(rng.uniform(-5, 60))
+        rot = 0.0 if i % 3 == 1 else float(rng.normal(0, 20))
         ti = float(rng.integers(500_000, 1_100_000))
-        args = (px, py, nx, ny, d0, ti, int(rng.integers(1, 10)), float(rng.integers(1, 9e5)))
+        args = (px, py, nx, ny, d0, rot, ti, int(rng.integers(1, 10)),
+                float(rng.integers(1, 9e5)))
         want = baseline_tau_naive(S[pol], *args)
         got = baseline_tau(S, pol, *args)
         assert np.isfinite(got)

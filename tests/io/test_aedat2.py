@@ -10,7 +10,7 @@ import pytest
 
 from evchain.core.filter import Context
 from evchain.core.packets import EventPacket, Geometry
-from evchain.errors import DataError
+from evchain.errors import ConfigError, DataError
 from evchain.io.aedat2 import (
     CHIPS,
     AedatSource,
@@ -496,6 +496,45 @@ def test_writer_is_atomic(tmp_path):
     w.close()
     assert same(read_aedat2(tmp_path / "sub" / "out.aedat"), ev)
     assert ctx.metrics["aedat_writer"]["events"] == len(ev)
+
+
+def test_sensor_too_large_for_aedat2_fails_at_validation(monkeypatch):
+    """A pipeline whose scene is larger than AEDAT 2.0 can address fails when it is loaded
+    (before anything renders), naming the size's field and the writers to use instead."""
+    from evchain.core.config import pipeline_from_text
+    from evchain.core.registry import make_registry
+    from evchain.errors import ConfigError
+    from evchain.filters.scene import SceneSource
+
+    setups = []
+    monkeypatch.setattr(SceneSource, "setup", lambda *a: setups.append(a))
+    text = ("chain:\n  - use: scene\n    width: {w}\n    height: {h}\n  - use: emulator\n"
+            "  - use: aedat_writer\n{chip}")
+    reg = make_registry()
+    with pytest.raises(ConfigError) as err:
+        pipeline_from_text(text.format(w=1280, h=720, chip=""), "p.yaml", reg)
+    msg = str(err.value)
+    assert msg.startswith("p.yaml:6:5: scene.width: stage 'aedat_writer' (aedat_writer): a "
+                          "1280x720 sensor does not fit AEDAT 2.0")
+    assert "at most 1024x512" in msg and "aedat4_writer" in msg and "hdf5_writer" in msg
+    with pytest.raises(ConfigError, match="a 320x513 sensor does not fit AEDAT 2.0"):
+        pipeline_from_text(text.format(w=320, h=513, chip=""), "p.yaml", reg)
+    with pytest.raises(ConfigError, match="chip: a 320x240 sensor does not fit chip dvs128"):
+        pipeline_from_text(text.format(w=320, h=240, chip="    chip: dvs128\n"), "p.yaml", reg)
+    # the largest size that fits loads
+    spec = pipeline_from_text(text.format(w=1024, h=512, chip=""), "p.yaml", reg)
+    assert [s.use for s in spec.stages] == ["scene", "emulator", "aedat_writer"]
+    assert setups == []                   # nothing was set up, let alone rendered
+
+
+def test_sensor_too_large_for_aedat2_fails_at_setup(tmp_path):
+    """A source whose size comes from its input sets it at setup; the writer refuses it
+    there, before any packet."""
+    w = AedatWriter()
+    w.id = "out"
+    with pytest.raises(ConfigError, match=r"out: a 1280x720 sensor does not fit AEDAT 2.0.*"
+                                          r"aedat4_writer .*hdf5_writer"):
+        w.setup(AedatWriter.Params(), Context(out_dir=tmp_path, geometry=Geometry(1280, 720)))
 
 
 # --- kernels against the naive reference -----------------------------------------------------

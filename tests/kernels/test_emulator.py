@@ -11,11 +11,13 @@ from evchain.filters.emulator import Emulator
 from tests.naive.emulator import emulate as naive
 
 
-def run_filter(frames, times, cut=None, **params):
+def run_filter(frames, times, cut=None, strip=None, block=None, **params):
     n, h, w = frames.shape
     g = Geometry(w, h)
     f = Emulator()
     f.record_float_times = True
+    f.strip_pixels = strip
+    f.block_intervals = block
     f.setup(Emulator.Params(**params), Context(seed=3))
     cut = cut or [n]
     outs, i = [], 0
@@ -33,9 +35,10 @@ def run_filter(frames, times, cut=None, **params):
     return ev, tf
 
 
-def compare(frames, times, c=0.2, **params):
+def compare(frames, times, c=0.2, strip=None, block=None, cut=None, **params):
     cubic = params.get("interpolation", "cubic") == "cubic"
-    ev, tf = run_filter(frames, times, threshold_on=c, threshold_off=c, **params)
+    ev, tf = run_filter(frames, times, cut=cut, strip=strip, block=block, threshold_on=c,
+                        threshold_off=c, **params)
     x, y, ti, tfn, p = naive(frames, times, c, c, eps=params.get("eps", 1e-3),
                              tol=params.get("tie_tolerance", 1e-6), cubic=cubic,
                              refractory_us=params.get("refractory_us", 0.0),
@@ -295,3 +298,49 @@ def test_exact_return_to_first_level_with_zero_tolerance(interpolation):
     np.add.at(off, (ev.y[ev.p < 0], ev.x[ev.p < 0]), 1)
     assert on.min() == 2
     np.testing.assert_array_equal(off, on)
+
+
+@pytest.mark.parametrize("interpolation", ["linear", "cubic"])
+def test_strips_match_naive(interpolation):
+    # 17 x 30 = 510 pixels in strips of 64 or 192 (the last one partial), blocks of 1, 3 or 8
+    # intervals on one strip before the next: the same events as the reference, in its order
+    rng = np.random.default_rng(8)
+    n, h, w = 14, 17, 30
+    base = np.exp(rng.normal(-1.0, 0.7, (h, w)))
+    drift = rng.normal(0.0, 0.25, (h, w))
+    k = np.arange(n)[:, None, None]
+    frames = (base * np.exp(drift * k + 0.05 * np.sin(1.3 * k))).astype(np.float32)
+    frames[rng.random((n, h, w)) < 0.03] = 0.0
+    times = np.cumsum(rng.integers(200, 2000, n)).astype(np.int64)
+    for strip, block, cut in ((64, 8, None), (192, 3, [5, 1, 8]), (64, 1, [1] * n),
+                              (64, 3, [9, 5])):
+        ev = compare(frames, times, c=0.2, strip=strip, block=block, cut=cut,
+                     interpolation=interpolation, noise_rate_hz=0.0, refractory_us=300.0)
+        assert len(ev) > 800
+    ref, _ = run_filter(frames, times, threshold_on=0.2, threshold_off=0.2, noise_rate_hz=80.0,
+                        interpolation=interpolation)
+    got, _ = run_filter(frames, times, strip=64, block=3, cut=[4, 10], threshold_on=0.2,
+                        threshold_off=0.2, noise_rate_hz=80.0, interpolation=interpolation)
+    for name in ("x", "y", "t", "p"):        # noise last in each interval, as in one strip
+        np.testing.assert_array_equal(getattr(got, name), getattr(ref, name))
+
+
+@pytest.mark.parametrize("strip, block", [(64, 8), (128, 2), (None, None)])
+def test_first_bad_pixel_across_strips(strip, block):
+    # a bad value in a later strip at an earlier frame comes first; in the same frame, the
+    # lower pixel
+    from evchain.errors import DataError
+
+    frames = np.full((6, 10, 40), 0.5, np.float32)
+    frames[1:, :, ::3] = 2.0                       # events everywhere before the bad values
+    frames[4, 0, 5] = -1.0                         # strip 0, frame 4
+    frames[3, 9, 30] = np.nan                      # last strip, frame 3: first
+    frames[3, 6, 2] = -2.0                         # frame 3, a lower pixel in an earlier strip
+    times = np.arange(6, dtype=np.int64) * 1000
+    with pytest.raises(DataError, match=r"frame 3 .*negative at pixel \(x=2, y=6\)"):
+        run_filter(frames, times, strip=strip, block=block, threshold_on=0.2,
+                   threshold_off=0.2)
+    frames[3, 6, 2] = 0.5
+    with pytest.raises(DataError, match=r"frame 3 .*not finite .*pixel \(x=30, y=9\)"):
+        run_filter(frames, times, strip=strip, block=block, threshold_on=0.2,
+                   threshold_off=0.2)

@@ -27,7 +27,7 @@ def _events(x, y, nx, ny, s, t):
 
 def _prm(margin=10.0, c=0.5, iters=12):
     return record(k.FitParams, margin=margin, tolerance=c, max_iter=iters, max_step=3.0,
-                  slab_us=SLAB, f=F, cx=CX, cy=CY)
+                  min_step=0.05, slab_us=SLAB, f=F, cx=CX, cy=CY)
 
 
 def _run(x, y, nx, ny, s, th0, t=None, om=None, free=LEVEL, margin=10.0, c=0.5, iters=12):

@@ -16,7 +16,7 @@ DEFAULTS = dict(search_distance=2, window_us=80_000, refractory_us=150_000,
                 gradient="savitzky_golay", mode="calibrated", eig_threshold=1.0, eig_ratio=0.1,
                 speed_control=True, speed_control_mix=1e-3, max_speed_factor=2.0,
                 max_speed_pxs=1e5, refit_tolerance=0.25, centre_check_px=0.5,
-                fifo_depth=8, max_window_us=0, slow_px=2.0)
+                fifo_depth=8, max_window_us=0, slow_px=2.0, min_window_us=0, fast_px=8.0)
 
 
 def run_kernel(x, y, t, p, width, height, state=None, **kw):
@@ -32,7 +32,7 @@ def run_kernel(x, y, t, p, width, height, state=None, **kw):
                  mix=q["speed_control_mix"], max_factor=q["max_speed_factor"],
                  max_speed_pxs=q["max_speed_pxs"], refit_tolerance=q["refit_tolerance"],
                  centre_check_px=q["centre_check_px"], max_window_us=q["max_window_us"],
-                 slow_px=q["slow_px"])
+                 slow_px=q["slow_px"], min_window_us=q["min_window_us"], fast_px=q["fast_px"])
     m = lk_flow_run(np.asarray(x, np.uint16), np.asarray(y, np.uint16),
                     np.asarray(t, np.int64), np.asarray(p, np.int8), state, prm, idx, vx, vy)
     return idx[:m], vx[:m], vy[:m]
@@ -267,3 +267,114 @@ def test_adaptive_window_measures_slow_edges():
     assert s_plain > 1.5 * 7.0
     assert abs(s_ada / 7.0 - 1) < 0.1, s_ada
     assert len(ada[0]) >= len(plain[0])
+
+
+# -- two time scales (min_window_us) -----------------------------------------------------------
+
+SHORT = dict(min_window_us=20_000, fast_px=4.0)
+
+
+@pytest.mark.parametrize("gradient", list(GRADIENTS))
+@settings(max_examples=5, deadline=None)
+@given(seed=st.integers(0, 2**31), refractory=st.sampled_from([0, 3_000, 50_000]),
+       speed_control=st.booleans(), r=st.sampled_from([1, 2]),
+       fast_px=st.sampled_from([0.5, 2.0, 5.0]), adaptive=st.booleans())
+def test_two_scales_match_naive_random(gradient, seed, refractory, speed_control, r, fast_px,
+                                       adaptive):
+    x, y, t, p = random_stream(seed, 300, 18, 14, 400_000)
+    extra = dict(max_window_us=150_000, slow_px=2.0) if adaptive else {}
+    compare(x, y, t, p, 18, 14, gradient=gradient, refractory_us=refractory,
+            speed_control=speed_control, search_distance=r, window_us=40_000, fifo_depth=4,
+            min_window_us=10_000, fast_px=fast_px, **extra)
+
+
+def textured_edges(speed, angle_deg, width, height, gap_px, duration_us):
+    """Two parallel edges of one polarity ``gap_px`` apart at ``speed`` px/s: with a window
+    longer than gap_px / speed the second edge's neighbourhood still holds the first one's
+    onsets ahead of it."""
+    x1, y1, t1, _ = slow_edge(speed, angle_deg, width, height, n_per_pixel=1,
+                              duration_us=duration_us)
+    t2 = t1 + int(gap_px / speed * 1e6)
+    t = np.r_[t1, t2]
+    o = np.argsort(t, kind="stable")
+    keep = t[o] < duration_us
+    return (np.r_[x1, x1][o][keep], np.r_[y1, y1][o][keep], t[o][keep],
+            np.ones(keep.sum(), np.int8))
+
+
+@pytest.mark.parametrize("gradient", list(GRADIENTS))
+@pytest.mark.parametrize("speed,angle", [(400.0, 0.0), (300.0, 90.0), (250.0, 30.0),
+                                         (5000.0, 200.0), (60.0, 45.0), (7.0, 0.0)])
+def test_two_scales_match_naive_on_edges(gradient, speed, angle):
+    """Fast edges with a second edge behind (also along an axis, and one whose pixels share a
+    timestamp), an edge too slow for the short window, a slow one for the adaptive window:
+    kernel and reference agree."""
+    x, y, t, p = textured_edges(speed, angle, 24, 20, 6.0, 1_000_000 if speed < 10 else 200_000)
+    kw = dict(gradient=gradient, speed_control=False, refractory_us=0, **SHORT,
+              max_window_us=300_000, slow_px=3.0)
+    assert compare(x, y, t, p, 24, 20, **kw) > 10
+
+
+@pytest.mark.parametrize("gradient", list(GRADIENTS))
+def test_two_scales_hard_inputs(gradient):
+    """Degenerate neighbourhoods with two time scales: finite output, no flow without a
+    slope, kernel = reference."""
+    w, h = 20, 16
+    ys, xs = np.mgrid[0:h, 0:w]
+    cases = {}
+    cases["one_timestamp"] = (xs.ravel(), ys.ravel(), np.full(w * h, 1000), np.ones(w * h))
+    t = (xs * 1000).ravel()  # an axis edge at 1000 px/s
+    o = np.argsort(t, kind="stable")
+    cases["axis_edge_fast"] = (xs.ravel()[o], ys.ravel()[o], t[o], np.ones(w * h))
+    t = (xs * 3).ravel()  # 3 µs per column: faster than the timestamps resolve
+    o = np.argsort(t, kind="stable")
+    cases["axis_edge_huge"] = (xs.ravel()[o], ys.ravel()[o], t[o], np.ones(w * h))
+    d = np.arange(min(w, h))
+    cases["line"] = (d, d, d * 1000, np.ones(len(d)))
+    cases["one_pixel"] = (np.full(50, 9), np.full(50, 8), np.arange(50) * 100, np.ones(50))
+    # timestamps near the int64 end of the µs clock (no wrap in the kernel's arithmetic)
+    big = np.int64(1) << 61
+    cases["late_clock"] = (xs.ravel()[o], ys.ravel()[o], big + (xs * 1000).ravel()[o],
+                           np.ones(w * h))
+    for name, (x, y, tt, p) in cases.items():
+        kw = dict(gradient=gradient, refractory_us=0, speed_control=False, **SHORT)
+        idx, vx, vy = run_kernel(x, y, tt, p, w, h, **kw)
+        check_finite(vx, vy)
+        assert np.all(np.hypot(vx, vy) > 0)
+        if name in ("one_timestamp", "one_pixel", "line"):
+            assert len(idx) == 0, name
+        ni, nvx, nvy = lk_flow_naive(x, y, tt, p, w, h, **{**DEFAULTS, **kw})
+        assert list(idx) == ni, name
+        np.testing.assert_allclose(vx, nvx, rtol=1e-6, atol=1e-6)
+
+
+def test_two_scales_avoid_the_edge_before():
+    """A 300 px/s edge moving right, then 20 ms later one moving down over the same pixels (a
+    texture): with 80 ms every pixel's onset is the first edge's, so the second edge's events
+    get the first edge's flow or none; with a 15 ms first scale most of them get their own
+    velocity (within 3 %)."""
+    speed = 300.0
+    x1, y1, t1, _ = slow_edge(speed, 0.0, 30, 30, n_per_pixel=1, duration_us=200_000)
+    x2, y2, t2, _ = slow_edge(speed, 90.0, 30, 30, n_per_pixel=1, duration_us=200_000)
+    t = np.r_[t1, t2 + 20_000]
+    o = np.argsort(t, kind="stable")
+    x, y, t = np.r_[x1, x2][o], np.r_[y1, y2][o], t[o]
+    second = np.r_[np.zeros(len(t1), bool), np.ones(len(t2), bool)][o]
+    p = np.ones(len(t), np.int8)
+    kw = dict(speed_control=False, refractory_us=0)
+    n_good = []
+    for extra in ({}, dict(min_window_us=15_000, fast_px=3.0)):
+        idx, vx, vy = run_kernel(x, y, t, p, 30, 30, **kw, **extra)
+        sel = second[idx]
+        n_good.append(int((np.hypot(vx[sel], vy[sel] - speed) < 0.03 * speed).sum()))
+    assert n_good[1] > 0.5 * second.sum() > n_good[0], (n_good, second.sum())
+
+
+def test_two_scales_off_is_the_plain_kernel():
+    """min_window_us 0 or >= window_us: exactly the output without it."""
+    x, y, t, p = slow_edge(7.0, 30.0, 16, 14, duration_us=1_500_000)
+    plain = run_kernel(x, y, t, p, 16, 14, **ADAPTIVE)
+    for mw in (0, 80_000):
+        out = run_kernel(x, y, t, p, 16, 14, min_window_us=mw, **ADAPTIVE)
+        for a, b in zip(plain, out, strict=True):
+            np.testing.assert_array_equal(a, b)

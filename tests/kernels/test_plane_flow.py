@@ -3,6 +3,8 @@ hard inputs."""
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -25,7 +27,7 @@ from tests.naive.plane_flow import plane_flow_naive
 DEFAULTS = dict(variant="single", r=2, window_us=80_000, refractory_us=0, margin=None,
                 min_points=3, th1=1e-5, th2=0.01, max_speed=1e4, max_iter=10,
                 min_spread=0.0, centre_check=False, max_window_us=0, slow_px=2.0,
-                refit_failed=True, refractory_updates=True)
+                refit_failed=True, refractory_updates=True, min_window_us=0, fast_px=4.0)
 FITTING = ("single", "iterative", "robust", "savitzky_golay")
 
 
@@ -48,7 +50,8 @@ def run_naive(x, y, t, p, width, height, **kw):
                             q["refractory_us"], q["margin"], q["min_points"], q["th1"], q["th2"],
                             q["max_speed"], q["max_iter"], q["min_spread"],
                             q["centre_check"], q["max_window_us"], q["slow_px"],
-                            q["refit_failed"], q["refractory_updates"])
+                            q["refit_failed"], q["refractory_updates"], q["min_window_us"],
+                            q["fast_px"])
 
 
 def assert_same(ev, width, height, **kw):
@@ -392,7 +395,8 @@ def test_adaptive_loop_without_refits_equals_fixed_loop(variant, r):
     prm = record(PlaneParams, variant=VARIANTS[variant], r=r, window_us=20_000,
                  refractory_us=3000, margin=r, min_points=3, th1=1e-5, th2=0.01, max_speed=1e4,
                  max_iter=10, min_spread=0.3, centre_check=True, max_window_us=20_000,
-                 slow_px=2.0, refit_failed=False, refractory_updates=True)
+                 slow_px=2.0, refit_failed=False, refractory_updates=True, min_window_us=0,
+                 fast_px=4.0)
     out = []
     for kernel in (plane_flow_kernel, plane_flow_adaptive_kernel):
         ts = new_state(g.width, g.height)
@@ -459,3 +463,91 @@ def test_adaptive_window_leaves_fast_edges_and_off_unchanged(variant):
         got = run_kernel(ev.x, ev.y, ev.t, ev.p, g.width, g.height, **{**kw, **extra})
         for a, b in zip(ref, got, strict=True):
             np.testing.assert_array_equal(a, b)
+
+
+# ------------------------------------------------------------------ short window for fast edges
+
+
+@settings(max_examples=12, deadline=None)
+@given(seed=st.integers(0, 10_000), variant=st.sampled_from(list(VARIANTS)),
+       r=st.integers(1, 3), window_us=st.integers(5_000, 100_000),
+       min_window_us=st.integers(1, 60_000), fast_px=st.sampled_from([0.5, 2.0, 4.0]),
+       max_window_us=st.sampled_from([0, 200_000]), refit_failed=st.booleans(),
+       refractory_us=st.integers(0, 40_000), th2=st.sampled_from([1e-3, 1e-2, 5e-2]),
+       centre_check=st.booleans())
+def test_short_window_random_parameters_match_reference(seed, variant, r, window_us,
+                                                        min_window_us, fast_px, max_window_us,
+                                                        refit_failed, refractory_us, th2,
+                                                        centre_check):
+    g = Geometry(16, 14)
+    ev = random_events(500, g, 0, 300_000, seed=seed)
+    assert_same(ev, g.width, g.height, variant=variant, r=r, window_us=window_us,
+                min_window_us=min_window_us, fast_px=fast_px, max_window_us=max_window_us,
+                refit_failed=refit_failed, refractory_us=refractory_us, th2=th2,
+                max_speed=1e5, centre_check=centre_check)
+
+
+def two_edges(vx, vy, g, gap_us, duration_us):
+    """An edge and the same edge ``gap_us`` later (one polarity): texture whose second edge
+    finds the first one's timestamps within a long window."""
+    ev = moving_edge_events(vx, vy, g, duration_us=duration_us)
+    t = np.r_[ev.t, ev.t + gap_us]
+    o = np.argsort(t, kind="stable")
+    keep = t[o] < duration_us
+    return (np.r_[ev.x, ev.x][o][keep], np.r_[ev.y, ev.y][o][keep], t[o][keep],
+            np.r_[ev.p, ev.p][o][keep])
+
+
+@pytest.mark.parametrize("variant", FITTING)
+@pytest.mark.parametrize("ang", ANGLES)
+def test_short_window_fast_edges_match_reference(variant, ang):
+    """Fast edges in 8 directions (along the axes too) followed by a second edge: kernel =
+    reference with the short window, the median flow event within 3 % of the velocity."""
+    g = Geometry(40, 32)
+    speed = 300.0
+    vx, vy = speed * np.cos(np.radians(ang)), speed * np.sin(np.radians(ang))
+    x, y, t, p = two_edges(vx, vy, g, 40_000, 120_000)
+    ev = SimpleNamespace(x=x, y=y, t=t, p=p)
+    kw = dict(variant=variant, window_us=80_000, th2=0.004, max_speed=1e5, centre_check=True,
+              max_window_us=500_000)
+    idx, ex, ey = assert_same(ev, g.width, g.height, **kw, min_window_us=5_000, fast_px=4.0)
+    assert len(idx) > 0.3 * len(t)
+    err = np.hypot(ex - vx, ey - vy) / speed
+    assert np.median(err) < 0.03, (variant, ang, np.median(err))
+
+
+@pytest.mark.parametrize("variant", list(VARIANTS))
+def test_short_window_hard_inputs(variant):
+    """Flat surfaces, an axis edge too fast for any window (3 µs per column), a line, one
+    pixel, timestamps across the 32-bit wrap point: finite output, kernel = reference."""
+    g = Geometry(20, 16)
+    ys, xs = np.mgrid[0:g.height, 0:g.width]
+    cases = {"flat": (xs.ravel(), ys.ravel(), np.full(xs.size, 1000)),
+             "huge_speed": (xs.ravel(), ys.ravel(), (xs * 3).ravel()),
+             "axis_fast": (xs.ravel(), ys.ravel(), (xs * 2000).ravel()),
+             "line": (np.arange(14), np.arange(14), np.arange(14) * 1000),
+             "one_pixel": (np.full(50, 9), np.full(50, 8), np.arange(50) * 100),
+             # across the point where 32-bit µs timestamps wrap (int64 here: no wrap)
+             "wrap32": (xs.ravel(), ys.ravel(), (np.int64(1) << 32) - 20_000
+                        + (xs * 2000).ravel())}
+    for name, (x, y, t) in cases.items():
+        o = np.argsort(t, kind="stable")
+        ev = SimpleNamespace(x=x[o], y=y[o], t=t[o], p=np.ones(len(t), np.int8))
+        idx, vx, vy = assert_same(ev, g.width, g.height, variant=variant, window_us=80_000,
+                                  min_window_us=2_000, fast_px=4.0, max_speed=1e7,
+                                  centre_check=True, th2=0.004)
+        if name in ("flat", "line", "one_pixel"):
+            assert len(idx) == 0, name
+
+
+@pytest.mark.parametrize("variant", FITTING)
+def test_short_window_random_stream_matches_reference(variant):
+    """A random stream with the short window: kernel = reference, and the short refits change
+    the output (the comparison is not vacuous)."""
+    g = Geometry(24, 20)
+    ev = random_events(1500, g, 0, 400_000, seed=12)
+    kw = dict(variant=variant, refractory_us=3000, window_us=40_000, max_window_us=150_000,
+              slow_px=2.5, centre_check=True, th2=0.01)
+    got = assert_same(ev, g.width, g.height, **kw, min_window_us=2_000, fast_px=1.0)
+    off = run_kernel(ev.x, ev.y, ev.t, ev.p, g.width, g.height, **kw)
+    assert len(off[0]) != len(got[0]) or not np.array_equal(off[1], got[1])

@@ -1,6 +1,7 @@
 """The ``ttc`` kernel's clustering, fusion and selection against the plain-Python reference
-(tests/naive/ttc.py): random streams and parameters, and hard inputs (empty packets, events on
-cluster borders, all clusters dying, every slot taken, tau crossing 0)."""
+(tests/naive/ttc.py): random streams and parameters (with and without the camera's rotation in
+the FOE entries), and hard inputs (empty packets, events on cluster borders, all clusters
+dying, every slot taken, tau crossing 0, rotation only, flow near the FOE)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from hypothesis import strategies as st
 
 from evchain.core.filter import Context
 from evchain.core.packets import FlowPacket, Geometry
+from evchain.core.series import FOE as FOE_SERIES
 from evchain.filters.foe_map import foe_series
 from evchain.filters.ttc import Ttc
 from tests.naive.ttc import ttc_naive
@@ -21,15 +23,28 @@ EXACT = ("t", "cluster")
 
 
 def packet(t_start, t_end, x=(), y=(), t=(), p=(), vx=(), vy=(), foe=None):
-    """A flow packet; ``foe``: list of (t, x, y) entries of its ``foe`` series."""
+    """A flow packet; ``foe``: list of (t, x, y) entries of its ``foe`` series, or of
+    (t, x, y, wx, wy, wz, rotation) with the camera's angular velocity (deg/s)."""
     pk = FlowPacket(geometry=G, t_start=t_start, t_end=t_end, x=np.asarray(x, np.uint16),
                     y=np.asarray(y, np.uint16), t=np.asarray(t, np.int64),
                     p=np.asarray(p, np.int8), vx=np.asarray(vx, np.float32),
                     vy=np.asarray(vy, np.float32))
-    if foe:
+    if foe and len(foe[0]) == 3:
         ft, fx, fy = zip(*foe, strict=True)
         pk = pk.with_series("foe", foe_series(list(fx), list(fy), list(ft), [1.0] * len(ft)))
+    elif foe:
+        ft, fx, fy, wx, wy, wz, rot = zip(*foe, strict=True)
+        pk = pk.with_series("foe", FOE_SERIES.array(t=ft, x=fx, y=fy, support=[1.0] * len(ft),
+                                                    total=[1.0] * len(ft), wx_deg_s=wx,
+                                                    wy_deg_s=wy, wz_deg_s=wz, rotation=rot))
     return pk
+
+
+def rotational_flow(x, y, w):
+    """The rotational flow (px/s) of G's pinhole camera turning at w (rad/s)."""
+    X, Y = (np.asarray(x, float) - G.cx) / G.f, (np.asarray(y, float) - G.cy) / G.f
+    return (G.f * (X * Y * w[0] - (1 + X * X) * w[1] + Y * w[2]),
+            G.f * ((1 + Y * Y) * w[0] - X * Y * w[1] - X * w[2]))
 
 
 def expanding(x, y, tau, rng, noise=0.02, foe=FOE):
@@ -41,9 +56,12 @@ def expanding(x, y, tau, rng, noise=0.02, foe=FOE):
 
 
 def random_stream(seed, duration_us=600_000, n_packets=8, n_blobs=5, n=1500, nan_foe=True,
-                  empty=True):
+                  empty=True, rotation=False):
     """Blobs below the FOE, each with its own time to contact (falling 1 s/s), some outliers;
-    the FOE given per packet (jittered, now and then NaN), now and then an empty packet."""
+    the FOE given per packet (jittered, now and then NaN), now and then an empty packet. With
+    ``rotation`` the camera turns (a random angular velocity per packet, its flow added to
+    the events, the entries carrying it with a little error; now and then an entry without
+    one: rotation 0)."""
     rng = np.random.default_rng(seed)
     cx = rng.uniform(10, 86, n_blobs)
     cy = rng.uniform(28, 68, n_blobs)
@@ -59,15 +77,23 @@ def random_stream(seed, duration_us=600_000, n_packets=8, n_blobs=5, n=1500, nan
     vy[out] = rng.normal(0, 80, out.sum())
     p = rng.choice([-1, 1], n)
     cuts = np.linspace(0, duration_us, n_packets + 1).astype(np.int64)
+    omega = rng.normal(0, 0.15, (n_packets, 3)) * rotation
     packets = []
     for k in range(n_packets):
         lo, hi = np.searchsorted(t, cuts[k]), np.searchsorted(t, cuts[k + 1])
+        if rotation:
+            ru, rv = rotational_flow(x[lo:hi], y[lo:hi], omega[k])
+            vx[lo:hi] += ru
+            vy[lo:hi] += rv
         if empty and rng.random() < 0.2:
             lo = hi  # an empty packet (its events are dropped)
         entries = [(int(cuts[k]) + int(rng.integers(0, 5000)),
                     FOE[0] + rng.normal(0, 1), FOE[1] + rng.normal(0, 1))]
+        if rotation:
+            w = np.degrees(omega[k] * (1 + rng.normal(0, 0.05, 3)))
+            entries = [(*entries[0], *w, int(rng.random() < 0.85))]
         if nan_foe and rng.random() < 0.3:
-            entries.append((entries[0][0] + 1, np.nan, np.nan))
+            entries.append((entries[0][0] + 1, np.nan, np.nan, *entries[0][3:]))
         packets.append(packet(int(cuts[k]), int(cuts[k + 1]), x[lo:hi], y[lo:hi], t[lo:hi],
                               p[lo:hi], vx[lo:hi], vy[lo:hi], entries))
     return packets
@@ -82,7 +108,7 @@ def compare(packets, **params):
     got = {name: np.concatenate([o.series[name] for o in outs])
            for name in ("ttc", "ttc_clusters")}
     why = {}
-    want_ttc, want_cl = ttc_naive(packets, q, G.width, G.height, why)
+    want_ttc, want_cl = ttc_naive(packets, q, G.width, G.height, why, G.f, G.cx, G.cy)
     from evchain.kernels.ttc import no_ttc_counts
 
     if f._state is not None:
@@ -106,6 +132,64 @@ def compare(packets, **params):
 def test_random_streams_match_reference(seed):
     ttc, cl = compare(random_stream(seed), baseline_px=0, min_samples=3)
     assert len(ttc) > 20 and len(np.unique(cl["cluster"])) >= 3
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_random_rotating_streams_match_reference(seed):
+    """The FOE entries carry the camera's angular velocity: each event's tau is that of its
+    flow less the rotational flow (from the flow and from the baseline)."""
+    for baseline in (0, 4):
+        ttc, cl = compare(random_stream(seed, rotation=True), baseline_px=baseline,
+                          min_samples=3)
+    assert len(ttc) > 10
+
+
+def test_rotation_only():
+    """Flow that is the camera's rotation alone, the entries carrying it exactly: nothing is
+    left to expand, so no event has a tau and there is no cluster; without the rotation in the
+    entries the same flow gives clusters."""
+    rng = np.random.default_rng(5)
+    n = 2000
+    t = np.sort(rng.integers(0, 400_000, n))
+    x, y = rng.integers(0, G.width, n), rng.integers(36, G.height, n)
+    w = np.array([0.3, -0.2, 0.1])
+    vx, vy = rotational_flow(x, y, w)
+    wd = np.degrees(w)
+    cuts = np.linspace(0, 400_000, 5).astype(np.int64)
+
+    def stream(flag):
+        out = []
+        for a, b in zip(cuts[:-1], cuts[1:], strict=True):
+            k = slice(np.searchsorted(t, a), np.searchsorted(t, b))
+            out.append(packet(int(a), int(b), x[k], y[k], t[k], np.ones(n)[k], vx[k], vy[k],
+                              [(int(a), *FOE, *wd, flag)]))
+        return out
+
+    ttc, cl = compare(stream(1), baseline_px=0, min_samples=3)
+    assert len(cl) == 0 and len(ttc) == 0
+    ttc, cl = compare(stream(0), baseline_px=0, min_samples=3)
+    assert len(cl) > 0
+
+
+def test_rotation_near_the_foe_and_zero():
+    """Flow near the FOE (within min_distance and just outside) with a rotation, and entries
+    with zero rotation but rotation 1: as the reference, finite."""
+    rng = np.random.default_rng(6)
+    n = 600
+    t = np.sort(rng.integers(0, 200_000, n))
+    x = np.clip(np.round(FOE[0] + rng.normal(0, 6, n)), 0, G.width - 1)
+    y = np.clip(np.round(FOE[1] + rng.normal(0, 6, n)), 0, G.height - 1)
+    vx, vy = expanding(x, y, 1.5, rng, noise=0.05)
+    ru, rv = rotational_flow(x, y, (0.05, 0.02, 0.0))
+    for w, flag in (((0.0, 0.0, 0.0), 1), (np.degrees((0.05, 0.02, 0.0)), 1)):
+        pk = [packet(0, 100_000, x[:n // 2], y[:n // 2], t[:n // 2], np.ones(n // 2),
+                     vx[:n // 2] + ru[:n // 2], vy[:n // 2] + rv[:n // 2],
+                     [(0, *FOE, *w, flag)]),
+              packet(100_000, 200_000, x[n // 2:], y[n // 2:], t[n // 2:], np.ones(n // 2),
+                     vx[n // 2:] + ru[n // 2:], vy[n // 2:] + rv[n // 2:])]
+        for baseline in (0, 3):
+            ttc, _ = compare(pk, baseline_px=baseline, min_samples=3)
+            assert np.isfinite(ttc["tau_s"]).all()
 
 
 @settings(max_examples=30, deadline=None)

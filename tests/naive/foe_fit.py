@@ -104,7 +104,7 @@ def slab_l1(x, y, nx, ny, s, wt, cc, th, om_k, margin, c, n_iter, free):
 
 
 def fit(x, y, nx, ny, s, t, T, tau_us, th, om, free, margin, c, max_iter, max_step, slab_us,
-        f, cx, cy, cold_rounds=3, l1_iter=8):
+        f, cx, cy, cold_rounds=3, l1_iter=8, min_step=0.05):
     """Same contract as ``evchain.kernels.foe_fit.fit`` on the given events with t < T in the
     slabs of ``om`` (th, om are copied); returns (ok, th, om, inlier weight, total, probe)."""
     th, om = np.array(th, np.float64), np.array(om, np.float64)
@@ -187,7 +187,7 @@ def fit(x, y, nx, ny, s, t, T, tau_us, th, om, free, margin, c, max_iter, max_st
         if not np.isfinite(th[:2]).all() or np.isinf(th[2:]).any() or \
                 not np.isfinite(om).all():
             return False, th, om, inl, tot, probe
-        if step < 0.05:  # px, as the kernel
+        if step < min_step:  # px, as the kernel
             break
     if len(om):
         m = k == 0

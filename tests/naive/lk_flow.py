@@ -19,14 +19,19 @@ def lk_flow_naive(x, y, t, p, width, height, *, search_distance=2, window_us=80_
                   refractory_us=150_000, gradient="savitzky_golay", mode="calibrated",
                   eig_threshold=1.0, eig_ratio=0.1, speed_control=True, speed_control_mix=1e-3,
                   max_speed_factor=2.0, max_speed_pxs=1e5, refit_tolerance=0.25,
-                  centre_check_px=0.5, fifo_depth=8, max_window_us=0, slow_px=2.0):
+                  centre_check_px=0.5, fifo_depth=8, max_window_us=0, slow_px=2.0,
+                  min_window_us=0, fast_px=8.0):
     """Return (index, vx, vy) lists of the emitted events.
 
     Speed-adaptive window (calibrated, ``max_window_us`` > ``window_us``): estimate with
     ``window_us``; while the estimate fails or its edge crosses fewer than ``slow_px`` px within
     the window, estimate again with min(max_window_us, slow_px / speed) (max_window_us after a
     failure), 3 estimates at most; a new estimate replaces the previous one only if it
-    succeeded and its edge crosses fewer than ``slow_px`` px within the previous window."""
+    succeeded and its edge crosses fewer than ``slow_px`` px within the previous window.
+
+    Two time scales (calibrated, 0 < ``min_window_us`` < ``window_us``): first estimate with
+    ``min_window_us``; if that succeeds and its edge crosses at least ``fast_px`` px within
+    ``min_window_us``, it is the event's flow; else everything above, as without it."""
     r = search_distance
     d = MARGIN[gradient]
     margin = r + d
@@ -89,9 +94,16 @@ def lk_flow_naive(x, y, t, p, width, height, *, search_distance=2, window_us=80_
             if v == 0:
                 continue
         else:
-            res = estimate(xe, ye, k, te, window_us)
+            res = None
+            if 0 < min_window_us < window_us:
+                res = estimate(xe, ye, k, te, min_window_us)
+                if res is not None and math.hypot(*res) * min_window_us < fast_px * 1e6:
+                    res = None  # too slow for the short window
+            short = res is not None
+            if not short:
+                res = estimate(xe, ye, k, te, window_us)
             win = window_us
-            for _ in range(2 if max_window_us > window_us else 0):
+            for _ in range(2 if max_window_us > window_us and not short else 0):
                 if res is None:
                     nxt = max_window_us
                 else:

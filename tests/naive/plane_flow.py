@@ -142,7 +142,7 @@ def plane_flow_naive(x, y, t, p, width, height, variant="single", r=2, window_us
                      refractory_us=0, margin=None, min_points=3, th1=1e-5, th2=0.01,
                      max_speed=1000.0, max_iter=10, min_spread=0.0,
                      centre_check=False, max_window_us=0, slow_px=2.0, refit_failed=True,
-                     refractory_updates=True):
+                     refractory_updates=True, min_window_us=0, fast_px=4.0):
     """Returns (index, vx, vy) lists of the events that got flow.
 
     Adaptive window (``max_window_us`` > ``window_us``, not ``original``): while the fit says
@@ -150,7 +150,10 @@ def plane_flow_naive(x, y, t, p, width, height, variant="single", r=2, window_us
     w = min(slow_px |g|, max_window_us) if that is longer; with ``refit_failed`` a failed first
     fit is redone once with ``max_window_us``. Refits check the centre against th2 w / window_us.
     The last fit counts. ``refractory_updates`` false: refractory events do not touch the
-    surface either.
+    surface either. Short window (0 < ``min_window_us`` < ``window_us``, not ``original``): a
+    first fit whose edge moved more than ``fast_px`` px within ``window_us`` is redone with
+    max(min_window_us, fast_px |g|) instead of any longer refit; it replaces the first fit
+    when it succeeds.
     """
     margin = r if margin is None else margin
     ts = {}
@@ -172,7 +175,14 @@ def plane_flow_naive(x, y, t, p, width, height, variant="single", r=2, window_us
         rest = (min_points, th1)
         tail = (max_iter, min_spread, centre_check)
         est = _estimate(*args, window_us, *rest, th2, *tail)
-        if max_window_us > window_us and variant != "original":
+        shrunk = False
+        if 0 < min_window_us < window_us and variant != "original" and est is not None:
+            want = fast_px * 1e6 * math.sqrt(est[0] * est[0] + est[1] * est[1])
+            if want < window_us and max(min_window_us, math.ceil(want)) < window_us:
+                shrunk = True
+                w = max(min_window_us, math.ceil(want))
+                est = _estimate(*args, w, *rest, th2 * w / window_us, *tail) or est
+        if max_window_us > window_us and variant != "original" and not shrunk:
             w = window_us
             for _ in range(4):
                 if est is not None:

@@ -50,12 +50,23 @@ def ground_constant_naive(kg, t_us, tol, memory_us, k_min=0.01, width=0.02,
     return k, int(ok.sum())
 
 
-def baseline_tau_naive(last_t, px, py, nx, ny, d0, ti, max_px, max_age_us) -> float:
+def rotational_speed_naive(px, py, nx, ny, w, f, cx, cy) -> float:
+    """n . B(p) w: the normal speed of a pinhole camera's rotational flow at p (px/s) for the
+    angular velocity w (rad/s), from the flow vector itself."""
+    X, Y = (px - cx) / f, (py - cy) / f
+    B = f * np.array([[X * Y, -(1 + X * X), Y], [1 + Y * Y, -X * Y, -X]])
+    return float(np.array([nx, ny]) @ (B @ np.asarray(w, np.float64)))
+
+
+def baseline_tau_naive(last_t, px, py, nx, ny, d0, rot, ti, max_px, max_age_us) -> float:
     """tau from the pixel the edge through p crossed earliest within the walk: step back
     k = 1..max_px px against the unit normal n (nearest pixel; skip p's own pixel), stop at
     the first pixel outside the image, not strictly older than the previous one, older than
-    ``max_age_us`` or not between the FOE and p; tau = (d0 - dd) (ti - tq) / dd for the last
-    pixel passed (dd its distance behind p along n), -1 when there is none."""
+    ``max_age_us``, or where the translational part of the edge's position (its position
+    less the rotation's ``rot`` px/s over the time back) is not between the FOE and p;
+    tau = d_tq dt / (d0 - d_tq) with d_tq = d0 - dd + rot dt the translational distance from
+    the FOE at tq, for the last pixel passed (dd its distance behind p along n), -1 when there
+    is none."""
     h, w = last_t.shape
     own = (int(np.floor(px + 0.5)), int(np.floor(py + 0.5)))
     tprev, tau = ti, -1.0
@@ -69,9 +80,11 @@ def baseline_tau_naive(last_t, px, py, nx, ny, d0, ti, max_px, max_age_us) -> fl
         if not tq < tprev or ti - tq > max_age_us:
             break
         dd = (px - q[0]) * nx + (py - q[1]) * ny
-        if not (dd > 0 and d0 - dd > 0):
+        dt = (ti - tq) * 1e-6
+        d_tq = d0 - dd + rot * dt
+        if not (dd > 0 and d_tq * d0 > 0 and (d0 - d_tq) * d0 > 0):
             break
-        tau, tprev = (d0 - dd) * (ti - tq) * 1e-6 / dd, tq
+        tau, tprev = d_tq * dt / (d0 - d_tq), tq
     return tau
 
 
@@ -104,15 +117,19 @@ class Cluster:
         return self.activity * math.exp(-(t - self.t_last) / tau_us)
 
 
-def ttc_naive(packets, q, width, height, no_ttc=None):
+def ttc_naive(packets, q, width, height, no_ttc=None, f=None, cx=None, cy=None):
     """The ``ttc`` filter in plain Python, packet by packet (FOE entries count from the first
     event at or after their time, and from the end of the packet that carries them; a tick at T
     sees the events before T). ``q``: a ``Ttc.Params``. Returns (ttc rows, cluster rows) as
     lists of tuples in the order of the series' fields; ``no_ttc`` (a dict, filled if given)
-    counts the ticks without a row by reason."""
+    counts the ticks without a row by reason. Where the FOE entries carry the camera's
+    angular velocity (``rotation`` 1) and the geometry a focal length ``f`` (principal point
+    ``cx``, ``cy``), each event's tau is that of its flow less the rotational flow's normal
+    component."""
     slots = [None] * q.max_clusters        # None or a Cluster (inactive slots are None)
     next_id = 0
     foe = None
+    omega = np.zeros(3)  # the latest entry's angular velocity, rad/s
     votes_kg, votes_t = [], []
     k_ground = 0.0
     held = -1
@@ -124,11 +141,11 @@ def ttc_naive(packets, q, width, height, no_ttc=None):
     max_spread = math.inf if q.max_rel_spread is None else q.max_rel_spread
 
     def apply_foe(entries, upto):
-        nonlocal foe
+        nonlocal foe, omega
         while entries and entries[0][0] <= upto:
-            ft, fx, fy = entries.pop(0)
+            ft, fx, fy, w = entries.pop(0)
             if fx == fx and fy == fy:
-                foe = (fx, fy)
+                foe, omega = (fx, fy), w
 
     def do_tick(T):
         nonlocal k_ground, held
@@ -258,13 +275,18 @@ def ttc_naive(packets, q, width, height, no_ttc=None):
             votes_t.append(float(ti))
 
     def tau_of(px, py, vx, vy, pol, ti):
-        tau = float(event_tau_naive([px], [py], [vx], [vy], foe[0], foe[1],
+        sp = math.sqrt(vx * vx + vy * vy)
+        rot = 0.0
+        if f and sp > 0:
+            rot = rotational_speed_naive(px, py, vx / sp, vy / sp, omega, f, cx, cy)
+        tx, ty = (vx * (1 - rot / sp), vy * (1 - rot / sp)) if rot else (vx, vy)
+        tau = float(event_tau_naive([px], [py], [tx], [ty], foe[0], foe[1],
                                     q.region_b_half_width_px, q.region_b_min_below_px,
                                     q.min_distance_px, q.min_speed_pxs, q.max_speed_pxs,
                                     q.min_tau_s, q.max_tau_s)[0])
         if tau > 0.0 and q.baseline_px > 0:
-            sp = math.sqrt(vx * vx + vy * vy)
-            tau = baseline_tau_naive(last_t[pol], px, py, vx / sp, vy / sp, tau * sp,
+            d0 = (px - foe[0]) * vx / sp + (py - foe[1]) * vy / sp
+            tau = baseline_tau_naive(last_t[pol], px, py, vx / sp, vy / sp, d0, rot,
                                      float(ti), q.baseline_px, q.baseline_max_ms * 1000.0)
             if tau < q.min_tau_s or tau > q.max_tau_s:
                 tau = -1.0
@@ -276,8 +298,11 @@ def ttc_naive(packets, q, width, height, no_ttc=None):
         entries = []
         series = pk.series.get("foe")
         if series is not None:
-            entries = [(int(a), float(b), float(c)) for a, b, c in
-                       zip(series["t"], series["x"], series["y"], strict=True)]
+            w = np.radians(np.stack([series[c] for c in ("wx_deg_s", "wy_deg_s", "wz_deg_s")],
+                                    1).astype(np.float64))
+            w[series["rotation"] == 0] = 0.0
+            entries = [(int(a), float(b), float(c), wa) for a, b, c, wa in
+                       zip(series["t"], series["x"], series["y"], w, strict=True)]
         for i in range(len(pk.t)):
             ti = int(pk.t[i])
             while tick <= ti:

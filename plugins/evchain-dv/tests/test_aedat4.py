@@ -223,3 +223,126 @@ def test_event_columns_convert_and_check():
         event_columns(_dv_events([1, 3], [0, -1], [0, 0], [1, 1]), g, "w", 0, None)
     with pytest.raises(DataError, match=r"w: event 4 at \(0, 8\) outside"):
         event_columns(_dv_events([1, 3], [0, 0], [0, 8], [1, 1]), g, "w", 3, None)
+
+
+# -- IMU samples -------------------------------------------------------------------------------
+
+def imu_samples(t0: int, t1: int, every_us: int = 1000, seed: int = 5) -> np.ndarray:
+    """IMU series entries at ``every_us`` in [t0, t1), values exact in float32 (as DV stores
+    them)."""
+    from evchain.core.series import IMU
+
+    rng = np.random.default_rng(seed)
+    t = np.arange(t0, t1, every_us, dtype=np.int64)
+    v = rng.normal(0, 1, (len(t), 7)) * [1, 1, 1, 50, 50, 50, 3] + [0, 0, 0, 0, 0, 0, 30]
+    v = v.astype(np.float32).astype(np.float64)
+    return IMU.array(t=t, ax=v[:, 0], ay=v[:, 1], az=v[:, 2], gx=v[:, 3], gy=v[:, 4],
+                     gz=v[:, 5], temperature_c=v[:, 6])
+
+
+def with_imu(packets: list[EventPacket], imu: np.ndarray) -> list[EventPacket]:
+    from evchain.testing.contract import recut
+
+    whole = EventPacket.concat(packets).with_series("imu", imu)
+    return recut([whole], [p.t_start for p in packets[1:]])
+
+
+def dv_file(path: Path, imu_rows=(), stream_name="imu", events=True) -> Path:
+    """An AEDAT 4.0 file written with dv-processing as DV writes one: events of a 346x260
+    sensor and IMU samples ``(t, temperature, ax, ay, az, gx, gy, gz)`` in the chip's axes."""
+    import dv_processing as dv
+
+    config = dv.io.MonoCameraWriter.Config("DAVIS346_test")
+    config.addEventStream((346, 260))
+    if stream_name is not None:
+        config.addImuStream(stream_name)
+    writer = dv.io.MonoCameraWriter(str(path), config)
+    if events:
+        store = dv.EventStore()
+        for t in range(1_000, 100_000, 1_000):
+            store.push_back(t, 10, 20, True)
+        writer.writeEvents(store)
+    for r in imu_rows:
+        writer.writeImu(dv.IMU(*r, 0.0, 0.0, 0.0), stream_name)
+    del writer
+    return path
+
+
+def test_imu_round_trip(tmp_path):
+    packets = stream(n=2000, seed=6)
+    events = EventPacket.concat(packets)
+    imu = imu_samples(int(events.t[0]), int(events.t[-1]) + 1)   # the source's span
+    path = write_file(tmp_path / "imu.aedat4", with_imu(packets, imu))
+    got, ctx = read_all(path)
+    assert_same_events(got, packets)
+    np.testing.assert_array_equal(got.series["imu"], imu)   # every field, bit for bit
+    m = ctx.metrics["aedat4"]
+    assert m["imu_stream"] == "imu" and m["imu_samples"] == len(imu)
+    assert m["imu_before_events"] == 0 and m["imu_after_events"] == 0
+
+
+def test_imu_packets_carry_their_slice(tmp_path, filter_contract):
+    packets = stream(n=1500, seed=7)
+    events = EventPacket.concat(packets)
+    imu = imu_samples(int(events.t[0]), int(events.t[-1]) + 1, every_us=700)
+    path = write_file(tmp_path / "s.aedat4", with_imu(packets, imu))
+    out = filter_contract.check_source(Aedat4Source, {"path": str(path), "packet_us": 10_000})
+    for p in out:
+        s = p.series["imu"]
+        assert np.all((s["t"] >= p.t_start) & (s["t"] < p.t_end))
+    np.testing.assert_array_equal(np.concatenate([p.series["imu"] for p in out]), imu)
+
+
+def test_imu_axes_and_units_of_a_dv_file(tmp_path):
+    """DV's chip axes (libcaer's) become the camera's: x and z negated, g and deg/s kept."""
+    path = dv_file(tmp_path / "dv.aedat4", [(5_000, 31.5, 0.25, -1.0, 0.125, 10.0, 5.0, 3.0)])
+    got, ctx = read_all(path)
+    s = got.series["imu"]
+    assert len(s) == 1 and s["t"][0] == 5_000
+    assert (s["ax"][0], s["ay"][0], s["az"][0]) == (-0.25, -1.0, -0.125)
+    assert (s["gx"][0], s["gy"][0], s["gz"][0]) == (-10.0, 5.0, -3.0)
+    assert s["temperature_c"][0] == 31.5
+
+
+def test_imu_outside_the_events_is_counted(tmp_path):
+    rows = [(t, 30.0, 0.0, -1.0, 0.0, 1.0, 2.0, 3.0) for t in (500, 50_000, 200_000, 300_000)]
+    got, ctx = read_all(dv_file(tmp_path / "o.aedat4", rows))
+    m = ctx.metrics["aedat4"]
+    assert list(got.series["imu"]["t"]) == [50_000]
+    assert (m["imu_before_events"], m["imu_samples"], m["imu_after_events"]) == (1, 1, 2)
+
+
+def test_imu_bad_input_names_the_file_and_field(tmp_path):
+    # no IMU stream: no series, unless one is asked for by name
+    plain = dv_file(tmp_path / "plain.aedat4", stream_name=None)
+    got, ctx = read_all(plain)
+    assert "imu" not in got.series and ctx.metrics["aedat4"]["imu_stream"] is None
+    with pytest.raises(DataError, match=r"plain\.aedat4: no IMU stream 'imu'; IMU streams: "
+                                        r"none, all streams: \['events'\]"):
+        read_all(plain, imu_stream="imu")
+    with pytest.raises(DataError, match=r"plain\.aedat4: stream 'events' is not an IMU stream"):
+        read_all(plain, imu_stream="events")
+    # a reading that is not a number
+    nan = dv_file(tmp_path / "nan.aedat4", [(2_000, 30.0, 0.0, -1.0, 0.0, 1.0, 2.0, 3.0),
+                                            (3_000, 30.0, 0.0, -1.0, 0.0, 1.0, float("nan"),
+                                             3.0)])
+    with pytest.raises(DataError, match=r"nan\.aedat4: stream 'imu': IMU sample 1: field "
+                                        r"gyroscopeY is nan; expected a finite reading"):
+        read_all(nan)
+    # imu: false ignores the stream
+    got, _ = read_all(nan, imu=False)
+    assert "imu" not in got.series
+
+
+def test_writer_refuses_imu_that_starts_after_the_file_was_opened(tmp_path):
+    packets = stream(n=600, seed=8)
+    late = with_imu(packets[2:], imu_samples(packets[2].t_start, packets[-1].t_end))
+    w = Aedat4Writer()
+    w.id = "aedat4_writer"
+    w.setup(Aedat4Writer.Params(path="late.aedat4", buffer_events=0), Context(out_dir=tmp_path))
+    for p in packets[:2]:
+        w.process(p)
+    with pytest.raises(DataError, match="carries IMU samples, but the file was opened without "
+                                        "an IMU stream"):
+        w.process(late[0])
+    w.close()

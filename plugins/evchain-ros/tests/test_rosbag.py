@@ -286,3 +286,137 @@ def test_pipeline_through_the_registry(tmp_path):
         """))
     evchain.run(yaml, out_dir=tmp_path / "out")
     assert_same_events(read_all(tmp_path / "out" / "copy")[0], packets)
+
+
+# -- IMU samples (sensor_msgs/Imu) -----------------------------------------------------------
+
+def imu_samples(t0: int, t1: int, every_us: int = 1000, seed: int = 5) -> np.ndarray:
+    from evchain.core.series import IMU
+
+    rng = np.random.default_rng(seed)
+    t = np.arange(t0, t1, every_us, dtype=np.int64)
+    v = rng.normal(0, 1, (len(t), 6)) * [1, 1, 1, 50, 50, 50]
+    return IMU.array(t=t, ax=v[:, 0], ay=v[:, 1], az=v[:, 2], gx=v[:, 3], gy=v[:, 4],
+                     gz=v[:, 5], temperature_c=np.nan)
+
+
+def with_imu(packets: list[EventPacket], imu: np.ndarray) -> list[EventPacket]:
+    from evchain.testing.contract import recut
+
+    whole = EventPacket.concat(packets).with_series("imu", imu)
+    return recut([whole], [p.t_start for p in packets[1:]])
+
+
+def _imu_msg(t_us, gyro_rad_s, accel_ms2, gyro_cov0=0.0, accel_cov0=0.0, store=None):
+    store = store or typestore(False)
+    T, H, Q, V, M = (store.types[k] for k in (
+        "builtin_interfaces/msg/Time", "std_msgs/msg/Header", "geometry_msgs/msg/Quaternion",
+        "geometry_msgs/msg/Vector3", "sensor_msgs/msg/Imu"))
+    cov = np.zeros(9)
+    msg = M(header=H(seq=0, stamp=T(sec=t_us // 10**6, nanosec=t_us % 10**6 * 1000),
+                     frame_id="base_link"),
+            orientation=Q(x=0.0, y=0.0, z=0.0, w=1.0), orientation_covariance=cov,
+            angular_velocity=V(*map(float, gyro_rad_s)),
+            angular_velocity_covariance=np.r_[gyro_cov0, np.zeros(8)],
+            linear_acceleration=V(*map(float, accel_ms2)),
+            linear_acceleration_covariance=np.r_[accel_cov0, np.zeros(8)])
+    return bytes(store.serialize_ros1(msg, "sensor_msgs/msg/Imu"))
+
+
+def _bag_with_imu(path: Path, imu_raws: list[bytes], imu_topics=("/dvs/imu",),
+                  imu_type="sensor_msgs/msg/Imu", imu_store=None) -> Path:
+    """A ROS 1 bag as rpg_dvs_ros records one: events on /dvs/events, IMU messages."""
+    w = Writer1(path)
+    w.open()
+    ev = w.add_connection("/dvs/events", EVENT_ARRAY, typestore=typestore(False))
+    w.write(ev, 1, _msg([1, 2, 3], [3, 4, 5], [T0, T0 + 50_000, T0 + 99_999], [1, -1, 1]))
+    for topic in imu_topics:
+        conn = w.add_connection(topic, imu_type, typestore=imu_store or typestore(False))
+        for i, raw in enumerate(imu_raws):
+            w.write(conn, 2 + i, raw)
+    w.close()
+    return path
+
+
+@pytest.mark.parametrize("fmt", ["ros1", "ros2"])
+def test_imu_round_trip(tmp_path, fmt):
+    packets = stream(n=1500, seed=9)
+    events = EventPacket.concat(packets)
+    imu = imu_samples(int(events.t[0]), int(events.t[-1]) + 1)
+    path = write_bag(tmp_path / ("imu.bag" if fmt == "ros1" else "imu"),
+                     with_imu(packets, imu), format=fmt)
+    got, ctx = read_all(path)
+    assert_same_events(got, packets)
+    s = got.series["imu"]
+    np.testing.assert_array_equal(s["t"], imu["t"])
+    for c in ("ax", "ay", "az", "gx", "gy", "gz"):   # via rad/s and m/s²: within rounding
+        np.testing.assert_allclose(s[c], imu[c], rtol=1e-12, atol=1e-12, err_msg=c)
+    assert np.isnan(s["temperature_c"]).all()          # sensor_msgs/Imu has none
+    m = ctx.metrics["rosbag"]
+    assert (m["imu_topic"], m["imu_samples"]) == ("/dvs/imu", len(imu))
+
+
+def test_imu_units_of_a_driver_bag(tmp_path):
+    """rad/s become deg/s, m/s² g; the axes (camera frame, as rpg_dvs_ros publishes) stay."""
+    raws = [_imu_msg(T0 + 10_000, (0.1, -0.2, 0.3), (0.0, -9.80665, 4.903325)),
+            _imu_msg(T0 + 20_000, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), accel_cov0=-1.0)]
+    got, ctx = read_all(_bag_with_imu(tmp_path / "drv.bag", raws))
+    s = got.series["imu"]
+    np.testing.assert_array_equal(s["t"], [T0 + 10_000, T0 + 20_000])
+    np.testing.assert_allclose([s["gx"][0], s["gy"][0], s["gz"][0]],
+                               np.degrees([0.1, -0.2, 0.3]), rtol=1e-12)
+    np.testing.assert_allclose([s["ax"][0], s["ay"][0], s["az"][0]], [0.0, -1.0, 0.5],
+                               rtol=1e-12, atol=1e-15)
+    assert np.isnan([s["ax"][1], s["ay"][1], s["az"][1]]).all()   # covariance -1: absent
+    assert ctx.metrics["rosbag"]["imu_topic"] == "/dvs/imu"
+
+
+def test_imu_bad_input_names_the_file_and_field(tmp_path):
+    # no IMU topic: no series, unless one is asked for by name
+    plain = write_bag(tmp_path / "plain.bag", stream(n=200))
+    got, ctx = read_all(plain)
+    assert "imu" not in got.series and ctx.metrics["rosbag"]["imu_topic"] is None
+    with pytest.raises(DataError, match=r"plain\.bag: no IMU topic '/dvs/imu'; "
+                                        r"sensor_msgs/msg/Imu topics: none"):
+        read_all(plain, imu_topic="/dvs/imu")
+    with pytest.raises(DataError, match=r"plain\.bag: topic '/dvs/events' has type "
+                                        r"dvs_msgs/msg/EventArray; expected sensor_msgs/msg/Imu"):
+        read_all(plain, imu_topic="/dvs/events")
+    good = _imu_msg(T0 + 10_000, (0.1, 0.2, 0.3), (0.0, -9.8, 0.0))
+    two = _bag_with_imu(tmp_path / "two.bag", [good], imu_topics=("/a/imu", "/b/imu"))
+    with pytest.raises(DataError, match=r"two\.bag: several sensor_msgs/msg/Imu topics "
+                                        r"\['/a/imu', '/b/imu'\]; set imu_topic"):
+        read_all(two)
+    assert len(read_all(two, imu_topic="/b/imu")[0].series["imu"]) == 1
+    nogyro = _bag_with_imu(tmp_path / "nogyro.bag",
+                           [good, _imu_msg(T0 + 20_000, (0, 0, 0), (0, 0, 0), gyro_cov0=-1.0)])
+    with pytest.raises(DataError, match=r"nogyro\.bag: topic '/dvs/imu' message 1: field "
+                                        r"angular_velocity_covariance\[0\] is -1"):
+        read_all(nogyro)
+    nan = _bag_with_imu(tmp_path / "nan.bag",
+                        [_imu_msg(T0 + 10_000, (0.1, float("nan"), 0.3), (0.0, -9.8, 0.0))])
+    with pytest.raises(DataError, match=r"nan\.bag: topic '/dvs/imu' message 0: field "
+                                        r"angular_velocity\.y is not finite"):
+        read_all(nan)
+    back = _bag_with_imu(tmp_path / "back.bag",
+                         [good, _imu_msg(T0 + 5_000, (0.1, 0.2, 0.3), (0.0, -9.8, 0.0))])
+    with pytest.raises(DataError, match=r"back\.bag: IMU sample 1: timestamp goes backwards"):
+        read_all(back)
+    # a sensor_msgs/Imu of another layout (another definition: another MD5)
+    import hashlib
+
+    odd = tmp_path / "odd.bag"
+    w = Writer1(odd)
+    w.open()
+    ev = w.add_connection("/dvs/events", EVENT_ARRAY, typestore=typestore(False))
+    w.write(ev, 1, _msg([1], [3], [T0], [1]))
+    conn = w.add_connection("/dvs/imu", "sensor_msgs/msg/Imu",
+                            msgdef="float64 wx\nfloat64 wy\nfloat64 wz\n",
+                            md5sum=hashlib.md5(b"float64 wx\nfloat64 wy\nfloat64 wz")
+                            .hexdigest())  # the ROS 1 MD5 of that definition
+    w.write(conn, 2, good)
+    w.close()
+    with pytest.raises(DataError, match=r"odd\.bag: topic '/dvs/imu': sensor_msgs/msg/Imu "
+                                        r"with MD5 27227173eb5cfc3e03642a8b2c48696c, a layout "
+                                        r"other than sensor_msgs'"):
+        read_all(odd)

@@ -6,7 +6,13 @@ this module only converts between their event stores and evchain packets:
 
 * timestamps are int64 µs as in the file (DV writes absolute Unix time; kept as is);
 * polarity ``True``/``False`` becomes ``+1``/``-1`` and back;
-* the sensor size is the event stream's resolution (or the ``width``/``height`` parameters).
+* the sensor size is the event stream's resolution (or the ``width``/``height`` parameters);
+* IMU samples (DV's IMU stream, ``IMUS`` packets of ``dv::IMU``: int64 timestamp in µs,
+  temperature in °C, accelerometer x, y, z in g, gyroscope x, y, z in deg/s, magnetometer in
+  µT, in the axes of the camera's IMU chip as libcaer gives them) become the series ``imu`` in
+  evchain's camera axes (:func:`evchain.io.davis_imu.camera_axes`: x and z negated, as jAER
+  and the ROS driver do for DAVIS cameras); the magnetometer is dropped. The writer does the
+  reverse.
 
 Two quirks of dv-processing 2.0 shape the code: its writer aborts the whole process (a C++
 ``std::terminate``, not a Python exception) unless the output name ends in ``.aedat4``, and its
@@ -30,9 +36,11 @@ from typing import Literal
 import numpy as np
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import EventPacket, Geometry
+from evchain.core.series import IMU
 from evchain.errors import ConfigError, DataError
 from evchain.io.atomic import AtomicFile
-from evchain.io.slicing import slice_stream
+from evchain.io.davis_imu import camera_axes, sensor_axes
+from evchain.io.slicing import ImuSlicer, slice_stream
 from pydantic import Field, field_validator
 
 MAGIC = b"#!AER-DAT4.0"
@@ -94,11 +102,38 @@ def event_columns(a: np.ndarray, g: Geometry, where: str, done: int, last: int |
     return cols
 
 
+#: the fields of dv::IMU that evchain reads, in the order of :func:`imu_entries`' columns
+IMU_FIELDS = ("timestamp", "accelerometerX", "accelerometerY", "accelerometerZ",
+              "gyroscopeX", "gyroscopeY", "gyroscopeZ", "temperature")
+
+
+def imu_entries(batch, where: str, done: int) -> np.ndarray:
+    """IMU series entries (camera axes) from a batch of dv-processing ``dv.IMU`` samples;
+    a non-finite reading is a :class:`DataError` naming ``where``, the sample's index in the
+    stream (``done`` came before) and the field."""
+    rows = np.array([tuple(getattr(m, f) for f in IMU_FIELDS) for m in batch],
+                    np.float64).reshape(-1, len(IMU_FIELDS))
+    bad = ~np.isfinite(rows[:, 1:])
+    if bad.any():
+        i, j = np.argwhere(bad)[0]
+        raise DataError(f"{where}: IMU sample {done + int(i)}: field {IMU_FIELDS[j + 1]} is "
+                        f"{rows[i, j + 1]}; expected a finite reading")
+    t = np.array([m.timestamp for m in batch], np.int64)
+    return camera_axes(t, rows[:, 1:4], rows[:, 4:7], rows[:, 7])
+
+
 class Aedat4Source(Filter):
-    """Read events from an AEDAT 4.0 file (iniVation DV) with dv-processing."""
+    """Read events (and IMU samples) from an AEDAT 4.0 file (iniVation DV) with dv-processing.
+
+    The file's IMU stream becomes the series ``imu`` (camera axes, g and deg/s; every packet
+    carries it, empty where its slice has no sample); a file without one gives no series.
+    Samples before the first event's slice or after the last one's are not delivered (counted
+    in the metrics: ``imu_before_events``, ``imu_after_events``).
+    """
 
     name = "aedat4"
     produces = EventPacket
+    adds_series = (IMU,)
     input_paths = ("path",)
 
     class Params(FilterParams):
@@ -109,6 +144,15 @@ class Aedat4Source(Filter):
         packet_us: int = Field(10_000, ge=1, description="slice duration of each packet")
         width: int | None = Field(None, ge=1, description="sensor width if the file lacks it")
         height: int | None = Field(None, ge=1, description="sensor height if the file lacks it")
+        imu: bool = Field(True, description="read the file's IMU stream into the series imu "
+                          "(camera axes, g and deg/s); false: ignore it")
+        imu_stream: str | None = Field(None, description="name of the IMU stream; default: "
+                                       "the file's only IMU stream, if it has one")
+
+    @classmethod
+    def series_added(cls, params):
+        """``imu`` unless ``imu`` is false."""
+        return (IMU,) if params.imu else ()
 
     def setup(self, params, context):
         dv = _dv()
@@ -143,7 +187,27 @@ class Aedat4Source(Filter):
             raise DataError(f"{self.path}: stream {params.stream!r} has no resolution; give the "
                             "parameters width and height")
         context.geometry = Geometry(int(width), int(height))
+        self.imu_stream = self._find_imu_stream(params, names) if params.imu else None
         super().setup(params, context)
+
+    def _find_imu_stream(self, params, names: list[str]) -> str | None:
+        """The IMU stream to read: the one named, else the file's only one (None: none)."""
+        rec = self.recording
+        imus = [n for n in names if rec.isStreamOfImuType(n)]
+        if params.imu_stream is None:
+            if len(imus) > 1:
+                raise DataError(f"{self.path}: several IMU streams {imus}; set imu_stream to "
+                                "the one to read")
+            return imus[0] if imus else None
+        if params.imu_stream not in names:
+            raise DataError(f"{self.path}: no IMU stream {params.imu_stream!r}; IMU streams: "
+                            f"{imus or 'none'}, all streams: {names}")
+        if params.imu_stream not in imus:
+            raise DataError(f"{self.path}: stream {params.imu_stream!r} is not an IMU stream "
+                            "(expected IMUS packets of dv::IMU: timestamp, temperature, "
+                            f"accelerometer and gyroscope x, y, z); IMU streams: "
+                            f"{imus or 'none'}")
+        return params.imu_stream
 
     def time_span_us(self):
         try:
@@ -154,7 +218,32 @@ class Aedat4Source(Filter):
 
     def packets(self) -> Iterator[EventPacket]:
         self.recording.resetSequentialRead()
-        yield from slice_stream(self._chunks(), self.context.geometry, self.params.packet_us)
+        packets = slice_stream(self._chunks(), self.context.geometry, self.params.packet_us)
+        metrics = {"file": str(self.path)}
+        if self.imu_stream is None:
+            yield from packets
+            self.context.metrics[self.id] = {**metrics, "imu_stream": None, "imu_samples": 0}
+            return
+        imu = ImuSlicer(self._imu_batches(), str(self.path))
+        for packet in packets:
+            yield imu.attach(packet)
+        imu.finish()
+        self.context.metrics[self.id] = {
+            **metrics, "imu_stream": self.imu_stream, "imu_samples": imu.delivered,
+            "imu_before_events": imu.before, "imu_after_events": imu.after}
+
+    def _imu_batches(self) -> Iterator[np.ndarray]:
+        stream, done = self.imu_stream, 0
+        while True:
+            try:
+                batch = self.recording.getNextImuBatch(stream)
+            except RuntimeError as exc:
+                raise DataError(f"{self.path}: after IMU sample {done}: cannot decode the next "
+                                f"packet of stream {stream!r}: {dv_message(exc)}") from None
+            if batch is None:
+                return
+            yield imu_entries(batch, f"{self.path}: stream {stream!r}", done)
+            done += len(batch)
 
     def _chunks(self) -> Iterator[dict[str, np.ndarray]]:
         g, stream = self.context.geometry, self.params.stream
@@ -179,10 +268,16 @@ class Aedat4Source(Filter):
 
 
 class Aedat4Writer(Filter):
-    """Write events to an AEDAT 4.0 file (iniVation DV) with dv-processing; pass them on."""
+    """Write events to an AEDAT 4.0 file (iniVation DV) with dv-processing; pass them on.
+
+    When the packets carry the series ``imu`` (decided when the file is opened: by the packets
+    held until then), its samples go to an IMU stream ``imu`` in the IMU chip's axes as DV
+    writes them (the reverse of the ``aedat4`` source's conversion; magnetometer 0).
+    """
 
     name = "aedat4_writer"
     consumes = EventPacket
+    optional_series = (IMU,)
     output_paths = ("path",)
 
     class Params(FilterParams):
@@ -215,6 +310,9 @@ class Aedat4Writer(Filter):
         self.geometry = None
         self.pending: list = []  # converted event stores not yet handed to the writer
         self.pending_events = 0
+        self.pending_imu: list[np.ndarray] = []
+        self.has_imu = False  # a packet so far carried the series imu
+        self.imu_samples = 0
 
     def _open(self, geometry: Geometry) -> None:
         dv = self.dv
@@ -231,8 +329,10 @@ class Aedat4Writer(Filter):
                 self.path, self.path.with_name(self.path.stem + ".partial.aedat4"))
             target = self.out.tmp
         compression = getattr(dv.CompressionType, COMPRESSIONS[self.params.compression])
-        config = dv.io.MonoCameraWriter.EventOnlyConfig(
-            self.params.camera, (geometry.width, geometry.height), compression)
+        config = dv.io.MonoCameraWriter.Config(self.params.camera, compression)
+        config.addEventStream((geometry.width, geometry.height))
+        if self.has_imu:
+            config.addImuStream()
         try:
             self.writer = dv.io.MonoCameraWriter(str(target), config)
         except RuntimeError as exc:
@@ -249,6 +349,15 @@ class Aedat4Writer(Filter):
                             f"for {self.geometry.width}x{self.geometry.height}")
         if self.out is None:
             self.out = AtomicFile.reserve(self.path)
+        imu = packet.series.get(IMU.name)
+        if imu is not None:
+            if self.writer is not None and not self.has_imu:
+                raise DataError(f"{self.path}: the packet at {packet.t_start} us carries IMU "
+                                "samples, but the file was opened without an IMU stream (no "
+                                "packet before it carried the series imu)")
+            self.has_imu = True
+            if len(imu):
+                self.pending_imu.append(imu)
         if len(packet):
             # dv-processing takes no numpy arrays: one push_back per event. The tuple overload
             # driven by map() is about 3x faster than push_back(t, x, y, p) in a Python loop.
@@ -258,8 +367,8 @@ class Aedat4Writer(Filter):
             deque(map(store.push_back, rows), maxlen=0)
             self.pending.append(store)
             self.pending_events += len(packet)
-            if self.writer is not None or self.pending_events > self.params.buffer_events:
-                self._drain()
+        if self.writer is not None or self.pending_events > self.params.buffer_events:
+            self._drain()
         return packet
 
     def _drain(self) -> None:
@@ -268,6 +377,13 @@ class Aedat4Writer(Filter):
         for store in self.pending:
             self.writer.writeEvents(store)
         self.pending, self.pending_events = [], 0
+        for imu in self.pending_imu:
+            accel, gyro = sensor_axes(imu)
+            for t, a, g, c in zip(imu["t"].tolist(), accel.tolist(), gyro.tolist(),
+                                  imu["temperature_c"].tolist(), strict=True):
+                self.writer.writeImu(self.dv.IMU(t, c, *a, *g, 0.0, 0.0, 0.0))
+            self.imu_samples += len(imu)
+        self.pending_imu = []
 
     def flush(self):
         if self.geometry is None:
@@ -280,13 +396,14 @@ class Aedat4Writer(Filter):
         self._drain()
         self.writer = None  # the destructor finishes the file (file data table) and closes it
         self.out.commit()
+        self.context.metrics[self.id] = {"path": str(self.path), "imu_samples": self.imu_samples}
         self._remove_link()
         return None
 
     def _abort(self) -> None:
         """No flush: finish the partial file if one is open, remove any stale ``NAME``."""
         self.writer = None
-        self.pending, self.pending_events = [], 0
+        self.pending, self.pending_events, self.pending_imu = [], 0, []
         if getattr(self, "out", None) is not None:
             self.out.abort()
         self._remove_link()

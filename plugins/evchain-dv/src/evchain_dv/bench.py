@@ -1,5 +1,7 @@
 """AEDAT 4.0 throughput (``evchain bench aedat4``): the ``aedat4`` source and ``aedat4_writer``
-sink in events/s, 1 M events (``--quick``) or 5 M, 10 ms packets of 10 000 events.
+sink in events/s, 1 M events (``--quick``) or 5 M, 10 ms packets of 10 000 events; and
+``imu-read-aedat4``: the source on a file of IMU samples at 1 kHz with one event each, 50 k
+samples (``--quick``) or 200 k, in IMU samples per CPU second of reading the whole file.
 
 ``limit_ratio`` = time of a plain numpy pass over the file's bytes (``np.fromfile`` for reading,
 ``ndarray.tofile`` for writing) / time of the stage; the file sits in the page cache.
@@ -52,4 +54,18 @@ def aedat4_write(quick: bool) -> list[BenchRow]:
                          "b{}.aedat4", extra={"packet_us": 10_000}, data=_data(n))]
 
 
-WORKLOADS = {"aedat4-read": aedat4_read, "aedat4-write": aedat4_write}
+def imu_read_aedat4(quick: bool) -> list[BenchRow]:
+    from evchain.bench import imu_source_row
+    from evchain.benchmarks.imu_truth import imu_data, imu_packets
+
+    from evchain_dv.aedat4 import Aedat4Source
+
+    n = 50_000 if quick else 200_000
+    with tempfile.TemporaryDirectory() as tmp:
+        path = write_file(Path(tmp) / "imu.aedat4", imu_packets(n, Geometry(346, 260)))
+        return [imu_source_row("imu-read-aedat4", Aedat4Source, {"path": str(path)}, path, n,
+                               n, imu_data(n))]
+
+
+WORKLOADS = {"aedat4-read": aedat4_read, "aedat4-write": aedat4_write,
+             "imu-read-aedat4": imu_read_aedat4}

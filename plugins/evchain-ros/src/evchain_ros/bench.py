@@ -1,6 +1,9 @@
 """ROS bag throughput (``evchain bench rosbag``): the ``rosbag`` source and ``rosbag_writer``
 sink in events/s, ROS 1 .bag and ROS 2 (sqlite3) folder, 1 M events (``--quick``) or 5 M,
-10 ms packets of 10 000 events (one EventArray message each).
+10 ms packets of 10 000 events (one EventArray message each); and ``imu-read-rosbag-ros1``:
+the source on a ROS 1 bag of sensor_msgs/Imu messages at 1 kHz with one event each (in 10 ms
+EventArray messages), 20 k samples (``--quick``) or 100 k, in IMU samples per CPU second of
+reading the whole bag.
 
 ``limit_ratio`` = time of a plain numpy pass over the bag's bytes (``np.fromfile`` for
 reading, ``ndarray.tofile`` for writing) / time of the stage; the files sit in the page cache.
@@ -63,5 +66,19 @@ def _write(fmt: str):
     return workload
 
 
+def imu_read_rosbag(quick: bool) -> list[BenchRow]:
+    from evchain.bench import imu_source_row
+    from evchain.benchmarks.imu_truth import imu_data, imu_packets
+
+    from evchain_ros.rosbag import RosbagSource
+
+    n = 20_000 if quick else 100_000
+    with tempfile.TemporaryDirectory() as tmp:
+        path = write_bag(Path(tmp) / "imu.bag", imu_packets(n, Geometry(346, 260), t0=T0))
+        return [imu_source_row("imu-read-rosbag-ros1", RosbagSource, {"path": str(path)}, path,
+                               n, n, imu_data(n))]
+
+
 WORKLOADS = {"rosbag-read-ros1": _read("ros1"), "rosbag-write-ros1": _write("ros1"),
-             "rosbag-read-ros2": _read("ros2"), "rosbag-write-ros2": _write("ros2")}
+             "rosbag-read-ros2": _read("ros2"), "rosbag-write-ros2": _write("ros2"),
+             "imu-read-rosbag-ros1": imu_read_rosbag}

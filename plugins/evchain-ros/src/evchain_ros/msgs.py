@@ -1,4 +1,5 @@
-"""``dvs_msgs/msg/EventArray`` for rosbags, and a numpy codec for its event array.
+"""``dvs_msgs/msg/EventArray`` for rosbags, and a numpy codec for its event array;
+``sensor_msgs/msg/Imu`` through rosbags' own (de)serialisation (one message per sample).
 
 The types are registered in rosbags typestores from their ``.msg`` definitions (ROS 1 with
 ``time``, ROS 2 with ``builtin_interfaces/Time``). rosbags serialises the message header; the
@@ -138,3 +139,60 @@ def encode(x, y, t, p, *, height: int, width: int, seq: int, stamp_us: int, fram
         view["sec"], view["nsec"] = t[sel] // 1_000_000, t[sel] % 1_000_000 * 1000
         view["p"] = np.asarray(p[sel]) > 0
     return empty[:-4] + struct.pack("<I", n) + body.tobytes()
+
+
+# -- sensor_msgs/Imu -----------------------------------------------------------------------------
+
+IMU_MSG = "sensor_msgs/msg/Imu"
+#: standard gravity, m/s² per g (sensor_msgs/Imu carries m/s², the series imu g)
+STANDARD_GRAVITY = 9.80665
+
+
+def imu_md5() -> str:
+    """The ROS 1 MD5 of sensor_msgs/Imu (as the Noetic typestore defines it)."""
+    return typestore(False).generate_msgdef(IMU_MSG)[1]
+
+
+def decode_imu(raw, ros2: bool) -> tuple[int, np.ndarray, np.ndarray, bool, bool]:
+    """``(t_us, gyro_dps [3], accel_g [3], has_gyro, has_accel)`` of one serialised
+    sensor_msgs/Imu: the header stamp in µs (sub-µs parts truncated), the angular velocity in
+    deg/s and the linear acceleration in g (from rad/s and m/s²); ``has_*`` False where the
+    message's covariance marks the part as absent (element 0 = -1, REP 145)."""
+    store = typestore(ros2)
+    try:
+        msg = (store.deserialize_cdr(raw, IMU_MSG) if ros2
+               else store.deserialize_ros1(raw, IMU_MSG))
+    except Exception as exc:  # rosbags raises several types for bytes of another layout
+        raise LayoutError(f"{len(raw)} bytes that do not deserialise ({exc})") from None
+    s = msg.header.stamp
+    w, a = msg.angular_velocity, msg.linear_acceleration
+    gyro = np.degrees(np.array([w.x, w.y, w.z], np.float64))
+    accel = np.array([a.x, a.y, a.z], np.float64) / STANDARD_GRAVITY
+    return (int(s.sec) * 1_000_000 + int(s.nanosec) // 1000, gyro, accel,
+            float(msg.angular_velocity_covariance[0]) != -1.0,
+            float(msg.linear_acceleration_covariance[0]) != -1.0)
+
+
+def encode_imu(t_us: int, gyro_dps, accel_g, *, seq: int, frame_id: str, ros2: bool) -> bytes:
+    """Serialise one sensor_msgs/Imu: stamp ``t_us``, angular velocity in rad/s and linear
+    acceleration in m/s² from deg/s and g; no orientation (covariance element 0 = -1), nor
+    acceleration where ``accel_g`` is not finite."""
+    store = typestore(ros2)
+    T, H, Q, V, M = (store.types[k] for k in (
+        "builtin_interfaces/msg/Time", "std_msgs/msg/Header", "geometry_msgs/msg/Quaternion",
+        "geometry_msgs/msg/Vector3", IMU_MSG))
+    stamp = T(sec=t_us // 1_000_000, nanosec=t_us % 1_000_000 * 1000)
+    header = H(stamp=stamp, frame_id=frame_id) if ros2 else H(seq=seq, stamp=stamp,
+                                                              frame_id=frame_id)
+    w = np.radians(np.asarray(gyro_dps, np.float64))
+    a = np.asarray(accel_g, np.float64) * STANDARD_GRAVITY
+    absent = np.zeros(9)
+    absent[0] = -1.0
+    has_accel = bool(np.all(np.isfinite(a)))
+    msg = M(header=header, orientation=Q(x=0.0, y=0.0, z=0.0, w=1.0),
+            orientation_covariance=absent.copy(),
+            angular_velocity=V(x=float(w[0]), y=float(w[1]), z=float(w[2])),
+            angular_velocity_covariance=np.zeros(9),
+            linear_acceleration=V(*(map(float, a) if has_accel else (0.0, 0.0, 0.0))),
+            linear_acceleration_covariance=np.zeros(9) if has_accel else absent.copy())
+    return bytes(store.serialize_cdr(msg, IMU_MSG) if ros2 else store.serialize_ros1(msg, IMU_MSG))

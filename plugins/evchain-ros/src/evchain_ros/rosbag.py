@@ -13,6 +13,13 @@ rpg_dvs_ros drivers and stored in most DVS datasets recorded with ROS.
 * Geometry: the ``width``/``height`` fields of the first message on the topic, unless given.
 * Writing: one EventArray per non-empty packet (empty packets are not written), header stamp
   and bag time = the packet's last event time, ``seq`` counting from 0 (ROS 1).
+* IMU: ``sensor_msgs/msg/Imu`` messages become the series ``imu``: header stamp in µs,
+  angular velocity converted from rad/s to deg/s, linear acceleration from m/s² to g
+  (9.80665 m/s² per g), no temperature (NaN). The axes are kept: the messages are taken to be
+  in the camera's optical frame (x right, y down, z forward), as rpg_dvs_ros' DAVIS driver
+  publishes them (it negates libcaer's x and z to "align axes with camera frame"), which is
+  evchain's camera frame; a driver with other axes shows up in ``imu_truth``'s axis check.
+  The writer writes the series back the same way, one message per sample.
 """
 
 from __future__ import annotations
@@ -25,12 +32,27 @@ from typing import Literal
 import numpy as np
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import EventPacket, Geometry
+from evchain.core.series import IMU
 from evchain.errors import ConfigError, DataError
 from evchain.io.atomic import AtomicFile, partial_path
-from evchain.io.slicing import slice_stream
+from evchain.io.slicing import ImuSlicer, slice_stream
 from pydantic import Field
 
-from evchain_ros.msgs import EVENT_ARRAY, ROS1_MD5, LayoutError, decode, encode, typestore
+from evchain_ros.msgs import (
+    EVENT_ARRAY,
+    IMU_MSG,
+    ROS1_MD5,
+    LayoutError,
+    decode,
+    decode_imu,
+    encode,
+    encode_imu,
+    imu_md5,
+    typestore,
+)
+
+#: IMU messages converted at a time
+IMU_BATCH = 1000
 
 
 def _rosbags():
@@ -42,10 +64,18 @@ def _rosbags():
 
 
 class RosbagSource(Filter):
-    """Read DVS events (dvs_msgs/EventArray) from a ROS 1 .bag file or a ROS 2 bag folder."""
+    """Read DVS events (dvs_msgs/EventArray) and IMU samples (sensor_msgs/Imu) from a ROS 1
+    .bag file or a ROS 2 bag folder.
+
+    The IMU topic's messages become the series ``imu`` (camera axes; deg/s and g, converted
+    from ROS's rad/s and m/s²; every packet carries it, empty where its slice has no sample);
+    a bag without one gives no series. Samples before the first event's slice or after the
+    last one's are not delivered (counted in the metrics).
+    """
 
     name = "rosbag"
     produces = EventPacket
+    adds_series = (IMU,)
     input_paths = ("path",)
 
     class Params(FilterParams):
@@ -56,6 +86,16 @@ class RosbagSource(Filter):
                                   "first message)")
         height: int | None = Field(None, ge=1, description="sensor height (default: from the "
                                    "first message)")
+        imu: bool = Field(True, description="read sensor_msgs/Imu messages into the series "
+                          "imu (camera axes, deg/s and g); false: ignore them")
+        imu_topic: str | None = Field(None, description="topic with sensor_msgs/Imu messages; "
+                                      "default: the bag's only such topic, if it has one "
+                                      "(rpg_dvs_ros publishes /dvs/imu)")
+
+    @classmethod
+    def series_added(cls, params):
+        """``imu`` unless ``imu`` is false."""
+        return (IMU,) if params.imu else ()
 
     def setup(self, params, context):
         AnyReader = _rosbags()
@@ -102,7 +142,36 @@ class RosbagSource(Filter):
             raise DataError(f"{self.path}: topic {params.topic!r}: no message gives the sensor "
                             "size (no messages or width/height 0); give the parameters width "
                             "and height")
+        self.imu_connections = self._imu_connections(params) if params.imu else []
         return Geometry(int(width), int(height))
+
+    def _imu_connections(self, params) -> list:
+        """The connections of the IMU topic: the one named, else the bag's only
+        sensor_msgs/Imu topic (none: no IMU)."""
+        conns = self.reader.connections
+        imu_topics = sorted({c.topic for c in conns if c.msgtype == IMU_MSG})
+        topic = params.imu_topic
+        if topic is None:
+            if len(imu_topics) > 1:
+                raise DataError(f"{self.path}: several {IMU_MSG} topics {imu_topics}; set "
+                                "imu_topic to the one to read")
+            if not imu_topics:
+                return []
+            topic = imu_topics[0]
+        mine = [c for c in conns if c.topic == topic]
+        if not mine:
+            raise DataError(f"{self.path}: no IMU topic {topic!r}; {IMU_MSG} topics: "
+                            f"{imu_topics or 'none'}")
+        types = {c.msgtype for c in mine}
+        if types != {IMU_MSG}:
+            raise DataError(f"{self.path}: topic {topic!r} has type {', '.join(sorted(types))}; "
+                            f"expected {IMU_MSG} for imu_topic")
+        digests = {c.digest for c in mine} - {"", None}
+        if not self.ros2 and digests - {imu_md5()}:
+            raise DataError(f"{self.path}: topic {topic!r}: {IMU_MSG} with MD5 "
+                            f"{', '.join(sorted(digests))}, a layout other than sensor_msgs' "
+                            f"(MD5 {imu_md5()})")
+        return mine
 
     def time_span_us(self):
         return None  # bag times are receive times, not event times
@@ -120,7 +189,57 @@ class RosbagSource(Filter):
                 return
 
     def packets(self) -> Iterator[EventPacket]:
-        yield from slice_stream(self._chunks(), self.context.geometry, self.params.packet_us)
+        packets = slice_stream(self._chunks(), self.context.geometry, self.params.packet_us)
+        if not self.imu_connections:
+            yield from packets
+            self.context.metrics[self.id] = {"path": str(self.path), "imu_topic": None,
+                                             "imu_samples": 0}
+            return
+        imu = ImuSlicer(self._imu_batches(), str(self.path))
+        for packet in packets:
+            yield imu.attach(packet)
+        imu.finish()
+        self.context.metrics[self.id] = {
+            "path": str(self.path), "imu_topic": self.imu_connections[0].topic,
+            "imu_samples": imu.delivered, "imu_before_events": imu.before,
+            "imu_after_events": imu.after}
+
+    def _imu_batches(self) -> Iterator[np.ndarray]:
+        """The IMU topic's samples as series entries, through a reader of its own (the event
+        messages are read at the same time)."""
+        AnyReader = _rosbags()
+        topic = self.imu_connections[0].topic
+        reader = AnyReader([self.path], default_typestore=typestore(ros2=self.ros2))
+        reader.open()
+        self.imu_reader = reader
+        try:
+            conns = [c for c in reader.connections if c.topic == topic]
+            rows: list[tuple] = []
+            for i, (_, _, raw) in enumerate(reader.messages(connections=conns)):
+                try:
+                    t, gyro, accel, has_gyro, has_accel = decode_imu(raw, self.ros2)
+                except LayoutError as exc:
+                    raise DataError(f"{self.path}: topic {topic!r} message {i}: not a "
+                                    f"{IMU_MSG} ({exc})") from None
+                where = f"{self.path}: topic {topic!r} message {i}"
+                if not has_gyro:
+                    raise DataError(f"{where}: field angular_velocity_covariance[0] is -1: the "
+                                    "message carries no angular velocity; expected a gyro")
+                if not np.all(np.isfinite(gyro)):
+                    axis = "xyz"[int(np.argmax(~np.isfinite(gyro)))]
+                    raise DataError(f"{where}: field angular_velocity.{axis} is not finite")
+                if not has_accel:
+                    accel = np.full(3, np.nan)
+                rows.append((t, *accel, *gyro, np.nan))
+                if len(rows) == IMU_BATCH:
+                    yield np.array(rows, IMU.dtype)
+                    rows = []
+            if rows:
+                yield np.array(rows, IMU.dtype)
+        finally:
+            if self.imu_reader is reader:  # not closed by close() already
+                reader.close()
+                self.imu_reader = None
 
     def _chunks(self) -> Iterator[dict[str, np.ndarray]]:
         g, topic = self.context.geometry, self.params.topic
@@ -144,17 +263,23 @@ class RosbagSource(Filter):
             last = int(t[-1])
 
     def close(self):
-        reader = getattr(self, "reader", None)
-        if reader is not None:
-            reader.close()
-            self.reader = None
+        for name in ("reader", "imu_reader"):
+            reader = getattr(self, name, None)
+            if reader is not None:
+                reader.close()
+                setattr(self, name, None)
 
 
 class RosbagWriter(Filter):
-    """Write events as dvs_msgs/EventArray messages (one per packet) to a ROS bag; pass them on."""
+    """Write events as dvs_msgs/EventArray messages (one per packet) to a ROS bag; pass them on.
+
+    The series ``imu``, when the packets carry it, goes to ``imu_topic`` as sensor_msgs/Imu
+    messages (one per sample, camera axes, rad/s and m/s²; bag time = the sample's time).
+    """
 
     name = "rosbag_writer"
     consumes = EventPacket
+    optional_series = (IMU,)
     output_paths = ("path",)
 
     class Params(FilterParams):
@@ -168,6 +293,8 @@ class RosbagWriter(Filter):
         compression: Literal["none", "bz2", "lz4"] = Field("none", description="ROS 1 chunk "
                                                            "compression (ignored for ros2)")
         frame_id: str = Field("dvs", description="header.frame_id of every message")
+        imu_topic: str = Field("/dvs/imu", description="topic of the sensor_msgs/Imu messages "
+                               "(written when the packets carry the series imu)")
 
     def setup(self, params, context):
         try:
@@ -183,6 +310,8 @@ class RosbagWriter(Filter):
         self.tmp = partial_path(self.path)
         self.ros2 = self.params.format == "ros2"
         self.seq = 0
+        self.imu_seq = 0
+        self.imu_connection = None
         self.geometry = None
 
     def _open(self, geometry: Geometry) -> None:
@@ -233,7 +362,26 @@ class RosbagWriter(Filter):
                          frame_id=self.params.frame_id, ros2=self.ros2)
             self.writer.write(self.connection, t1 * 1000, raw)
             self.seq += 1
+        imu = packet.series.get(IMU.name)
+        if imu is not None and len(imu):
+            self._write_imu(imu)
         return packet
+
+    def _write_imu(self, imu: np.ndarray) -> None:
+        if self.imu_connection is None:
+            try:
+                self.imu_connection = self.writer.add_connection(
+                    self.params.imu_topic, IMU_MSG, typestore=typestore(self.ros2))
+            except Exception as exc:
+                raise DataError(f"{self.path}: cannot add the IMU topic "
+                                f"{self.params.imu_topic!r}: {exc}") from None
+        accel = np.stack([imu["ax"], imu["ay"], imu["az"]], 1)
+        gyro = np.stack([imu["gx"], imu["gy"], imu["gz"]], 1)
+        for t, a, g in zip(imu["t"].tolist(), accel, gyro, strict=True):
+            raw = encode_imu(t, g, a, seq=self.imu_seq, frame_id=self.params.frame_id,
+                             ros2=self.ros2)
+            self.writer.write(self.imu_connection, t * 1000, raw)
+            self.imu_seq += 1
 
     def flush(self):
         if self.writer is None:

@@ -1,0 +1,33 @@
+"""Lengths and speeds in pixels that follow the camera.
+
+A length in px chosen on the reference camera (320x240, 35 deg vertical field of view, focal
+length ``REFERENCE_FOCAL_PX`` = 380.6 px) stands for an angle, and a speed in px/s for an
+angular speed: on a camera with focal length f the same angle spans ``f / REFERENCE_FOCAL_PX``
+times as many pixels (a 640x480 sensor with the same field of view: twice as many). Filters
+whose px and px/s parameters default to None derive them with :func:`px_scale` from their
+values on the reference camera.
+"""
+
+from __future__ import annotations
+
+import math
+
+from evchain.core.packets import Geometry
+
+#: the reference camera's focal length, px: 240 rows, 35 deg vertical field of view
+REFERENCE_FOCAL_PX = 120.0 / math.tan(math.radians(35.0) / 2.0)
+
+
+def px_scale(geometry: Geometry) -> float:
+    """``f / REFERENCE_FOCAL_PX``: how many px of this camera an angle spanning one px of the
+    reference camera spans. Without a focal length the reference camera's field of view is
+    assumed (the scale is the height over 240)."""
+    if geometry.f is None:
+        return geometry.height / 240.0
+    return float(geometry.f) / REFERENCE_FOCAL_PX
+
+
+def derived(value: float | None, reference_px: float, geometry: Geometry) -> float:
+    """``value`` when given, else ``reference_px`` (its value on the reference camera) scaled
+    by :func:`px_scale`."""
+    return float(value) if value is not None else reference_px * px_scale(geometry)
