@@ -35,9 +35,9 @@ LO_NONE = -1.1754944e-38
 #: l0, c_on, c_off, r_on, r_off, e_ref, last_t, n_on, n_off (int64), the log cache (4 columns)
 S_L0, S_CON, S_COFF, S_RON, S_ROFF, S_EREF, S_LAST, S_NON, S_NOFF, S_LC = range(10)
 #: pixels per strip: the event loop runs a block of intervals on one strip before the next, so
-#: that the strip's state (gates 8 bytes, state row 128 bytes per pixel: 8.5 MiB) stays in
-#: the last-level cache from one interval to the next, as a 320x240 sensor's whole state does
-STRIP = 1 << 16
+#: that the strip's state (gates 8 bytes, state row 128 bytes per pixel: 10.6 MiB) stays in
+#: the last-level cache from one interval to the next; 320x240 (76 800 pixels) is one strip
+STRIP = 81920
 #: frame intervals run strip by strip at a time: their events wait in a list until every strip
 #: is done, so the list holds a block's events
 BLOCK = 8
