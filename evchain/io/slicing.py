@@ -108,3 +108,19 @@ class ImuSlicer:
             self._pull()
         self.after += len(self._pending)
         self._pending = self._pending[:0]
+
+
+def attach_imu(packets: Iterator[EventPacket], imu: ImuSlicer | None,
+               metrics: dict) -> Iterator[EventPacket]:
+    """``packets`` with their IMU samples attached by ``imu`` (``None``: a file without IMU,
+    the packets as they are). Once the packets are done, ``metrics`` gets ``imu_samples`` and,
+    with an IMU, ``imu_before_events`` and ``imu_after_events`` (the samples not delivered)."""
+    if imu is None:
+        yield from packets
+        metrics["imu_samples"] = 0
+        return
+    for packet in packets:
+        yield imu.attach(packet)
+    imu.finish()
+    metrics.update(imu_samples=imu.delivered, imu_before_events=imu.before,
+                   imu_after_events=imu.after)

@@ -40,7 +40,7 @@ from evchain.core.series import IMU
 from evchain.errors import ConfigError, DataError
 from evchain.io.atomic import AtomicFile
 from evchain.io.davis_imu import camera_axes, sensor_axes
-from evchain.io.slicing import ImuSlicer, slice_stream
+from evchain.io.slicing import ImuSlicer, attach_imu, slice_stream
 from pydantic import Field, field_validator
 
 MAGIC = b"#!AER-DAT4.0"
@@ -219,18 +219,10 @@ class Aedat4Source(Filter):
     def packets(self) -> Iterator[EventPacket]:
         self.recording.resetSequentialRead()
         packets = slice_stream(self._chunks(), self.context.geometry, self.params.packet_us)
-        metrics = {"file": str(self.path)}
-        if self.imu_stream is None:
-            yield from packets
-            self.context.metrics[self.id] = {**metrics, "imu_stream": None, "imu_samples": 0}
-            return
-        imu = ImuSlicer(self._imu_batches(), str(self.path))
-        for packet in packets:
-            yield imu.attach(packet)
-        imu.finish()
-        self.context.metrics[self.id] = {
-            **metrics, "imu_stream": self.imu_stream, "imu_samples": imu.delivered,
-            "imu_before_events": imu.before, "imu_after_events": imu.after}
+        imu = None if self.imu_stream is None else ImuSlicer(self._imu_batches(), str(self.path))
+        metrics = {"file": str(self.path), "imu_stream": self.imu_stream}
+        yield from attach_imu(packets, imu, metrics)
+        self.context.metrics[self.id] = metrics
 
     def _imu_batches(self) -> Iterator[np.ndarray]:
         stream, done = self.imu_stream, 0

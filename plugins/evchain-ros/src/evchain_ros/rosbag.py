@@ -35,7 +35,7 @@ from evchain.core.packets import EventPacket, Geometry
 from evchain.core.series import IMU
 from evchain.errors import ConfigError, DataError
 from evchain.io.atomic import AtomicFile, partial_path
-from evchain.io.slicing import ImuSlicer, slice_stream
+from evchain.io.slicing import ImuSlicer, attach_imu, slice_stream
 from pydantic import Field
 
 from evchain_ros.msgs import (
@@ -190,19 +190,11 @@ class RosbagSource(Filter):
 
     def packets(self) -> Iterator[EventPacket]:
         packets = slice_stream(self._chunks(), self.context.geometry, self.params.packet_us)
-        if not self.imu_connections:
-            yield from packets
-            self.context.metrics[self.id] = {"path": str(self.path), "imu_topic": None,
-                                             "imu_samples": 0}
-            return
-        imu = ImuSlicer(self._imu_batches(), str(self.path))
-        for packet in packets:
-            yield imu.attach(packet)
-        imu.finish()
-        self.context.metrics[self.id] = {
-            "path": str(self.path), "imu_topic": self.imu_connections[0].topic,
-            "imu_samples": imu.delivered, "imu_before_events": imu.before,
-            "imu_after_events": imu.after}
+        c = self.imu_connections
+        imu = ImuSlicer(self._imu_batches(), str(self.path)) if c else None
+        metrics = {"path": str(self.path), "imu_topic": c[0].topic if c else None}
+        yield from attach_imu(packets, imu, metrics)
+        self.context.metrics[self.id] = metrics
 
     def _imu_batches(self) -> Iterator[np.ndarray]:
         """The IMU topic's samples as series entries, through a reader of its own (the event
