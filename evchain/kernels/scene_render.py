@@ -316,24 +316,13 @@ def render_rows(frame, world, out, j0, jstep):
         The largest motion-field magnitude (px/s) over the first sample row of each of the
         rows.
     """
-    w = out.shape[1]
-    k = frame.k
-    xbs = sample_columns(w, k, frame.cx, frame.f)
-    tm = flow_terms(xbs, frame.vc, frame.wc)
-    pcol = pixel_columns(w, k)
-    fw, iw, bmax, rprev = row_work(w * k)
-    lv_inv, lv_off, lv_mask = level_work(world.tex_inv.shape[0])
-    acc = np.empty(w)
-    lit = face_light(world.light)
+    h = out.shape[0]
+    row_v2 = np.zeros(h)
+    render_row_set(frame, world, out, np.arange(h), j0, jstep, row_v2)
     vmax2 = 0.0
-    for j in range(j0, out.shape[0], jstep):
-        m2 = render_row(j, frame.pos, frame.rot, frame.vc, frame.wc, frame.f, frame.cx, frame.cy,
-                        k, world.boxes, world.box_mat, world.box_par, world.segs, world.ground,
-                        world.light, lit, world.tex, world.tex_inv, world.tex_off, frame.vis,
-                        frame.minz, frame.bbox, xbs, tm, pcol, fw, iw, bmax, rprev, lv_inv,
-                        lv_off, lv_mask, acc, out)
-        if m2 > vmax2:
-            vmax2 = m2
+    for j in range(j0, h, jstep):
+        if row_v2[j] > vmax2:
+            vmax2 = row_v2[j]
     return math.sqrt(vmax2)
 
 
