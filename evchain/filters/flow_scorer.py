@@ -20,9 +20,10 @@ import numpy as np
 from pydantic import Field
 
 from evchain.core.filter import Filter, FilterParams
+from evchain.core.obstacle_flow import ObstacleFlow
 from evchain.core.packets import FlowPacket
 from evchain.core.series import FLOW_DENSITY, FLOW_ERROR
-from evchain.core.truth import FlowTruth, FoeTruth, not_scored
+from evchain.core.truth import FlowTruth, FoeTruth, ObjectTruth, TtcTruth, not_scored
 
 #: outlier thresholds
 OUTLIER_REL = 0.5  # relative endpoint error above 50 %
@@ -151,6 +152,12 @@ class FlowScorer(Filter):
     ``flow_density`` series (None if it has none). The invalid rate needs the true FOE: without
     it, it is None and ``not_scored`` says why; without flow events to score the errors are
     None and ``why_none`` says so.
+
+    Flow on the obstacle before contact (a truth with object ids and a TTC, a scene with an
+    obstacle): ``obstacle_flow_since_s``, from how many seconds of true TTC on every bin has
+    flow events on the obstacle up to the end, ``obstacle_flow_coverage``, the share of such
+    bins within the last ``obstacle_window_s``, and the normal-flow errors of those events
+    (:mod:`evchain.core.obstacle_flow`).
     """
 
     name = "flow_scorer"
@@ -160,7 +167,7 @@ class FlowScorer(Filter):
     optional_series = (FLOW_DENSITY,)
     adds_series = (FLOW_ERROR,)
     needs_truth = (FlowTruth,)
-    uses_truth = (FoeTruth,)
+    uses_truth = (FoeTruth, ObjectTruth, TtcTruth)
     truth_hint = "or give the parameter ground_truth: path/to/gt.mat (DVSFLOW16)"
     input_paths = ("ground_truth",)
 
@@ -168,6 +175,9 @@ class FlowScorer(Filter):
         ground_truth: str | None = Field(
             None, description="DVSFLOW16 ground-truth .mat file; default: the source's truth")
         bin_us: int = Field(100_000, gt=0, description="time-series bin (us)")
+        obstacle_window_s: float = Field(
+            3.0, gt=0, description="flow on the obstacle is scored while its true TTC is at "
+            "most this (s); a bin of bin_us with at least one flow event on it is covered")
 
     def truth_for(self, params, context):
         """The DVSFLOW16 file ``ground_truth`` if given, else the source's truth."""
@@ -186,6 +196,9 @@ class FlowScorer(Filter):
         self.n_in = 0
         self.n_out_reported = 0
         self.last = None
+        self.t_start: int | None = None
+        self.obstacle = ObstacleFlow(getattr(self, "truth", None), self.params.obstacle_window_s,
+                                     self.params.bin_us)
 
     def _close_bins(self, keys: list[int]) -> np.ndarray:
         if not keys:
@@ -212,8 +225,11 @@ class FlowScorer(Filter):
         if dens is not None and len(dens):
             self.n_in += int(dens["n_in"].sum())
             self.n_out_reported += int(dens["n_out"].sum())
+        if self.t_start is None:
+            self.t_start = packet.t_start
         if len(packet):
             errs = flow_errors(packet.x, packet.y, packet.t, packet.vx, packet.vy, self.truth)
+            self.obstacle.add(packet.x, packet.y, packet.t, errs["ree_normal"])
             k = packet.t // self.params.bin_us
             starts = np.flatnonzero(np.diff(k)) + 1  # times are sorted: bins are runs
             for a, b in zip([0, *starts.tolist()], [*starts.tolist(), len(k)], strict=True):
@@ -236,6 +252,8 @@ class FlowScorer(Filter):
                              else "no flow events to score: the flow stage estimated none")
         elif m["n_scored"] == 0:
             m["why_none"] = "no flow event has ground truth"
+        if self.last is not None:
+            m.update(self.obstacle.metrics(self.t_start, self.last.t_end))
         self.context.metrics[self.metrics_key("flow")] = m
         if self.last is None:
             return None
