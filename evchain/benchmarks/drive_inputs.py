@@ -4,7 +4,10 @@
   ``emulator`` stages of a pipeline file as configured there (``start_m`` and ``duration_s``
   set to the stretch; ``threads`` is left out of the hash: it does not change the frames).
 * :func:`drive_flow`: the output of that pipeline's flow stage (``lk_flow`` or ``plane_flow``,
-  as configured there) on those events.
+  as configured there) on those events; for a frame pipeline (``frame_flow``) on
+  :func:`drive_aps`.
+* :func:`drive_aps`: the frames of the ``scene`` and ``aps`` stages of a frame pipeline
+  (pipelines/frames-reference.yaml) on a stretch of its drive.
 
 Loading gives the packets and a context with the scene's geometry and exact ground truth (set
 up from the stored scene parameters; that renders nothing).
@@ -22,7 +25,9 @@ from evchain.core.filter import Context
 
 ROOT = Path(__file__).resolve().parents[2]
 PIPELINES = ROOT / "pipelines"
-FLOW_STAGES = ("lk_flow", "plane_flow")
+FLOW_STAGES = ("lk_flow", "plane_flow", "frame_flow")
+#: the sources that make the scene's frames and the aps frames from them
+APS_SOURCES = (*(s for s in SIMULATOR_SOURCES if "emulator" not in s), "filters/aps.py")
 EVENT_COLUMNS = ("x", "y", "t", "p")
 FLOW_COLUMNS = ("x", "y", "t", "p", "vx", "vy")
 
@@ -36,7 +41,8 @@ def relative(path: Path) -> str:
         return str(path)
 
 
-def _pipeline(path: Path, start_m: float, duration_s: float):
+def pipeline_spec(path: Path, start_m: float, duration_s: float):
+    """The pipeline file ``path``, loaded, with its scene set to the stretch."""
     from evchain.core.config import load_pipeline
     from evchain.core.registry import make_registry
 
@@ -44,7 +50,8 @@ def _pipeline(path: Path, start_m: float, duration_s: float):
                          [f"scene.start_m={start_m!r}", f"scene.duration_s={duration_s!r}"])
 
 
-def _stretch_label(scene: dict[str, Any]) -> str:
+def stretch_label(scene: dict[str, Any]) -> str:
+    """``reference-drive T0-T1 s``: the stretch of the drive that ``scene``'s parameters set."""
     t0 = scene["start_m"] / scene["speed_mps"] if scene["speed_mps"] else 0.0
     return f"reference-drive {t0:g}-{t0 + scene['duration_s']:g} s"
 
@@ -52,7 +59,7 @@ def _stretch_label(scene: dict[str, Any]) -> str:
 def drive_events(pipeline: Path, start_m: float, duration_s: float) -> BenchInput:
     """Events of the drive of ``pipeline`` (its ``scene`` and ``emulator`` stages) from
     ``start_m`` for ``duration_s``."""
-    spec = _pipeline(pipeline, start_m, duration_s)
+    spec = pipeline_spec(pipeline, start_m, duration_s)
     scene, emulator = spec.stage("scene"), spec.stage("emulator")
     scene_params = scene.params.model_dump(mode="json")
     scene_params.pop("threads")
@@ -78,26 +85,28 @@ def drive_events(pipeline: Path, start_m: float, duration_s: float) -> BenchInpu
         return {**{c: getattr(ev, c) for c in EVENT_COLUMNS},
                 "bounds": np.array([o.t_start for o in outs] + [outs[-1].t_end], np.int64)}
 
-    return BenchInput("drive-events", _stretch_label(scene_params), params, SIMULATOR_SOURCES,
+    return BenchInput("drive-events", stretch_label(scene_params), params, SIMULATOR_SOURCES,
                       make)
 
 
 def drive_flow(pipeline: Path, start_m: float, duration_s: float) -> BenchInput:
-    """Output of the flow stage of ``pipeline`` on :func:`drive_events` of the same stretch."""
-    spec = _pipeline(pipeline, start_m, duration_s)
+    """Output of the flow stage of ``pipeline`` on :func:`drive_events` of the same stretch
+    (``frame_flow``: on :func:`drive_aps`)."""
+    spec = pipeline_spec(pipeline, start_m, duration_s)
     stage = next((s for s in spec.stages if s.use in FLOW_STAGES), None)
     if stage is None:
         from evchain.errors import ConfigError
 
         raise ConfigError(f"no flow stage ({' or '.join(FLOW_STAGES)})", file=spec.file)
-    events = drive_events(pipeline, start_m, duration_s)
+    frames = stage.use == "frame_flow"
+    source = (drive_aps if frames else drive_events)(pipeline, start_m, duration_s)
     params = {"use": stage.use, "id": stage.id, "flow": stage.params.model_dump(mode="json")}
 
     def make() -> dict[str, np.ndarray]:
-        packets, ctx = load_events(events)
+        packets, ctx = (load_aps if frames else load_events)(source)
         f = stage.cls()
         f.id = stage.id
-        f.setup(stage.params, Context(seed=events.params["seed"], geometry=ctx.geometry,
+        f.setup(stage.params, Context(seed=source.params["seed"], geometry=ctx.geometry,
                                       truth=ctx.truth))
         outs = [f.process(p) for p in packets]
         last = f.flush()
@@ -106,14 +115,47 @@ def drive_flow(pipeline: Path, start_m: float, duration_s: float) -> BenchInput:
         return {**{c: np.concatenate([getattr(o, c) for o in outs]) for c in FLOW_COLUMNS},
                 "bounds": np.array([o.t_start for o in outs] + [outs[-1].t_end], np.int64)}
 
-    label = f"{events.label}, {stage.use} of {Path(pipeline).name}"
-    return BenchInput("drive-flow", label, params,
-                      (f"filters/{stage.use}.py", f"kernels/{stage.use}.py"), make, (events,))
+    label = f"{source.label}, {stage.use} of {Path(pipeline).name}"
+    sources = tuple(f for f in (f"filters/{stage.use}.py", f"kernels/{stage.use}.py")
+                    if (ROOT / "evchain" / f).is_file())
+    return BenchInput("drive-flow", label, params, sources, make, (source,))
+
+
+def drive_aps(pipeline: Path, start_m: float, duration_s: float) -> BenchInput:
+    """Frames of the ``aps`` stage of ``pipeline`` on its ``scene`` (as configured there) from
+    ``start_m`` for ``duration_s``."""
+    spec = pipeline_spec(pipeline, start_m, duration_s)
+    scene, aps = spec.stage("scene"), spec.stage("aps")
+    scene_params = scene.params.model_dump(mode="json")
+    scene_params.pop("threads")
+    params = {"seed": spec.seed, "scene": scene_params, "scene_id": scene.id,
+              "aps": aps.params.model_dump(mode="json"), "aps_id": aps.id}
+
+    def make() -> dict[str, np.ndarray]:
+        ctx = Context(seed=params["seed"])
+        source = _scene(params, ctx, threads=0)
+        f = aps.cls()
+        f.id = params["aps_id"]
+        f.setup(aps.params, ctx)
+        try:
+            outs = [f.process(p) for p in source.packets()]
+            last = f.flush()
+        finally:
+            source.close()
+        if last is not None:
+            outs.append(last)
+        return {"frames": np.concatenate([o.frames for o in outs]),
+                "t": np.concatenate([o.t for o in outs]),
+                "t_exposure_start": np.concatenate([o.t_exposure_start for o in outs]),
+                "bounds": np.array([o.t_start for o in outs] + [outs[-1].t_end], np.int64)}
+
+    return BenchInput("drive-aps", f"{stretch_label(scene_params)}, aps of "
+                      f"{Path(pipeline).name}", params, APS_SOURCES, make)
 
 
 def _scene(params: dict[str, Any], ctx: Context, threads: int = 1):
-    """The scene source of a :func:`drive_events` input, set up (sets the context's geometry
-    and truth)."""
+    """The scene source of a :func:`drive_events` or :func:`drive_aps` input, set up (sets
+    the context's geometry and truth)."""
     from evchain.filters.scene import SceneSource
 
     scene = SceneSource()
@@ -140,12 +182,22 @@ def load_events(inp: BenchInput) -> tuple[list, Context]:
     return _packets(EventPacket, d, EVENT_COLUMNS, ctx.geometry), ctx
 
 
+def load_aps(inp: BenchInput) -> tuple[list, Context]:
+    """(aps frame packets as the ``aps`` stage made them, context with geometry and truth)."""
+    from evchain.core.packets import ApsFramePacket
+
+    d = inp.load()
+    ctx = Context(seed=inp.params["seed"])
+    _scene(inp.params, ctx).close()
+    return _packets(ApsFramePacket, d, ("frames", "t", "t_exposure_start"), ctx.geometry), ctx
+
+
 def load_flow(inp: BenchInput) -> tuple[list, Context]:
     """(flow packets as the flow stage made them, context with geometry and truth)."""
     from evchain.core.packets import FlowPacket
 
     d = inp.load()
-    events = inp.needs[0]
-    ctx = Context(seed=events.params["seed"])
-    _scene(events.params, ctx).close()
+    source = inp.needs[0]
+    ctx = Context(seed=source.params["seed"])
+    _scene(source.params, ctx).close()
     return _packets(FlowPacket, d, FLOW_COLUMNS, ctx.geometry), ctx

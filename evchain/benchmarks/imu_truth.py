@@ -11,6 +11,11 @@
   (``extra``: each stage alone). Error = AEE (px/s) of the LK flow against the gyro's flow
   (``flow_scorer``'s ``aee_pxs``); normal AEE, AAE, the scored flow events and the share of
   events with truth in ``extra``.
+* ``plot-imu-rate``: ``imu_rate_plot`` on the ``imu_rate`` series that ``imu_truth`` (run once,
+  not timed) makes from the same input as ``imu-truth``: every packet, then the PNG written at
+  the end; throughput = plots per second (wall), the series' bins per second in ``extra``. No
+  error: the stage draws the series as it is given and estimates nothing (the PNG's size in
+  ``extra`` shows that it was drawn).
 * ``imu-read-aedat``: the ``aedat`` source on an AEDAT 2.0 file of IMU samples at 1 kHz (7
   records each, jAER's layout) with a DVS event per sample between them; throughput = IMU
   samples per CPU second of reading the whole file. The plugins add the same rows for AEDAT
@@ -26,7 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-from evchain.bench import BenchRow, cut_every, imu_source_row
+from evchain.bench import BenchRow, best_cpu_time, best_time, cut_every, imu_source_row
+from evchain.benchmarks.drive_inputs import relative
 from evchain.core.filter import Context
 from evchain.core.packets import EventPacket, Geometry
 from evchain.core.series import IMU
@@ -124,6 +130,45 @@ def imu_truth_rows(quick: bool) -> list[BenchRow]:
         data=data, params_from="pipelines/dvsflow16-imu-lk.yaml")]
 
 
+def plot_imu_rate_rows(quick: bool) -> list[BenchRow]:
+    return plot_rows(*_input(quick), repeat=1 if quick else 3)
+
+
+def plot_rows(packets, override: dict, data: str, repeat: int = 3) -> list[BenchRow]:
+    """``imu_rate_plot`` on the ``imu_rate`` series of ``imu_truth`` (the pipeline's, with
+    ``override``) on ``packets`` (events with the series ``imu``)."""
+    from evchain.filters.imu_rate_plot import ImuRatePlot
+    from evchain.testing.contract import make_context
+
+    stages = _stages()
+    (truth,), _ = _chain({"imu_truth": stages["imu_truth"]}, override, packets[0].geometry)
+    rated = [truth.process(p) for p in packets]
+    last = truth.flush()
+    rated += [last] if last is not None else []
+    bins = sum(len(p.series.get("imu_rate", ())) for p in rated)
+    with tempfile.TemporaryDirectory() as tmp:
+        ctx = make_context(packets[0].geometry, out_dir=Path(tmp))
+
+        def stage():
+            f = ImuRatePlot()
+            f.id = "imu_rate_plot"
+            f.setup(ImuRatePlot.Params(), ctx)
+            for p in rated:
+                f.process(p)
+            f.flush()
+
+        wall = best_time(stage, repeat=repeat)
+        cpu = best_cpu_time(stage, repeat=1)
+        png = Path(ctx.metrics["imu_rate_plot"]["path"])
+        size = png.stat().st_size
+    return [BenchRow(
+        "plot-imu-rate", "imu_rate_plot", 1 / wall, "plots/s", None,
+        "none (draws the series as given)", None,
+        {"bins": bins, "bins_per_s": bins / wall, "cpu_plots_per_s": 1 / cpu,
+         "png_bytes": size, "notes": "no error: the plot estimates nothing"},
+        data=f"{data}; imu_rate of imu_truth, {bins} bins", params_from=relative(PIPELINE))]
+
+
 def imu_packets(samples: int, geometry: Geometry, t0: int = 0, seed: int = 0
                 ) -> list[EventPacket]:
     """10 ms packets of ``samples`` IMU samples at 1 kHz from ``t0`` (random readings within
@@ -175,4 +220,5 @@ def imu_read_aedat(quick: bool) -> list[BenchRow]:
                                n, imu_data(n))]
 
 
-WORKLOADS = {"imu-truth": imu_truth_rows, "imu-read-aedat": imu_read_aedat}
+WORKLOADS = {"imu-truth": imu_truth_rows, "imu-read-aedat": imu_read_aedat,
+             "plot-imu-rate": plot_imu_rate_rows}
