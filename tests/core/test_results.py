@@ -167,3 +167,35 @@ def test_cells_over_seeds_show_the_median_and_range(root):
     assert "| TTC share | 90.0% | 50.0% | 30.0% (d) |" in text
     assert "4 cells, each rendered once (d: once per seed, its value the median over the " \
            "seeds)" in text
+
+
+def test_a_workload_belongs_to_the_longest_prefix(root, monkeypatch):
+    """``toy-`` leaves ``toy-peer-*`` to the entry ``toy-peer``; an entry whose workloads give
+    no rows (peers not installed) saves an empty table, not an error."""
+    from evchain import results
+    from evchain.bench import BenchRow
+    from evchain.core import registry
+
+    (root / "results" / "results.yaml").write_text(
+        MANIFEST.replace("  - {prefix: toy-, repeat: 3}\n",
+                         "  - {prefix: toy-, repeat: 1}\n  - {prefix: toy-peer, repeat: 1}\n"))
+    ran = []
+
+    def workload(name, rows):
+        def run(quick):
+            ran.append(name)
+            return [BenchRow(name, "toy", 1.0, "ev/s", data="synthetic toy")] if rows else []
+        return run
+
+    fake = type("Registry", (), {"workloads": {"toy-a": workload("toy-a", True),
+                                               "toy-peer-a": workload("toy-peer-a", False)}})
+    monkeypatch.setattr(registry, "make_registry", lambda: fake)
+    m = load_manifest(root)
+    saved = results.run_and_save(m, ["toy-", "toy-peer"], echo=lambda s: None)
+    assert [p.name for p in saved] == ["toy-.json", "toy-peer.json"]
+    assert ran == ["toy-a", "toy-peer-a"]                      # each once, by its own entry
+    toy = json.loads(saved[0].read_text())
+    peer = json.loads(saved[1].read_text())
+    assert [r["workload"] for r in toy["rows"]] == ["toy-a"] and peer["rows"] == []
+    text = render(load_manifest(root))
+    assert "### toy-peer\n\n1 repeats;" in text and "| toy-a | toy |" in text
