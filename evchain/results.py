@@ -602,10 +602,10 @@ def _bench_section(m: Manifest, src: _Sources) -> list[str]:
             if first.get("params_from"):
                 data += f"; parameters from `{first['params_from']}`"
             out.append(
-                f"| {wl} | {first.get('stage')} | {data} | "
+                f"| {_cell(wl)} | {_cell(first.get('stage'))} | {_cell(data)} | "
                 f"{_value_text(collect(mine, {}, 'throughput'), '.3g')} | {first.get('unit')} | "
                 f"{_value_text(collect(mine, {}, 'error'), '.3g')} | "
-                f"{first.get('error_name') or '-'} | "
+                f"{_cell(first.get('error_name') or '-')} | "
                 f"{_value_text(collect(mine, {}, 'limit_ratio'), '.2f')} |")
         out.append("")
     return out

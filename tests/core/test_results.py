@@ -53,7 +53,7 @@ def root(tmp_path):
     bench = {"prefix": "toy-", "quick": False, "repeat": 3, "command": "evchain results --run toy-",
              "machine": {"cores": 2, "cpu": "Test CPU", "load": 1.0}, "wall_s": 3.0,
              "rows": [{"workload": "toy-a", "stage": "toy", "throughput": t, "unit": "ev/s",
-                       "error": 0.1, "error_name": "err", "limit_ratio": None,
+                       "error": 0.1, "error_name": "median |dt| us", "limit_ratio": None,
                        "data": "synthetic toy", "repeat": r}
                       for r, t in enumerate((150.0, 160.0, 155.0))]}
     (tmp_path / "results" / "bench" / "toy-.json").write_text(json.dumps(bench))
@@ -83,6 +83,7 @@ def test_page_from_saved_results(root):
     assert "| share lk | sweep ref (base lk) | 91.0% (90.0%-95.0%, x3) | >= 80.0% | 11.0% | met |" \
         in text
     assert "| toy speed | toy-a: synthetic toy | 155 (150-160, x3) | >= 100 | 55 | met |" in text
+    assert "| 0.1 (x3, equal) | median \\|dt\\| us | - |" in text          # pipes escaped
     # evaluation summary: median and worst over the cells a, b, c; the reference beside them
     assert "| FOE |dx| px |" not in text                               # pipes escaped
     assert "| FOE \\|dx\\| px | 2.00 | 4.00 | 5.00 (b) | 2.00 | 4.00 | 5.00 (b) |" in text
