@@ -1,5 +1,6 @@
 """The side-by-side runner of other emulators (evchain.benchmarks.emulator_peers), with fake
-peers: the real ones (esim_py, v2e) are not dependencies and are not installed for the tests."""
+peers: the real ones (esim_py, v2e) are not dependencies, and the tests do not use them even
+where they are installed."""
 
 from __future__ import annotations
 
