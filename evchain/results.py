@@ -1,7 +1,8 @@
 """``evchain results``: every claimed number from one command, with its spread and a verdict.
 
 ``results/results.yaml`` (the manifest) lists what is measured: sweeps (``sweeps: {NAME:
-FILE}``), benchmark rows (``bench: [{prefix, repeat, quick}]``), how metrics read
+FILE}``), benchmark rows (``bench: [{prefix, repeat, quick}]``; a workload belongs to the longest
+prefix it starts with), how metrics read
 (``metrics: {KEY: {label, better, format}}``) and the goals (``goals: [...]``).
 
 * ``evchain results --run [NAME ...]`` runs the listed sweeps and benchmarks (all, or those
@@ -185,7 +186,7 @@ def run_and_save(m: Manifest, names: list[str], workers: int = 2,
             continue
         quick = bool(entry.get("quick", False))
         repeat = int(entry.get("repeat", MIN_REPEATS))
-        workloads = bench.select(registry.workloads, [prefix])
+        workloads = own_workloads(m, prefix, bench.select(registry.workloads, [prefix]))
         if not workloads:
             raise ConfigError(f"no benchmark workload starts with {prefix!r}",
                               file=str(m.root / MANIFEST), key="bench")
@@ -203,6 +204,17 @@ def run_and_save(m: Manifest, names: list[str], workers: int = 2,
         atomic_write_text(target, json.dumps(doc, indent=2, default=_json_default) + "\n")
         saved.append(target)
     return saved
+
+
+def own_workloads(m: Manifest, prefix: str, workloads: dict[str, Callable]
+                  ) -> dict[str, Callable]:
+    """The ``workloads`` (named ``prefix``...) that belong to the manifest's entry ``prefix``:
+    a workload belongs to the longest prefix of the manifest it starts with (``emulator-``
+    leaves ``emulator-peer-*`` to ``emulator-peer``), so no row is measured twice or counted in
+    two files."""
+    longer = [b["prefix"] for b in m.bench
+              if len(b["prefix"]) > len(prefix) and b["prefix"].startswith(prefix)]
+    return {k: v for k, v in workloads.items() if not any(k.startswith(p) for p in longer)}
 
 
 def _json_default(v):
@@ -590,10 +602,10 @@ def _bench_section(m: Manifest, src: _Sources) -> list[str]:
             if first.get("params_from"):
                 data += f"; parameters from `{first['params_from']}`"
             out.append(
-                f"| {wl} | {first.get('stage')} | {data} | "
+                f"| {_cell(wl)} | {_cell(first.get('stage'))} | {_cell(data)} | "
                 f"{_value_text(collect(mine, {}, 'throughput'), '.3g')} | {first.get('unit')} | "
                 f"{_value_text(collect(mine, {}, 'error'), '.3g')} | "
-                f"{first.get('error_name') or '-'} | "
+                f"{_cell(first.get('error_name') or '-')} | "
                 f"{_value_text(collect(mine, {}, 'limit_ratio'), '.2f')} |")
         out.append("")
     return out

@@ -13,7 +13,8 @@ is in it; docs/explanation/emulator.md, "Peers", says how to make them importabl
   period off.
 
 Each row is one peer on one workload: its frames per CPU second (``time.process_time``, best
-of a few runs; all threads of the process count), ``speedup`` = the peer's CPU time / evchain's
+of a few runs; all threads of the process count; the peer's own call, its output as it gives
+it, not the conversion to evchain's columns), ``speedup`` = the peer's CPU time / evchain's
 on the same frames in the same run (evchain's default cubic interpolation, as in the emulator
 rows), and on the bar the peer's timing error (median |dt| against the analytic crossings).
 A workload whose peers are all absent gives no rows and says on stderr what is missing.
@@ -21,6 +22,7 @@ A workload whose peers are all absent gives no rows and says on stderr what is m
 
 from __future__ import annotations
 
+import logging
 import sys
 from collections.abc import Callable
 from typing import Protocol
@@ -38,13 +40,16 @@ HOW = ("see docs/explanation/emulator.md, \"Peers\", for how to make it importab
 
 
 class Peer(Protocol):
-    """An emulator to run side by side: ``events(frames, times_us)`` gives all events of float32
-    frames ``[n, H, W]`` (linear intensity) at integer µs times as float64 columns
-    ``[N, 4]``: x, y, t (µs), polarity (+1/-1)."""
+    """An emulator to run side by side: ``run(frames, times_us)`` emulates float32 frames
+    ``[n, H, W]`` (linear intensity) at integer µs times and returns the peer's output as it
+    gives it (what is timed); ``events(output)`` gives that output's events as float64
+    columns ``[N, 4]``: x, y, t (µs), polarity (+1/-1)."""
 
     name: str
 
-    def events(self, frames: np.ndarray, times_us: np.ndarray) -> np.ndarray: ...
+    def run(self, frames: np.ndarray, times_us: np.ndarray) -> object: ...
+
+    def events(self, output: object) -> np.ndarray: ...
 
 
 class EsimPeer:
@@ -55,10 +60,13 @@ class EsimPeer:
     def __init__(self, module):
         self.module = module
 
-    def events(self, frames, times_us):
+    def run(self, frames, times_us):
         sim = self.module.EventSimulator(THRESHOLD, THRESHOLD, 0.0, EPS, True)
-        ev = np.asarray(sim.generateFromFloatFrames(
-            np.ascontiguousarray(frames, np.float32), [float(t) * 1e-6 for t in times_us]))
+        return sim.generateFromFloatFrames(np.ascontiguousarray(frames, np.float32),
+                                           [float(t) * 1e-6 for t in times_us])
+
+    def events(self, output):
+        ev = np.asarray(output)                       # x, y, t (s), polarity
         out = np.empty((len(ev), 4))
         if len(ev):
             out[:, 0], out[:, 1] = ev[:, 0], ev[:, 1]
@@ -76,17 +84,19 @@ class V2ePeer:
         self.emulator_cls = emulator_cls
         self.torch = torch
 
-    def events(self, frames, times_us):
+    def run(self, frames, times_us):
         self.torch.set_num_threads(1)
+        # its per-frame "no signal events" warnings would be written (and timed) otherwise
+        logging.getLogger("v2ecore.emulator").setLevel(logging.ERROR)
         emu = self.emulator_cls(pos_thres=THRESHOLD, neg_thres=THRESHOLD, sigma_thres=0.0,
                                 cutoff_hz=0.0, leak_rate_hz=0.0, shot_noise_rate_hz=0.0,
                                 refractory_period_s=0.0, device="cpu", hdr=True)
         logs = np.log(frames.astype(np.float64) + EPS).astype(np.float32)
-        parts = []
-        for frame, t in zip(logs, times_us, strict=True):
-            ev = emu.generate_events(frame, float(t) * 1e-6)
-            if ev is not None and len(ev):
-                parts.append(np.asarray(ev, np.float64))
+        return [emu.generate_events(frame, float(t) * 1e-6)
+                for frame, t in zip(logs, times_us, strict=True)]
+
+    def events(self, output):
+        parts = [np.asarray(ev, np.float64) for ev in output if ev is not None and len(ev)]
         if not parts:
             return np.empty((0, 4))
         ev = np.concatenate(parts)                    # t (s), x, y, p
@@ -161,8 +171,8 @@ def peer_workload(scene: str, width: int, height: int):
         own = best_cpu_time(lambda: _run(frames, times, params), repeat=repeat, warmup=True)
         rows = []
         for peer in found:
-            ev = peer.events(frames, times)
-            el = best_cpu_time(lambda p=peer: p.events(frames, times), repeat=repeat)
+            ev = peer.events(peer.run(frames, times))
+            el = best_cpu_time(lambda p=peer: p.run(frames, times), repeat=repeat)
             err, count_diff = (None, None) if truth is None else _median_abs_dt(ev, truth, width)
             rows.append(BenchRow(
                 f"emulator-peer-{peer.name}-{scene}{_suffix(width, height)}", peer.name,

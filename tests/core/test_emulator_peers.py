@@ -1,5 +1,6 @@
 """The side-by-side runner of other emulators (evchain.benchmarks.emulator_peers), with fake
-peers: the real ones (esim_py, v2e) are not dependencies and are not installed for the tests."""
+peers: the real ones (esim_py, v2e) are not dependencies, and the tests do not use them even
+where they are installed."""
 
 from __future__ import annotations
 
@@ -30,13 +31,16 @@ class OwnEmulator:
 
     name = "own"
 
-    def events(self, frames, times_us):
+    def run(self, frames, times_us):
         outs, tf = _run(frames, times_us, {"threshold_on": 0.2, "threshold_off": 0.2,
                                            "eps": 1e-3}, record=True)
         x = np.concatenate([o.x for o in outs])
         y = np.concatenate([o.y for o in outs])
         p = np.concatenate([o.p for o in outs])
         return np.column_stack([x, y, tf, p]).astype(np.float64)
+
+    def events(self, output):
+        return output
 
 
 def test_fake_peer_rows_on_the_bar(monkeypatch):
@@ -52,7 +56,7 @@ def test_fake_peer_rows_on_the_bar(monkeypatch):
     assert x["speedup"] == pytest.approx(x["ms_per_frame"] / x["evchain_ms_per_frame"])
     bar_, frames, times = bar_frames(40)
     truth = BarTruth(bar_).crossing_times(0.2, 0.2, 1e-3, times[0], times[-1])
-    ev = OwnEmulator().events(frames, times)
+    ev = OwnEmulator().run(frames, times)
     want = timing_errors(ev[:, 0], ev[:, 1], ev[:, 3], ev[:, 2], truth, 320)
     assert row.error == want["median_abs_dt_us"] < 1.0
     assert x["count_diff"] == 0 and x["events"] == len(ev) > 1000
@@ -82,7 +86,7 @@ def test_esim_adapter(monkeypatch):
     peer = ep.find_esim()
     assert isinstance(peer, ep.EsimPeer)
     frames = np.full((3, 2, 5), 0.5, np.float64)
-    ev = peer.events(frames, np.array([0, 1000, 2000]))
+    ev = peer.events(peer.run(frames, np.array([0, 1000, 2000])))
     assert calls["init"] == (0.2, 0.2, 0.0, 1e-3, True)
     assert calls["frames"].dtype == np.float32 and calls["frames"].shape == (3, 2, 5)
     assert calls["timestamps"] == [0.0, 0.001, 0.002]
@@ -115,7 +119,7 @@ def test_v2e_adapter(monkeypatch):
     peer = ep.find_v2e()
     assert isinstance(peer, ep.V2ePeer)
     frames, times = textured_scene(3, width=8, height=4)
-    ev = peer.events(frames, times)
+    ev = peer.events(peer.run(frames, times))
     assert threads == [1]
     kw = made["kw"]
     assert kw["hdr"] and kw["device"] == "cpu" and kw["pos_thres"] == kw["neg_thres"] == 0.2

@@ -53,7 +53,7 @@ def root(tmp_path):
     bench = {"prefix": "toy-", "quick": False, "repeat": 3, "command": "evchain results --run toy-",
              "machine": {"cores": 2, "cpu": "Test CPU", "load": 1.0}, "wall_s": 3.0,
              "rows": [{"workload": "toy-a", "stage": "toy", "throughput": t, "unit": "ev/s",
-                       "error": 0.1, "error_name": "err", "limit_ratio": None,
+                       "error": 0.1, "error_name": "median |dt| us", "limit_ratio": None,
                        "data": "synthetic toy", "repeat": r}
                       for r, t in enumerate((150.0, 160.0, 155.0))]}
     (tmp_path / "results" / "bench" / "toy-.json").write_text(json.dumps(bench))
@@ -83,6 +83,7 @@ def test_page_from_saved_results(root):
     assert "| share lk | sweep ref (base lk) | 91.0% (90.0%-95.0%, x3) | >= 80.0% | 11.0% | met |" \
         in text
     assert "| toy speed | toy-a: synthetic toy | 155 (150-160, x3) | >= 100 | 55 | met |" in text
+    assert "| 0.1 (x3, equal) | median \\|dt\\| us | - |" in text          # pipes escaped
     # evaluation summary: median and worst over the cells a, b, c; the reference beside them
     assert "| FOE |dx| px |" not in text                               # pipes escaped
     assert "| FOE \\|dx\\| px | 2.00 | 4.00 | 5.00 (b) | 2.00 | 4.00 | 5.00 (b) |" in text
@@ -167,3 +168,35 @@ def test_cells_over_seeds_show_the_median_and_range(root):
     assert "| TTC share | 90.0% | 50.0% | 30.0% (d) |" in text
     assert "4 cells, each rendered once (d: once per seed, its value the median over the " \
            "seeds)" in text
+
+
+def test_a_workload_belongs_to_the_longest_prefix(root, monkeypatch):
+    """``toy-`` leaves ``toy-peer-*`` to the entry ``toy-peer``; an entry whose workloads give
+    no rows (peers not installed) saves an empty table, not an error."""
+    from evchain import results
+    from evchain.bench import BenchRow
+    from evchain.core import registry
+
+    (root / "results" / "results.yaml").write_text(
+        MANIFEST.replace("  - {prefix: toy-, repeat: 3}\n",
+                         "  - {prefix: toy-, repeat: 1}\n  - {prefix: toy-peer, repeat: 1}\n"))
+    ran = []
+
+    def workload(name, rows):
+        def run(quick):
+            ran.append(name)
+            return [BenchRow(name, "toy", 1.0, "ev/s", data="synthetic toy")] if rows else []
+        return run
+
+    fake = type("Registry", (), {"workloads": {"toy-a": workload("toy-a", True),
+                                               "toy-peer-a": workload("toy-peer-a", False)}})
+    monkeypatch.setattr(registry, "make_registry", lambda: fake)
+    m = load_manifest(root)
+    saved = results.run_and_save(m, ["toy-", "toy-peer"], echo=lambda s: None)
+    assert [p.name for p in saved] == ["toy-.json", "toy-peer.json"]
+    assert ran == ["toy-a", "toy-peer-a"]                      # each once, by its own entry
+    toy = json.loads(saved[0].read_text())
+    peer = json.loads(saved[1].read_text())
+    assert [r["workload"] for r in toy["rows"]] == ["toy-a"] and peer["rows"] == []
+    text = render(load_manifest(root))
+    assert "### toy-peer\n\n1 repeats;" in text and "| toy-a | toy |" in text
