@@ -322,8 +322,8 @@ class FoeFit(Filter):
         """Whether the yaw explains flow that a sideways shift of the FOE does not: the decayed
         inlier weight of the turning fit (the FOE's column held, yaw free) exceeds that of the
         level fit (the column free, no yaw) by more than ``turn_gain`` to enter the turning
-        mode, at all to stay in it. ``run`` fits with the
-        given free axes; ``th, om, inl``: the fit of the current mode at this time. From the
+        mode, at all to stay in it. ``run`` fits with the given free axes; ``th, om, inl``:
+        the fit of the current mode at this time. From the
         level mode the turning fit starts from scratch at the column it would hold (a warm
         start would leave the slabs that already turn as outliers at yaw 0) and, if it wins,
         the fits go on from it. While turning the level fit is kept alongside, each from its
@@ -340,8 +340,8 @@ class FoeFit(Filter):
                 self._th, self._om = tt, ot
                 return True
             return False
-        tl, ol = self._level_fit if self._level_fit is not None else (th, om)
-        tl, ol = tl.copy(), ol.copy()
+        tl = (self._level_fit[0] if self._level_fit is not None else th).copy()
+        ol = om.copy()  # the slabs of this fit time, the held pitch included
         ol[:, TURNING] = 0.0
         ok, inl_level, _ = run(tl, ol, np.array([True, False, False, False]))
         if not ok:  # no level fit to compare with: the turn stands
