@@ -50,6 +50,11 @@ class FoeFit(Filter):
     entered and kept only while the probes' mean pitch rate over the last ``heading_memory_s``
     stays below the threshold: a pitch of one sign that lasts is the flow of a ground plane
     whose FOE row is off (normal flow on a plane tells the two apart poorly), not the camera.
+    Likewise a yaw can be the flow of a ground plane whose FOE column is off: turning is
+    entered only when the turning fit's decayed inlier weight exceeds that of a level fit
+    (column free, no yaw) by more than ``turn_gain`` (a yaw moves near and far points alike, a
+    column shift in proportion to their inverse time to contact); while turning the level fit
+    is kept alongside and takes over once the turning fit no longer explains more.
     Roll is not fitted (held at 0).
 
     Each fit starts from the previous one, else from the latest ``foe_map`` estimate. When the
@@ -105,6 +110,11 @@ class FoeFit(Filter):
             "null: 40 px x f / 380.6 px")
         min_inliers: float = Field(50.0, ge=0, description="fall back when the decayed "
                                    "inlier weight is below this")
+        turn_gain: float = Field(
+            0.2, ge=0, description="the turning mode is entered only when its fit's decayed "
+            "inlier weight exceeds that of the level fit (FOE column free, no yaw) by more than "
+            "this share, and left once it no longer exceeds it (else the yaw is a sideways "
+            "shift of the FOE)")
 
     def reset(self) -> None:
         from evchain.kernels import foe_fit as k
@@ -129,6 +139,7 @@ class FoeFit(Filter):
         self._moved = -math.inf  # last time the mode's axis turned faster than the threshold
         self._level_x: deque[tuple[int, float]] = deque()  # (t, FOE column) of settled fits
         self._held_x = math.nan  # the FOE column while turning
+        self._level_fit = None  # (th, om) of the level fit kept alongside while turning
         self._warm_since: int | None = None  # time of the first fit since the last cold start
         self._counts = {"fit times": 0, "fits": 0, "votes": 0, "no voting estimate": 0}
 
@@ -256,8 +267,8 @@ class FoeFit(Filter):
         events = k.FitEvents(*(self._buf[c] for c in _COLUMNS), self._t)
         probe = np.zeros(3)
 
-        def run(th, om):
-            ok, inl, tot = k.fit(events, i0, i1, T, g, th, om, free, probe, self._prm)
+        def run(th, om, axes=free):
+            ok, inl, tot = k.fit(events, i0, i1, T, g, th, om, axes, probe, self._prm)
             return ok and inl >= p.min_inliers, inl, tot
 
         th, om = self._th.copy(), self._om.copy()
@@ -290,7 +301,8 @@ class FoeFit(Filter):
             if not warm:
                 self._warm_since = T
             if self._rotation:
-                self._update_mode(T, th[k.FOE_X], found)
+                self._update_mode(T, th[k.FOE_X], found,
+                                  lambda: self._turn_explains(run, th, om, inl))
             if self._rotation:
                 return (th[k.FOE_X], th[k.FOE_Y], inl, tot, *np.degrees(om[0] / self._prm.f), 1)
             return (th[k.FOE_X], th[k.FOE_Y], inl, tot, 0.0, 0.0, 0.0, 0)
@@ -306,14 +318,47 @@ class FoeFit(Filter):
             "no_estimate": {"no recent voting estimate": c["no voting estimate"]}}
         return None
 
-    def _update_mode(self, T: int, x: float, probe: np.ndarray) -> None:
+    def _turn_explains(self, run, th, om, inl) -> bool:
+        """Whether the yaw explains flow that a sideways shift of the FOE does not: the decayed
+        inlier weight of the turning fit (the FOE's column held, yaw free) exceeds that of the
+        level fit (the column free, no yaw) by more than ``turn_gain`` to enter the turning
+        mode, at all to stay in it. ``run`` fits with the given free axes; ``th, om, inl``:
+        the fit of the current mode at this time. From the
+        level mode the turning fit starts from scratch at the column it would hold (a warm
+        start would leave the slabs that already turn as outliers at yaw 0) and, if it wins,
+        the fits go on from it. While turning the level fit is kept alongside, each from its
+        own last one, and replaces the turning fit when the yaw does not explain enough."""
+        from evchain.kernels import foe_fit as k
+
+        more = 1.0 + self.params.turn_gain
+        if self._mode != TURNING:
+            self._level_fit = (th.copy(), om.copy())
+            tt = k.initial_theta(float(np.median([c for _, c in self._level_x])), th[k.FOE_Y])
+            ot = om.copy()
+            ok, inl_turn, _ = run(tt, ot, np.array([False, False, True, False]))
+            if ok and inl_turn > more * inl:
+                self._th, self._om = tt, ot
+                return True
+            return False
+        tl = (self._level_fit[0] if self._level_fit is not None else th).copy()
+        ol = om.copy()  # the slabs of this fit time, the held pitch included
+        ol[:, TURNING] = 0.0
+        ok, inl_level, _ = run(tl, ol, np.array([True, False, False, False]))
+        if not ok:  # no level fit to compare with: the turn stands
+            self._level_fit = None
+            return True
+        self._level_fit = (tl, ol)
+        return inl > inl_level
+
+    def _update_mode(self, T: int, x: float, probe: np.ndarray, turn_explains) -> None:
         """Record the fit (its FOE column while not turning, its probed rotation) and switch
         mode. Only once the fits have run warm for 3 tau (a cold start's FOE is still on its
         way, and its probes see rotation where there is none): to turning (yaw free) or
         pitching (pitch free) when the median of the last probes turns about that axis faster
         than the threshold (turning first, and only with a full memory of settled level FOE
-        columns to hold), back to level once the mode's axis stayed below the threshold for
-        3 tau."""
+        columns to hold and while ``turn_explains()``), back to level once the mode's axis
+        stayed below the threshold for 3 tau, or at once when turning no longer explains more
+        of the flow than the level fit kept alongside (:meth:`_turn_explains`)."""
         p = self.params
         memory = int(p.heading_memory_s * 1e6)
         window = 3 * p.tau_ms * 1000.0
@@ -332,10 +377,15 @@ class FoeFit(Filter):
             self._mode = LEVEL
         if self._mode != LEVEL and rate[self._mode] >= self._turn_pxs:
             self._moved = T
+        if self._mode == TURNING and not turn_explains():  # a column shift does as well
+            self._th, self._om = self._level_fit
+            self._mode, self._held_x, self._level_fit = LEVEL, math.nan, None
+            self._level_x.clear()  # the column of a settled level fit is yet to come
+            return
         if not settled:
             return
         if (self._mode != TURNING and rate[TURNING] > self._turn_pxs and self._level_x
-                and T - self._level_x[0][0] >= 0.9 * memory):
+                and T - self._level_x[0][0] >= 0.9 * memory and turn_explains()):
             self._mode, self._moved = TURNING, T
             self._held_x = float(np.median([c for _, c in self._level_x]))
         elif self._mode == LEVEL and rate[PITCHING] > self._turn_pxs and not one_way:
@@ -343,7 +393,7 @@ class FoeFit(Filter):
         elif self._mode != LEVEL and T - self._moved >= window:
             if self._mode == TURNING:
                 self._level_x.clear()
-            self._mode, self._held_x = LEVEL, math.nan
+            self._mode, self._held_x, self._level_fit = LEVEL, math.nan, None
 
     def _shift_slabs(self, T: int) -> None:
         """Move the slabs' rotations to fit time T: each slab's by the whole slabs since the
