@@ -14,11 +14,15 @@ from evchain.testing.contract import check_filter
 from tests.naive.foe_map import expansion_packets
 
 G = Geometry(128, 96, f=100.0)
+#: the settings these tests were written for (the defaults derive the radius and s0 from G's
+#: focal length, and read every 10 ms)
+BASE = {"tau_ms": 300.0, "region_radius_px": 60.0, "estimate_every_us": 1000,
+        "speed_weight_pxs": 5.0}
 
 
 def run(packets, **params):
     f = FoeMap()
-    f.setup(FoeMap.Params(**params), Context())
+    f.setup(FoeMap.Params(**{**BASE, **params}), Context())
     return FlowPacket.concat([f.process(p) for p in packets])
 
 
@@ -35,7 +39,7 @@ RECOVERY = {
     "normal flow": (dict(normal_only=True), (70.3, 40.6), 60.0, 0.7),
     "noise 20% + 10% outliers": (dict(normal_only=True, noise_frac=0.2, outlier_frac=0.1),
                                  (58.0, 50.0), 60.0, 1.5),
-    "near the border": (dict(normal_only=True), (4.0, 91.0), None, 1.5),
+    "near the border": (dict(normal_only=True), (4.0, 91.0), 0.0, 1.5),
 }
 
 
@@ -95,7 +99,7 @@ def test_zero_flow_gives_no_estimate():
 
 @pytest.mark.parametrize("v", [(50.0, 0.0), (0.0, -50.0), (1e-30, 0.0)])
 def test_flow_along_an_axis_is_finite(v):
-    out = run([hard_packet(*v)], estimate_every_us=1000, region_radius_px=None)
+    out = run([hard_packet(*v)], estimate_every_us=1000, region_radius_px=0)
     s = out.series["foe"]
     assert len(s) > 0 and np.isfinite(s["x"]).all() and np.isfinite(s["y"]).all()
     assert np.all(s["support"] > 0)
@@ -148,7 +152,7 @@ def noise_packets(n=20_000, duration_us=500_000, n_packets=5, seed=0, cut=None):
     return [slice_packet(p, int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
 
 
-@pytest.mark.parametrize("radius", [60.0, None])
+@pytest.mark.parametrize("radius", [60.0, 0.0])
 def test_no_estimate_from_flow_without_an_foe(radius):
     """Random directions: without the test an estimate at every read (as before it existed),
     with it none, and the metrics say why."""
@@ -157,7 +161,7 @@ def test_no_estimate_from_flow_without_an_foe(radius):
     assert len(run(packets, significance=None, region_radius_px=radius).series["foe"]) == 499
     f = FoeMap()
     ctx = Context()
-    f.setup(FoeMap.Params(region_radius_px=radius), ctx)
+    f.setup(FoeMap.Params(**{**BASE, "region_radius_px": radius}), ctx)
     out = FlowPacket.concat([f.process(p) for p in packets])
     f.flush()
     assert len(out.series["foe"]) == 0
