@@ -60,13 +60,14 @@ class PlaneFlow(Filter):
             None, gt=0, description="max age of neighbours [maxDtThreshold], µs; the time an "
                                     "edge takes to cross so many px, so null: 80 ms x 380.6 px "
                                     "/ f (camera_scale.derived_us)")
-        refractory_us: int | None = Field(
-            None, ge=0, description="no flow within this of the previous event at the pixel "
-                                    "and polarity [refractoryPeriodUs], µs; longer than the "
-                                    "bursts of slow edges near the FOE, the time they take to "
-                                    "cross a pixel, so null: 350 ms x 380.6 px / f (chosen on "
-                                    "the reference drive: the FOE error is flat from 300 to "
-                                    "400 ms; jAER and the thesis: 150 ms with surface updates)")
+        refractory_us: int = Field(
+            350_000, ge=0, description="no flow within this of the previous event at the pixel "
+                                       "and polarity [refractoryPeriodUs], µs; longer than the "
+                                       "bursts of slow edges near the FOE (chosen on the "
+                                       "reference drive: the FOE error is flat from 300 to 400 "
+                                       "ms; jAER and the thesis: 150 ms with surface updates). "
+                                       "Not derived: a burst lasts while a smooth ramp of the "
+                                       "scene crosses the pixel, an angle over an angular speed")
         border_px: int | None = Field(None, ge=0,
                                       description="no flow this close to the border; "
                                                   "default search_distance")
@@ -151,7 +152,7 @@ class PlaneFlow(Filter):
                               f"than window_us ({window}) {size}, or be 0 (off)")
         return record(
             PlaneParams, variant=VARIANTS[q.variant], r=q.search_distance,
-            window_us=window, refractory_us=derived_us(q.refractory_us, 350_000, geometry),
+            window_us=window, refractory_us=q.refractory_us,
             margin=q.search_distance if q.border_px is None else q.border_px,
             min_points=q.min_points, th1=q.th1,
             th2=q.th2_s if q.th2_s is not None else 0.004 / px_scale(geometry),

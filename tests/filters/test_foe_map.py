@@ -219,3 +219,34 @@ def test_noise_test_matches_a_plain_computation():
                    if b > a]
         got = run(packets, **params).series["foe"]["t"]
         np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("scale", [1.0, 2.0, 0.75])
+def test_px_parameters_follow_the_focal_length(scale):
+    """region_radius_px and speed_weight_pxs left null are 60 px and 5 px/s on the reference
+    camera (320x240, 35 deg) times f / 380.6 px: twice that on 640x480 with the same field of
+    view."""
+    from evchain.core.camera_scale import REFERENCE_FOCAL_PX
+
+    f = FoeMap()
+    f.setup(FoeMap.Params(), Context())
+    f._allocate(Geometry(int(320 * scale), int(240 * scale), f=scale * REFERENCE_FOCAL_PX))
+    assert f._prm["radius"][0] == pytest.approx(60.0 * scale, rel=1e-12)
+    assert f._prm["speed_w0"][0] == pytest.approx(5.0 * scale, rel=1e-12)
+
+
+def test_px_parameters_given_are_kept():
+    """Values given are taken as they are on any camera; 0 is the whole sensor and unweighted
+    votes."""
+    from evchain.core.camera_scale import REFERENCE_FOCAL_PX
+
+    g = Geometry(640, 480, f=2 * REFERENCE_FOCAL_PX)
+    f = FoeMap()
+    f.setup(FoeMap.Params(region_radius_px=45.0, speed_weight_pxs=7.0), Context())
+    f._allocate(g)
+    assert (f._prm["radius"][0], f._prm["speed_w0"][0]) == (45.0, 7.0)
+    f.setup(FoeMap.Params(region_radius_px=0, speed_weight_pxs=0), Context())
+    f._allocate(g)
+    assert f._prm["speed_w0"][0] == 0.0
+    assert f._prm["radius"][0] == pytest.approx(0.5 * np.hypot(640, 480))  # the whole sensor
+    assert f.map_now(0).shape == (480, 640) and not np.isnan(f.map_now(0)).any()

@@ -141,3 +141,28 @@ def test_adaptive_window_bad_settings_on_the_camera_are_refused(bad, says):
     f.setup(PlaneFlow.Params(**bad), Context())
     with pytest.raises(ConfigError, match=says + ".* on this 320x240 camera"):
         f.kernel_params(Geometry(320, 240, f=REFERENCE_FOCAL_PX))
+
+
+@pytest.mark.parametrize("scale", [1.0, 2.0, 0.5])
+def test_windows_and_speeds_follow_the_focal_length(scale):
+    """Left null, the windows and the plane's time limit are the reference camera's (80, 500 ms,
+    4 ms) over f / 380.6 px, the speed ceiling 1000 px/s times it; the grid's lengths and the
+    refractory period (350 ms) stay."""
+    f = PlaneFlow()
+    f.setup(PlaneFlow.Params(), Context())
+    q = f.kernel_params(Geometry(int(320 * scale), int(240 * scale),
+                                 f=scale * REFERENCE_FOCAL_PX))
+    assert (q.window_us, q.max_window_us, q.refractory_us) == (
+        round(80_000 / scale), round(500_000 / scale), 350_000)
+    assert q.th2 == pytest.approx(0.004 / scale, rel=1e-12)
+    assert q.max_speed == pytest.approx(1000.0 * scale, rel=1e-12)
+    assert (q.r, q.margin, q.slow_px, q.refractory_updates) == (2, 2, 2.0, False)
+
+
+def test_windows_given_are_kept():
+    f = PlaneFlow()
+    f.setup(PlaneFlow.Params(window_us=50_000, refractory_us=0, max_window_us=0, th2_s=0.01,
+                             max_speed_pxs=300.0), Context())
+    q = f.kernel_params(Geometry(640, 480, f=2 * REFERENCE_FOCAL_PX))
+    assert (q.window_us, q.refractory_us, q.max_window_us, q.th2, q.max_speed) == (
+        50_000, 0, 0, 0.01, 300.0)
