@@ -55,11 +55,14 @@ def test_a_changed_pipeline_parameter_is_another_entry(tmp_path):
 
 
 @pytest.mark.parametrize("path, use", [(LK, "lk_flow"), (PLANE, "plane_flow")])
-def test_the_flow_input_is_read_from_the_pipeline(path, use):
+def test_the_flow_input_is_read_from_the_pipeline(tmp_path, path, use):
     inp = drive_flow(path, 220, 1)
     assert inp.params["use"] == use
     assert inp.params["flow"] == _stage(path, use).params.model_dump(mode="json")
-    assert inp.params["flow"] != _stage(path, use).cls.Params().model_dump(mode="json")
+    # a setting in the pipeline's flow stage (the reference pipelines run the defaults) is read
+    edited = _edited(tmp_path, path, f"  - use: {use}\n", f"  - use: {use}\n    window_us: 70000\n")
+    assert drive_flow(edited, 220, 1).params["flow"]["window_us"] == 70_000
+    assert inp.params["flow"]["window_us"] is None
     events = inp.needs[0]
     assert events.params["emulator"] == _stage(path, "emulator").params.model_dump(mode="json")
     scene = _stage(path, "scene").params.model_dump(mode="json")
