@@ -42,7 +42,7 @@ def _stage(path, use):
 
 
 def test_a_changed_pipeline_parameter_is_another_entry(tmp_path):
-    window = _edited(tmp_path, LK, "window_us: 80000", "window_us: 60000")
+    window = _edited(tmp_path, LK, "  - use: lk_flow\n", "  - use: lk_flow\n    window_us: 60000\n")
     assert drive_flow(window, 220, 1).key != drive_flow(LK, 220, 1).key
     assert drive_flow(window, 220, 1).params["flow"]["window_us"] == 60000
     assert drive_events(window, 220, 1).key == drive_events(LK, 220, 1).key  # same drive
@@ -152,9 +152,9 @@ def test_the_foe_rows_use_the_pipeline(monkeypatch):
         assert row.extra["params"][use] == _stage(LK, use).params.model_dump(mode="json")
 
     seen.clear()
-    [row] = foe_ttc.WORKLOADS["foe-map-reference-lk"](True)   # foe_map's defaults, and says so
-    assert "foe_map defaults" in row.data and inp.key in row.data
-    assert all(p == type(p)() for p in seen["foe_map"])
+    [row] = foe_ttc.WORKLOADS["foe-map-reference-lk"](True)   # the row's settings, and says so
+    assert "foe_map with 1 ms reads and 300 ms decay" in row.data and inp.key in row.data
+    assert all(p == type(p)(**foe_ttc.ROW_SETTINGS) for p in seen["foe_map"])
 
 
 def test_the_chain_row_runs_the_pipeline_stages(monkeypatch):
