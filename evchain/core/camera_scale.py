@@ -5,7 +5,11 @@ length ``REFERENCE_FOCAL_PX`` = 380.6 px) stands for an angle, and a speed in px
 angular speed: on a camera with focal length f the same angle spans ``f / REFERENCE_FOCAL_PX``
 times as many pixels (a 640x480 sensor with the same field of view: twice as many). Filters
 whose px and px/s parameters default to None derive them with :func:`px_scale` from their
-values on the reference camera.
+values on the reference camera (:func:`derived`). A time that stands for a distance on the
+pixel grid travelled at an image speed (a flow's window: the time in which an edge crosses so
+many pixels) shrinks by the same factor, since the speeds in px/s grow with it
+(:func:`derived_us`). Lengths on the pixel grid itself (a neighbourhood's half-width, a
+distance an edge must cross to be resolved) are not derived.
 """
 
 from __future__ import annotations
@@ -31,3 +35,10 @@ def derived(value: float | None, reference_px: float, geometry: Geometry) -> flo
     """``value`` when given, else ``reference_px`` (its value on the reference camera) scaled
     by :func:`px_scale`."""
     return float(value) if value is not None else reference_px * px_scale(geometry)
+
+
+def derived_us(value: int | None, reference_us: int, geometry: Geometry) -> int:
+    """``value`` when given, else ``reference_us`` (its value on the reference camera) divided
+    by :func:`px_scale`, rounded to whole µs: the time in which an image speed, which grows
+    with the scale, covers the same pixels."""
+    return int(value) if value is not None else round(reference_us / px_scale(geometry))

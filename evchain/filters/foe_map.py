@@ -7,6 +7,7 @@ import math
 import numpy as np
 from pydantic import Field
 
+from evchain.core.camera_scale import derived
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import FlowPacket, Geometry
 from evchain.core.series import FOE
@@ -31,7 +32,7 @@ def region_cells(geometry: Geometry, radius_px: float | None):
         if not mask.any():
             raise DataError(f"foe_map: region A (radius {r} px around ({geometry.cx}, "
                             f"{geometry.cy})) holds no pixel of the {w}x{h} sensor; use a "
-                            "larger region_radius_px or none")
+                            "larger region_radius_px or 0 (the whole sensor)")
     rows = np.nonzero(mask.any(axis=1))[0]
     cols = np.nonzero(mask.any(axis=0))[0]
     y0, x0 = int(rows[0]), int(cols[0])
@@ -97,28 +98,35 @@ class FoeMap(Filter):
     adds_series = (FOE,)
 
     class Params(FilterParams):
-        tau_ms: float = Field(300.0, gt=0, description="decay time constant of the votes")
+        tau_ms: float = Field(100.0, gt=0, description="decay time constant of the votes")
         region_radius_px: float | None = Field(
-            60.0, gt=0, description="radius of region A around the principal point; "
-            "null = the whole sensor (slower: every event then touches every row)")
-        estimate_every_us: int = Field(1000, ge=1, description="period of the FOE estimates")
+            None, ge=0, description="radius of region A around the principal point, px (an "
+            "angle: scales with the camera); null: 60 px x f / 380.6 px (9 deg of view; 60 px "
+            "on the reference camera, camera_scale.px_scale); 0 = the whole sensor (slower: "
+            "every event then touches every row)")
+        estimate_every_us: int = Field(
+            10_000, ge=1, description="period of the FOE estimates; the default is foe_fit's "
+            "and ttc's period (they read the latest estimate at their own times only)")
         refine_fraction: float = Field(
             0.05, ge=0, lt=1, description="sub-pixel refinement: centroid of the cells within "
             "this fraction of (max - min) below the maximum, weighted by height; 0 = centroid "
             "of the maximal set only")
-        min_speed_pxs: float = Field(0.0, ge=0, description="ignore flow slower than this")
+        min_speed_pxs: float = Field(0.0, ge=0, description="ignore flow slower than this, "
+                                     "px/s of this camera (0 = none: not derived)")
         max_angle_deg: float | None = Field(
             None, gt=0, le=180, description="angular gating: ignore flow deviating more than "
             "this from the direction away from the current estimate (null = off)")
         min_support: float = Field(0.0, ge=0, description="emit an estimate only when the "
                                    "decayed votes at the maximum reach this")
         speed_weight_pxs: float | None = Field(
-            5.0, gt=0, description="weigh each vote by s0 / (s0 + speed) with this s0: slow "
-            "normal flow (a boundary line close to the FOE, a tight constraint) counts more "
-            "than fast flow; null = every vote weighs 1")
+            None, ge=0, description="weigh each vote by s0 / (s0 + speed) with this s0, px/s: "
+            "slow normal flow (a boundary line close to the FOE, a tight constraint) counts "
+            "more than fast flow; an angular speed, so null: 5 px/s x f / 380.6 px; 0 = every "
+            "vote weighs 1")
         cell_px: int = Field(1, ge=1, le=16, description="map resolution: square cells of this "
                              "many pixels (the votes are tested at the cell centres); 2 halves "
-                             "the per-event work and quarters the reads")
+                             "the per-event work and quarters the reads. Sensor pixels, not "
+                             "derived: a choice of precision against cost")
         significance: float | None = Field(
             1e-3, gt=0, lt=1, description="emit an estimate only when its consensus (support / "
             "total) exceeds what flow without an FOE (directions independent of positions) "
@@ -136,7 +144,8 @@ class FoeMap(Filter):
 
         p = self.params
         self._geometry = geometry
-        cg, radius = cell_geometry(geometry, p.cell_px, p.region_radius_px)
+        radius_px = derived(p.region_radius_px, 60.0, geometry) or None  # 0: the whole sensor
+        cg, radius = cell_geometry(geometry, p.cell_px, radius_px)
         x0, y0, lo, hi, clo, chi = region_cells(cg, radius)
         self._x0, self._y0 = x0, y0
         self._state = k.new_state(lo, hi, clo, chi)
@@ -151,7 +160,8 @@ class FoeMap(Filter):
             tau_us=p.tau_ms * 1000.0, min_speed_pxs=p.min_speed_pxs,
             cos_gate=math.cos(math.radians(p.max_angle_deg)) if gate_on else -1.0,
             gate_on=gate_on, period_us=p.estimate_every_us, refine_fraction=p.refine_fraction,
-            min_support=p.min_support, speed_w0=p.speed_weight_pxs or 0.0, cx=cx, cy=cy,
+            min_support=p.min_support, speed_w0=derived(p.speed_weight_pxs, 5.0, geometry),
+            cx=cx, cy=cy,
             radius=r, x0=x0, y0=y0)
         #: ln(M / significance), M = the cells of A (the union bound of the noise test)
         cells = int(np.maximum(hi - lo + 1, 0).sum())

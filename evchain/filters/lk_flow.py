@@ -7,10 +7,11 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, model_validator
 
+from evchain.core.camera_scale import derived, derived_us
 from evchain.core.filter import Filter, FilterParams
-from evchain.core.packets import EventPacket, FlowPacket
+from evchain.core.packets import EventPacket, FlowPacket, Geometry
 from evchain.core.series import DENSITY_BIN_US, FLOW_DENSITY, DensityCounter
-from evchain.errors import FilterError
+from evchain.errors import ConfigError, FilterError
 
 DENSITY_SERIES = FLOW_DENSITY.name
 
@@ -29,7 +30,10 @@ class LKFlow(Filter):
     mode can adapt the window to the edge's speed: longer for slow edges (``max_window_us``),
     and a short first window for fast ones (``min_window_us``). Emits only
     events with non-zero flow, and appends the series ``flow_density`` (t, n_in, n_out per 100 ms
-    bin) for the scorer. See docs/explanation/lk_flow.md.
+    bin) for the scorer. Times and speeds left null follow the camera (their reference camera
+    values scaled by ``camera_scale``: an image speed in px/s grows with the focal length, so
+    the time in which an edge crosses so many pixels shrinks); lengths on the pixel grid do
+    not. See docs/explanation/lk_flow.md.
     """
 
     name = "lk_flow"
@@ -39,13 +43,17 @@ class LKFlow(Filter):
 
     class Params(FilterParams):
         search_distance: int = Field(2, ge=1, le=8, description=(
-            "half-width r of the (2r+1)² neighbourhood [jAER searchDistance]"))
-        window_us: int = Field(80_000, ge=1, le=100_000_000, description=(
-            "age of the events counted in the neighbourhood, µs [jAER maxDtThreshold]"))
-        refractory_us: int = Field(150_000, ge=0, le=100_000_000, description=(
+            "half-width r of the (2r+1)² neighbourhood [jAER searchDistance]; pixels of the "
+            "sensor's grid (the stencil of the gradient), not derived"))
+        window_us: int | None = Field(None, ge=1, le=100_000_000, description=(
+            "age of the events counted in the neighbourhood, µs [jAER maxDtThreshold]; the "
+            "time an edge takes to cross so many px, so null: 80 ms x 380.6 px / f (80 ms on "
+            "the reference camera, camera_scale.derived_us)"))
+        refractory_us: int | None = Field(None, ge=0, le=100_000_000, description=(
             "no flow for an event that follows the previous one at its pixel and polarity by "
             "less than this, µs; its timestamp still enters the memory [refractoryPeriodUs]; "
-            "150 ms is the thesis's selection (Table 4.3)"))
+            "the time an edge takes to cross a pixel, so null: 150 ms x 380.6 px / f (the "
+            "thesis's selection on the reference camera, Table 4.3)"))
         eig_threshold: float = Field(1.0, ge=0.0, description=(
             "faithful mode: confidence threshold th on the structure tensor's eigenvalues "
             "(lambda1 < th: none, lambda2 < th: normal flow, else full) [jAER thr]"))
@@ -63,74 +71,98 @@ class LKFlow(Filter):
         max_speed_factor: float = Field(2.0, gt=0.0, description=(
             "speed control rejects speeds above this factor x the mean "
             "[jAER excessSpeedRejectFactor]"))
-        max_speed_pxs: float = Field(1e5, gt=0.0, description=(
-            "calibrated mode: drop flow faster than this, px/s"))
+        max_speed_pxs: float | None = Field(None, gt=0.0, description=(
+            "calibrated mode: drop flow faster than this, px/s; null: 1e5 px/s x f / 380.6 px"))
         refit_tolerance: float = Field(0.25, ge=0.0, description=(
             "calibrated mode: drop equations that disagree with the first solution (finite "
             "differences: relative slope mismatch above this; Savitzky-Golay: pixels farther "
-            "than this, px, from the plane) and solve again once; 0 = off"))
+            "than this, px of the grid, from the plane) and solve again once; 0 = off"))
         centre_check_px: float = Field(0.5, ge=0.0, description=(
             "calibrated mode: drop the estimate when the event's own onset lies farther than "
-            "this (px, along the normal) from the plane the flow implies through its active "
-            "neighbours, i.e. the neighbours belong to an older edge; 0 = off"))
+            "this (px of the grid, along the normal) from the plane the flow implies through "
+            "its active neighbours, i.e. the neighbours belong to an older edge; 0 = off"))
         mode: Literal["faithful", "calibrated"] = Field("calibrated", description=(
             "faithful: jAER's numbers (uncalibrated magnitudes); calibrated: px/s"))
         fifo_depth: int = Field(8, ge=1, le=256, description=(
             "timestamps kept per pixel and polarity; must exceed the events a pixel fires "
             "within window_us (max_window_us when set), or counts saturate"))
-        max_window_us: int = Field(0, ge=0, le=100_000_000, description=(
+        max_window_us: int | None = Field(None, ge=0, le=100_000_000, description=(
             "calibrated mode: speed-adaptive window, off at 0. An event whose estimate with "
             "window_us fails or says the edge crosses fewer than slow_px px within the window "
             "is estimated again with min(max_window_us, slow_px / speed) (max_window_us after a "
             "failure; at most 3 estimates); a longer window's estimate is kept only if the edge "
-            "is slow enough to need it, µs"))
-        slow_px: float = Field(2.0, gt=0.0, le=100.0, description=(
-            "calibrated mode with max_window_us: the distance, px, an edge must cross within "
-            "its window to be resolved"))
+            "is slow enough to need it, µs. It sets the slowest edge resolved, slow_px / "
+            "max_window_us px/s, so null: 300 ms x 380.6 px / f (chosen on the reference "
+            "drive); off in faithful mode"))
+        slow_px: float = Field(3.0, gt=0.0, le=100.0, description=(
+            "calibrated mode with max_window_us: the distance, px of the grid, an edge must "
+            "cross within its window to be resolved (3 exceeds the ~2 events a pixel fires "
+            "while an edge passes, so the onset of the pixel behind lies inside the window); "
+            "not derived"))
 
         min_window_us: int = Field(0, ge=0, le=100_000_000, description=(
             "calibrated mode: two time scales, off at 0 (else shorter than window_us). Each "
             "event is first estimated with min_window_us; that estimate stands when the edge "
             "crosses at least fast_px px within it, else the event is estimated as without it "
-            "(window_us, then the speed-adaptive window), µs"))
+            "(window_us, then the speed-adaptive window), µs; taken as given"))
         fast_px: float = Field(8.0, gt=0.0, le=100.0, description=(
-            "calibrated mode with min_window_us: the distance, px, an edge must cross within "
-            "min_window_us for the short window's estimate to stand"))
+            "calibrated mode with min_window_us: the distance, px of the grid, an edge must "
+            "cross within min_window_us for the short window's estimate to stand"))
 
         @model_validator(mode="after")
         def _adaptive_window(self):
-            if self.max_window_us and self.max_window_us <= self.window_us:
+            given = self.window_us is not None
+            if given and self.max_window_us and self.max_window_us <= self.window_us:
                 raise ValueError(f"max_window_us ({self.max_window_us}) must exceed window_us "
                                  f"({self.window_us}), or be 0 (off)")
+            if given and self.min_window_us and self.min_window_us >= self.window_us:
+                raise ValueError(f"min_window_us ({self.min_window_us}) must be shorter than "
+                                 f"window_us ({self.window_us}), or be 0 (off)")
             if self.max_window_us and self.mode == "faithful":
                 raise ValueError("max_window_us (speed-adaptive window) is calibrated mode "
                                  "only")
-            if self.min_window_us and self.min_window_us >= self.window_us:
-                raise ValueError(f"min_window_us ({self.min_window_us}) must be shorter than "
-                                 f"window_us ({self.window_us}), or be 0 (off)")
             if self.min_window_us and self.mode == "faithful":
                 raise ValueError("min_window_us (short window) is calibrated mode only")
             return self
 
-    def reset(self) -> None:
-        from evchain.kernels.lk_flow import LKParams, new_state
+    def kernel_params(self, geometry: Geometry):
+        """The kernel's parameters on this camera (null ones derived from it), checked."""
+        from evchain.kernels.lk_flow import LKParams
         from evchain.kernels.records import record
 
         q = self.params
-        self._prm = record(
-            LKParams, r=q.search_distance, window_us=q.window_us, refractory_us=q.refractory_us,
+        window = derived_us(q.window_us, 80_000, geometry)
+        longest = 0 if q.mode == "faithful" else derived_us(q.max_window_us, 300_000, geometry)
+        if longest and longest <= window:
+            raise ConfigError(f"lk_flow: max_window_us ({longest}) must exceed window_us "
+                              f"({window}) on this {geometry.width}x{geometry.height} camera, "
+                              "or be 0 (off)")
+        if q.min_window_us and q.min_window_us >= window:
+            raise ConfigError(f"lk_flow: min_window_us ({q.min_window_us}) must be shorter "
+                              f"than window_us ({window}) on this {geometry.width}x"
+                              f"{geometry.height} camera, or be 0 (off)")
+        return record(
+            LKParams, r=q.search_distance, window_us=window,
+            refractory_us=derived_us(q.refractory_us, 150_000, geometry),
             gradient=GRADIENTS[q.gradient], faithful=q.mode == "faithful",
             eig_threshold=q.eig_threshold, eig_ratio=q.eig_ratio, speed_control=q.speed_control,
             mix=q.speed_control_mix, max_factor=q.max_speed_factor,
-            max_speed_pxs=q.max_speed_pxs, refit_tolerance=q.refit_tolerance,
-            centre_check_px=q.centre_check_px, max_window_us=q.max_window_us,
-            slow_px=q.slow_px, min_window_us=q.min_window_us, fast_px=q.fast_px)
+            max_speed_pxs=derived(q.max_speed_pxs, 1e5, geometry),
+            refit_tolerance=q.refit_tolerance, centre_check_px=q.centre_check_px,
+            max_window_us=longest, slow_px=q.slow_px, min_window_us=q.min_window_us,
+            fast_px=q.fast_px)
+
+    def reset(self) -> None:
+        from evchain.kernels.lk_flow import new_state
+
         self._density = DensityCounter(DENSITY_BIN_US)
         self._last = None
         g = self.context.geometry
         self._state = None
         self._shape = None
+        self._prm = None
         if g is not None:
+            self._prm = self.kernel_params(g)
             self._state = new_state(g.height, g.width, self.params.fifo_depth)
             self._shape = (g.height, g.width)
 
@@ -138,6 +170,8 @@ class LKFlow(Filter):
         from evchain.kernels.lk_flow import lk_flow_run
 
         g = packet.geometry
+        if self._prm is None:
+            self._prm = self.kernel_params(g)
         if self._state is None or self._shape != (g.height, g.width):
             if self._state is not None:
                 raise FilterError(f"lk_flow: sensor changed from {self._shape[1]}x"

@@ -73,7 +73,11 @@ class Ttc(Filter):
                                            "the obstacle is not swallowed by road clusters)")
         join_margin_px: float = Field(4.0, ge=0, description="events this far outside a "
                                       "cluster's square still join it (and grow it)")
-        activity_tau_ms: float = Field(100.0, gt=0, description="decay of cluster activity")
+        activity_tau_ms: float = Field(
+            150.0, gt=0, description="decay of cluster activity (a far obstacle's slow edges "
+            "give few flow events; with 100 ms its cluster drops below the selection and "
+            "removal thresholds between them and restarts; 150 ms chosen on the reference "
+            "drive and its variations)")
         min_activity: float = Field(2.0, gt=0, description="clusters whose decayed activity "
                                     "(events) falls below this are removed")
         max_clusters: int = Field(32, ge=1, le=1024, description="cluster slots")
@@ -93,7 +97,7 @@ class Ttc(Filter):
                                            "to be selected as the obstacle (nearest_foe)")
         gate_sigma: float = Field(3.0, gt=0, description="reject medians farther than this "
                                   "many sigma from the prediction (3 in a row restart)")
-        ground_test: bool = Field(False, description="only clusters nearer than the road at "
+        ground_test: bool = Field(True, description="only clusters nearer than the road at "
                                   "their rows can be the obstacle: median(tau * dy) / K < 1 - "
                                   "ground_tolerance, K = f h / V estimated from the events")
         ground_tolerance: float = Field(0.1, gt=0, lt=0.5, description="relative band around "

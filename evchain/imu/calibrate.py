@@ -20,9 +20,11 @@ from evchain.imu.gyro import GyroTrack
 from evchain.imu.rotflow import flow_matrix
 
 #: the measurement: robust plane fits on the surface of each burst's onset (a pixel's events
-#: within 150 ms of its previous one neither get flow nor update the surface)
+#: within 150 ms of its previous one neither get flow nor update the surface), with a fixed
+#: window, whatever the camera
 MEASUREMENT = dict(variant="robust", search_distance=3, window_us=80_000,
-                   refractory_us=150_000, refractory_updates=False)
+                   refractory_us=150_000, refractory_updates=False, max_window_us=0,
+                   th2_s=0.004, max_speed_pxs=1000.0)
 
 #: a still stretch: 200 ms windows in which the gyro varies by less than STILL_STD_DPS (standard
 #: deviation) and reads less than STILL_MAX_DPS on every axis, with fewer than STILL_EVENT_SHARE

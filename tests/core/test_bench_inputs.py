@@ -42,7 +42,7 @@ def _stage(path, use):
 
 
 def test_a_changed_pipeline_parameter_is_another_entry(tmp_path):
-    window = _edited(tmp_path, LK, "window_us: 80000", "window_us: 60000")
+    window = _edited(tmp_path, LK, "  - use: lk_flow\n", "  - use: lk_flow\n    window_us: 60000\n")
     assert drive_flow(window, 220, 1).key != drive_flow(LK, 220, 1).key
     assert drive_flow(window, 220, 1).params["flow"]["window_us"] == 60000
     assert drive_events(window, 220, 1).key == drive_events(LK, 220, 1).key  # same drive
@@ -55,11 +55,14 @@ def test_a_changed_pipeline_parameter_is_another_entry(tmp_path):
 
 
 @pytest.mark.parametrize("path, use", [(LK, "lk_flow"), (PLANE, "plane_flow")])
-def test_the_flow_input_is_read_from_the_pipeline(path, use):
+def test_the_flow_input_is_read_from_the_pipeline(tmp_path, path, use):
     inp = drive_flow(path, 220, 1)
     assert inp.params["use"] == use
     assert inp.params["flow"] == _stage(path, use).params.model_dump(mode="json")
-    assert inp.params["flow"] != _stage(path, use).cls.Params().model_dump(mode="json")
+    # a setting in the pipeline's flow stage (the reference pipelines run the defaults) is read
+    edited = _edited(tmp_path, path, f"  - use: {use}\n", f"  - use: {use}\n    window_us: 70000\n")
+    assert drive_flow(edited, 220, 1).params["flow"]["window_us"] == 70_000
+    assert inp.params["flow"]["window_us"] is None
     events = inp.needs[0]
     assert events.params["emulator"] == _stage(path, "emulator").params.model_dump(mode="json")
     scene = _stage(path, "scene").params.model_dump(mode="json")
@@ -149,9 +152,9 @@ def test_the_foe_rows_use_the_pipeline(monkeypatch):
         assert row.extra["params"][use] == _stage(LK, use).params.model_dump(mode="json")
 
     seen.clear()
-    [row] = foe_ttc.WORKLOADS["foe-map-reference-lk"](True)   # foe_map's defaults, and says so
-    assert "foe_map defaults" in row.data and inp.key in row.data
-    assert all(p == type(p)() for p in seen["foe_map"])
+    [row] = foe_ttc.WORKLOADS["foe-map-reference-lk"](True)   # the row's settings, and says so
+    assert "foe_map with 1 ms reads and 300 ms decay" in row.data and inp.key in row.data
+    assert all(p == type(p)(**foe_ttc.ROW_SETTINGS) for p in seen["foe_map"])
 
 
 def test_the_chain_row_runs_the_pipeline_stages(monkeypatch):

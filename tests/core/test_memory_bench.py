@@ -3,8 +3,8 @@ flow chain's parameters."""
 
 import numpy as np
 
-from evchain.benchmarks.memory import FLOW_CHAIN, WORKLOADS, chain_text, write_repeated
-from evchain.core.config import pipeline_from_text
+from evchain.benchmarks.memory import FLOW_CHAIN, PIPELINE, WORKLOADS, chain_text, write_repeated
+from evchain.core.config import load_pipeline, pipeline_from_text
 from evchain.core.registry import make_registry
 from evchain.io.aedat2 import read_aedat2, write_aedat2
 from evchain.testing.synthetic import random_events
@@ -26,5 +26,7 @@ def test_the_chain_is_the_reference_flow_chain(tmp_path):
     write_aedat2(tmp_path / "e.aedat", random_events(10, seed=1), chip="davis240")
     spec = pipeline_from_text(chain_text(tmp_path / "e.aedat"), "m.yaml", make_registry())
     assert [s.use for s in spec.stages] == ["aedat", *FLOW_CHAIN]
-    assert spec.stage("lk_flow").params.window_us == 80_000  # reference-lk.yaml's value
+    reference = load_pipeline(PIPELINE, make_registry())
+    for use in FLOW_CHAIN:  # reference-lk.yaml's settings
+        assert spec.stage(use).params == reference.stage(use).params
     assert "memory-flow-chain" in WORKLOADS and "memory-flow-chain" in make_registry().workloads

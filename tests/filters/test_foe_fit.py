@@ -33,7 +33,8 @@ def packets(foe, geometry, n=60000, duration_us=600_000, n_packets=60, seed=0, *
 
 def run(pk, **fit):
     m, f = FoeMap(), FoeFit()
-    m.setup(FoeMap.Params(region_radius_px=60), Context())
+    # the votes these tests were written with: 300 ms decay, read every ms
+    m.setup(FoeMap.Params(tau_ms=300.0, estimate_every_us=1000), Context())
     f.setup(FoeFit.Params(**fit), Context())
     return FlowPacket.concat([f.process(m.process(p)) for p in pk])
 

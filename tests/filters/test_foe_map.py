@@ -14,11 +14,15 @@ from evchain.testing.contract import check_filter
 from tests.naive.foe_map import expansion_packets
 
 G = Geometry(128, 96, f=100.0)
+#: the settings these tests were written for (the defaults derive the radius and s0 from G's
+#: focal length, and read every 10 ms)
+BASE = {"tau_ms": 300.0, "region_radius_px": 60.0, "estimate_every_us": 1000,
+        "speed_weight_pxs": 5.0}
 
 
 def run(packets, **params):
     f = FoeMap()
-    f.setup(FoeMap.Params(**params), Context())
+    f.setup(FoeMap.Params(**{**BASE, **params}), Context())
     return FlowPacket.concat([f.process(p) for p in packets])
 
 
@@ -35,7 +39,7 @@ RECOVERY = {
     "normal flow": (dict(normal_only=True), (70.3, 40.6), 60.0, 0.7),
     "noise 20% + 10% outliers": (dict(normal_only=True, noise_frac=0.2, outlier_frac=0.1),
                                  (58.0, 50.0), 60.0, 1.5),
-    "near the border": (dict(normal_only=True), (4.0, 91.0), None, 1.5),
+    "near the border": (dict(normal_only=True), (4.0, 91.0), 0.0, 1.5),
 }
 
 
@@ -95,7 +99,7 @@ def test_zero_flow_gives_no_estimate():
 
 @pytest.mark.parametrize("v", [(50.0, 0.0), (0.0, -50.0), (1e-30, 0.0)])
 def test_flow_along_an_axis_is_finite(v):
-    out = run([hard_packet(*v)], estimate_every_us=1000, region_radius_px=None)
+    out = run([hard_packet(*v)], estimate_every_us=1000, region_radius_px=0)
     s = out.series["foe"]
     assert len(s) > 0 and np.isfinite(s["x"]).all() and np.isfinite(s["y"]).all()
     assert np.all(s["support"] > 0)
@@ -148,7 +152,7 @@ def noise_packets(n=20_000, duration_us=500_000, n_packets=5, seed=0, cut=None):
     return [slice_packet(p, int(a), int(b)) for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
 
 
-@pytest.mark.parametrize("radius", [60.0, None])
+@pytest.mark.parametrize("radius", [60.0, 0.0])
 def test_no_estimate_from_flow_without_an_foe(radius):
     """Random directions: without the test an estimate at every read (as before it existed),
     with it none, and the metrics say why."""
@@ -157,7 +161,7 @@ def test_no_estimate_from_flow_without_an_foe(radius):
     assert len(run(packets, significance=None, region_radius_px=radius).series["foe"]) == 499
     f = FoeMap()
     ctx = Context()
-    f.setup(FoeMap.Params(region_radius_px=radius), ctx)
+    f.setup(FoeMap.Params(**{**BASE, "region_radius_px": radius}), ctx)
     out = FlowPacket.concat([f.process(p) for p in packets])
     f.flush()
     assert len(out.series["foe"]) == 0
@@ -215,3 +219,34 @@ def test_noise_test_matches_a_plain_computation():
                    if b > a]
         got = run(packets, **params).series["foe"]["t"]
         np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("scale", [1.0, 2.0, 0.75])
+def test_px_parameters_follow_the_focal_length(scale):
+    """region_radius_px and speed_weight_pxs left null are 60 px and 5 px/s on the reference
+    camera (320x240, 35 deg) times f / 380.6 px: twice that on 640x480 with the same field of
+    view."""
+    from evchain.core.camera_scale import REFERENCE_FOCAL_PX
+
+    f = FoeMap()
+    f.setup(FoeMap.Params(), Context())
+    f._allocate(Geometry(int(320 * scale), int(240 * scale), f=scale * REFERENCE_FOCAL_PX))
+    assert f._prm["radius"][0] == pytest.approx(60.0 * scale, rel=1e-12)
+    assert f._prm["speed_w0"][0] == pytest.approx(5.0 * scale, rel=1e-12)
+
+
+def test_px_parameters_given_are_kept():
+    """Values given are taken as they are on any camera; 0 is the whole sensor and unweighted
+    votes."""
+    from evchain.core.camera_scale import REFERENCE_FOCAL_PX
+
+    g = Geometry(640, 480, f=2 * REFERENCE_FOCAL_PX)
+    f = FoeMap()
+    f.setup(FoeMap.Params(region_radius_px=45.0, speed_weight_pxs=7.0), Context())
+    f._allocate(g)
+    assert (f._prm["radius"][0], f._prm["speed_w0"][0]) == (45.0, 7.0)
+    f.setup(FoeMap.Params(region_radius_px=0, speed_weight_pxs=0), Context())
+    f._allocate(g)
+    assert f._prm["speed_w0"][0] == 0.0
+    assert f._prm["radius"][0] == pytest.approx(0.5 * np.hypot(640, 480))  # the whole sensor
+    assert f.map_now(0).shape == (480, 640) and not np.isnan(f.map_now(0)).any()

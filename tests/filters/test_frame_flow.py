@@ -83,7 +83,7 @@ def test_expansion_flow_foe_and_ttc():
     assert np.median(err) < 0.08                  # DIS's patches translate; the image scales
     assert abs(np.median(gain) - 1) < 0.02        # but the speeds are unbiased
     # FOE by half-plane voting on the full flow (whole sensor)
-    votes = run(FoeMap, {"region_radius_px": None, "tau_ms": 100,
+    votes = run(FoeMap, {"region_radius_px": 0, "tau_ms": 100,
                          "estimate_every_us": 10_000}, flow)
     est = np.concatenate([p.series["foe"] for p in votes])
     late = est[est["t"] > 300_000]

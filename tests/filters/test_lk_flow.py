@@ -2,27 +2,37 @@
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from evchain.core.camera_scale import REFERENCE_FOCAL_PX
 from evchain.core.filter import Context
 from evchain.core.packets import EventPacket, FlowPacket, Geometry
+from evchain.errors import ConfigError
 from evchain.filters.lk_flow import GRADIENTS, LKFlow
 from evchain.testing.contract import check_filter, recut
 from evchain.testing.synthetic import moving_edge_events, random_events
 
 DVSFLOW16 = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "dvsflow16"
-GEOM = Geometry(32, 24)
+GEOM = Geometry(32, 24, f=REFERENCE_FOCAL_PX)
+
+
+#: the fixed window these tests were written for (the default adapts it to slow edges)
+FIXED = {"max_window_us": 0}
 
 
 def run(events: EventPacket, **params) -> FlowPacket:
     f = LKFlow()
-    f.setup(LKFlow.Params(**params), Context(geometry=events.geometry))
+    f.setup(LKFlow.Params(**{**FIXED, **params}), Context(geometry=events.geometry))
     out = f.process(events)
     out.validate("lk_flow output")
     return out
+
+
+run_fixed = run
 
 
 def edge_from_centre(speed, angle_deg, geometry=GEOM, travel_px=10.0):
@@ -62,7 +72,7 @@ def test_calibrated_normal_flow_8_directions_1_to_5000_pxs(gradient):
 def test_faithful_savitzky_golay_gives_jaer_33_pxs_whatever_the_speed():
     """jAER's LK with the Savitzky-Golay gradient takes the normal-flow branch and returns
     about 33 px/s (r = 2, 80 ms window) whatever the true speed."""
-    g = Geometry(64, 48)
+    g = Geometry(64, 48, f=REFERENCE_FOCAL_PX)
     for speed in [100.0, 400.0, 1500.0]:
         ev = moving_edge_events(speed, 0.0, g, duration_us=int(60 / speed * 1e6))
         out = run(ev, gradient="savitzky_golay", mode="faithful", speed_control=False)
@@ -74,7 +84,7 @@ def test_faithful_savitzky_golay_gives_jaer_33_pxs_whatever_the_speed():
 def test_faithful_speed_control_starts_from_zero_mean():
     """jAER's running mean starts at 0, so the first flow events are rejected as speeders;
     calibrated mode starts the mean at the first speed."""
-    ev = moving_edge_events(200.0, 0.0, Geometry(64, 48), duration_us=300_000)
+    ev = moving_edge_events(200.0, 0.0, Geometry(64, 48, f=REFERENCE_FOCAL_PX), duration_us=300_000)
     on = run(ev, gradient="central", mode="faithful")
     off = run(ev, gradient="central", mode="faithful", speed_control=False)
     assert len(on) < len(off)
@@ -85,7 +95,7 @@ def test_faithful_speed_control_starts_from_zero_mean():
 
 
 def test_refractory_suppresses_flow_but_updates_memory():
-    g = Geometry(32, 24)
+    g = Geometry(32, 24, f=REFERENCE_FOCAL_PX)
     ev = moving_edge_events(300.0, 0.0, g, duration_us=100_000)
     twice = EventPacket.concat([ev, ev.replace(t=ev.t + 100_000, t_start=100_000,
                                                t_end=200_000)])
@@ -97,7 +107,7 @@ def test_refractory_suppresses_flow_but_updates_memory():
 
 
 def event_stream():
-    g = Geometry(48, 36)
+    g = Geometry(48, 36, f=REFERENCE_FOCAL_PX)
     edge = moving_edge_events(400.0, 150.0, g, duration_us=150_000)
     noise = random_events(300, g, 0, 150_000, seed=3)
     merged = EventPacket.concat([edge, noise])
@@ -118,7 +128,7 @@ def test_packet_cuts_do_not_change_flow():
     packets = event_stream()
     whole = run(EventPacket.concat(packets), gradient="central")
     f = LKFlow()
-    f.setup(LKFlow.Params(gradient="central"), Context(geometry=packets[0].geometry))
+    f.setup(LKFlow.Params(**FIXED, gradient="central"), Context(geometry=packets[0].geometry))
     parts = [f.process(p) for p in recut(packets, [1_000, 1_001, 77_777])]
     cut = FlowPacket.concat(parts)
     assert len(whole) > 50
@@ -152,6 +162,9 @@ def square_aee(out, gt):
 
 def test_dvsflow16_square_calibrated_and_faithful():
     ev, gt = _square()
+    # the recording has no focal length: the windows of the reference camera, as in
+    # pipelines/dvsflow16-square-lk.yaml
+    run = functools.partial(run_fixed, window_us=80_000, refractory_us=150_000)
     for gradient in GRADIENTS:
         out = run(ev, gradient=gradient)
         aee, n = square_aee(out, gt)
@@ -164,7 +177,7 @@ def test_dvsflow16_square_calibrated_and_faithful():
 
 
 def blurred_edge(speed, angle_deg, n_per_pixel=3, spread_px=0.6, jitter_px=0.1, seed=0,
-                 geometry=Geometry(40, 30), gap_px=4.0):
+                 geometry=Geometry(40, 30, f=REFERENCE_FOCAL_PX), gap_px=4.0):
     """An ON edge of ``n_per_pixel`` events per pixel spread over ``spread_px`` of travel, with
     Gaussian timing jitter, followed ``gap_px`` behind by an OFF edge (polarities interleave)."""
     rng = np.random.default_rng(seed)
@@ -209,7 +222,7 @@ def test_centre_check_removes_flow_from_an_older_crossing_edge():
     """Edge A sweeps right; edge B (same polarity) sweeps down through pixels A activated
     within the window, so their onsets are A's: without the centre check ~12 % of the flow
     points in neither edge's direction; with the default check none does."""
-    g = Geometry(40, 30)
+    g = Geometry(40, 30, f=REFERENCE_FOCAL_PX)
     a = moving_edge_events(300.0, 0.0, g, duration_us=200_000)
     b = moving_edge_events(0.0, 300.0, g, duration_us=200_000, offset_px=-3.0)
     ev = EventPacket.concat([a, b])
@@ -227,8 +240,8 @@ def test_centre_check_removes_flow_from_an_older_crossing_edge():
 
 
 @pytest.mark.parametrize("bad, says", [
-    (dict(max_window_us=80_000), "must exceed window_us"),
-    (dict(min_window_us=80_000), "must be shorter than window_us"),
+    (dict(window_us=80_000, max_window_us=80_000), "must exceed window_us"),
+    (dict(window_us=80_000, min_window_us=80_000), "must be shorter than window_us"),
     (dict(min_window_us=20_000, mode="faithful"), "calibrated mode only"),
     (dict(max_window_us=400_000, mode="faithful"), "calibrated mode only"),
 ])
@@ -236,3 +249,42 @@ def test_adaptive_window_bad_settings_are_refused(bad, says):
     with pytest.raises(ValueError, match=says):
         LKFlow.Params(**bad)
     LKFlow.Params(max_window_us=400_000, min_window_us=20_000)  # a valid setting passes
+
+
+@pytest.mark.parametrize("bad, says", [
+    (dict(max_window_us=80_000), "must exceed window_us"),
+    (dict(min_window_us=80_000), "must be shorter than window_us"),
+    (dict(window_us=500_000), "must exceed window_us"),
+])
+def test_adaptive_window_bad_settings_on_the_camera_are_refused(bad, says):
+    """Settings that are valid alone fail once the null ones are derived from the camera (80 ms
+    and the longest window on the reference camera), with the camera named."""
+    f = LKFlow()
+    f.setup(LKFlow.Params(**bad), Context())
+    with pytest.raises(ConfigError, match=says + ".* on this 320x240 camera"):
+        f.kernel_params(Geometry(320, 240, f=REFERENCE_FOCAL_PX))
+
+
+@pytest.mark.parametrize("scale", [1.0, 2.0, 0.5])
+def test_windows_and_speeds_follow_the_focal_length(scale):
+    """Left null, the windows and the refractory period are the reference camera's (80, 150,
+    300 ms) over f / 380.6 px, the speed ceiling 1e5 px/s times it; the grid's lengths stay."""
+    f = LKFlow()
+    f.setup(LKFlow.Params(), Context())
+    q = f.kernel_params(Geometry(int(320 * scale), int(240 * scale),
+                                 f=scale * REFERENCE_FOCAL_PX))
+    assert (q.window_us, q.refractory_us, q.max_window_us) == (
+        round(80_000 / scale), round(150_000 / scale), round(300_000 / scale))
+    assert q.max_speed_pxs == pytest.approx(1e5 * scale, rel=1e-12)
+    assert (q.r, q.slow_px, q.centre_check_px) == (2, 3.0, 0.5)
+
+
+def test_windows_given_are_kept():
+    f = LKFlow()
+    f.setup(LKFlow.Params(window_us=50_000, refractory_us=0, max_window_us=0,
+                          max_speed_pxs=300.0), Context())
+    q = f.kernel_params(Geometry(640, 480, f=2 * REFERENCE_FOCAL_PX))
+    assert (q.window_us, q.refractory_us, q.max_window_us, q.max_speed_pxs) == (
+        50_000, 0, 0, 300.0)
+    f.setup(LKFlow.Params(mode="faithful"), Context())  # no adaptive window in faithful mode
+    assert f.kernel_params(Geometry(640, 480, f=2 * REFERENCE_FOCAL_PX)).max_window_us == 0

@@ -7,9 +7,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from evchain.core.camera_scale import REFERENCE_FOCAL_PX
 from evchain.core.filter import Context
 from evchain.core.packets import EventPacket, Geometry
 from evchain.core.series import FLOW_DENSITY
+from evchain.errors import ConfigError
 from evchain.filters.flow_scorer import score_flow
 from evchain.filters.plane_flow import PlaneFlow
 from evchain.testing.contract import check_filter, recut
@@ -20,7 +22,7 @@ VARIANTS = ["single", "iterative", "robust", "original", "savitzky_golay"]
 
 
 def edge_stream() -> list[EventPacket]:
-    g = Geometry(48, 36)
+    g = Geometry(48, 36, f=REFERENCE_FOCAL_PX)
     edge = moving_edge_events(120.0, 70.0, g, duration_us=400_000)
     off = moving_edge_events(-60.0, 20.0, g, duration_us=400_000, polarity=-1)
     noise = random_events(400, g, 0, 400_000, seed=3)
@@ -50,16 +52,21 @@ def test_defaults_run(tmp_path):
     assert len(out["t"]) > 0
 
 
+#: jAER's refractory and the fixed window these tests were written for (the defaults keep each
+#: burst's onset and adapt the window to slow edges)
+JAER = {"refractory_us": 150_000, "refractory_updates": True, "max_window_us": 0}
+
+
 def run(packets, **params):
     f = PlaneFlow()
-    f.setup(PlaneFlow.Params(**params), Context(geometry=packets[0].geometry))
+    f.setup(PlaneFlow.Params(**{**JAER, **params}), Context(geometry=packets[0].geometry))
     outs = [f.process(p) for p in packets]
     last = f.flush()
     return outs + ([last] if last is not None else [])
 
 
 def test_edge_velocity_through_filter():
-    g = Geometry(48, 36)
+    g = Geometry(48, 36, f=REFERENCE_FOCAL_PX)
     ev = moving_edge_events(-150.0, 80.0, g, duration_us=300_000)
     for variant in ("single", "iterative", "robust", "savitzky_golay"):
         outs = run(recut([ev], [100_000, 200_000]), variant=variant, refractory_us=0,
@@ -79,7 +86,7 @@ def test_refractory_lowers_density():
 
 
 def test_empty_stream():
-    g = Geometry(20, 10)
+    g = Geometry(20, 10, f=REFERENCE_FOCAL_PX)
     outs = run([EventPacket.empty(g, 0, 1000), EventPacket.empty(g, 1000, 5000)])
     assert [len(o) for o in outs] == [0, 0, 0]
     assert outs[-1].t_start == outs[-1].t_end == 5000
@@ -111,8 +118,8 @@ def test_dvsflow16_square(variant):
 
 
 @pytest.mark.parametrize("bad, says", [
-    (dict(max_window_us=80_000), "must exceed window_us"),
-    (dict(min_window_us=80_000), "must be shorter than window_us"),
+    (dict(window_us=80_000, max_window_us=80_000), "must exceed window_us"),
+    (dict(window_us=80_000, min_window_us=80_000), "must be shorter than window_us"),
     (dict(min_window_us=20_000, variant="original"), "does not apply to variant original"),
     (dict(max_window_us=400_000, variant="original"), "does not apply to variant original"),
 ])
@@ -120,3 +127,42 @@ def test_adaptive_window_bad_settings_are_refused(bad, says):
     with pytest.raises(ValueError, match=says):
         PlaneFlow.Params(**bad)
     PlaneFlow.Params(max_window_us=400_000, min_window_us=10_000)  # a valid setting passes
+
+
+@pytest.mark.parametrize("bad, says", [
+    (dict(max_window_us=80_000), "must exceed window_us"),
+    (dict(min_window_us=80_000), "must be shorter than window_us"),
+    (dict(window_us=500_000), "must exceed window_us"),
+])
+def test_adaptive_window_bad_settings_on_the_camera_are_refused(bad, says):
+    """Settings that are valid alone fail once the null ones are derived from the camera (80 ms
+    and the longest window on the reference camera), with the camera named."""
+    f = PlaneFlow()
+    f.setup(PlaneFlow.Params(**bad), Context())
+    with pytest.raises(ConfigError, match=says + ".* on this 320x240 camera"):
+        f.kernel_params(Geometry(320, 240, f=REFERENCE_FOCAL_PX))
+
+
+@pytest.mark.parametrize("scale", [1.0, 2.0, 0.5])
+def test_windows_and_speeds_follow_the_focal_length(scale):
+    """Left null, the windows and the plane's time limit are the reference camera's (80, 500 ms,
+    4 ms) over f / 380.6 px, the speed ceiling 1000 px/s times it; the grid's lengths and the
+    refractory period (350 ms) stay."""
+    f = PlaneFlow()
+    f.setup(PlaneFlow.Params(), Context())
+    q = f.kernel_params(Geometry(int(320 * scale), int(240 * scale),
+                                 f=scale * REFERENCE_FOCAL_PX))
+    assert (q.window_us, q.max_window_us, q.refractory_us) == (
+        round(80_000 / scale), round(500_000 / scale), 350_000)
+    assert q.th2 == pytest.approx(0.004 / scale, rel=1e-12)
+    assert q.max_speed == pytest.approx(1000.0 * scale, rel=1e-12)
+    assert (q.r, q.margin, q.slow_px, q.refractory_updates) == (2, 2, 2.0, False)
+
+
+def test_windows_given_are_kept():
+    f = PlaneFlow()
+    f.setup(PlaneFlow.Params(window_us=50_000, refractory_us=0, max_window_us=0, th2_s=0.01,
+                             max_speed_pxs=300.0), Context())
+    q = f.kernel_params(Geometry(640, 480, f=2 * REFERENCE_FOCAL_PX))
+    assert (q.window_us, q.refractory_us, q.max_window_us, q.th2, q.max_speed) == (
+        50_000, 0, 0, 0.01, 300.0)

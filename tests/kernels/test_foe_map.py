@@ -84,9 +84,10 @@ def test_lines_near_the_border_of_a(g, radius):
 
 def check_against_brute_force(packet, g, radius, refine, gate, other):
     """The filter's estimates and (without gating) its whole map equal the brute force's."""
-    other = {"speed_weight_pxs": None, **other}  # unweighted unless the case says otherwise
-    # the kernel's reads, not the noise test on them (random flow has no FOE)
-    params = FoeMap.Params(tau_ms=15.0, region_radius_px=radius, estimate_every_us=4000,
+    other = {"speed_weight_pxs": 0.0, **other}  # unweighted unless the case says otherwise
+    # the kernel's reads, not the noise test on them (random flow has no FOE); radius None:
+    # the whole sensor, the filter's 0
+    params = FoeMap.Params(tau_ms=15.0, region_radius_px=radius or 0.0, estimate_every_us=4000,
                            refine_fraction=refine, max_angle_deg=gate, significance=None,
                            **other)
     f = FoeMap()
@@ -102,7 +103,7 @@ def check_against_brute_force(packet, g, radius, refine, gate, other):
         vx, vy = packet.vx.astype(np.float64), packet.vy.astype(np.float64)
         accepted = vx * vx + vy * vy > 0
         s0 = other.get("speed_weight_pxs")
-        vote_w = None if s0 is None else s0 / (s0 + np.hypot(vx, vy))
+        vote_w = s0 / (s0 + np.hypot(vx, vy)) if s0 else None
         gc, rc, xs, ys = cells(packet, radius, other.get("cell_px", 1))
         want = brute_map(xs, ys, packet.t, vx, vy, accepted, packet.t_end, 15000.0,
                          region_mask(gc, rc), vote_w)
@@ -122,8 +123,8 @@ def test_renormalisation_keeps_map_exact():
     packet = random_flow(300, g, seed=5, duration_us=40_000)
     packet = packet.replace(t=packet.t * 50, t_end=2_000_000)  # 1 ms tau, ~2 s span
     f = FoeMap()
-    f.setup(FoeMap.Params(tau_ms=1.0, region_radius_px=None, estimate_every_us=100_000,
-                          refine_fraction=0.0, speed_weight_pxs=None, significance=None),
+    f.setup(FoeMap.Params(tau_ms=1.0, region_radius_px=0, estimate_every_us=100_000,
+                          refine_fraction=0.0, speed_weight_pxs=0, significance=None),
             Context())
     got = f.process(packet).series["foe"]
     ref = foe_naive(packet, 1.0, None, 100_000, 0.0)
@@ -142,7 +143,7 @@ def test_pruned_reads_equal_full_reads(case, hard):
     g, radius, refine, gate, other = CASES[case]
     packet = random_flow(800, g, seed=100 + case + 10 * hard, hard=hard)
     packet = packet.replace(t=packet.t * 25, t_end=packet.t_end * 25)  # 1 s, tau 15 ms
-    params = FoeMap.Params(tau_ms=15.0, region_radius_px=radius, estimate_every_us=1000,
+    params = FoeMap.Params(tau_ms=15.0, region_radius_px=radius or 0.0, estimate_every_us=1000,
                            refine_fraction=refine, max_angle_deg=gate, significance=None,
                            **other)
     cuts = list(range(1000, packet.t_end, 1000))  # one read per packet
