@@ -362,17 +362,20 @@ def _scales(th):
 
 
 @njit(cache=True, error_model="numpy", fastmath={"reassoc", "contract"})
-def _sums(w, a, b, om0, om1, om2, g, th, margin, c, out, with_slab):
+def _sums(w, a, b, om0, om1, om2, g, th, margin, c, out, with_slab, with_rot):
     """One Gauss-Newton pass over the events ``a <= j < b`` of one slab with rotation
     ``(om0, om1, om2)``: adds the 19 shared sums to ``out[:19]`` (a00, a01, a11, b0, b1,
     inlier weight, applicable weight, then per plane road / left / right: w J0 Ja, w J1 Ja,
     w Ja Ja, w r Ja) and, with ``with_slab``, writes the slab's :data:`NS` sums of its rotation
     to ``out[19:]`` (w c c^T: 00 01 02 11 12 22; w c J0, w c J1 per axis; w c Ja per plane and
-    axis; w r c per axis). ``with_slab`` is a compile-time constant (``literally``): each value
-    compiles its own loop, without the slab's sums when False. Branch-free (selects, one
+    axis; w r c per axis). Without ``with_rot`` (a slab that does not turn, its rotation 0)
+    the rotation coefficients are not read and every rotational speed is 0: the same sums, a
+    third less memory read. ``with_slab`` and ``with_rot`` are compile-time constants
+    (``literally``): each pair compiles its own loop. Branch-free (selects, one
     accumulator per sum, reassociated) so that LLVM vectorises it; the sums' order differs from
     a plain loop only in rounding."""
     literally(with_slab)
+    literally(with_rot)
     xw, yw, mx, my, s, e, cc0, cc1, cc2 = w
     xf, yf = th[0], th[1]
     a0, al, ar, has_road, has_l, has_r = _scales(th)
@@ -383,8 +386,11 @@ def _sums(w, a, b, om0, om1, om2, g, th, margin, c, out, with_slab):
     p0r = p1r = p2r = p0l = p1l = p2l = p0q = p1q = p2q = 0.0
     h0 = h1 = h2 = 0.0
     for j in range(a, b):
-        z0, z1, z2 = cc0[j], cc1[j], cc2[j]
-        rot = z0 * om0 + z1 * om1 + z2 * om2
+        if with_rot:
+            z0, z1, z2 = cc0[j], cc1[j], cc2[j]
+            rot = z0 * om0 + z1 * om1 + z2 * om2
+        else:
+            z0 = z1 = z2 = rot = 0.0
         vw, iw, wt, res, j0, j1, ja, mr, ml, mq = _event(
             xw[j] - xf, yw[j] - yf, mx[j], my[j], s[j], rot, e[j] * g, a0, al, ar, has_road,
             has_l, has_r, margin, c)
@@ -462,10 +468,14 @@ def _pass(w, lo, hi, om, g, th, margin, c, rotating, shared, slabs):
     for k in range(len(lo)):
         if rotating:
             out[19:] = 0.0
-            _sums(w, lo[k], hi[k], om[k, 0], om[k, 1], om[k, 2], g, th, margin, c, out, True)
+            _sums(w, lo[k], hi[k], om[k, 0], om[k, 1], om[k, 2], g, th, margin, c, out, True,
+                  True)
             slabs[k, :] = out[19:]
-        else:
-            _sums(w, lo[k], hi[k], om[k, 0], om[k, 1], om[k, 2], g, th, margin, c, out, False)
+        elif om[k, 0] != 0.0 or om[k, 1] != 0.0 or om[k, 2] != 0.0:
+            _sums(w, lo[k], hi[k], om[k, 0], om[k, 1], om[k, 2], g, th, margin, c, out, False,
+                  True)
+        else:  # no rotation: rot is 0 for every event, and the coefficients are not read
+            _sums(w, lo[k], hi[k], 0.0, 0.0, 0.0, g, th, margin, c, out, False, False)
     shared[:] = out[:19]
 
 

@@ -270,19 +270,54 @@ def ground_mode(H, half_bins):
 
 
 @njit(cache=True)
-def _median_sorted(vals, n):
-    return vals[n // 2] if n % 2 == 1 else 0.5 * (vals[n // 2 - 1] + vals[n // 2])
+def _select(a, n, k):
+    """Reorder ``a[:n]`` (no NaN) so that ``a[k]`` holds the value a sort would put
+    there, with none larger before it and none smaller after it (Hoare's selection); returns
+    ``a[k]``."""
+    lo = 0
+    hi = n - 1
+    while lo < hi:
+        pivot = a[(lo + hi) // 2]
+        i = lo
+        j = hi
+        while i <= j:
+            while a[i] < pivot:
+                i += 1
+            while pivot < a[j]:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            break
+    return a[k]
+
+
+@njit(cache=True)
+def median(a, n):
+    """The median of ``a[:n]`` (n >= 1, no NaN): the middle value, or the mean of the
+    two middle values; reorders ``a[:n]``."""
+    m = _select(a, n, n // 2)
+    if n % 2 == 1:
+        return m
+    lower = a[0]  # the largest of the n // 2 smallest
+    for j in range(1, n // 2):
+        lower = max(lower, a[j])
+    return 0.5 * (lower + m)
 
 
 @njit(cache=True)
 def _median_mad(buf, n):
-    """Median and median absolute deviation of ``buf[:n]``."""
-    vals = np.sort(buf[:n])
-    med = _median_sorted(vals, n)
+    """Median and median absolute deviation of ``buf[:n]`` (overwritten)."""
+    med = median(buf, n)
     for j in range(n):
-        vals[j] = abs(vals[j] - med)
-    vals = np.sort(vals)
-    return med, _median_sorted(vals, n)
+        buf[j] = abs(buf[j] - med)
+    return med, median(buf, n)
 
 
 @njit(cache=True)
@@ -346,7 +381,7 @@ def _cluster_estimate(cl, k, ST, SV, SK, T, k_ground, buf, prm):
     nb = c.n_samples
     n = _recent_kg(ST, SK, k, nb, T, prm.max_age_us, buf)
     if n >= prm.min_samples and k_ground > 0.0:
-        c.rho = _median_sorted(np.sort(buf[:n]), n) / k_ground
+        c.rho = median(buf, n) / k_ground
     n = _recent_tau(ST, SV, k, nb, T, prm.max_age_us, buf)
     if c.has_tau > 0.0:  # predict: tau falls 1 s per s
         dt = (T - c.t_tau) * 1e-6

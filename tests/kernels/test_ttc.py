@@ -295,3 +295,38 @@ def test_tau_crossing_zero():
     assert (rows["tau_s"] > 0).all() and rows["t"].max() < 150_000
     assert rows["tau_s"].min() < 0.01
     assert (cl["cluster"][cl["t"] > 150_000] != first).all()
+
+
+def _medians(values):
+    """The kernel's median of ``values`` (on a copy) and the reference's."""
+    from evchain.kernels.ttc import median as median_kernel
+    from tests.naive.ttc import median as median_naive
+
+    a = np.array(values, np.float64)
+    return median_kernel(a.copy(), len(a)), median_naive(list(a))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_median_matches_reference_on_random_input(seed):
+    """The selection median (used per cluster and tick) is exactly the sorted median, for odd
+    and even counts, whatever the slice it works on."""
+    rng = np.random.default_rng(seed)
+    for n in range(1, 300, 7):
+        got, want = _medians(rng.normal(1.0, 2.0, n))
+        assert got == want, n
+    buf = rng.uniform(0, 5, 256)  # only buf[:n] counts; the rest is left as it was
+    tail = buf[40:].copy()
+    from evchain.kernels.ttc import median as median_kernel
+
+    assert median_kernel(buf, 40) == np.median(buf[:40]) and (buf[40:] == tail).all()
+
+
+@pytest.mark.parametrize("values", [
+    [3.0], [2.0, 1.0], [1.0, 1.0, 1.0, 1.0], [5.0, 5.0, 1.0, 5.0], [0.0, -0.0, 1.0],
+    list(range(256)), list(range(256, 0, -1)), [7.0] * 255 + [1.0], [1.0, 2.0] * 128,
+    [1e300, -1e300, 0.5, np.inf, -np.inf, 2.0], [1.0 + k * 1e-16 for k in range(33)]])
+def test_median_matches_reference_on_hard_input(values):
+    """Single values, pairs, ties, sorted and reversed rings, near-equal values and
+    infinities."""
+    got, want = _medians(values)
+    assert got == want
