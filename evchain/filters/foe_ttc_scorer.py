@@ -172,9 +172,8 @@ class FoeTtcScorer(Filter):
       (no estimate; the reported cluster off the obstacle, and of those the times at which a
       live cluster of ``ttc_clusters`` lay on it, None without that series; on the obstacle
       but more than 20 % off: these three and the headline sum to 1). All four are None when
-      the truth knows no objects (no
-      ``object_id``, e.g. the synthetic expansion or recorded data: then ``not_scored`` names
-      them) or no obstacle.
+      the truth knows no objects (no ``object_id``, e.g. the synthetic expansion or recorded
+      data: then ``not_scored`` names them) or no obstacle.
     * ``median_rel_error_last3s``, ``share_within_10pct``, ``share_within_20pct``,
       ``coverage_last3s``: whatever cluster is reported, so a roadside object whose TTC happens
       to match the car's counts as a hit.
