@@ -168,9 +168,12 @@ class FoeTtcScorer(Filter):
       ``obstacle_ids`` at the cluster centre or within ``obstacle_margin_px`` of it) and its tau
       is within 20 % of the true TTC; ``coverage_on_obstacle``: share on the obstacle, whatever
       its tau; ``median_rel_error_on_obstacle``: median relative error at the times on the
-      obstacle (None if never). All three are None when the truth knows no objects (no
-      ``object_id``, e.g. the synthetic expansion or recorded data: then ``not_scored`` names
-      them) or no obstacle.
+      obstacle (None if never); ``misses``: the shares of the window's times lost, by reason
+      (no estimate; the reported cluster off the obstacle, and of those the times at which a
+      live cluster of ``ttc_clusters`` lay on it, None without that series; on the obstacle
+      but more than 20 % off: these three and the headline sum to 1). All four are None when
+      the truth knows no objects (no ``object_id``, e.g. the synthetic expansion or recorded
+      data: then ``not_scored`` names them) or no obstacle.
     * ``median_rel_error_last3s``, ``share_within_10pct``, ``share_within_20pct``,
       ``coverage_last3s``: whatever cluster is reported, so a roadside object whose TTC happens
       to match the car's counts as a hit.
@@ -224,6 +227,7 @@ class FoeTtcScorer(Filter):
         self._recent: list[tuple] = []
         self._last_foe = (math.nan, math.nan)
         self._last_clusters: np.ndarray | None = None
+        self._clusters: list[np.ndarray] = []
         self._snapshots: list[dict] = []
         self._taken: set[float] = set()
 
@@ -272,6 +276,7 @@ class FoeTtcScorer(Filter):
         cl = packet.series.get(TTC_CLUSTERS.name)
         if cl is not None and len(cl):
             self._last_clusters = cl[cl["t"] == cl["t"][-1]].copy()
+            self._clusters.append(cl[["t", "x", "y"]].copy())
         if self.params.plots:
             self._keep_recent(packet)
             self._maybe_snapshot(packet)
@@ -437,15 +442,48 @@ class FoeTtcScorer(Filter):
                           grid[have], self.params.obstacle_margin_px)
         if sub is None:
             keys = ("share_on_obstacle_within_20pct", "coverage_on_obstacle",
-                    "median_rel_error_on_obstacle")
+                    "median_rel_error_on_obstacle", "misses")
             if not isinstance(self.truth, ObjectTruth):
                 return {**dict.fromkeys(keys),
                         "not_scored": not_scored(keys, self.truth, ObjectTruth)}
             return dict.fromkeys(keys)
         on[have] = sub
-        return {"share_on_obstacle_within_20pct": float(np.mean(on & (rel <= 0.20))),
+        hit = on & (rel <= 0.20)
+        off = have & ~on
+        there = self._obstacle_cluster_at(grid)
+        n = max(len(grid), 1)
+        misses = {"no_estimate": float(np.sum(~have) / n),
+                  "off_obstacle": float(np.sum(off) / n),
+                  "off_obstacle_with_a_cluster_on_it": (None if there is None else
+                                                        float(np.sum(off & there) / n)),
+                  "on_obstacle_over_20pct": float(np.sum(on & ~hit) / n)}
+        return {"share_on_obstacle_within_20pct": float(np.mean(hit)),
                 "coverage_on_obstacle": float(np.mean(on)),
-                "median_rel_error_on_obstacle": float(np.median(rel[on])) if on.any() else None}
+                "median_rel_error_on_obstacle": float(np.median(rel[on])) if on.any() else None,
+                "misses": misses}
+
+    def _obstacle_cluster_at(self, grid: np.ndarray) -> np.ndarray | None:
+        """Per grid time: whether any live cluster of the latest ``ttc_clusters`` tick at most
+        ``max_age_us`` before it lies on the obstacle (None without that series)."""
+        if not self._clusters:
+            return None
+        cl = np.concatenate(self._clusters)
+        ticks = np.unique(cl["t"])
+        j = np.searchsorted(ticks, grid, side="right") - 1
+        ok = (j >= 0) & ((grid - ticks[np.maximum(j, 0)]) <= self.params.max_age_us)
+        there = np.zeros(len(grid), bool)
+        if not ok.any():
+            return there
+        rows = np.searchsorted(cl["t"], ticks[j[ok]], side="left")
+        ends = np.searchsorted(cl["t"], ticks[j[ok]], side="right")
+        counts = ends - rows
+        which = np.repeat(np.nonzero(ok)[0], counts)
+        pick = np.concatenate([np.arange(a, b) for a, b in zip(rows, ends, strict=True)]) \
+            if len(rows) else np.zeros(0, np.int64)
+        on = on_obstacle(self.truth, cl["x"][pick], cl["y"][pick], grid[which],
+                         self.params.obstacle_margin_px)
+        np.logical_or.at(there, which, on)
+        return there
 
     def flush(self):
         if self._t0 is None:

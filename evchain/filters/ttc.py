@@ -42,12 +42,13 @@ class Ttc(Filter):
     Only a credible cluster can be the obstacle: its recent samples agree (relative spread
     1.4826 MAD / median at most ``max_rel_spread``; the samples of one approaching surface
     share one TTC up to the flow's error, those of rotational flow read as expansion, or of
-    several objects in one square, do not) and its tau lies within what the per-event bounds
-    allow (at least ``min_tau_s``; the image speed it implies at the cluster, its distance from
-    the FOE over tau, at most ``max_speed_pxs``: the forward prediction and the fusion can leave
-    both). A tick without one emits no row; ``metrics.ttc_filter`` counts the ticks, the TTCs
-    and the ticks without one by reason (no FOE yet, no cluster, none credible, only road
-    clusters).
+    several objects in one square, do not), the newest sample of its last measurement is no
+    older than its tau (a tau predicted forward over more than the time left to contact rests
+    on no data) and its tau lies within what the per-event bounds allow (at least
+    ``min_tau_s``; the image speed it implies at the cluster, its distance from the FOE over
+    tau, at most ``max_speed_pxs``: the forward prediction and the fusion can leave both). A
+    tick without one emits no row; ``metrics.ttc_filter`` counts the ticks, the TTCs and the
+    ticks without one by reason (no FOE yet, no cluster, none credible, only road clusters).
     """
 
     name = "ttc"

@@ -27,11 +27,13 @@ from numba import njit
 #: one cluster: identity and ring bookkeeping (int64), then its square (centre, half-size px),
 #: decayed activity (events) at ``t_last`` (µs), fused tau (s) with variance (s^2) at ``t_tau``
 #: (µs), ``has_tau`` 1 once it has one, consecutive gated ``misses``, ground ratio ``rho``,
-#: ``spread``: the relative spread of its samples at its last measurement (1.4826 MAD / |median|)
+#: ``spread``: the relative spread of its samples at its last measurement (1.4826 MAD / |median|),
+#: ``t_meas``: the time of the newest sample of that measurement (µs)
 CLUSTER_STATE = np.dtype([("id", "i8"), ("active", "i8"), ("n_samples", "i8"), ("ring_pos", "i8"),
                           ("cx", "f8"), ("cy", "f8"), ("size", "f8"), ("activity", "f8"),
                           ("t_last", "f8"), ("tau", "f8"), ("var", "f8"), ("has_tau", "f8"),
-                          ("misses", "f8"), ("t_tau", "f8"), ("rho", "f8"), ("spread", "f8")])
+                          ("misses", "f8"), ("t_tau", "f8"), ("rho", "f8"), ("spread", "f8"),
+                          ("t_meas", "f8")])
 #: carried from packet to packet: ``has_foe`` 1 once an FOE is known, at (``foe_x``,
 #: ``foe_y``), with the camera's angular velocity (``foe_wx``, ``foe_wy``, ``foe_wz``, rad/s;
 #: 0 where not estimated); the next tick (µs) and cluster id; the ground constant K (s px),
@@ -347,6 +349,15 @@ def _recent_tau(ST, SV, k, nb, T, max_age_us, buf):
 
 
 @njit(cache=True)
+def _newest(ST, k, nb):
+    """The time of cluster k's newest sample (µs)."""
+    t = -math.inf
+    for j in range(nb):
+        t = max(t, ST[k, j])
+    return t
+
+
+@njit(cache=True)
 def _fuse(c, med, r, T, gate):
     """Fuse the measurement ``med`` (variance ``r``) into the cluster's predicted tau: the first
     one starts it; a gated-out one counts a miss (three in a row restart from the
@@ -391,6 +402,7 @@ def _cluster_estimate(cl, k, ST, SV, SK, T, k_ground, buf, prm):
     if n < prm.min_samples:
         return
     med, mad = _median_mad(buf, n)
+    c.t_meas = _newest(ST, k, nb)
     c.spread = 1.4826 * mad / med if med > 0.0 else math.inf
     sigma = 1.4826 * mad / math.sqrt(n) + prm.rel_floor * abs(med)
     _fuse(c, med, sigma * sigma + 1e-12, T, prm.gate)
@@ -419,13 +431,19 @@ def _candidate(c, a, g, prm, use_ground):
 
 
 @njit(cache=True)
-def _credible(c, g, prm):
-    """Whether a cluster's tau can be reported: its samples agree (relative spread at most
-    ``max_spread``: one approaching surface has one TTC, a cluster of rotational flow or of
-    several objects does not) and its tau lies within the per-event bounds (at least
-    ``min_tau``, and its centre's distance from the FOE over tau, the image speed it implies,
-    at most ``max_speed``); fusion and the forward prediction can leave both bounds."""
+def _credible(c, g, T, prm):
+    """Whether a cluster's tau can be reported at tick T: its samples agree (relative spread
+    at most ``max_spread``: one approaching surface has one TTC, a cluster of rotational flow
+    or of several objects does not), the newest sample of its last measurement is no older
+    than its tau (a tau predicted forward over more than the time left to contact rests on
+    no data: a cluster kept alive without new samples counted down to 0 that way) and its
+    tau lies within the
+    per-event bounds (at least ``min_tau``, and its centre's distance from the FOE over tau,
+    the image speed it implies, at most ``max_speed``); fusion and the forward prediction can
+    leave both bounds."""
     if not (c.spread <= prm.max_spread) or c.tau < prm.min_tau:
+        return False
+    if T - c.t_meas > c.tau * 1e6:
         return False
     dx = c.cx - g.foe_x
     dy = c.cy - g.foe_y
@@ -504,7 +522,7 @@ def _tick(state, prm, half_bins, buf, ttc_out, no, clusters_out, nc):
         if not considered:
             continue
         n_considered += 1
-        if not _credible(c, g, prm):
+        if not _credible(c, g, T, prm):
             continue
         n_credible += 1
         if _better(d, a, fb_d, fb_sup):
@@ -611,6 +629,7 @@ def _new_cluster(c, g, px, py, ti, prm):
     c.t_tau = ti
     c.rho = math.nan
     c.spread = math.inf
+    c.t_meas = ti
 
 
 @njit(cache=True)

@@ -9,7 +9,7 @@ import pytest
 
 from evchain.core.filter import Context
 from evchain.core.packets import FlowPacket, Geometry
-from evchain.core.series import FOE_ERROR, TTC
+from evchain.core.series import FOE_ERROR, TTC, TTC_CLUSTERS
 from evchain.errors import ConfigError
 from evchain.filters.foe_map import FoeMap, foe_series
 from evchain.filters.foe_ttc_scorer import FoeTtcScorer, foe_angle_deg
@@ -224,7 +224,7 @@ def test_truth_without_objects_gives_none(tmp_path, truth):
     t = m["ttc"]
     assert t["share_within_20pct"] == 1.0
     keys = ("share_on_obstacle_within_20pct", "coverage_on_obstacle",
-            "median_rel_error_on_obstacle")
+            "median_rel_error_on_obstacle", "misses")
     for key in keys:
         assert key in t and t[key] is None
     assert (out.series["ttc_error"]["on_obstacle"] == -1).all()
@@ -414,3 +414,52 @@ def test_no_obstacle_scores_no_ttc_and_writes_no_nan(tmp_path):
     assert len(err) == 390
     assert (err["tau_true_s"] == -1).all() and (err["rel_error"] == -1).all()
     assert ctx.metrics["foe"]["dx_mean_px"] == 0.0
+
+
+def with_clusters(packets, at):
+    """The packets with a ``ttc_clusters`` series: one cluster per ttc tick, centred at
+    ``at(t_s)``."""
+    out = []
+    for p in packets:
+        t = p.series["ttc"]["t"]
+        x, y = at(t * 1e-6)
+        cl = TTC_CLUSTERS.array(t=t, cluster=np.full(len(t), 2), x=np.broadcast_to(x, len(t)),
+                                y=np.broadcast_to(y, len(t)), size_px=np.full(len(t), 6.0),
+                                tau_s=np.ones(len(t)), support=np.ones(len(t)),
+                                ground_ratio=np.full(len(t), -1.0))
+        out.append(p.with_series("ttc_clusters", cl))
+    return out
+
+
+def test_misses_by_reason(tmp_path):
+    """The window's lost times by reason: off the obstacle (with or without a cluster on it),
+    no estimate, on it but over 20 % off; with the headline they sum to 1."""
+    def moving(t_s):
+        x, y = on_car(t_s)
+        return np.where(t_s >= 2.5, x, 60.0), y
+
+    m, _ = score(*stream(at=moving)[:1], ObjectTruth(4.0), tmp_path)
+    miss = m["ttc"]["misses"]
+    assert miss == {"no_estimate": 0.0, "off_obstacle": pytest.approx(161 / WINDOW),
+                    "off_obstacle_with_a_cluster_on_it": None, "on_obstacle_over_20pct": 0.0}
+    # a live cluster on the car while the reported one is off it: the choice lost those times
+    packets, _ = stream(at=moving)
+    m, _ = score(with_clusters(packets, on_car), ObjectTruth(4.0), tmp_path)
+    miss = m["ttc"]["misses"]
+    assert miss["off_obstacle_with_a_cluster_on_it"] == pytest.approx(161 / WINDOW)
+    # the only cluster is the reported one: off the car, nothing on it
+    packets, _ = stream(at=moving)
+    m, _ = score(with_clusters(packets, moving), ObjectTruth(4.0), tmp_path)
+    assert m["ttc"]["misses"]["off_obstacle_with_a_cluster_on_it"] == 0.0
+    # a gap without estimates, and estimates on the car 30 % off
+    m, _ = score(*stream(at=on_car, gap=(2.0, 3.0))[:1], ObjectTruth(4.0), tmp_path)
+    t = m["ttc"]
+    assert t["misses"]["no_estimate"] == pytest.approx(1.0 - t["coverage_last3s"])
+    assert t["misses"]["no_estimate"] > 0.25
+    m, _ = score(*stream(tau_factor=1.3, at=on_car)[:1], ObjectTruth(4.0), tmp_path)
+    t = m["ttc"]
+    assert t["misses"]["on_obstacle_over_20pct"] == 1.0 and t["misses"]["off_obstacle"] == 0.0
+    for t in (m["ttc"],):
+        assert t["share_on_obstacle_within_20pct"] + sum(
+            v for k, v in t["misses"].items() if k != "off_obstacle_with_a_cluster_on_it") \
+            == pytest.approx(1.0)

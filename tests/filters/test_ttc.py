@@ -462,3 +462,20 @@ def test_no_ttc_below_the_smallest_event_tau():
     assert len(s) > 10 and s["tau_s"].min() >= 0.02
     assert (cl["tau_s"] < 0.02).any()                 # predicted below, not reported
     assert m["no_estimate"]["no credible cluster"] >= 1
+
+
+def test_no_ttc_predicted_past_its_data():
+    """An obstacle at 3 s whose events stop at 0.5 s: its cluster lives on (long activity
+    memory) with a tau predicted to fall 1 s/s, reported only while its newest sample is no
+    older than that tau (until about 1.75 s, where 3 - t = t - 0.5); the cluster itself is
+    still listed after."""
+    packets = with_true_foe(approach(duration_us=500_000, n=40_000))
+    quiet = [FlowPacket.empty(G, t, t + 100_000) for t in range(500_000, 2_200_000, 100_000)]
+    out, m = run_ttc_metrics(packets + with_true_foe(quiet), activity_tau_ms=5000.0)
+    s, cl = out.series["ttc"], out.series["ttc_clusters"]
+    newest = packets[-1].t[-1] * 1e-6
+    assert s["t"].max() * 1e-6 >= 1.7
+    last = s[s["t"] >= 1_000_000]
+    assert (last["t"] * 1e-6 - newest <= last["tau_s"] + 1e-9).all()
+    assert (cl["t"] > 1_800_000).any()                 # the cluster is still there
+    assert m["no_estimate"]["no credible cluster"] >= 30

@@ -112,6 +112,7 @@ class Cluster:
         self.misses = 0
         self.rho = math.nan      # median(tau * dy) / K
         self.spread = math.inf   # 1.4826 MAD / median of the samples at the last measurement
+        self.t_meas = float(t)   # the newest sample's time at the last measurement (µs)
 
     def activity_at(self, t, tau_us):
         return self.activity * math.exp(-(t - self.t_last) / tau_us)
@@ -185,6 +186,7 @@ def ttc_naive(packets, q, width, height, no_ttc=None, f=None, cx=None, cy=None):
                 d = math.sqrt(gx * gx + gy * gy)
             considered += 1
             if not (c.spread <= max_spread and c.tau >= q.min_tau_s
+                    and T - c.t_meas <= c.tau * 1e6
                     and math.hypot(c.cx - foe[0], c.cy - foe[1]) <= c.tau * q.max_speed_pxs):
                 continue
             credible += 1
@@ -223,6 +225,7 @@ def ttc_naive(packets, q, width, height, no_ttc=None, f=None, cx=None, cy=None):
         med = median(taus)
         mad = median([abs(v - med) for v in taus])
         c.spread = 1.4826 * mad / med if med > 0.0 else math.inf
+        c.t_meas = max(s[0] for s in c.samples)
         sigma = 1.4826 * mad / math.sqrt(len(taus)) + q.rel_noise_floor * abs(med)
         r = sigma * sigma + 1e-12
         if c.tau is None:
