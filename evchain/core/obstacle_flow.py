@@ -18,8 +18,7 @@ least one such event. Its metrics (keys of ``metrics.flow``):
 * ``obstacle_by_ttc``: count, coverage and errors per second of true TTC (3-2 s, 2-1 s, 1-0 s
   for a 3 s window);
 * ``obstacle_window_s``: the longest true TTC of a bin in the window (shorter than
-  ``window_s`` when the stream starts later), and ``obstacle_why_none`` where nothing could be
-  scored.
+  ``window_s`` when the stream starts later); ``why_none`` says why a key is None.
 
 Without an obstacle, or with a truth that knows no objects or no TTC, it gives no keys.
 """
@@ -94,15 +93,15 @@ class ObstacleFlow:
             return {}
         if t_end_us <= t_start_us:
             return {"obstacle_flow_since_s": None,
-                    "obstacle_why_none": "no flow stream to score"}
+                    "why_none": {"obstacle_flow_since_s": "no flow stream to score"}}
         ks = np.arange(t_start_us // self.bin_us, (t_end_us - 1) // self.bin_us + 1)
         with np.errstate(invalid="ignore"):
             tau_mid = self._tau((ks + 0.5) * self.bin_us)
             win = (tau_mid > 0) & (tau_mid <= self.window_s)
         if not win.any():
             return {"obstacle_flow_since_s": None, "obstacle_window_s": 0.0,
-                    "obstacle_why_none": f"the true TTC is never within {self.window_s:g} s "
-                                         "in the stream"}
+                    "why_none": {"obstacle_flow_since_s": f"the true TTC is never within "
+                                 f"{self.window_s:g} s in the stream"}}
         ks, tau_mid = ks[win], tau_mid[win]
         rows = np.array([self.bins.get(int(k), np.zeros(4)) for k in ks])
         covered = rows[:, 0] > 0
@@ -127,6 +126,14 @@ class ObstacleFlow:
                 out["obstacle_by_ttc"].append({
                     "ttc_s": [hi - 1, min(hi, self.window_s)],
                     "coverage": float(covered[band].mean()), **_errors(rows[band])})
+        far = f"{max(self.window_s - 1, 0):g}-{self.window_s:g} s"
+        reasons = {"obstacle_ree_normal_pct": "no flow event on the obstacle in the window",
+                   "obstacle_outliers_ree_normal50": "no flow event on the obstacle in the window",
+                   "obstacle_far_ree_normal_pct": f"no flow event on the obstacle at a true TTC "
+                                                  f"of {far} (or the stream starts closer)"}
+        why = {k: r for k, r in reasons.items() if out[k] is None}
+        if why:
+            out["why_none"] = why
         return out
 
 

@@ -253,7 +253,11 @@ class FlowScorer(Filter):
         elif m["n_scored"] == 0:
             m["why_none"] = "no flow event has ground truth"
         if self.last is not None:
-            m.update(self.obstacle.metrics(self.t_start, self.last.t_end))
+            obstacle = self.obstacle.metrics(self.t_start, self.last.t_end)
+            why = obstacle.pop("why_none", None)
+            m.update(obstacle)
+            if why and not isinstance(m.get("why_none"), str):
+                m["why_none"] = {**m.get("why_none", {}), **why}
         self.context.metrics[self.metrics_key("flow")] = m
         if self.last is None:
             return None

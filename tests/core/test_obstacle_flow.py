@@ -92,6 +92,7 @@ def test_last_bin_empty_gives_zero_and_short_stream_says_its_window():
     m = c.metrics(2_500_000, CONTACT_US)
     assert m["obstacle_flow_since_s"] == 0.0
     assert m["obstacle_far_ree_normal_pct"] is None  # nothing at TTC 3-2 s: the stream starts later
+    assert "true TTC of 2-3 s" in m["why_none"]["obstacle_far_ree_normal_pct"]
     assert m["obstacle_window_s"] == pytest.approx(1.5)  # the stream starts 1.5 s before contact
     assert [b["ttc_s"] for b in m["obstacle_by_ttc"]] == [[1, 2], [0, 1]]
 
@@ -99,7 +100,8 @@ def test_last_bin_empty_gives_zero_and_short_stream_says_its_window():
 def test_no_window_no_obstacle_no_objects():
     c = counter()
     m = c.metrics(0, 500_000)  # TTC 4-3.5 s: never within 3 s
-    assert m["obstacle_flow_since_s"] is None and "never within 3 s" in m["obstacle_why_none"]
+    assert m["obstacle_flow_since_s"] is None
+    assert "never within 3 s" in m["why_none"]["obstacle_flow_since_s"]
     assert counter().metrics(10, 10)["obstacle_flow_since_s"] is None
     assert counter(truth=ObstacleTruth(ids=())).metrics(0, CONTACT_US) == {}
 

@@ -128,7 +128,7 @@ def test_scorer_without_the_truth_it_needs_fails_at_setup(name, truth):
 
 def test_scorers_declare_their_truth():
     assert REGISTRY.get("flow_scorer").needs_truth == (FlowTruth,)
-    assert REGISTRY.get("flow_scorer").uses_truth == (FoeTruth,)
+    assert REGISTRY.get("flow_scorer").uses_truth == (FoeTruth, ObjectTruth, TtcTruth)
     assert REGISTRY.get("foe_ttc_scorer").needs_truth == (FoeTruth, TtcTruth)
     assert REGISTRY.get("foe_ttc_scorer").uses_truth == (ObjectTruth, RotationTruth)
 
