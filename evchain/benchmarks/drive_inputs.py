@@ -60,33 +60,49 @@ def drive_events(pipeline: Path, start_m: float, duration_s: float) -> BenchInpu
     """Events of the drive of ``pipeline`` (its ``scene`` and ``emulator`` stages) from
     ``start_m`` for ``duration_s``."""
     spec = pipeline_spec(pipeline, start_m, duration_s)
-    scene, emulator = spec.stage("scene"), spec.stage("emulator")
-    scene_params = scene.params.model_dump(mode="json")
-    scene_params.pop("threads")
-    params = {"seed": spec.seed, "scene": scene_params, "scene_id": scene.id,
-              "emulator": emulator.params.model_dump(mode="json"), "emulator_id": emulator.id}
+    emulator = spec.stage("emulator")
+    params = _scene_and(spec, "emulator")
 
     def make() -> dict[str, np.ndarray]:
         from evchain.core.packets import EventPacket
 
-        ctx = Context(seed=params["seed"])
-        source = _scene(params, ctx, threads=0)
-        emu = emulator.cls()
-        emu.id = params["emulator_id"]
-        emu.setup(emulator.params, ctx)
-        try:
-            outs = [emu.process(p) for p in source.packets()]
-            last = emu.flush()
-        finally:
-            source.close()
-        if last is not None:
-            outs.append(last)
+        outs = _through_scene(params, emulator, params["emulator_id"])
         ev = EventPacket.concat(outs)
-        return {**{c: getattr(ev, c) for c in EVENT_COLUMNS},
-                "bounds": np.array([o.t_start for o in outs] + [outs[-1].t_end], np.int64)}
+        return {**{c: getattr(ev, c) for c in EVENT_COLUMNS}, "bounds": _bounds(outs)}
 
-    return BenchInput("drive-events", stretch_label(scene_params), params, SIMULATOR_SOURCES,
+    return BenchInput("drive-events", stretch_label(params["scene"]), params, SIMULATOR_SOURCES,
                       make)
+
+
+def _scene_and(spec, name: str) -> dict:
+    """The cache parameters of ``spec``'s ``scene`` (without its thread count) and of its stage
+    ``name``: seed, both stages' parameters and ids."""
+    scene, stage = spec.stage("scene"), spec.stage(name)
+    scene_params = scene.params.model_dump(mode="json")
+    scene_params.pop("threads")
+    return {"seed": spec.seed, "scene": scene_params, "scene_id": scene.id,
+            name: stage.params.model_dump(mode="json"), f"{name}_id": stage.id}
+
+
+def _through_scene(params: dict, stage, stage_id: str) -> list:
+    """The packets of ``stage`` (a pipeline stage spec) run on the scene of ``params``, its
+    flush included."""
+    ctx = Context(seed=params["seed"])
+    source = _scene(params, ctx, threads=0)
+    f = stage.cls()
+    f.id = stage_id
+    f.setup(stage.params, ctx)
+    try:
+        outs = [f.process(p) for p in source.packets()]
+        last = f.flush()
+    finally:
+        source.close()
+    return outs if last is None else [*outs, last]
+
+
+def _bounds(outs: list) -> np.ndarray:
+    """The packets' slice bounds: every start and the last end."""
+    return np.array([o.t_start for o in outs] + [outs[-1].t_end], np.int64)
 
 
 def drive_flow(pipeline: Path, start_m: float, duration_s: float) -> BenchInput:
@@ -113,7 +129,7 @@ def drive_flow(pipeline: Path, start_m: float, duration_s: float) -> BenchInput:
         if last is not None:
             outs.append(last)
         return {**{c: np.concatenate([getattr(o, c) for o in outs]) for c in FLOW_COLUMNS},
-                "bounds": np.array([o.t_start for o in outs] + [outs[-1].t_end], np.int64)}
+                "bounds": _bounds(outs)}
 
     label = f"{source.label}, {stage.use} of {Path(pipeline).name}"
     sources = tuple(f for f in (f"filters/{stage.use}.py", f"kernels/{stage.use}.py")
@@ -125,31 +141,17 @@ def drive_aps(pipeline: Path, start_m: float, duration_s: float) -> BenchInput:
     """Frames of the ``aps`` stage of ``pipeline`` on its ``scene`` (as configured there) from
     ``start_m`` for ``duration_s``."""
     spec = pipeline_spec(pipeline, start_m, duration_s)
-    scene, aps = spec.stage("scene"), spec.stage("aps")
-    scene_params = scene.params.model_dump(mode="json")
-    scene_params.pop("threads")
-    params = {"seed": spec.seed, "scene": scene_params, "scene_id": scene.id,
-              "aps": aps.params.model_dump(mode="json"), "aps_id": aps.id}
+    aps = spec.stage("aps")
+    params = _scene_and(spec, "aps")
 
     def make() -> dict[str, np.ndarray]:
-        ctx = Context(seed=params["seed"])
-        source = _scene(params, ctx, threads=0)
-        f = aps.cls()
-        f.id = params["aps_id"]
-        f.setup(aps.params, ctx)
-        try:
-            outs = [f.process(p) for p in source.packets()]
-            last = f.flush()
-        finally:
-            source.close()
-        if last is not None:
-            outs.append(last)
+        outs = _through_scene(params, aps, params["aps_id"])
         return {"frames": np.concatenate([o.frames for o in outs]),
                 "t": np.concatenate([o.t for o in outs]),
                 "t_exposure_start": np.concatenate([o.t_exposure_start for o in outs]),
-                "bounds": np.array([o.t_start for o in outs] + [outs[-1].t_end], np.int64)}
+                "bounds": _bounds(outs)}
 
-    return BenchInput("drive-aps", f"{stretch_label(scene_params)}, aps of "
+    return BenchInput("drive-aps", f"{stretch_label(params['scene'])}, aps of "
                       f"{Path(pipeline).name}", params, APS_SOURCES, make)
 
 
