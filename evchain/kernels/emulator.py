@@ -50,10 +50,12 @@ from evchain.kernels.emulator_state import (
     S_LC,
     S_NOFF,
     S_NON,
+    S_READY,
     S_ROFF,
     S_RON,
     Scratch,
     gates,
+    init_row,
 )
 from evchain.kernels.intrinsics import cttz, prefetch
 from evchain.kernels.veclog import log_pass
@@ -163,10 +165,11 @@ def _candidates(f1, fp, hi, lo, first, last, cand):
 
 
 @njit(cache=True, error_model="numpy")
-def _gather(iv, sc, rows, nc):
+def _gather(iv, rule, sc, pixels, nc):
     """Pass 2: the candidates' values of the interval's other frames, and their state rows
-    touched; these loads are independent, so their cache misses overlap (one pass per interval
-    instead of one miss after another inside the event loop)."""
+    touched (a row not filled yet is filled here: :func:`init_row`); these loads are
+    independent, so their cache misses overlap (one pass per interval instead of one miss
+    after another inside the event loop)."""
     cand = sc.cand
     g0 = sc.g0
     gm = sc.gm
@@ -174,15 +177,25 @@ def _gather(iv, sc, rows, nc):
     f0 = iv.f0
     fm = iv.fm
     fp = iv.fp
+    rows = pixels.rows
+    irows = pixels.irows
+    eps = rule.eps
     touch = 0.0
+    unfilled = 0
     for k in range(np.uint64(nc)):
         r = np.uint64(cand[k])
         g0[k] = f0[r]
         gm[k] = fm[r]
         gp[k] = fp[r]
         touch += rows[r, S_L0] + rows[r, S_LC]
+        unfilled += irows[r, S_READY] == 0       # counted without a branch in this loop
     if touch == 1e308:
         g0[0] = 0.0                      # never: keeps the loads
+    if unfilled > 0:
+        for k in range(np.uint64(nc)):
+            r = np.uint64(cand[k])
+            if irows[r, S_READY] == 0:
+                init_row(pixels, r, eps)
 
 
 @njit(cache=True, error_model="numpy")
@@ -287,7 +300,7 @@ def _interval(iv, rule, pixels, nc, sc, u):
     lla = logs[1]
     llm = logs[2]
     llp = logs[3]
-    _gather(iv, sc, rows, nc)
+    _gather(iv, rule, sc, pixels, nc)
     _logs(iv, rule, sc, rows, nc)
     q = np.uint64(0)
     # pass 3: the candidates' events

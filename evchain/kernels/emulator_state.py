@@ -7,10 +7,17 @@ Per pixel state: ``l0`` (float64 log level of the first frame), ``n_on``, ``n_of
 counts of reference moves), ``c_on``, ``c_off`` (float64 thresholds in natural log units),
 ``last_t`` (float64 µs of the last emitted event, for the refractory period), ``e_ref``
 (float64 exp of the reference, kept by multiplication), ``r_on = exp(c_on)``,
-``r_off = exp(-c_off)``, the log cache, and the float32 intensity gates ``hi``/``lo``; all but
-the gates are columns ``S_*`` of one 128-byte row per pixel, which the kernels read as the 2-D
-``rows`` (``irows``: its int64 view for the counts). The reference level is always recomputed
-from the integer state, ``L_ref = l0 + (n_on*c_on - n_off*c_off)``, so it never drifts.
+``r_off = exp(-c_off)``, the log cache, a ``ready`` flag, and the float32 intensity gates
+``hi``/``lo``; all but the gates are columns ``S_*`` of one 128-byte row per pixel, which the
+kernels read as the 2-D ``rows`` (``irows``: its int64 view for the counts). The reference
+level is always recomputed from the integer state, ``L_ref = l0 + (n_on*c_on - n_off*c_off)``,
+so it never drifts.
+
+Set-up (:func:`init_gates`) writes only what the first interval's scan reads: the gates, from
+the first frame, which is kept; a pixel's row starts zeroed (``ready`` = 0) and is filled
+from that frame and the thresholds (:func:`init_row`) the first time the pixel is a candidate.
+A pixel inside its gates cannot fire and reads nothing else, so its row is never needed
+before that, and the filled row holds the same values as one filled at set-up.
 """
 
 from __future__ import annotations
@@ -32,8 +39,10 @@ NO_CACHE = -10.0
 #: minus the smallest normal float32: the OFF gate when no OFF level is reachable
 LO_NONE = -1.1754944e-38
 #: columns of a pixel's state row (``rows``: float64 [H*W, 16]; ``irows``: its int64 view):
-#: l0, c_on, c_off, r_on, r_off, e_ref, last_t, n_on, n_off (int64), the log cache (4 columns)
+#: l0, c_on, c_off, r_on, r_off, e_ref, last_t, n_on, n_off (int64), the log cache (4 columns),
+#: ready (int64: 1 once :func:`init_row` filled the row)
 S_L0, S_CON, S_COFF, S_RON, S_ROFF, S_EREF, S_LAST, S_NON, S_NOFF, S_LC = range(10)
+S_READY = S_LC + 4
 #: pixels per strip: the event loop runs a block of intervals on one strip before the next, so
 #: that the strip's state (gates 8 bytes, state row 128 bytes per pixel: 10.6 MiB) stays in
 #: the last-level cache from one interval to the next; 320x240 (76 800 pixels) is one strip
@@ -64,6 +73,9 @@ class Pixels(NamedTuple):
     irows: np.ndarray       #: int64 [H*W, 16]: the same memory, for the counts
     hi: np.ndarray          #: float32 [H*W]: ON gate of the prefilter
     lo: np.ndarray          #: float32 [H*W]: OFF gate of the prefilter
+    first: np.ndarray       #: float32 [H*W]: the first frame (rows are filled from it)
+    thr: np.ndarray         #: float64 [m, 4]: c_on, c_off, r_on, r_off of pixel i in row
+    #:                         min(i, m - 1) (m = 1: all pixels share them; else m = H*W)
 
 
 class FrameList(NamedTuple):
@@ -135,8 +147,22 @@ def make_rule(cubic, eps, tol, refractory_us, cap, strip=STRIP, block=BLOCK):
 
 
 @njit(cache=True)
-def init_state(frame, rule, con_in, coff_in, pixels):
-    """Initialise every pixel's state from the first frame, in one pass.
+def threshold_rows(con, coff):
+    """``Pixels.thr`` of the thresholds con, coff (float64 [m], natural log units): their
+    rows with r_on = exp(c_on), r_off = exp(-c_off)."""
+    thr = np.empty((con.shape[0], 4))
+    for i in range(con.shape[0]):
+        thr[i, 0] = con[i]
+        thr[i, 1] = coff[i]
+        thr[i, 2] = np.exp(con[i])
+        thr[i, 3] = np.exp(-coff[i])
+    return thr
+
+
+@njit(cache=True)
+def init_gates(frame, rule, pixels):
+    """Set-up: check the first frame, keep it (``pixels.first``) and write every pixel's gates
+    from it; the rows stay unfilled until :func:`init_row`.
 
     Parameters
     ----------
@@ -144,10 +170,8 @@ def init_state(frame, rule, con_in, coff_in, pixels):
         The first frame, linear intensity >= 0.
     rule : Rule
         Its ``eps``, ``k_hi`` and ``k_lo`` are read.
-    con_in, coff_in : ndarray, float64 [H, W]
-        ON and OFF thresholds, natural log units (may be broadcast).
     pixels : Pixels
-        Written: every pixel's state row and gates.
+        Written: ``first``, ``hi``, ``lo``; read: ``thr``.
 
     Returns
     -------
@@ -158,15 +182,11 @@ def init_state(frame, rule, con_in, coff_in, pixels):
     eps = rule.eps
     k_hi = rule.k_hi
     k_lo = rule.k_lo
-    rows = pixels.rows
-    irows = pixels.irows
+    first = pixels.first
     hi = pixels.hi
     lo = pixels.lo
-    # exp of the thresholds only where they change (all pixels share them without mismatch)
-    con = np.nan
-    coff = np.nan
-    ron = 1.0
-    roff = 1.0
+    thr = pixels.thr
+    mt = thr.shape[0] - 1
     for y in range(h):
         for x in range(w):
             v = frame[y, x]
@@ -175,26 +195,34 @@ def init_state(frame, rule, con_in, coff_in, pixels):
             if v < 0:
                 return ERR_NEGATIVE, y, x
             i = y * w + x
-            rows[i, S_L0] = ln(np.float64(v) + eps)
-            irows[i, S_NON] = 0
-            irows[i, S_NOFF] = 0
-            rows[i, S_LAST] = -1e300
-            if con_in[y, x] != con:
-                con = con_in[y, x]
-                ron = np.exp(con)
-            if coff_in[y, x] != coff:
-                coff = coff_in[y, x]
-                roff = np.exp(-coff)
-            rows[i, S_CON] = con
-            rows[i, S_COFF] = coff
-            rows[i, S_LC] = NO_CACHE
-            rows[i, S_RON] = ron
-            rows[i, S_ROFF] = roff
-            rows[i, S_EREF] = np.float64(v) + eps
-            a, b = gates(rows[i, S_EREF], rows[i, S_RON], rows[i, S_ROFF], eps, k_hi, k_lo)
+            first[i] = v
+            t = min(i, mt)
+            a, b = gates(np.float64(v) + eps, thr[t, 2], thr[t, 3], eps, k_hi, k_lo)
             hi[i] = a
             lo[i] = b
     return ERR_NONE, 0, 0
+
+
+@njit(cache=True)
+def init_row(pixels, r, eps):
+    """Fill pixel r's state row (unsigned index) from the first frame and its thresholds: the
+    state the pixel had since set-up (its gates came from the same values)."""
+    rows = pixels.rows
+    irows = pixels.irows
+    thr = pixels.thr
+    t = min(r, np.uint64(thr.shape[0] - 1))
+    v = np.float64(pixels.first[r])
+    rows[r, S_L0] = ln(v + eps)
+    irows[r, S_NON] = 0
+    irows[r, S_NOFF] = 0
+    rows[r, S_LAST] = -1e300
+    rows[r, S_CON] = thr[t, 0]
+    rows[r, S_COFF] = thr[t, 1]
+    rows[r, S_RON] = thr[t, 2]
+    rows[r, S_ROFF] = thr[t, 3]
+    rows[r, S_EREF] = v + eps
+    rows[r, S_LC] = NO_CACHE
+    irows[r, S_READY] = 1
 
 
 @njit(cache=True)
