@@ -123,15 +123,15 @@ class Emulator(Filter):
         thr = K.threshold_rows(con, coff)
         # all per-pixel state touched on events lives in one 128-byte row per pixel (array
         # of structs, rows aligned to 128 bytes): an event visit touches one pair of adjacent
-        # cache lines instead of one line per array. The rows start zeroed (memory the system
-        # hands out as it is first written) and are filled when a pixel is first a
-        # candidate, so set-up writes only the gates
-        buf = np.zeros(npix * ROW + ROW)
+        # cache lines instead of one line per array. A chunk's rows are filled when the scan
+        # first finds a candidate in it, so set-up writes only the gates
+        buf = np.empty(npix * ROW + ROW)
         off = (-buf.ctypes.data % (ROW * 8)) // 8
         aos = buf[off:off + npix * ROW].reshape(npix, ROW)
         counts = aos.view(np.int64)
         st = {"hi": np.empty(npix, np.float32), "lo": np.empty(npix, np.float32),
-              "first": np.empty(npix, np.float32), "thr": thr}
+              "first": np.empty(npix, np.float32), "thr": thr,
+              "ready": np.zeros(-(-npix // K.CHUNK) + 1, np.int64)}
         # the kernel reads the rows whole (one 2-D array: one address computation per pixel
         # for all fields, instead of one per strided view)
         self._rows, self._irows = aos, counts
@@ -162,7 +162,8 @@ class Emulator(Filter):
     def _pixels(self, st):
         from evchain.kernels.emulator_state import Pixels
 
-        return Pixels(self._rows, self._irows, st["hi"], st["lo"], st["first"], st["thr"])
+        return Pixels(self._rows, self._irows, st["hi"], st["lo"], st["first"], st["thr"],
+                      st["ready"])
 
     @staticmethod
     def _raise_pixel(err: int, packet: FramePacket, index: int, y: int, x: int) -> None:

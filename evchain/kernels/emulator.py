@@ -38,6 +38,7 @@ from numba import njit
 
 from evchain.kernels.emulator_crossings import _times, slope3
 from evchain.kernels.emulator_state import (
+    CHUNK,
     ERR_NEGATIVE,
     ERR_NONE,
     ERR_NONFINITE,
@@ -50,18 +51,15 @@ from evchain.kernels.emulator_state import (
     S_LC,
     S_NOFF,
     S_NON,
-    S_READY,
     S_ROFF,
     S_RON,
     Scratch,
     gates,
-    init_row,
+    init_rows,
 )
 from evchain.kernels.intrinsics import cttz, prefetch
 from evchain.kernels.veclog import log_pass
 
-#: pixels per chunk of the candidate scan
-CHUNK = 64
 #: pixels ahead of the scan whose frame values are prefetched (4 KiB)
 PREFETCH_AHEAD = 1024
 
@@ -165,11 +163,27 @@ def _candidates(f1, fp, hi, lo, first, last, cand):
 
 
 @njit(cache=True, error_model="numpy")
-def _gather(iv, rule, sc, pixels, nc):
+def _fill_rows(pixels, eps, cand, nc):
+    """The state rows of the candidates' chunks filled where not yet (:func:`init_rows`): a
+    pixel's row is needed from the first time it is a candidate. A loop of its own: the test
+    inside the scan's loop slowed the scan."""
+    ready = pixels.ready
+    if ready[-1] == ready.shape[0] - 1:
+        return                           # all filled
+    prev = -1
+    for k in range(nc):
+        c = cand[k] // CHUNK
+        if c != prev:
+            prev = c
+            if ready[c] == 0:
+                init_rows(pixels, c, eps)
+
+
+@njit(cache=True, error_model="numpy")
+def _gather(iv, sc, rows, nc):
     """Pass 2: the candidates' values of the interval's other frames, and their state rows
-    touched (a row not filled yet is filled here: :func:`init_row`); these loads are
-    independent, so their cache misses overlap (one pass per interval instead of one miss
-    after another inside the event loop)."""
+    touched; these loads are independent, so their cache misses overlap (one pass per interval
+    instead of one miss after another inside the event loop)."""
     cand = sc.cand
     g0 = sc.g0
     gm = sc.gm
@@ -177,25 +191,15 @@ def _gather(iv, rule, sc, pixels, nc):
     f0 = iv.f0
     fm = iv.fm
     fp = iv.fp
-    rows = pixels.rows
-    irows = pixels.irows
-    eps = rule.eps
     touch = 0.0
-    unfilled = 0
     for k in range(np.uint64(nc)):
         r = np.uint64(cand[k])
         g0[k] = f0[r]
         gm[k] = fm[r]
         gp[k] = fp[r]
         touch += rows[r, S_L0] + rows[r, S_LC]
-        unfilled += irows[r, S_READY] == 0       # counted without a branch in this loop
     if touch == 1e308:
         g0[0] = 0.0                      # never: keeps the loads
-    if unfilled > 0:
-        for k in range(np.uint64(nc)):
-            r = np.uint64(cand[k])
-            if irows[r, S_READY] == 0:
-                init_row(pixels, r, eps)
 
 
 @njit(cache=True, error_model="numpy")
@@ -300,7 +304,7 @@ def _interval(iv, rule, pixels, nc, sc, u):
     lla = logs[1]
     llm = logs[2]
     llp = logs[3]
-    _gather(iv, rule, sc, pixels, nc)
+    _gather(iv, sc, rows, nc)
     _logs(iv, rule, sc, rows, nc)
     q = np.uint64(0)
     # pass 3: the candidates' events
@@ -508,6 +512,7 @@ def _pixel_events(frames, j_first, j_last, rule, pixels, sc):
                 continue
             iv = _interval_of(frames, j_first + k, rule.cubic)
             nc, bad = _candidates(iv.f1, iv.fp, pixels.hi, pixels.lo, p0, p1, sc.cand)
+            _fill_rows(pixels, rule.eps, sc.cand, nc)
             while nc > 0:
                 u, resume = _interval(iv, rule, pixels, nc, sc, u)
                 if resume < 0:

@@ -7,17 +7,18 @@ Per pixel state: ``l0`` (float64 log level of the first frame), ``n_on``, ``n_of
 counts of reference moves), ``c_on``, ``c_off`` (float64 thresholds in natural log units),
 ``last_t`` (float64 µs of the last emitted event, for the refractory period), ``e_ref``
 (float64 exp of the reference, kept by multiplication), ``r_on = exp(c_on)``,
-``r_off = exp(-c_off)``, the log cache, a ``ready`` flag, and the float32 intensity gates
-``hi``/``lo``; all but the gates are columns ``S_*`` of one 128-byte row per pixel, which the
+``r_off = exp(-c_off)``, the log cache, and the float32 intensity gates ``hi``/``lo``; all but
+the gates are columns ``S_*`` of one 128-byte row per pixel, which the
 kernels read as the 2-D ``rows`` (``irows``: its int64 view for the counts). The reference
 level is always recomputed from the integer state, ``L_ref = l0 + (n_on*c_on - n_off*c_off)``,
 so it never drifts.
 
 Set-up (:func:`init_gates`) writes only what the first interval's scan reads: the gates, from
-the first frame, which is kept; a pixel's row starts zeroed (``ready`` = 0) and is filled
-from that frame and the thresholds (:func:`init_row`) the first time the pixel is a candidate.
-A pixel inside its gates cannot fire and reads nothing else, so its row is never needed
-before that, and the filled row holds the same values as one filled at set-up.
+the first frame, which is kept; the rows of a chunk of ``CHUNK`` pixels are filled from that
+frame and the thresholds (:func:`init_rows`; ``Pixels.ready`` marks the chunk) when the scan
+first finds a candidate in it. A pixel inside its gates cannot fire and reads nothing else, so
+its row is never needed before that, and the filled row holds the same values as one filled
+at set-up.
 """
 
 from __future__ import annotations
@@ -39,10 +40,10 @@ NO_CACHE = -10.0
 #: minus the smallest normal float32: the OFF gate when no OFF level is reachable
 LO_NONE = -1.1754944e-38
 #: columns of a pixel's state row (``rows``: float64 [H*W, 16]; ``irows``: its int64 view):
-#: l0, c_on, c_off, r_on, r_off, e_ref, last_t, n_on, n_off (int64), the log cache (4 columns),
-#: ready (int64: 1 once :func:`init_row` filled the row)
+#: l0, c_on, c_off, r_on, r_off, e_ref, last_t, n_on, n_off (int64), the log cache (4 columns)
 S_L0, S_CON, S_COFF, S_RON, S_ROFF, S_EREF, S_LAST, S_NON, S_NOFF, S_LC = range(10)
-S_READY = S_LC + 4
+#: pixels per chunk of the candidate scan, and per fill of state rows
+CHUNK = 64
 #: pixels per strip: the event loop runs a block of intervals on one strip before the next, so
 #: that the strip's state (gates 8 bytes, state row 128 bytes per pixel: 10.6 MiB) stays in
 #: the last-level cache from one interval to the next; 320x240 (76 800 pixels) is one strip
@@ -76,6 +77,8 @@ class Pixels(NamedTuple):
     first: np.ndarray       #: float32 [H*W]: the first frame (rows are filled from it)
     thr: np.ndarray         #: float64 [m, 4]: c_on, c_off, r_on, r_off of pixel i in row
     #:                         min(i, m - 1) (m = 1: all pixels share them; else m = H*W)
+    ready: np.ndarray       #: int64 [ceil(H*W / CHUNK) + 1]: 1 once the chunk's rows are
+    #:                         filled; the last entry counts the filled chunks
 
 
 class FrameList(NamedTuple):
@@ -204,25 +207,30 @@ def init_gates(frame, rule, pixels):
 
 
 @njit(cache=True)
-def init_row(pixels, r, eps):
-    """Fill pixel r's state row (unsigned index) from the first frame and its thresholds: the
-    state the pixel had since set-up (its gates came from the same values)."""
+def init_rows(pixels, c, eps):
+    """Fill the state rows of chunk c (pixels ``c*CHUNK`` .. ``c*CHUNK + CHUNK - 1``) from the
+    first frame and their thresholds, and mark it ready: the state its pixels had since
+    set-up (their gates came from the same values)."""
     rows = pixels.rows
     irows = pixels.irows
     thr = pixels.thr
-    t = min(r, np.uint64(thr.shape[0] - 1))
-    v = np.float64(pixels.first[r])
-    rows[r, S_L0] = ln(v + eps)
-    irows[r, S_NON] = 0
-    irows[r, S_NOFF] = 0
-    rows[r, S_LAST] = -1e300
-    rows[r, S_CON] = thr[t, 0]
-    rows[r, S_COFF] = thr[t, 1]
-    rows[r, S_RON] = thr[t, 2]
-    rows[r, S_ROFF] = thr[t, 3]
-    rows[r, S_EREF] = v + eps
-    rows[r, S_LC] = NO_CACHE
-    irows[r, S_READY] = 1
+    first = pixels.first
+    mt = thr.shape[0] - 1
+    for i in range(c * CHUNK, min(c * CHUNK + CHUNK, first.shape[0])):
+        t = min(i, mt)
+        v = np.float64(first[i])
+        rows[i, S_L0] = ln(v + eps)
+        irows[i, S_NON] = 0
+        irows[i, S_NOFF] = 0
+        rows[i, S_LAST] = -1e300
+        rows[i, S_CON] = thr[t, 0]
+        rows[i, S_COFF] = thr[t, 1]
+        rows[i, S_RON] = thr[t, 2]
+        rows[i, S_ROFF] = thr[t, 3]
+        rows[i, S_EREF] = v + eps
+        rows[i, S_LC] = NO_CACHE
+    pixels.ready[c] = 1
+    pixels.ready[-1] += 1
 
 
 @njit(cache=True)
@@ -236,3 +244,4 @@ def new_scratch(npix, ucap):
                    np.empty(ucap, np.int64), np.empty((7, ucap)), np.empty(ucap, np.int64),
                    np.zeros(1, np.int64), np.empty((5, npix)), np.empty(npix, np.int64),
                    np.empty(ucap, np.int64))
+

@@ -327,16 +327,17 @@ def test_strips_match_naive(interpolation):
 
 @pytest.mark.parametrize("interpolation", ["linear", "cubic"])
 def test_rows_filled_on_first_use_match_naive(interpolation):
-    # set-up writes only the gates; a pixel's state row is filled the first time it is a
-    # candidate. Pixels whose change starts at different frames (some never), per-pixel
+    # set-up writes only the gates; a chunk's state rows are filled when the scan first finds
+    # a candidate in it. Pixels whose change starts at different frames (some never), per-pixel
     # thresholds (mismatch), packet cuts and strips: the same events as the reference with
-    # those thresholds; the rows of pixels that never changed stay unfilled
-    from evchain.kernels.emulator_state import S_READY
+    # those thresholds; chunks (here image rows of 64 pixels) that never change stay unfilled
+    from evchain.kernels.emulator_state import CHUNK
 
     rng = np.random.default_rng(21)
-    n, h, w = 16, 9, 40
+    n, h, w = 16, 9, CHUNK
     base = np.exp(rng.normal(-1.0, 0.6, (h, w)))
     start = rng.integers(1, n + 4, (h, w))                 # first changing frame (>= n: never)
+    start[[2, 6]] = n                                      # two rows never change
     k = np.arange(n)[:, None, None]
     ramp = np.maximum(k - start[None], 0) * rng.normal(0.0, 0.3, (h, w))
     frames = (base * np.exp(ramp)).astype(np.float32)
@@ -365,10 +366,9 @@ def test_rows_filled_on_first_use_match_naive(interpolation):
         np.testing.assert_allclose(np.concatenate(f.float_times), tfn, atol=1e-6)
         for name, want in (("x", x), ("y", y), ("p", p), ("t", ti)):
             np.testing.assert_array_equal(getattr(ev, name), want)
-        filled = f._irows[:, S_READY].reshape(h, w) == 1
-        assert filled[ev.y, ev.x].all()               # a pixel with events was a candidate
-        assert not filled[start >= n].any()           # never changed: never a candidate
-        assert (~filled).sum() > 50
+        filled = f._state["ready"][:-1] == 1               # per image row here
+        assert filled[ev.y].all()                      # a row with events had candidates
+        assert not filled[[2, 6]].any()                # never changed: never a candidate
 
 
 @pytest.mark.parametrize("strip, block", [(64, 8), (128, 2), (None, None)])
