@@ -112,36 +112,34 @@ class Emulator(Filter):
                             f"{frames.shape}")
         c_on, c_off, eps = self.natural_parameters()
         sigma = self.params.mismatch_sigma
-        con = np.broadcast_to(np.float64(c_on), (h, w))
-        coff = np.broadcast_to(np.float64(c_off), (h, w))
-        if sigma > 0:
-            con = c_on * np.maximum(1.0 + sigma * self._rng_mismatch.standard_normal((h, w)),
-                                    MISMATCH_FLOOR)
-            coff = c_off * np.maximum(1.0 + sigma * self._rng_mismatch.standard_normal((h, w)),
-                                      MISMATCH_FLOOR)
         npix = h * w
+        con = np.array([c_on], np.float64)       # one row of thresholds for all pixels
+        coff = np.array([c_off], np.float64)
+        if sigma > 0:
+            con = c_on * np.maximum(1.0 + sigma * self._rng_mismatch.standard_normal(npix),
+                                    MISMATCH_FLOOR)
+            coff = c_off * np.maximum(1.0 + sigma * self._rng_mismatch.standard_normal(npix),
+                                      MISMATCH_FLOOR)
+        thr = K.threshold_rows(con, coff)
         # all per-pixel state touched on events lives in one 128-byte row per pixel (array
         # of structs, rows aligned to 128 bytes): an event visit touches one pair of adjacent
-        # cache lines instead of one line per array
-        buf = np.empty(npix * ROW + ROW)           # init_state writes every slot used
+        # cache lines instead of one line per array. A chunk's rows are filled when the scan
+        # first finds a candidate in it, so set-up writes only the gates
+        buf = np.empty(npix * ROW + ROW)
         off = (-buf.ctypes.data % (ROW * 8)) // 8
         aos = buf[off:off + npix * ROW].reshape(npix, ROW)
         counts = aos.view(np.int64)
-        st = {
-            "l0": aos[:, K.S_L0], "c_on": aos[:, K.S_CON], "c_off": aos[:, K.S_COFF],
-            "r_on": aos[:, K.S_RON], "r_off": aos[:, K.S_ROFF], "e_ref": aos[:, K.S_EREF],
-            "last_t": aos[:, K.S_LAST], "n_on": counts[:, K.S_NON], "n_off": counts[:, K.S_NOFF],
-            "hi": np.zeros(npix, np.float32), "lo": np.zeros(npix, np.float32),
-        }
+        st = {"hi": np.empty(npix, np.float32), "lo": np.empty(npix, np.float32),
+              "first": np.empty(npix, np.float32), "thr": thr,
+              "ready": np.zeros(-(-npix // K.CHUNK) + 1, np.int64)}
         # the kernel reads the rows whole (one 2-D array: one address computation per pixel
         # for all fields, instead of one per strided view)
         self._rows, self._irows = aos, counts
         first = np.ascontiguousarray(frames[0], dtype=np.float32)
         p = self.params
         rule = K.make_rule(p.interpolation == "cubic", eps, p.tie_tolerance,
-                           float(p.refractory_us), -1)    # init_state reads eps and the gates
-        err, y, x = K.init_state(first, rule, con, coff,
-                                 K.Pixels(aos, counts, st["hi"], st["lo"]))
+                           float(p.refractory_us), -1)    # init_gates reads eps and the gates
+        err, y, x = K.init_gates(first, rule, self._pixels(st))
         self._raise_pixel(err, packet, 0, y, x)
         self._geometry = g
         self._state = st
@@ -157,7 +155,15 @@ class Emulator(Filter):
         if self._state is None:
             return None
         shape = self._geometry.shape
-        return self._state["c_on"].reshape(shape), self._state["c_off"].reshape(shape)
+        thr = self._state["thr"]
+        return (np.broadcast_to(thr[:, 0], (shape[0] * shape[1],)).reshape(shape),
+                np.broadcast_to(thr[:, 1], (shape[0] * shape[1],)).reshape(shape))
+
+    def _pixels(self, st):
+        from evchain.kernels.emulator_state import Pixels
+
+        return Pixels(self._rows, self._irows, st["hi"], st["lo"], st["first"], st["thr"],
+                      st["ready"])
 
     @staticmethod
     def _raise_pixel(err: int, packet: FramePacket, index: int, y: int, x: int) -> None:
@@ -222,7 +228,7 @@ class Emulator(Filter):
         """Process intervals ``self._next_j .. j_stop - 1`` (global indices)."""
         from evchain.kernels import emulator_state as K
         from evchain.kernels.emulator import emulate
-        from evchain.kernels.emulator_state import FrameList, Noise, Pixels, make_rule
+        from evchain.kernels.emulator_state import FrameList, Noise, make_rule
 
         if j_stop <= self._next_j:
             return
@@ -250,7 +256,7 @@ class Emulator(Filter):
                          self._strip, self.block_intervals or K.BLOCK)
         x, y, tt, tf, pol, n, err, ef, ey, ex, self._scratch = emulate(
             FrameList(self._held, frames, times, base, total), j0, j1, rule,
-            Pixels(self._rows, self._irows, st["hi"], st["lo"]), Noise(*nf), self._cap_hint,
+            self._pixels(st), Noise(*nf), self._cap_hint,
             carry, keep_tf, self._scratch)
         if err:
             self._raise_pixel(err, packet, ef - nh, ey, ex)

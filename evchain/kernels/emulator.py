@@ -38,6 +38,7 @@ from numba import njit
 
 from evchain.kernels.emulator_crossings import _times, slope3
 from evchain.kernels.emulator_state import (
+    CHUNK,
     ERR_NEGATIVE,
     ERR_NONE,
     ERR_NONFINITE,
@@ -54,12 +55,11 @@ from evchain.kernels.emulator_state import (
     S_RON,
     Scratch,
     gates,
+    init_rows,
 )
 from evchain.kernels.intrinsics import cttz, prefetch
 from evchain.kernels.veclog import log_pass
 
-#: pixels per chunk of the candidate scan
-CHUNK = 64
 #: pixels ahead of the scan whose frame values are prefetched (4 KiB)
 PREFETCH_AHEAD = 1024
 
@@ -160,6 +160,23 @@ def _candidates(f1, fp, hi, lo, first, last, cand):
         if bad >= 0:
             break
     return nc, bad
+
+
+@njit(cache=True, error_model="numpy")
+def _fill_rows(pixels, eps, cand, nc):
+    """The state rows of the candidates' chunks filled where not yet (:func:`init_rows`): a
+    pixel's row is needed from the first time it is a candidate. A loop of its own: the test
+    inside the scan's loop slowed the scan."""
+    ready = pixels.ready
+    if ready[-1] == ready.shape[0] - 1:
+        return                           # all filled
+    prev = -1
+    for k in range(nc):
+        c = cand[k] // CHUNK
+        if c != prev:
+            prev = c
+            if ready[c] == 0:
+                init_rows(pixels, c, eps)
 
 
 @njit(cache=True, error_model="numpy")
@@ -495,6 +512,7 @@ def _pixel_events(frames, j_first, j_last, rule, pixels, sc):
                 continue
             iv = _interval_of(frames, j_first + k, rule.cubic)
             nc, bad = _candidates(iv.f1, iv.fp, pixels.hi, pixels.lo, p0, p1, sc.cand)
+            _fill_rows(pixels, rule.eps, sc.cand, nc)
             while nc > 0:
                 u, resume = _interval(iv, rule, pixels, nc, sc, u)
                 if resume < 0:

@@ -8,9 +8,17 @@ counts of reference moves), ``c_on``, ``c_off`` (float64 thresholds in natural l
 ``last_t`` (float64 µs of the last emitted event, for the refractory period), ``e_ref``
 (float64 exp of the reference, kept by multiplication), ``r_on = exp(c_on)``,
 ``r_off = exp(-c_off)``, the log cache, and the float32 intensity gates ``hi``/``lo``; all but
-the gates are columns ``S_*`` of one 128-byte row per pixel, which the kernels read as the 2-D
-``rows`` (``irows``: its int64 view for the counts). The reference level is always recomputed
-from the integer state, ``L_ref = l0 + (n_on*c_on - n_off*c_off)``, so it never drifts.
+the gates are columns ``S_*`` of one 128-byte row per pixel, which the
+kernels read as the 2-D ``rows`` (``irows``: its int64 view for the counts). The reference
+level is always recomputed from the integer state, ``L_ref = l0 + (n_on*c_on - n_off*c_off)``,
+so it never drifts.
+
+Set-up (:func:`init_gates`) writes only what the first interval's scan reads: the gates, from
+the first frame, which is kept; the rows of a chunk of ``CHUNK`` pixels are filled from that
+frame and the thresholds (:func:`init_rows`; ``Pixels.ready`` marks the chunk) when the scan
+first finds a candidate in it. A pixel inside its gates cannot fire and reads nothing else, so
+its row is never needed before that, and the filled row holds the same values as one filled
+at set-up.
 """
 
 from __future__ import annotations
@@ -34,6 +42,8 @@ LO_NONE = -1.1754944e-38
 #: columns of a pixel's state row (``rows``: float64 [H*W, 16]; ``irows``: its int64 view):
 #: l0, c_on, c_off, r_on, r_off, e_ref, last_t, n_on, n_off (int64), the log cache (4 columns)
 S_L0, S_CON, S_COFF, S_RON, S_ROFF, S_EREF, S_LAST, S_NON, S_NOFF, S_LC = range(10)
+#: pixels per chunk of the candidate scan, and per fill of state rows
+CHUNK = 64
 #: pixels per strip: the event loop runs a block of intervals on one strip before the next, so
 #: that the strip's state (gates 8 bytes, state row 128 bytes per pixel: 10.6 MiB) stays in
 #: the last-level cache from one interval to the next; 320x240 (76 800 pixels) is one strip
@@ -64,6 +74,11 @@ class Pixels(NamedTuple):
     irows: np.ndarray       #: int64 [H*W, 16]: the same memory, for the counts
     hi: np.ndarray          #: float32 [H*W]: ON gate of the prefilter
     lo: np.ndarray          #: float32 [H*W]: OFF gate of the prefilter
+    first: np.ndarray       #: float32 [H*W]: the first frame (rows are filled from it)
+    thr: np.ndarray         #: float64 [m, 4]: c_on, c_off, r_on, r_off of pixel i in row
+    #:                         min(i, m - 1) (m = 1: all pixels share them; else m = H*W)
+    ready: np.ndarray       #: int64 [ceil(H*W / CHUNK) + 1]: 1 once the chunk's rows are
+    #:                         filled; the last entry counts the filled chunks
 
 
 class FrameList(NamedTuple):
@@ -135,8 +150,22 @@ def make_rule(cubic, eps, tol, refractory_us, cap, strip=STRIP, block=BLOCK):
 
 
 @njit(cache=True)
-def init_state(frame, rule, con_in, coff_in, pixels):
-    """Initialise every pixel's state from the first frame, in one pass.
+def threshold_rows(con, coff):
+    """``Pixels.thr`` of the thresholds con, coff (float64 [m], natural log units): their
+    rows with r_on = exp(c_on), r_off = exp(-c_off)."""
+    thr = np.empty((con.shape[0], 4))
+    for i in range(con.shape[0]):
+        thr[i, 0] = con[i]
+        thr[i, 1] = coff[i]
+        thr[i, 2] = np.exp(con[i])
+        thr[i, 3] = np.exp(-coff[i])
+    return thr
+
+
+@njit(cache=True)
+def init_gates(frame, rule, pixels):
+    """Set-up: check the first frame, keep it (``pixels.first``) and write every pixel's gates
+    from it; the rows stay unfilled until :func:`init_row`.
 
     Parameters
     ----------
@@ -144,10 +173,8 @@ def init_state(frame, rule, con_in, coff_in, pixels):
         The first frame, linear intensity >= 0.
     rule : Rule
         Its ``eps``, ``k_hi`` and ``k_lo`` are read.
-    con_in, coff_in : ndarray, float64 [H, W]
-        ON and OFF thresholds, natural log units (may be broadcast).
     pixels : Pixels
-        Written: every pixel's state row and gates.
+        Written: ``first``, ``hi``, ``lo``; read: ``thr``.
 
     Returns
     -------
@@ -158,15 +185,11 @@ def init_state(frame, rule, con_in, coff_in, pixels):
     eps = rule.eps
     k_hi = rule.k_hi
     k_lo = rule.k_lo
-    rows = pixels.rows
-    irows = pixels.irows
+    first = pixels.first
     hi = pixels.hi
     lo = pixels.lo
-    # exp of the thresholds only where they change (all pixels share them without mismatch)
-    con = np.nan
-    coff = np.nan
-    ron = 1.0
-    roff = 1.0
+    thr = pixels.thr
+    mt = thr.shape[0] - 1
     for y in range(h):
         for x in range(w):
             v = frame[y, x]
@@ -175,26 +198,39 @@ def init_state(frame, rule, con_in, coff_in, pixels):
             if v < 0:
                 return ERR_NEGATIVE, y, x
             i = y * w + x
-            rows[i, S_L0] = ln(np.float64(v) + eps)
-            irows[i, S_NON] = 0
-            irows[i, S_NOFF] = 0
-            rows[i, S_LAST] = -1e300
-            if con_in[y, x] != con:
-                con = con_in[y, x]
-                ron = np.exp(con)
-            if coff_in[y, x] != coff:
-                coff = coff_in[y, x]
-                roff = np.exp(-coff)
-            rows[i, S_CON] = con
-            rows[i, S_COFF] = coff
-            rows[i, S_LC] = NO_CACHE
-            rows[i, S_RON] = ron
-            rows[i, S_ROFF] = roff
-            rows[i, S_EREF] = np.float64(v) + eps
-            a, b = gates(rows[i, S_EREF], rows[i, S_RON], rows[i, S_ROFF], eps, k_hi, k_lo)
+            first[i] = v
+            t = min(i, mt)
+            a, b = gates(np.float64(v) + eps, thr[t, 2], thr[t, 3], eps, k_hi, k_lo)
             hi[i] = a
             lo[i] = b
     return ERR_NONE, 0, 0
+
+
+@njit(cache=True)
+def init_rows(pixels, c, eps):
+    """Fill the state rows of chunk c (pixels ``c*CHUNK`` .. ``c*CHUNK + CHUNK - 1``) from the
+    first frame and their thresholds, and mark it ready: the state its pixels had since
+    set-up (their gates came from the same values)."""
+    rows = pixels.rows
+    irows = pixels.irows
+    thr = pixels.thr
+    first = pixels.first
+    mt = thr.shape[0] - 1
+    for i in range(c * CHUNK, min(c * CHUNK + CHUNK, first.shape[0])):
+        t = min(i, mt)
+        v = np.float64(first[i])
+        rows[i, S_L0] = ln(v + eps)
+        irows[i, S_NON] = 0
+        irows[i, S_NOFF] = 0
+        rows[i, S_LAST] = -1e300
+        rows[i, S_CON] = thr[t, 0]
+        rows[i, S_COFF] = thr[t, 1]
+        rows[i, S_RON] = thr[t, 2]
+        rows[i, S_ROFF] = thr[t, 3]
+        rows[i, S_EREF] = v + eps
+        rows[i, S_LC] = NO_CACHE
+    pixels.ready[c] = 1
+    pixels.ready[-1] += 1
 
 
 @njit(cache=True)
@@ -208,3 +244,4 @@ def new_scratch(npix, ucap):
                    np.empty(ucap, np.int64), np.empty((7, ucap)), np.empty(ucap, np.int64),
                    np.zeros(1, np.int64), np.empty((5, npix)), np.empty(npix, np.int64),
                    np.empty(ucap, np.int64))
+

@@ -325,6 +325,52 @@ def test_strips_match_naive(interpolation):
         np.testing.assert_array_equal(getattr(got, name), getattr(ref, name))
 
 
+@pytest.mark.parametrize("interpolation", ["linear", "cubic"])
+def test_rows_filled_on_first_use_match_naive(interpolation):
+    # set-up writes only the gates; a chunk's state rows are filled when the scan first finds
+    # a candidate in it. Pixels whose change starts at different frames (some never), per-pixel
+    # thresholds (mismatch), packet cuts and strips: the same events as the reference with
+    # those thresholds; chunks (here image rows of 64 pixels) that never change stay unfilled
+    from evchain.kernels.emulator_state import CHUNK
+
+    rng = np.random.default_rng(21)
+    n, h, w = 16, 9, CHUNK
+    base = np.exp(rng.normal(-1.0, 0.6, (h, w)))
+    start = rng.integers(1, n + 4, (h, w))                 # first changing frame (>= n: never)
+    start[[2, 6]] = n                                      # two rows never change
+    k = np.arange(n)[:, None, None]
+    ramp = np.maximum(k - start[None], 0) * rng.normal(0.0, 0.3, (h, w))
+    frames = (base * np.exp(ramp)).astype(np.float32)
+    times = np.cumsum(rng.integers(200, 2000, n)).astype(np.int64)
+    cubic = interpolation == "cubic"
+    for strip, block, cut in ((None, None, None), (64, 3, [3, 1, 7, 5])):
+        f = Emulator()
+        f.record_float_times = True
+        f.strip_pixels = strip
+        f.block_intervals = block
+        f.setup(Emulator.Params(threshold_on=0.25, threshold_off=0.2, mismatch_sigma=0.1,
+                                interpolation=interpolation), Context(seed=3))
+        outs, i = [], 0
+        for m in cut or [n]:
+            j = min(i + m, n)
+            t_end = int(times[j]) if j < n else int(times[-1]) + 1
+            outs.append(f.process(FramePacket(geometry=Geometry(w, h), t_start=int(times[i]),
+                                              t_end=t_end, frames=frames[i:j], t=times[i:j])))
+            i = j
+        outs.append(f.flush())
+        ev = EventPacket.concat(outs).validate()
+        con, coff = f.thresholds
+        assert np.ptp(con) > 0.01                      # per-pixel thresholds
+        x, y, ti, tfn, p = naive(frames, times, con, coff, cubic=cubic)
+        assert len(ev) == len(x) > 300
+        np.testing.assert_allclose(np.concatenate(f.float_times), tfn, atol=1e-6)
+        for name, want in (("x", x), ("y", y), ("p", p), ("t", ti)):
+            np.testing.assert_array_equal(getattr(ev, name), want)
+        filled = f._state["ready"][:-1] == 1               # per image row here
+        assert filled[ev.y].all()                      # a row with events had candidates
+        assert not filled[[2, 6]].any()                # never changed: never a candidate
+
+
 @pytest.mark.parametrize("strip, block", [(64, 8), (128, 2), (None, None)])
 def test_first_bad_pixel_across_strips(strip, block):
     # a bad value in a later strip at an earlier frame comes first; in the same frame, the
