@@ -212,6 +212,21 @@ def test_adaptive_window_matches_naive_on_slow_edges(gradient, speed, angle):
         assert len(plain[0]) != len(ada[0]) or not np.array_equal(plain[1], ada[1])
 
 
+def check_hard_cases(cases, w, h, **kw):
+    """Each case (x, y, t, p) without refractory and speed control: finite, nonzero flow, none
+    where no neighbour differs in time, and the same events and vectors as the reference."""
+    kw = dict(refractory_us=0, speed_control=False, **kw)
+    for name, (x, y, tt, p) in cases.items():
+        idx, vx, vy = run_kernel(x, y, tt, p, w, h, **kw)
+        check_finite(vx, vy)
+        assert np.all(np.hypot(vx, vy) > 0)
+        if name in ("one_timestamp", "one_pixel", "line"):
+            assert len(idx) == 0, name
+        ni, nvx, nvy = lk_flow_naive(x, y, tt, p, w, h, **{**DEFAULTS, **kw})
+        assert list(idx) == ni, name
+        np.testing.assert_allclose(vx, nvx, rtol=1e-6, atol=1e-6)
+
+
 @pytest.mark.parametrize("gradient", list(GRADIENTS))
 def test_adaptive_window_hard_inputs(gradient):
     """Near-singular and degenerate neighbourhoods with the adaptive window: finite output,
@@ -231,16 +246,7 @@ def test_adaptive_window_hard_inputs(gradient):
     cases["line"] = (d, d, d * 120_000, np.ones(len(d)))
     # one pixel firing slowly and repeatedly (FIFO overflow within the longest window)
     cases["one_pixel"] = (np.full(50, 9), np.full(50, 8), np.arange(50) * 30_000, np.ones(50))
-    for name, (x, y, tt, p) in cases.items():
-        kw = dict(gradient=gradient, refractory_us=0, speed_control=False, **ADAPTIVE)
-        idx, vx, vy = run_kernel(x, y, tt, p, w, h, **kw)
-        check_finite(vx, vy)
-        assert np.all(np.hypot(vx, vy) > 0)
-        if name in ("one_timestamp", "one_pixel", "line"):
-            assert len(idx) == 0, name
-        ni, nvx, nvy = lk_flow_naive(x, y, tt, p, w, h, **{**DEFAULTS, **kw})
-        assert list(idx) == ni, name
-        np.testing.assert_allclose(vx, nvx, rtol=1e-6, atol=1e-6)
+    check_hard_cases(cases, w, h, gradient=gradient, **ADAPTIVE)
 
 
 @pytest.mark.parametrize("gradient", list(GRADIENTS))
@@ -336,16 +342,7 @@ def test_two_scales_hard_inputs(gradient):
     big = np.int64(1) << 61
     cases["late_clock"] = (xs.ravel()[o], ys.ravel()[o], big + (xs * 1000).ravel()[o],
                            np.ones(w * h))
-    for name, (x, y, tt, p) in cases.items():
-        kw = dict(gradient=gradient, refractory_us=0, speed_control=False, **SHORT)
-        idx, vx, vy = run_kernel(x, y, tt, p, w, h, **kw)
-        check_finite(vx, vy)
-        assert np.all(np.hypot(vx, vy) > 0)
-        if name in ("one_timestamp", "one_pixel", "line"):
-            assert len(idx) == 0, name
-        ni, nvx, nvy = lk_flow_naive(x, y, tt, p, w, h, **{**DEFAULTS, **kw})
-        assert list(idx) == ni, name
-        np.testing.assert_allclose(vx, nvx, rtol=1e-6, atol=1e-6)
+    check_hard_cases(cases, w, h, gradient=gradient, **SHORT)
 
 
 def test_two_scales_avoid_the_edge_before():

@@ -224,14 +224,19 @@ class Aedat4Source(Filter):
         yield from attach_imu(packets, imu, metrics)
         self.context.metrics[self.id] = metrics
 
+    def _next_batch(self, get, stream: str, what: str, done: int):
+        """``get(stream)``, DV's next batch of the stream (None at its end); a packet DV cannot
+        decode is a DataError naming the file, the stream and how many were read before it."""
+        try:
+            return get(stream)
+        except RuntimeError as exc:
+            raise DataError(f"{self.path}: after {what} {done}: cannot decode the next packet "
+                            f"of stream {stream!r}: {dv_message(exc)}") from None
+
     def _imu_batches(self) -> Iterator[np.ndarray]:
         stream, done = self.imu_stream, 0
         while True:
-            try:
-                batch = self.recording.getNextImuBatch(stream)
-            except RuntimeError as exc:
-                raise DataError(f"{self.path}: after IMU sample {done}: cannot decode the next "
-                                f"packet of stream {stream!r}: {dv_message(exc)}") from None
+            batch = self._next_batch(self.recording.getNextImuBatch, stream, "IMU sample", done)
             if batch is None:
                 return
             yield imu_entries(batch, f"{self.path}: stream {stream!r}", done)
@@ -241,11 +246,7 @@ class Aedat4Source(Filter):
         g, stream = self.context.geometry, self.params.stream
         done, last = 0, None
         while True:
-            try:
-                batch = self.recording.getNextEventBatch(stream)
-            except RuntimeError as exc:
-                raise DataError(f"{self.path}: after event {done}: cannot decode the next "
-                                f"packet of stream {stream!r}: {dv_message(exc)}") from None
+            batch = self._next_batch(self.recording.getNextEventBatch, stream, "event", done)
             if batch is None:
                 return
             a = batch.numpy()
