@@ -175,6 +175,40 @@ def test_bad_input_names_the_file(tmp_path):
         _open(good, stream="frames")
 
 
+def test_a_packet_dv_cannot_decode_names_file_stream_and_count(tmp_path):
+    """A batch that dv-processing fails to decode (its RuntimeError) is a DataError naming the
+    file, the stream and the events or IMU samples read before it, without DV's stack trace."""
+    good = write_file(tmp_path / "good.aedat4", stream(n=500))
+    src = Aedat4Source()
+    src.setup(Aedat4Source.Params(path=str(good)), Context(out_dir=tmp_path))
+
+    class Broken:  # DV's recording, every batch failing to decode
+        def __init__(self, recording):
+            self.recording = recording
+
+        def __getattr__(self, name):
+            return getattr(self.recording, name)
+
+        def getNextEventBatch(self, stream):  # noqa: N802 (DV's name)
+            raise RuntimeError("decompression failed\nStacktrace:\n  0# dv::io::Reader")
+
+        getNextImuBatch = getNextEventBatch
+
+    real = src.recording
+    src.recording = Broken(real)
+    try:
+        with pytest.raises(DataError, match=r"good\.aedat4: after event 0: cannot decode the "
+                           r"next packet of stream 'events': decompression failed$"):
+            list(src.packets())
+        src.imu_stream = "imu"
+        with pytest.raises(DataError, match=r"good\.aedat4: after IMU sample 0: cannot decode "
+                           r"the next packet of stream 'imu': decompression failed$"):
+            list(src._imu_batches())
+    finally:
+        src.recording = real
+        src.close()
+
+
 def test_pipeline_through_the_registry(tmp_path):
     """The plugin is found through its entry point and runs from YAML."""
     import evchain
