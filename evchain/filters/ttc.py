@@ -26,7 +26,8 @@ class Ttc(Filter):
     the first one). Flow events below the FOE, within ``region_b_half_width_px`` of it
     horizontally, at least ``min_distance_px`` from it, diverging and of plausible speed give
     one tau each: with ``baseline_px`` > 0 from where the edge was earlier (each pixel's last
-    flow-event time, walked back along the flow direction: a baseline of up to
+    flow-event time, walked back along the flow direction, at each step the newest of the
+    pixels up to ``baseline_width_px`` beside it along the edge: a baseline of up to
     ``baseline_max_ms``, positions and times only), else from the flow's magnitude. They are
     assigned to square clusters (centre of mass, activity-weighted updates, growth, decay,
     removal below ``min_activity``). At every multiple of
@@ -117,6 +118,11 @@ class Ttc(Filter):
                                  "edge was up to this many px earlier (the pixels' last flow "
                                  "times), not from the flow's magnitude; 0: from the flow")
         baseline_max_ms: float = Field(500.0, gt=0, description="longest baseline")
+        baseline_width_px: int = Field(0, ge=0, le=8, description="baseline: at each step "
+                                       "back also look at the pixels up to this far beside "
+                                       "it along the edge and take the one that fired last (a "
+                                       "far obstacle's edge crosses a row in bursts that "
+                                       "cover only part of it); 0: the pixel straight behind")
         ground_fallback: bool = Field(True, description="with no cluster off the road, select "
                                       "among all clusters (else: no obstacle at that tick)")
         max_rel_spread: float | None = Field(
@@ -148,6 +154,7 @@ class Ttc(Filter):
             ground_min_events=p.ground_min_events, ground_fallback=p.ground_fallback,
             corridor=p.corridor_half_width_h or 0.0, hold=p.select_hold,
             base_px=p.baseline_px, base_age_us=p.baseline_max_ms * 1000.0,
+            base_width=p.baseline_width_px,
             max_spread=math.inf if p.max_rel_spread is None else p.max_rel_spread,
             f=g.f or 0.0, cx=g.cx, cy=g.cy)
 

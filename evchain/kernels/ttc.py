@@ -90,6 +90,7 @@ class TtcParams(NamedTuple):
     hold: bool                  #: keep the previous obstacle while it qualifies
     base_px: int                #: baseline tau over up to this many px (0: from the flow)
     base_age_us: float          #: longest baseline, µs
+    base_width: int             #: baseline: pixels searched beside each step along the edge
     f: float                    #: focal length, px (0: the flow is not derotated)
     cx: float                   #: principal point, px
     cy: float
@@ -180,20 +181,23 @@ def event_tau(px, py, vx, vy, fx, fy, prm):
 
 
 @njit(cache=True)
-def baseline_tau(S, pol, px, py, nx, ny, d0, rot, ti, max_px, max_age_us):
+def baseline_tau(S, pol, px, py, nx, ny, d0, rot, ti, max_px, max_age_us, width):
     """tau from where the edge through (px, py) was earlier, or -1 when nothing qualifies.
 
     ``S[pol]`` holds each pixel's last flow-event time (µs). Walking back from p against the
-    unit normal n (the direction the edge moved in; ``d0 = (p - foe).n``) by 1..``max_px`` px
-    (nearest pixels), the times must fall strictly and stay within ``max_age_us`` of ``ti``.
-    For the farthest such pixel q (``dd = (p - q).n`` px earlier, at time tq) an edge
-    approaching at constant speed has the translational part of its position
-    ``d(t) = D / (t_c - t)``; the camera's rotation adds ``rot`` px/s along n (its rotational
-    normal speed), so the translational part moved ``dd - rot dt`` in ``dt = ti - tq`` and
-    ``tau = (d0 - dd + rot dt) dt / (dd - rot dt)``, which must be positive with the edge on the
-    same side of the FOE at tq (``(d0 - dd + rot dt) d0 > 0``): positions and times only, over
-    a baseline as long as the edge took, no flow magnitude. Without rotation (``rot`` 0)
-    ``tau = (d0 - dd) dt / dd``.
+    unit normal n (the direction the edge moved in; ``d0 = (p - foe).n``) by 1..``max_px`` px,
+    at each step the pixel nearest that point and those up to ``width`` px beside it along the
+    edge (the tangent (-ny, nx)) are looked at, and the one that fired last, strictly before
+    the previous step's time and within ``max_age_us`` of ``ti``, is taken: a far obstacle's
+    edge crosses a pixel row in bursts that cover only part of the row, so the pixel straight
+    behind p often did not fire when the edge crossed its row. For the farthest step q
+    (``dd = (p - q).n`` px earlier, at time tq) an edge approaching at constant speed has the
+    translational part of its position ``d(t) = D / (t_c - t)``; the camera's rotation adds
+    ``rot`` px/s along n (its rotational normal speed), so the translational part moved
+    ``dd - rot dt`` in ``dt = ti - tq`` and ``tau = (d0 - dd + rot dt) dt / (dd - rot dt)``,
+    which must be positive with the edge on the same side of the FOE at tq
+    (``(d0 - dd + rot dt) d0 > 0``): positions and times only, over a baseline as long as the
+    edge took, no flow magnitude. Without rotation (``rot`` 0) ``tau = (d0 - dd) dt / dd``.
     """
     h = S.shape[1]
     w = S.shape[2]
@@ -202,14 +206,24 @@ def baseline_tau(S, pol, px, py, nx, ny, d0, rot, ti, max_px, max_age_us):
     tprev = ti
     tau = -1.0
     for k in range(1, max_px + 1):
-        qx = int(math.floor(px - k * nx + 0.5))
-        qy = int(math.floor(py - k * ny + 0.5))
-        if qx < 0 or qy < 0 or qx >= w or qy >= h:
-            break
-        if qx == ix and qy == iy:
-            continue
-        tq = S[pol, qy, qx]
-        if not (tq < tprev) or ti - tq > max_age_us:
+        bx = px - k * nx
+        by = py - k * ny
+        if int(math.floor(bx + 0.5)) == ix and int(math.floor(by + 0.5)) == iy:
+            continue  # still in p's own pixel
+        tq = -math.inf
+        qx = -1
+        qy = -1
+        for j in range(-width, width + 1):
+            cx = int(math.floor(bx - j * ny + 0.5))
+            cy = int(math.floor(by + j * nx + 0.5))
+            if cx < 0 or cy < 0 or cx >= w or cy >= h or (cx == ix and cy == iy):
+                continue
+            tc = S[pol, cy, cx]
+            if tc < tprev and ti - tc <= max_age_us and tc > tq:
+                tq = tc
+                qx = cx
+                qy = cy
+        if qx < 0:
             break
         dd = (px - qx) * nx + (py - qy) * ny
         shift = rot * ((ti - tq) * 1e-6)
@@ -741,7 +755,8 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
         if tau > 0.0 and prm.base_px > 0:  # from where the edge was earlier
             d0 = tau * (sp - rot)  # (p - foe).n
             tau = baseline_tau(last_t, 1 if pol[i] > 0 else 0, px, py, evx / sp, evy / sp,
-                               d0, rot, float(ti), prm.base_px, prm.base_age_us)
+                               d0, rot, float(ti), prm.base_px, prm.base_age_us,
+                               prm.base_width)
             if tau < prm.min_tau or tau > prm.max_tau:
                 tau = -1.0
         if tau > 0.0:  # to its cluster: the nearest whose widened square holds it, or a new one

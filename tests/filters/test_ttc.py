@@ -381,13 +381,39 @@ def test_baseline_tau_matches_reference():
         rot = 0.0 if i % 3 == 1 else float(rng.normal(0, 20))
         ti = float(rng.integers(500_000, 1_100_000))
         args = (px, py, nx, ny, d0, rot, ti, int(rng.integers(1, 10)),
-                float(rng.integers(1, 9e5)))
+                float(rng.integers(1, 9e5)), int(rng.integers(0, 4)))
         want = baseline_tau_naive(S[pol], *args)
         got = baseline_tau(S, pol, *args)
         assert np.isfinite(got)
         assert got == pytest.approx(want, rel=1e-12, abs=1e-15)
         got_any += want > 0
     assert got_any > 200
+
+
+def test_baseline_tau_matches_reference_on_ties_and_borders():
+    """Hard inputs of the walk beside the edge: many equal times (the first newest is taken),
+    positions off the pixel grid and on the image's border, steps leaving the image."""
+    from evchain.kernels.ttc import baseline_tau
+
+    rng = np.random.default_rng(7)
+    S = np.full((2, 12, 16), -1e300)
+    S[0] = rng.integers(0, 6, (12, 16)) * 100_000.0
+    S[1] = np.where(rng.random((12, 16)) < 0.5, -1e300, 300_000.0)
+    got_any = 0
+    for i in range(3000):
+        pol = i % 2
+        px = float(rng.choice([0, 15, rng.uniform(-0.4, 15.4), rng.integers(0, 16)]))
+        py = float(rng.choice([0, 11, rng.uniform(-0.4, 11.4), rng.integers(0, 12)]))
+        ang = rng.uniform(0, 2 * np.pi) if i % 2 else rng.integers(0, 8) * np.pi / 4
+        args = (px, py, np.cos(ang), np.sin(ang), float(rng.uniform(-3, 20)),
+                0.0 if i % 3 else float(rng.normal(0, 5)), 600_000.0,
+                int(rng.integers(1, 8)), 1e6, int(rng.integers(0, 5)))
+        want = baseline_tau_naive(S[pol], *args)
+        got = baseline_tau(S, pol, *args)
+        assert np.isfinite(got)
+        assert got == pytest.approx(want, rel=1e-12, abs=1e-15)
+        got_any += want > 0
+    assert got_any > 100
 
 
 def test_baseline_contract():

@@ -138,9 +138,9 @@ def test_random_streams_match_reference(seed):
 def test_random_rotating_streams_match_reference(seed):
     """The FOE entries carry the camera's angular velocity: each event's tau is that of its
     flow less the rotational flow (from the flow and from the baseline)."""
-    for baseline in (0, 4):
+    for baseline, width in ((0, 0), (4, 0), (4, 1)):
         ttc, cl = compare(random_stream(seed, rotation=True), baseline_px=baseline,
-                          min_samples=3)
+                          baseline_width_px=width, min_samples=3)
     assert len(ttc) > 10
 
 
@@ -187,15 +187,17 @@ def test_rotation_near_the_foe_and_zero():
                      [(0, *FOE, *w, flag)]),
               packet(100_000, 200_000, x[n // 2:], y[n // 2:], t[n // 2:], np.ones(n // 2),
                      vx[n // 2:] + ru[n // 2:], vy[n // 2:] + rv[n // 2:])]
-        for baseline in (0, 3):
-            ttc, _ = compare(pk, baseline_px=baseline, min_samples=3)
+        for baseline, width in ((0, 0), (3, 0), (3, 1)):
+            ttc, _ = compare(pk, baseline_px=baseline, baseline_width_px=width,
+                             min_samples=3)
             assert np.isfinite(ttc["tau_s"]).all()
 
 
 @settings(max_examples=30, deadline=None)
 @given(seed=st.integers(0, 10_000), select=st.sampled_from(["nearest_foe", "support"]),
        ground=st.booleans(), corridor=st.sampled_from([None, 1.0, 3.0]),
-       hold=st.booleans(), fallback=st.booleans(), baseline=st.sampled_from([0, 4]),
+       hold=st.booleans(), fallback=st.booleans(),
+       baseline=st.sampled_from([(0, 0), (4, 0), (4, 1), (4, 2), (1, 1)]),
        max_clusters=st.sampled_from([1, 2, 3, 8, 32]), min_samples=st.sampled_from([1, 3, 8]),
        size=st.sampled_from([(3.0, 5.0, 1.0), (6.0, 15.0, 4.0), (10.0, 10.0, 0.0)]),
        activity=st.sampled_from([(30.0, 1.0), (100.0, 2.0), (400.0, 5.0)]),
@@ -207,7 +209,8 @@ def test_random_parameters_match_reference(seed, select, ground, corridor, hold,
                                            ring, period, spread, tau_bounds):
     compare(random_stream(seed, n=900), select=select, ground_test=ground,
             ground_min_events=40, corridor_half_width_h=corridor, select_hold=hold,
-            ground_fallback=fallback, baseline_px=baseline, max_clusters=max_clusters,
+            ground_fallback=fallback, baseline_px=baseline[0], baseline_width_px=baseline[1],
+            max_clusters=max_clusters,
             min_samples=min_samples, cluster_size_px=size[0], max_cluster_size_px=size[1],
             join_margin_px=size[2], activity_tau_ms=activity[0], min_activity=activity[1],
             samples_per_cluster=ring, estimate_every_us=period, select_min_activity=2.0,

@@ -58,27 +58,37 @@ def rotational_speed_naive(px, py, nx, ny, w, f, cx, cy) -> float:
     return float(np.array([nx, ny]) @ (B @ np.asarray(w, np.float64)))
 
 
-def baseline_tau_naive(last_t, px, py, nx, ny, d0, rot, ti, max_px, max_age_us) -> float:
+def baseline_tau_naive(last_t, px, py, nx, ny, d0, rot, ti, max_px, max_age_us,
+                       width=0) -> float:
     """tau from the pixel the edge through p crossed earliest within the walk: step back
-    k = 1..max_px px against the unit normal n (nearest pixel; skip p's own pixel), stop at
-    the first pixel outside the image, not strictly older than the previous one, older than
-    ``max_age_us``, or where the translational part of the edge's position (its position
+    k = 1..max_px px against the unit normal n (skip a step whose nearest pixel is p's own);
+    at each step take, among the nearest pixels of the points j px beside it along the
+    tangent (-ny, nx), |j| <= ``width``, inside the image and not p's own, those strictly
+    older than the previous step's time and at most ``max_age_us`` old, the newest; stop at a
+    step without one, or where the translational part of the edge's position (its position
     less the rotation's ``rot`` px/s over the time back) is not between the FOE and p;
     tau = d_tq dt / (d0 - d_tq) with d_tq = d0 - dd + rot dt the translational distance from
-    the FOE at tq, for the last pixel passed (dd its distance behind p along n), -1 when there
+    the FOE at tq, for the last pixel taken (dd its distance behind p along n), -1 when there
     is none."""
     h, w = last_t.shape
     own = (int(np.floor(px + 0.5)), int(np.floor(py + 0.5)))
     tprev, tau = ti, -1.0
     for k in range(1, max_px + 1):
-        q = (int(np.floor(px - k * nx + 0.5)), int(np.floor(py - k * ny + 0.5)))
-        if not (0 <= q[0] < w and 0 <= q[1] < h):
-            break
-        if q == own:
+        bx, by = px - k * nx, py - k * ny
+        if (int(np.floor(bx + 0.5)), int(np.floor(by + 0.5))) == own:
             continue
-        tq = last_t[q[1], q[0]]
-        if not tq < tprev or ti - tq > max_age_us:
+        found = []
+        for j in range(-width, width + 1):
+            q = (int(np.floor(bx - j * ny + 0.5)), int(np.floor(by + j * nx + 0.5)))
+            if not (0 <= q[0] < w and 0 <= q[1] < h) or q == own:
+                continue
+            tq = last_t[q[1], q[0]]
+            if tq < tprev and ti - tq <= max_age_us:
+                found.append((tq, -j, q))
+        if not found:
             break
+        # the newest; of equal times the first in j (the kernel keeps the first maximum)
+        tq, _, q = max(found, key=lambda c: (c[0], c[1]))
         dd = (px - q[0]) * nx + (py - q[1]) * ny
         dt = (ti - tq) * 1e-6
         d_tq = d0 - dd + rot * dt
@@ -290,7 +300,8 @@ def ttc_naive(packets, q, width, height, no_ttc=None, f=None, cx=None, cy=None):
         if tau > 0.0 and q.baseline_px > 0:
             d0 = (px - foe[0]) * vx / sp + (py - foe[1]) * vy / sp
             tau = baseline_tau_naive(last_t[pol], px, py, vx / sp, vy / sp, d0, rot,
-                                     float(ti), q.baseline_px, q.baseline_max_ms * 1000.0)
+                                     float(ti), q.baseline_px, q.baseline_max_ms * 1000.0,
+                                     q.baseline_width_px)
             if tau < q.min_tau_s or tau > q.max_tau_s:
                 tau = -1.0
         return tau
