@@ -15,7 +15,7 @@ from evchain.core.packets import FlowPacket, Geometry
 from evchain.core.series import FOE as FOE_SERIES
 from evchain.filters.foe_map import foe_series
 from evchain.filters.ttc import Ttc
-from tests.naive.ttc import ttc_naive
+from tests.naive.ttc import PX, ttc_naive
 
 G = Geometry(96, 72, f=80.0)
 FOE = (48.0, 20.0)
@@ -101,14 +101,15 @@ def random_stream(seed, duration_us=600_000, n_packets=8, n_blobs=5, n=1500, nan
 
 def compare(packets, **params):
     """Kernel (through the filter) and reference give the same rows; returns them."""
-    q = Ttc.Params(**params)
+    q = Ttc.Params(**{**PX, **params})
     f = Ttc()
     f.setup(q, Context(geometry=G))
     outs = [f.process(pk) for pk in packets]
     got = {name: np.concatenate([o.series[name] for o in outs])
            for name in ("ttc", "ttc_clusters")}
     why = {}
-    want_ttc, want_cl = ttc_naive(packets, q, G.width, G.height, why, G.f, G.cx, G.cy)
+    want_ttc, want_cl = ttc_naive(packets, f.params_on(G), G.width, G.height, why, G.f, G.cx,
+                                  G.cy)
     from evchain.kernels.ttc import no_ttc_counts
 
     if f._state is not None:

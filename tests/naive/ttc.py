@@ -8,6 +8,13 @@ from collections import deque
 
 import numpy as np
 
+#: the px values the ttc tests were written with (the reference camera's, and 8 px from the
+#: FOE), given to ``Ttc.Params``: left null they would follow the tests' small sensors' focal
+#: lengths
+PX = dict(region_b_half_width_px=60.0, min_distance_px=8.0, min_speed_pxs=2.0,
+          max_speed_pxs=20_000.0, cluster_size_px=6.0, max_cluster_size_px=15.0,
+          join_margin_px=4.0)
+
 
 def event_tau_naive(px, py, vx, vy, fx, fy, half_width, min_below, min_dist, min_speed,
                     max_speed, min_tau, max_tau) -> np.ndarray:
@@ -126,7 +133,7 @@ def ttc_naive(packets, q, width, height, no_ttc=None, f=None, cx=None, cy=None):
     counts the ticks without a row by reason. Where the FOE entries carry the camera's
     angular velocity (``rotation`` 1) and the geometry a focal length ``f`` (principal point
     ``cx``, ``cy``), each event's tau is that of its flow less the rotational flow's normal
-    component."""
+    component. ``q`` holds the values on the camera (``Ttc.params_on``: no null px)."""
     slots = [None] * q.max_clusters        # None or a Cluster (inactive slots are None)
     next_id = 0
     foe = None
