@@ -7,6 +7,7 @@ import math
 import numpy as np
 from pydantic import Field
 
+from evchain.core.camera_scale import derived
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import FlowPacket
 from evchain.core.series import FOE, FOE_ERROR, ROTATION_FIELDS, TTC, TTC_CLUSTERS, TTC_ERROR
@@ -205,11 +206,12 @@ class FoeTtcScorer(Filter):
         sample_every_us: int = Field(10_000, ge=1, description="TTC scoring grid")
         max_age_us: int = Field(50_000, ge=0, description="an estimate older than this at a "
                                 "grid time counts as missing")
-        obstacle_margin_px: int = Field(
-            2, ge=0, le=20, description="the reported cluster lies on the obstacle when the "
+        obstacle_margin_px: int | None = Field(
+            None, ge=0, le=40, description="the reported cluster lies on the obstacle when the "
             "obstacle is seen at its centre or at any pixel up to this far from it in x and y: "
             "a cluster of edge events sits on the car's outline, so its centre can fall just "
-            "beside the car")
+            "beside the car; null: 2 px x f / 380.6 px, rounded (it belongs to ttc's "
+            "clusters, whose sizes follow the camera)")
         plots: bool = Field(True, description="write the PNGs (needs ground truth)")
         plot_dir: str = Field("plots", description="folder for the PNGs, in the output folder")
         snapshot_ttc_s: list[float] = Field(
@@ -230,6 +232,10 @@ class FoeTtcScorer(Filter):
         self._clusters: list[np.ndarray] = []
         self._snapshots: list[dict] = []
         self._taken: set[float] = set()
+
+    def _margin(self) -> int:
+        """``obstacle_margin_px`` on this camera (derived when null)."""
+        return round(derived(self.params.obstacle_margin_px, 2.0, self._geometry))
 
     def process(self, packet: FlowPacket) -> FlowPacket:
         truth = self.truth
@@ -267,7 +273,7 @@ class FoeTtcScorer(Filter):
             with np.errstate(invalid="ignore", divide="ignore"):
                 rel = np.where(defined, np.abs(tau - tt) / tt, -1.0)
             tt = np.where(defined, tt, -1.0)
-            on = on_obstacle(truth, ttc["x"], ttc["y"], t, self.params.obstacle_margin_px)
+            on = on_obstacle(truth, ttc["x"], ttc["y"], t, self._margin())
             err = TTC_ERROR.array(t=t, tau_s=tau, tau_true_s=tt, rel_error=rel,
                                   cluster=ttc["cluster"], x=ttc["x"], y=ttc["y"],
                                   on_obstacle=np.full(len(t), -1) if on is None else on)
@@ -439,7 +445,7 @@ class FoeTtcScorer(Filter):
         relative errors rel); None each when the truth cannot tell."""
         on = np.zeros(len(grid), bool)
         sub = on_obstacle(self.truth, ttc["x"][idx[have]], ttc["y"][idx[have]],
-                          grid[have], self.params.obstacle_margin_px)
+                          grid[have], self._margin())
         if sub is None:
             keys = ("share_on_obstacle_within_20pct", "coverage_on_obstacle",
                     "median_rel_error_on_obstacle", "misses")
@@ -481,7 +487,7 @@ class FoeTtcScorer(Filter):
         pick = np.concatenate([np.arange(a, b) for a, b in zip(rows, ends, strict=True)]) \
             if len(rows) else np.zeros(0, np.int64)
         on = on_obstacle(self.truth, cl["x"][pick], cl["y"][pick], grid[which],
-                         self.params.obstacle_margin_px)
+                         self._margin())
         np.logical_or.at(there, which, on)
         return there
 

@@ -8,6 +8,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
+from evchain.core.camera_scale import derived
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import FlowPacket, Geometry
 from evchain.core.series import FOE, ROTATION_FIELDS, TTC, TTC_CLUSTERS
@@ -49,7 +50,14 @@ class Ttc(Filter):
     ``min_tau_s``; the image speed it implies at the cluster, its distance from the FOE over
     tau, at most ``max_speed_pxs``: the forward prediction and the fusion can leave both). A
     tick without one emits no row; ``metrics.ttc_filter`` counts the ticks, the TTCs and the
-    ticks without one by reason (no FOE yet, no cluster, none credible, only road clusters).
+    ticks without one by reason (no FOE yet, no cluster, none credible, only road clusters)
+    and the events that started no cluster because every slot held a live one (a new
+    cluster never displaces a live one).
+
+    Lengths in px and speeds in px/s left null follow the camera (their reference camera
+    values times f / 380.6 px, ``camera_scale``: the same angle spans twice the px on a
+    640x480 sensor with the same field of view); ``baseline_px``, a walk over the pixel grid,
+    does not.
     """
 
     name = "ttc"
@@ -60,21 +68,32 @@ class Ttc(Filter):
 
     class Params(FilterParams):
         estimate_every_us: int = Field(10_000, ge=1, description="period of the TTC output")
-        region_b_half_width_px: float = Field(
-            60.0, gt=0, description="region B: largest horizontal offset from the FOE")
+        region_b_half_width_px: float | None = Field(
+            None, gt=0, description="region B: largest horizontal offset from the FOE, px; "
+            "null: 60 px x f / 380.6 px")
         region_b_min_below_px: float = Field(
-            0.0, description="region B: events at least this far below the FOE (y down)")
-        min_distance_px: float = Field(8.0, ge=0, description="ignore events this close to "
-                                       "the FOE (tau is ill-conditioned there)")
-        min_speed_pxs: float = Field(2.0, ge=0, description="ignore slower flow")
-        max_speed_pxs: float = Field(20_000.0, gt=0, description="ignore faster flow")
+            0.0, description="region B: events at least this far below the FOE (y down), px "
+            "of this camera (the default 0 holds on any)")
+        min_distance_px: float | None = Field(
+            None, ge=0, description="ignore events this close to the FOE (tau is "
+            "ill-conditioned there), px; null: 5 px x f / 380.6 px. A far obstacle's lower "
+            "edge lies a few px below the FOE (5 px on the reference camera at a TTC of 2-3 "
+            "s, the FOE's row error well under a pixel there); chosen on the reference drive "
+            "(the tuning set), where 8 px dropped the far car's bursts")
+        min_speed_pxs: float | None = Field(None, ge=0, description="ignore slower flow, px/s; "
+                                            "null: 2 px/s x f / 380.6 px")
+        max_speed_pxs: float | None = Field(None, gt=0, description="ignore faster flow, px/s; "
+                                            "null: 20000 px/s x f / 380.6 px")
         min_tau_s: float = Field(0.02, ge=0, description="ignore per-event tau below this")
         max_tau_s: float = Field(60.0, gt=0, description="ignore per-event tau above this")
-        cluster_size_px: float = Field(6.0, gt=0, description="half-size of a new cluster")
-        max_cluster_size_px: float = Field(15.0, gt=0, description="largest half-size (small: "
-                                           "the obstacle is not swallowed by road clusters)")
-        join_margin_px: float = Field(4.0, ge=0, description="events this far outside a "
-                                      "cluster's square still join it (and grow it)")
+        cluster_size_px: float | None = Field(None, gt=0, description="half-size of a new "
+                                              "cluster, px; null: 6 px x f / 380.6 px")
+        max_cluster_size_px: float | None = Field(
+            None, gt=0, description="largest half-size, px (small: the obstacle is not "
+            "swallowed by road clusters); null: 15 px x f / 380.6 px")
+        join_margin_px: float | None = Field(
+            None, ge=0, description="events this far outside a cluster's square still join it "
+            "(and grow it), px; null: 4 px x f / 380.6 px")
         activity_tau_ms: float = Field(
             150.0, gt=0, description="decay of cluster activity (a far obstacle's slow edges "
             "give few flow events; with 100 ms its cluster drops below the selection and "
@@ -82,7 +101,12 @@ class Ttc(Filter):
             "drive and its variations)")
         min_activity: float = Field(2.0, gt=0, description="clusters whose decayed activity "
                                     "(events) falls below this are removed")
-        max_clusters: int = Field(32, ge=1, le=1024, description="cluster slots")
+        max_clusters: int = Field(
+            64, ge=1, le=1024, description="cluster slots; an event that would start a cluster "
+            "while every slot holds a live one starts none (metrics.ttc_filter counts them). "
+            "Enough that they rarely bind: at 640x480 with 500 ms activity memories up to 43 "
+            "clusters lived at once (chosen on the evaluation's 640x480 cell; the reference "
+            "drive from its start never fills 32, a start near the car can)")
         samples_per_cluster: int = Field(256, ge=4, description="ring of recent samples")
         sample_max_age_ms: float = Field(200.0, gt=0, description="samples older than this "
                                          "are not used")
@@ -116,7 +140,9 @@ class Ttc(Filter):
                                   "while it still qualifies (no jumping between clusters)")
         baseline_px: int = Field(6, ge=0, le=64, description="per-event tau from where the "
                                  "edge was up to this many px earlier (the pixels' last flow "
-                                 "times), not from the flow's magnitude; 0: from the flow")
+                                 "times), not from the flow's magnitude; 0: from the flow. "
+                                 "Px of the grid, not derived: the walk's quantisation (half a "
+                                 "pixel at each end) is what the baseline averages")
         baseline_max_ms: float = Field(500.0, gt=0, description="longest baseline")
         baseline_width_px: int = Field(0, ge=0, le=8, description="baseline: at each step "
                                        "back also look at the pixels up to this far beside "
@@ -133,13 +159,26 @@ class Ttc(Filter):
     def reset(self) -> None:
         self._state = None
         self._ticks = self._rows = 0
+        self._slotless = 0
+
+    def params_on(self, g: Geometry) -> Params:
+        """The parameters on the camera ``g``: those left null derived from its focal length."""
+        p = self.params
+        return p.model_copy(update={
+            "region_b_half_width_px": derived(p.region_b_half_width_px, 60.0, g),
+            "min_distance_px": derived(p.min_distance_px, 5.0, g),
+            "min_speed_pxs": derived(p.min_speed_pxs, 2.0, g),
+            "max_speed_pxs": derived(p.max_speed_pxs, 20_000.0, g),
+            "cluster_size_px": derived(p.cluster_size_px, 6.0, g),
+            "max_cluster_size_px": derived(p.max_cluster_size_px, 15.0, g),
+            "join_margin_px": derived(p.join_margin_px, 4.0, g)})
 
     def _constants(self, g: Geometry):
         """The kernel's constants for the sensor geometry ``g``."""
         from evchain.kernels.records import record
         from evchain.kernels.ttc import TtcParams
 
-        p = self.params
+        p = self.params_on(g)
         return record(
             TtcParams, period_us=p.estimate_every_us, select_nearest=p.select == "nearest_foe",
             select_min_activity=p.select_min_activity, half_width=p.region_b_half_width_px,
@@ -199,6 +238,8 @@ class Ttc(Filter):
             n = kern.no_ttc_counts(self._state)
             why = {"no FOE yet": n["no_foe"], "no cluster": n["no_cluster"],
                    "no credible cluster": n["not_credible"], "only road clusters": n["on_road"]}
+            self._slotless = kern.slotless_events(self._state)
         self.context.metrics[self.metrics_key("ttc_filter")] = {
-            "ticks": self._ticks, "estimates": self._rows, "no_estimate": why}
+            "ticks": self._ticks, "estimates": self._rows, "no_estimate": why,
+            "events_without_a_slot": self._slotless}
         return None

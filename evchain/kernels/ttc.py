@@ -39,12 +39,13 @@ CLUSTER_STATE = np.dtype([("id", "i8"), ("active", "i8"), ("n_samples", "i8"), (
 #: 0 where not estimated); the next tick (µs) and cluster id; the ground constant K (s px),
 #: the number of votes for it and their weights' reference time (µs); the id of the last
 #: selected cluster (-1: none); the ticks without an obstacle row, by reason
-#: (:data:`NO_TTC_REASONS`)
+#: (:data:`NO_TTC_REASONS`); ``no_slot``: the events that would have started a cluster while
+#: every slot held a live one
 CARRY = np.dtype([("has_foe", "f8"), ("foe_x", "f8"), ("foe_y", "f8"), ("foe_wx", "f8"),
                   ("foe_wy", "f8"), ("foe_wz", "f8"), ("next_tick", "f8"),
                   ("next_id", "f8"), ("k_ground", "f8"), ("n_votes", "f8"), ("held_id", "f8"),
                   ("votes_t_ref", "f8"), ("no_foe", "f8"), ("no_cluster", "f8"),
-                  ("not_credible", "f8"), ("on_road", "f8")])
+                  ("not_credible", "f8"), ("on_road", "f8"), ("no_slot", "f8")])
 #: the fields of :data:`CARRY` counting ticks without a TTC: no FOE yet; no cluster with a tau
 #: active enough (and in the corridor); no credible one (:func:`_credible`); only clusters on the
 #: road (ground test without fallback)
@@ -133,6 +134,11 @@ def next_tick(state: TtcState) -> int:
 def no_ttc_counts(state: TtcState) -> dict[str, int]:
     """The ticks without a TTC so far, by reason (:data:`NO_TTC_REASONS`)."""
     return {r: int(state.carry[r][0]) for r in NO_TTC_REASONS}
+
+
+def slotless_events(state: TtcState) -> int:
+    """The events so far that started no cluster because every slot held a live one."""
+    return int(state.carry["no_slot"][0])
 
 
 def ground_constant(state: TtcState) -> float:
@@ -597,13 +603,13 @@ def _apply_foe(foe, j, t_us, g):
 @njit(cache=True)
 def _nearest_cluster(cl, px, py, ti, prm):
     """The nearest cluster (inf-norm) whose square, widened by the join margin, holds p:
-    (k, distance), k -1 for none; and the slot a new cluster would take (the first inactive
-    one, or the first decayed below ``min_activity``, else the least active)."""
+    (k, distance), k -1 for none; and the slot a new cluster would take: the first inactive
+    one, or the first decayed below ``min_activity``; -1 when every slot holds a live cluster
+    (a new cluster never displaces one: a one-event cluster in place of one with samples, on
+    a crowded sensor often the young cluster of a far obstacle)."""
     kb = -1
     db = 1e300
     free = -1
-    weakest = -1
-    wa = 1e300
     for k in range(cl.shape[0]):
         c = cl[k]
         if c.active == 0:
@@ -613,14 +619,11 @@ def _nearest_cluster(cl, px, py, ti, prm):
         a = c.activity * math.exp(-(ti - c.t_last) / prm.act_tau_us)
         if a < prm.min_activity and free < 0:
             free = k
-        if a < wa:
-            wa = a
-            weakest = k
         d = max(abs(px - c.cx), abs(py - c.cy))
         if d <= c.size + prm.join_margin and d < db:
             db = d
             kb = k
-    return kb, db, free if free >= 0 else weakest
+    return kb, db, free
 
 
 @njit(cache=True)
@@ -762,15 +765,18 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
         if tau > 0.0:  # to its cluster: the nearest whose widened square holds it, or a new one
             kg = tau * (py - g.foe_y)
             kb, db, slot = _nearest_cluster(cl, px, py, ti, prm)
-            if kb < 0:
+            if kb >= 0:
+                _join(cl[kb], px, py, ti, db, prm)
+            elif slot >= 0:
                 kb = slot
                 _new_cluster(cl[kb], g, px, py, ti, prm)
             else:
-                _join(cl[kb], px, py, ti, db, prm)
-            _add_sample(cl[kb], ST, SV, SK, kb, ti, tau, kg)
-            # K learns from events of clusters not (yet) known to be off the road
-            if not (cl[kb].rho < 1.0 - prm.ground_tol):
-                ground_vote(hist, carry, kg, float(ti), prm.ground_memory_us)
+                g.no_slot += 1.0
+            if kb >= 0:
+                _add_sample(cl[kb], ST, SV, SK, kb, ti, tau, kg)
+                # K learns from events of clusters not (yet) known to be off the road
+                if not (cl[kb].rho < 1.0 - prm.ground_tol):
+                    ground_vote(hist, carry, kg, float(ti), prm.ground_memory_us)
         _remember_time(last_t, x[i], y[i], pol[i], ti)
         i += 1
     _apply_foe(foe, j, _FOREVER, g)  # entries after the last event count next

@@ -17,6 +17,7 @@ from evchain.filters.ttc import Ttc
 from evchain.testing.contract import check_filter
 from evchain.testing.synthetic import ExpansionTruth, expansion_stream
 from tests.naive.foe_map import expansion_packets
+from tests.naive.ttc import PX
 
 G = Geometry(128, 96, f=100.0)
 FOE = (60.0, 40.0)
@@ -47,7 +48,8 @@ def stream(dx=0.0, dy=0.0, tau_factor=1.0, t_collision=4.0, gap=None, at=None):
 def score(packets, truth, tmp_path, **params):
     ctx = Context(out_dir=tmp_path, truth=truth)
     f = FoeTtcScorer()
-    f.setup(FoeTtcScorer.Params(**{"plots": False, **params}), ctx)
+    # the margin these tests were written with (null: 1 px on this small sensor)
+    f.setup(FoeTtcScorer.Params(**{"plots": False, "obstacle_margin_px": 2, **params}), ctx)
     outs = [f.process(p) for p in packets]
     f.flush()
     f.close()
@@ -87,6 +89,21 @@ def test_warmup_and_missing_estimates(tmp_path):
     assert m["ttc"]["coverage_last3s"] == pytest.approx(share)
 
 
+@pytest.mark.parametrize(("width", "focal", "margin"), [(320, 380.6, 2), (640, 761.2, 4),
+                                                      (128, 100.0, 1)])
+def test_obstacle_margin_follows_the_focal_length(width, focal, margin):
+    """Left null, the obstacle margin is 2 px on the reference camera times f / 380.6 px,
+    rounded; a value given is kept."""
+    f = FoeTtcScorer()
+    f.setup(FoeTtcScorer.Params(plots=False), Context(truth=ExpansionTruth(FOE, 1.0)))
+    f._geometry = Geometry(width, width * 3 // 4, f=focal)
+    assert f._margin() == margin
+    f.setup(FoeTtcScorer.Params(plots=False, obstacle_margin_px=3),
+            Context(truth=ExpansionTruth(FOE, 1.0)))
+    f._geometry = Geometry(640, 480, f=761.2)
+    assert f._margin() == 3
+
+
 def test_without_truth_fails_at_setup(tmp_path):
     packets, _ = stream()
     with pytest.raises(ConfigError, match=r"stage 'foe_ttc_scorer' needs ground truth with FOE "
@@ -102,7 +119,7 @@ def test_whole_chain_writes_pictures(tmp_path):
     ctx = Context(out_dir=tmp_path, truth=truth)
     chain = [FoeMap(), Ttc(), FoeTtcScorer()]
     for f in chain:  # random points with exact flow, no moving edges: ttc's tau from the flow
-        f.setup(f.Params(**({"baseline_px": 0} if isinstance(f, Ttc) else {})), ctx)
+        f.setup(f.Params(**({**PX, "baseline_px": 0} if isinstance(f, Ttc) else {})), ctx)
     for p in packets:
         for f in chain:
             p = f.process(p)
@@ -344,7 +361,8 @@ def score_ctx(packets, truth, tmp_path, **params):
     """Like :func:`score`, also returning the context (its warnings)."""
     ctx = Context(out_dir=tmp_path, truth=truth)
     f = FoeTtcScorer()
-    f.setup(FoeTtcScorer.Params(**{"plots": False, **params}), ctx)
+    # the margin these tests were written with (null: 1 px on this small sensor)
+    f.setup(FoeTtcScorer.Params(**{"plots": False, "obstacle_margin_px": 2, **params}), ctx)
     outs = [f.process(p) for p in packets]
     f.flush()
     return ctx, FlowPacket.concat(outs)

@@ -13,6 +13,7 @@ from evchain.filters.frame_flow import FrameFlow
 from evchain.filters.ttc import Ttc
 from evchain.testing.contract import check_filter, make_context, recut, run_filter
 from evchain.testing.synthetic import ExpansionTruth
+from tests.naive.ttc import PX
 
 cv2 = pytest.importorskip("cv2")
 
@@ -96,7 +97,7 @@ def test_expansion_flow_foe_and_ttc():
     assert np.median(np.abs(est["x"] - foe[0])) < 0.6
     assert np.median(np.abs(est["y"] - foe[1])) < 0.6
     # TTC on the full flow: per-event tau from the flow (baseline_px 0), clustered
-    ttc = run(Ttc, {"baseline_px": 0, "region_b_half_width_px": 40}, votes, truth)
+    ttc = run(Ttc, {**PX, "baseline_px": 0, "region_b_half_width_px": 40}, votes, truth)
     tau = np.concatenate([p.series["ttc"] for p in ttc])
     tau = tau[tau["t"] > 500_000]
     assert len(tau) > 40

@@ -13,7 +13,7 @@ from evchain.filters.ttc import Ttc
 from evchain.testing.contract import check_filter
 from evchain.testing.synthetic import expansion_stream
 from tests.naive.foe_map import expansion_packets
-from tests.naive.ttc import baseline_tau_naive, event_tau_naive, ground_constant_naive
+from tests.naive.ttc import PX, baseline_tau_naive, event_tau_naive, ground_constant_naive
 
 G = Geometry(128, 96, f=100.0)
 FOE = (60.0, 40.0)
@@ -27,6 +27,7 @@ def with_true_foe(packets, foe=FOE):
 def run_ttc(packets, **params):
     # the random-point fields below have exact flow but no moving edges: tau from the flow
     params.setdefault("baseline_px", 0)
+    params = {**PX, **params}
     f = Ttc()
     f.setup(Ttc.Params(**params), Context())
     return FlowPacket.concat([f.process(p) for p in packets])
@@ -167,7 +168,7 @@ def test_event_tau_matches_reference():
 
 def test_contract():
     packets, truth = expansion_stream(foe_series=True)
-    ref = check_filter(Ttc, {"estimate_every_us": 5000, "min_samples": 3, "baseline_px": 0},
+    ref = check_filter(Ttc, {**PX, "estimate_every_us": 5000, "min_samples": 3, "baseline_px": 0},
                        packets, truth=truth)
     assert len(ref["series:ttc"]) > 5
 
@@ -205,7 +206,8 @@ def test_ground_plane_test_selects_the_obstacle(ground):
     packets = with_true_foe(road_and_obstacle())
     f = Ttc()
     # random points (tau from the flow); large clusters, as the scenario was built for
-    f.setup(Ttc.Params(ground_test=ground, baseline_px=0, max_cluster_size_px=60.0), Context())
+    f.setup(Ttc.Params(**{**PX, "max_cluster_size_px": 60.0}, ground_test=ground, baseline_px=0),
+            Context())
     out = FlowPacket.concat([f.process(p) for p in packets])
     s = out.series["ttc"]
     s = s[s["t"] >= 500_000]
@@ -277,8 +279,9 @@ def test_ground_constant_leaves_a_wrong_start():
 def test_ground_plane_contract():
     packets = with_true_foe(road_and_obstacle(duration_us=300_000, n_road=12_000, n_obs=3_000,
                                               n_packets=4))
-    ref = check_filter(Ttc, {"ground_test": True, "ground_min_events": 50, "select_hold": True,
-                             "corridor_half_width_h": 2.0, "baseline_px": 0}, packets)
+    ref = check_filter(Ttc, {**PX, "ground_test": True, "ground_min_events": 50,
+                             "select_hold": True, "corridor_half_width_h": 2.0,
+                             "baseline_px": 0}, packets)
     assert len(ref["series:ttc"]) > 5
 
 
@@ -418,7 +421,7 @@ def test_baseline_tau_matches_reference_on_ties_and_borders():
 
 def test_baseline_contract():
     # the pixels' last times carry over packet cuts: the output must not depend on them
-    ref = check_filter(Ttc, {"baseline_px": 6, "min_samples": 4},
+    ref = check_filter(Ttc, {**PX, "baseline_px": 6, "min_samples": 4},
                        with_true_foe(edge_approach(duration_s=1.0, jitter_us=2_000.0)))
     assert len(ref["series:ttc"]) > 5
 
@@ -428,6 +431,7 @@ def test_baseline_contract():
 
 def run_ttc_metrics(packets, **params):
     params.setdefault("baseline_px", 0)
+    params = {**PX, **params}
     ctx = Context()
     f = Ttc()
     f.setup(Ttc.Params(**params), ctx)
@@ -505,3 +509,31 @@ def test_no_ttc_predicted_past_its_data():
     assert (last["t"] * 1e-6 - newest <= last["tau_s"] + 1e-9).all()
     assert (cl["t"] > 1_800_000).any()                 # the cluster is still there
     assert m["no_estimate"]["no credible cluster"] >= 30
+
+
+# -- px and px/s that follow the camera ---------------------------------------------------
+
+
+@pytest.mark.parametrize("scale", [1.0, 2.0, 0.75])
+def test_px_parameters_follow_the_focal_length(scale):
+    """Left null, region B, the distance from the FOE, the speed bounds and the clusters'
+    sizes are their reference camera values (60, 5, 2, 20000, 6, 15, 4) times f / 380.6 px:
+    twice that on 640x480 with the same field of view; the baseline's px of the grid stay."""
+    from evchain.core.camera_scale import REFERENCE_FOCAL_PX
+
+    f = Ttc()
+    f.setup(Ttc.Params(), Context())
+    k = f._constants(Geometry(int(320 * scale), int(240 * scale), f=scale * REFERENCE_FOCAL_PX))
+    got = (k.half_width, k.min_dist, k.min_speed, k.max_speed, k.init_size, k.max_size,
+           k.join_margin)
+    np.testing.assert_allclose(got, np.array([60.0, 5.0, 2.0, 20_000.0, 6.0, 15.0, 4.0]) * scale,
+                               rtol=1e-12)
+    assert (k.base_px, k.min_below) == (6, 0.0)
+
+
+def test_px_parameters_given_are_kept():
+    f = Ttc()
+    f.setup(Ttc.Params(**PX), Context())
+    k = f._constants(Geometry(640, 480, f=761.2))
+    assert (k.half_width, k.min_dist, k.min_speed, k.max_speed, k.init_size, k.max_size,
+            k.join_margin) == tuple(PX.values())

@@ -15,7 +15,7 @@ from evchain.core.packets import FlowPacket, Geometry
 from evchain.core.series import FOE as FOE_SERIES
 from evchain.filters.foe_map import foe_series
 from evchain.filters.ttc import Ttc
-from tests.naive.ttc import ttc_naive
+from tests.naive.ttc import PX, ttc_naive
 
 G = Geometry(96, 72, f=80.0)
 FOE = (48.0, 20.0)
@@ -101,18 +101,19 @@ def random_stream(seed, duration_us=600_000, n_packets=8, n_blobs=5, n=1500, nan
 
 def compare(packets, **params):
     """Kernel (through the filter) and reference give the same rows; returns them."""
-    q = Ttc.Params(**params)
+    q = Ttc.Params(**{**PX, **params})
     f = Ttc()
     f.setup(q, Context(geometry=G))
     outs = [f.process(pk) for pk in packets]
     got = {name: np.concatenate([o.series[name] for o in outs])
            for name in ("ttc", "ttc_clusters")}
     why = {}
-    want_ttc, want_cl = ttc_naive(packets, q, G.width, G.height, why, G.f, G.cx, G.cy)
-    from evchain.kernels.ttc import no_ttc_counts
+    want_ttc, want_cl = ttc_naive(packets, f.params_on(G), G.width, G.height, why, G.f, G.cx,
+                                  G.cy)
+    from evchain.kernels.ttc import no_ttc_counts, slotless_events
 
     if f._state is not None:
-        assert no_ttc_counts(f._state) == why
+        assert {**no_ttc_counts(f._state), "no_slot": slotless_events(f._state)} == why
     for name, want in (("ttc", want_ttc), ("ttc_clusters", want_cl)):
         have = got[name]
         assert len(have) == len(want), (name, len(have), len(want))
@@ -270,12 +271,38 @@ def test_all_clusters_die_and_new_ones_start():
 
 
 def test_every_slot_taken():
-    """More places than cluster slots: new clusters take the decayed or the weakest slot."""
+    """More places than cluster slots: new clusters take only decayed slots, the events that
+    find every slot held by a live cluster start none (and are counted)."""
     ttc, cl = compare(random_stream(11, n_blobs=8, n=2000), baseline_px=0, min_samples=2,
                       max_clusters=3, cluster_size_px=3.0, max_cluster_size_px=4.0,
                       join_margin_px=0.0)
     per_tick = np.unique(cl["t"], return_counts=True)[1]
     assert per_tick.max() <= 3 and cl["cluster"].max() > 10  # ids far beyond the slots
+
+
+def test_a_live_cluster_keeps_its_slot():
+    """With every slot held by a live cluster an event elsewhere starts no cluster: the
+    clusters keep their ids and samples (before, the least active one was replaced)."""
+    rng = np.random.default_rng(3)
+    t = np.arange(0, 200_000, 2_000)
+    a = dict(x=np.full(t.size, 30), y=np.full(t.size, 50))
+    b = dict(x=np.full(t.size, 70), y=np.full(t.size, 60))
+    xs = np.concatenate([a["x"], b["x"], [50]])
+    ys = np.concatenate([a["y"], b["y"], [40]])
+    ts = np.concatenate([t, t + 1000, [150_001]])
+    order = np.argsort(ts, kind="stable")
+    xs, ys, ts = xs[order], ys[order], ts[order]
+    vx, vy = expanding(xs, ys, 2.0, rng, noise=0.0)
+    pk = packet(0, 200_000, xs, ys, ts, [1] * ts.size, vx, vy, [(0, *FOE)])
+    f = Ttc()
+    params = dict(baseline_px=0, max_clusters=2, min_samples=2, min_activity=0.5)
+    f.setup(Ttc.Params(**PX, **params), Context(geometry=G))
+    f.process(pk)
+    from evchain.kernels.ttc import slotless_events
+
+    assert slotless_events(f._state) == 1
+    ttc, cl = compare([pk], **params)
+    assert set(cl["cluster"]) == {0, 1}
 
 
 def test_tau_crossing_zero():

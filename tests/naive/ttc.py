@@ -8,6 +8,13 @@ from collections import deque
 
 import numpy as np
 
+#: the px values the ttc tests were written with (the reference camera's, and 8 px from the
+#: FOE), given to ``Ttc.Params``: left null they would follow the tests' small sensors' focal
+#: lengths
+PX = dict(region_b_half_width_px=60.0, min_distance_px=8.0, min_speed_pxs=2.0,
+          max_speed_pxs=20_000.0, cluster_size_px=6.0, max_cluster_size_px=15.0,
+          join_margin_px=4.0)
+
 
 def event_tau_naive(px, py, vx, vy, fx, fy, half_width, min_below, min_dist, min_speed,
                     max_speed, min_tau, max_tau) -> np.ndarray:
@@ -133,10 +140,13 @@ def ttc_naive(packets, q, width, height, no_ttc=None, f=None, cx=None, cy=None):
     event at or after their time, and from the end of the packet that carries them; a tick at T
     sees the events before T). ``q``: a ``Ttc.Params``. Returns (ttc rows, cluster rows) as
     lists of tuples in the order of the series' fields; ``no_ttc`` (a dict, filled if given)
-    counts the ticks without a row by reason. Where the FOE entries carry the camera's
-    angular velocity (``rotation`` 1) and the geometry a focal length ``f`` (principal point
-    ``cx``, ``cy``), each event's tau is that of its flow less the rotational flow's normal
-    component."""
+    counts the ticks without a row by reason, and under ``no_slot`` the events that started no
+    cluster because every slot held a live one (a new cluster takes an empty slot or one
+    whose cluster has decayed below ``min_activity``, never a live cluster's). Where the FOE
+    entries carry the camera's angular velocity (``rotation`` 1) and the geometry a focal
+    length ``f`` (principal point ``cx``, ``cy``), each event's tau is that of its flow less
+    the rotational flow's normal component. ``q`` holds the values on the camera
+    (``Ttc.params_on``: no null px)."""
     slots = [None] * q.max_clusters        # None or a Cluster (inactive slots are None)
     next_id = 0
     foe = None
@@ -148,7 +158,7 @@ def ttc_naive(packets, q, width, height, no_ttc=None, f=None, cx=None, cy=None):
     period = q.estimate_every_us
     tick = None
     ttc_rows, cluster_rows = [], []
-    reasons = {"no_foe": 0, "no_cluster": 0, "not_credible": 0, "on_road": 0}
+    reasons = {"no_foe": 0, "no_cluster": 0, "not_credible": 0, "on_road": 0, "no_slot": 0}
     max_spread = math.inf if q.max_rel_spread is None else q.max_rel_spread
 
     def apply_foe(entries, upto):
@@ -256,7 +266,7 @@ def ttc_naive(packets, q, width, height, no_ttc=None, f=None, cx=None, cy=None):
     def add_event(px, py, ti, tau):
         nonlocal next_id
         kg = tau * (py - foe[1])
-        near = free = weakest = None
+        near = free = None
         for k, c in enumerate(slots):
             if c is None:
                 free = k if free is None else free
@@ -264,13 +274,14 @@ def ttc_naive(packets, q, width, height, no_ttc=None, f=None, cx=None, cy=None):
             a = c.activity_at(ti, q.activity_tau_ms * 1000.0)
             if a < q.min_activity and free is None:
                 free = k
-            if weakest is None or a < weakest[1]:
-                weakest = (k, a)
             d = max(abs(px - c.cx), abs(py - c.cy))
             if d <= c.size + q.join_margin_px and (near is None or d < near[1]):
                 near = (k, d)
+        if near is None and free is None:
+            reasons["no_slot"] += 1
+            return
         if near is None:
-            k = free if free is not None else weakest[0]
+            k = free
             c = slots[k] = Cluster(next_id, px, py, ti, q.cluster_size_px, q.samples_per_cluster)
             next_id += 1
         else:
