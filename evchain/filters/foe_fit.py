@@ -50,6 +50,9 @@ class FoeFit(Filter):
     entered and kept only while the probes' mean pitch rate over the last ``heading_memory_s``
     stays below the threshold: a pitch of one sign that lasts is the flow of a ground plane
     whose FOE row is off (normal flow on a plane tells the two apart poorly), not the camera.
+    The first pitching fit starts from scratch at the level fit's FOE (a gear shift's first
+    slabs are outliers at pitch 0 to a warm fit) and is kept if it explains more than the
+    level fit.
     Likewise a yaw can be the flow of a ground plane whose FOE column is off: turning is
     entered only when the turning fit's decayed inlier weight exceeds that of a level fit
     (column free, no yaw) by more than ``turn_gain`` (a yaw moves near and far points alike, a
@@ -302,7 +305,8 @@ class FoeFit(Filter):
                 self._warm_since = T
             if self._rotation:
                 self._update_mode(T, th[k.FOE_X], found,
-                                  lambda: self._turn_explains(run, th, om, inl))
+                                  lambda: self._turn_explains(run, th, om, inl),
+                                  lambda: self._pitch_start(run, th, om, inl))
             if self._rotation:
                 return (th[k.FOE_X], th[k.FOE_Y], inl, tot, *np.degrees(om[0] / self._prm.f), 1)
             return (th[k.FOE_X], th[k.FOE_Y], inl, tot, 0.0, 0.0, 0.0, 0)
@@ -350,15 +354,38 @@ class FoeFit(Filter):
         self._level_fit = (tl, ol)
         return inl > inl_level
 
-    def _update_mode(self, T: int, x: float, probe: np.ndarray, turn_explains) -> None:
+    @staticmethod
+    def _pitch_from_scratch(run, th, om):
+        """(ok, inlier weight, total weight, th, om) of a pitching fit started from scratch at
+        the FOE of ``th`` (scales unknown, every slab's pitch 0): a cold start finds every
+        slab's pitch robustly, where a warm fit leaves the slabs that already pitch as outliers
+        at pitch 0 and refits only the newest."""
+        from evchain.kernels import foe_fit as k
+
+        tp = k.initial_theta(th[k.FOE_X], th[k.FOE_Y])
+        op = om.copy()
+        op[:, PITCHING] = 0.0
+        ok, inl, tot = run(tp, op, np.array([True, True, False, False]))
+        return ok, inl, tot, tp, op
+
+    def _pitch_start(self, run, th, om, inl) -> None:
+        """Entering the pitching mode: the fits go on from a pitching fit from scratch at the
+        level fit's FOE if it explains more of the flow than the level fit (``th, om, inl``)."""
+        ok, inl_p, _, tp, op = self._pitch_from_scratch(run, th, om)
+        if ok and inl_p > inl:
+            self._th, self._om = tp, op
+
+    def _update_mode(self, T: int, x: float, probe: np.ndarray, turn_explains,
+                     pitch_start) -> None:
         """Record the fit (its FOE column while not turning, its probed rotation) and switch
         mode. Only once the fits have run warm for 3 tau (a cold start's FOE is still on its
         way, and its probes see rotation where there is none): to turning (yaw free) or
         pitching (pitch free) when the median of the last probes turns about that axis faster
         than the threshold (turning first, and only with a full memory of settled level FOE
-        columns to hold and while ``turn_explains()``), back to level once the mode's axis
-        stayed below the threshold for 3 tau, or at once when turning no longer explains more
-        of the flow than the level fit kept alongside (:meth:`_turn_explains`)."""
+        columns to hold and while ``turn_explains()``; pitching's first fit from scratch,
+        ``pitch_start()``), back to level once the mode's axis stayed below the threshold for 3
+        tau, or at once when turning no longer explains more of the flow than the level fit
+        kept alongside (:meth:`_turn_explains`)."""
         p = self.params
         memory = int(p.heading_memory_s * 1e6)
         window = 3 * p.tau_ms * 1000.0
@@ -390,6 +417,7 @@ class FoeFit(Filter):
             self._held_x = float(np.median([c for _, c in self._level_x]))
         elif self._mode == LEVEL and rate[PITCHING] > self._turn_pxs and not one_way:
             self._mode, self._moved = PITCHING, T
+            pitch_start()
         elif self._mode != LEVEL and T - self._moved >= window:
             if self._mode == TURNING:
                 self._level_x.clear()
