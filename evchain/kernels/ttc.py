@@ -581,12 +581,27 @@ def _apply_foe(foe, j, t_us, g):
 
 
 @njit(cache=True)
-def _nearest_cluster(cl, px, py, ti, prm):
+def _nearest_cluster(cl, px, py, prm):
     """The nearest cluster (inf-norm) whose square, widened by the join margin, holds p:
-    (k, distance), k -1 for none; and the slot a new cluster would take (the first inactive
-    one, or the first decayed below ``min_activity``, else the least active)."""
+    (k, distance), k -1 for none."""
     kb = -1
     db = 1e300
+    for k in range(cl.shape[0]):
+        c = cl[k]
+        if c.active == 0:
+            continue
+        d = max(abs(px - c.cx), abs(py - c.cy))
+        if d <= c.size + prm.join_margin and d < db:
+            db = d
+            kb = k
+    return kb, db
+
+
+@njit(cache=True)
+def _free_slot(cl, ti, prm):
+    """The slot a new cluster takes at ti: the first inactive one, or the first decayed below
+    ``min_activity``, else the least active (only asked when no cluster holds the event: most
+    events join one, and need no activity decayed)."""
     free = -1
     weakest = -1
     wa = 1e300
@@ -602,11 +617,7 @@ def _nearest_cluster(cl, px, py, ti, prm):
         if a < wa:
             wa = a
             weakest = k
-        d = max(abs(px - c.cx), abs(py - c.cy))
-        if d <= c.size + prm.join_margin and d < db:
-            db = d
-            kb = k
-    return kb, db, free if free >= 0 else weakest
+    return free if free >= 0 else weakest
 
 
 @njit(cache=True)
@@ -746,9 +757,9 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
                 tau = -1.0
         if tau > 0.0:  # to its cluster: the nearest whose widened square holds it, or a new one
             kg = tau * (py - g.foe_y)
-            kb, db, slot = _nearest_cluster(cl, px, py, ti, prm)
+            kb, db = _nearest_cluster(cl, px, py, prm)
             if kb < 0:
-                kb = slot
+                kb = _free_slot(cl, ti, prm)
                 _new_cluster(cl[kb], g, px, py, ti, prm)
             else:
                 _join(cl[kb], px, py, ti, db, prm)
