@@ -20,6 +20,16 @@ _COLUMNS = ("x", "y", "nx", "ny", "s", "e", "c0", "c1", "c2")
 LEVEL, PITCHING, TURNING = -1, 0, 1
 
 
+def _median(values: list) -> float:
+    """np.median of a few floats, the same value bit for bit (the mean of the two middle ones
+    for an even count, NaN when one is NaN) without its array machinery."""
+    if any(v != v for v in values):
+        return math.nan
+    v = sorted(values)
+    h = len(v) // 2
+    return float(v[h]) if len(v) % 2 else float((v[h - 1] + v[h]) / 2)
+
+
 class FoeFit(Filter):
     """Refines the ``foe`` series of ``foe_map`` by fitting the flow speeds of a road and two
     facades seen by a translating and turning camera (robust Gauss-Newton; see
@@ -171,7 +181,7 @@ class FoeFit(Filter):
 
         if self._geometry is None:
             self._start(packet.geometry)
-        elif packet.geometry != self._geometry:
+        elif packet.geometry is not self._geometry and packet.geometry != self._geometry:
             raise DataError(f"foe_fit: sensor geometry changed from {self._geometry} to "
                             f"{packet.geometry}")
         p = self.params
@@ -180,6 +190,8 @@ class FoeFit(Filter):
         vx, vy = packet.vx.astype(np.float64), packet.vy.astype(np.float64)
         s = np.hypot(vx, vy)
         ok = s > 0
+        if ok.all():  # the flow stages emit moving events only: no copies
+            ok = slice(None)
         if packet.t_end - self._tref > 4 * tau_us:  # keep e within exp(+-4) for the window
             tref = packet.t_end - int(2 * tau_us)
             v = self._buf["e"][self._lo:self._hi]
@@ -222,19 +234,24 @@ class FoeFit(Filter):
 
     def _append(self, new: dict, t_new: np.ndarray, t_keep: int) -> None:
         """Drop events before ``t_keep`` and append the new ones; the arrays grow by doubling and
-        are compacted only when full (amortised O(1) per event)."""
+        are compacted only when full (amortised O(1) per event), in place while the live ones
+        and the new ones fill at most half (fresh arrays would cost page faults every time)."""
         lo, hi, m = self._lo, self._hi, len(t_new)
         lo += int(np.searchsorted(self._t[lo:hi], t_keep))
         if hi + m > len(self._t):
             n = hi - lo
-            cap = len(self._t) if 2 * (n + m) <= len(self._t) else max(2 * (n + m), 1024)
-            for c, v in self._buf.items():
-                w = np.empty(cap, np.float64)
-                w[:n] = v[lo:hi]
-                self._buf[c] = w
-            tt = np.empty(cap, np.int64)
-            tt[:n] = self._t[lo:hi]
-            self._t = tt
+            if 2 * (n + m) <= len(self._t):  # then lo > n + m: the copies do not overlap
+                for v in (*self._buf.values(), self._t):
+                    v[:n] = v[lo:hi]
+            else:
+                cap = max(2 * (n + m), 1024)
+                for c, v in self._buf.items():
+                    w = np.empty(cap, np.float64)
+                    w[:n] = v[lo:hi]
+                    self._buf[c] = w
+                tt = np.empty(cap, np.int64)
+                tt[:n] = self._t[lo:hi]
+                self._t = tt
             lo, hi = 0, n
         for c, v in self._buf.items():
             v[hi:hi + m] = new[c]
@@ -395,11 +412,13 @@ class FoeFit(Filter):
             while self._level_x[0][0] < T - memory:
                 self._level_x.popleft()
         self._probes.append(probe)
-        rate = np.abs(np.median(np.array(self._probes), axis=0))
+        rate = [abs(_median([q[a] for q in self._probes])) for a in range(2)]
         self._pitch_probes.append((T, float(probe[PITCHING])))
         while self._pitch_probes[0][0] < T - memory:
             self._pitch_probes.popleft()
-        one_way = abs(np.mean([w for _, w in self._pitch_probes])) >= self._turn_pxs
+        pitch = np.array([w for _, w in self._pitch_probes])
+        # np.mean's own sum (pairwise) and division, without its wrapper
+        one_way = abs(float(np.add.reduce(pitch)) / len(pitch)) >= self._turn_pxs
         if self._mode == PITCHING and one_way:  # not the body's pitch (see the class doc)
             self._mode = LEVEL
         if self._mode != LEVEL and rate[self._mode] >= self._turn_pxs:

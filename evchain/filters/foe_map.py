@@ -197,23 +197,24 @@ class FoeMap(Filter):
         if n < n_max:
             out = out[:n]
         self._counts["no votes yet"] += n_max - n
-        if self._log_m_alpha is not None:
-            out = out[self._above_noise(out, n_votes[:n])]
+        if self._log_m_alpha is not None and n:
+            keep = self._above_noise(out, n_votes[:n])
+            if not all(keep):
+                out = out[np.array(keep, bool)]
         self._counts["estimates"] += len(out)
         if cell != 1:
             out["x"] = from_cells(out["x"], cell)
             out["y"] = from_cells(out["y"], cell)
         return packet.with_series("foe", out)
 
-    def _above_noise(self, out: np.ndarray, n_votes: np.ndarray) -> np.ndarray:
+    def _above_noise(self, out: np.ndarray, n_votes: np.ndarray) -> list[bool]:
         """Which estimates' consensus (support / total) exceeds the noise bound given their
         effective numbers of votes."""
-        keep = np.zeros(len(out), bool)
         lma = self._log_m_alpha
-        for j, (n, sup, tot) in enumerate(zip(n_votes.tolist(), out["support"].tolist(),
-                                              out["total"].tolist(), strict=True)):
-            keep[j] = n > 0.0 and sup > (0.5 + math.sqrt(lma / (2.0 * n))) * tot
-        self._counts["noise-level"] += len(out) - int(keep.sum())
+        keep = [n > 0.0 and sup > (0.5 + math.sqrt(lma / (2.0 * n))) * tot
+                for n, sup, tot in zip(n_votes.tolist(), out["support"].tolist(),
+                                       out["total"].tolist(), strict=True)]
+        self._counts["noise-level"] += len(keep) - sum(keep)
         return keep
 
     def flush(self):

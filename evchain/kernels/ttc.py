@@ -601,14 +601,28 @@ def _apply_foe(foe, j, t_us, g):
 
 
 @njit(cache=True)
-def _nearest_cluster(cl, px, py, ti, prm):
+def _nearest_cluster(cl, px, py, prm):
     """The nearest cluster (inf-norm) whose square, widened by the join margin, holds p:
-    (k, distance), k -1 for none; and the slot a new cluster would take: the first inactive
-    one, or the first decayed below ``min_activity``; -1 when every slot holds a live cluster
-    (a new cluster never displaces one: a one-event cluster in place of one with samples, on
-    a crowded sensor often the young cluster of a far obstacle)."""
+    (k, distance), k -1 for none (most events join one: no activity is decayed for them)."""
     kb = -1
     db = 1e300
+    for k in range(cl.shape[0]):
+        c = cl[k]
+        if c.active == 0:
+            continue
+        d = max(abs(px - c.cx), abs(py - c.cy))
+        if d <= c.size + prm.join_margin and d < db:
+            db = d
+            kb = k
+    return kb, db
+
+
+@njit(cache=True)
+def _free_slot(cl, ti, prm):
+    """The slot a new cluster takes at ti: the first inactive one, or the first decayed below
+    ``min_activity``; -1 when every slot holds a live cluster (a new cluster never displaces
+    one: a one-event cluster in place of one with samples, on a crowded sensor often the young
+    cluster of a far obstacle). Only asked when no cluster holds the event."""
     free = -1
     for k in range(cl.shape[0]):
         c = cl[k]
@@ -619,11 +633,7 @@ def _nearest_cluster(cl, px, py, ti, prm):
         a = c.activity * math.exp(-(ti - c.t_last) / prm.act_tau_us)
         if a < prm.min_activity and free < 0:
             free = k
-        d = max(abs(px - c.cx), abs(py - c.cy))
-        if d <= c.size + prm.join_margin and d < db:
-            db = d
-            kb = k
-    return kb, db, free
+    return free
 
 
 @njit(cache=True)
@@ -764,14 +774,15 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
                 tau = -1.0
         if tau > 0.0:  # to its cluster: the nearest whose widened square holds it, or a new one
             kg = tau * (py - g.foe_y)
-            kb, db, slot = _nearest_cluster(cl, px, py, ti, prm)
+            kb, db = _nearest_cluster(cl, px, py, prm)
             if kb >= 0:
                 _join(cl[kb], px, py, ti, db, prm)
-            elif slot >= 0:
-                kb = slot
-                _new_cluster(cl[kb], g, px, py, ti, prm)
             else:
-                g.no_slot += 1.0
+                kb = _free_slot(cl, ti, prm)
+                if kb >= 0:
+                    _new_cluster(cl[kb], g, px, py, ti, prm)
+                else:
+                    g.no_slot += 1.0
             if kb >= 0:
                 _add_sample(cl[kb], ST, SV, SK, kb, ti, tau, kg)
                 # K learns from events of clusters not (yet) known to be off the road

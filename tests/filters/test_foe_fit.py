@@ -3,6 +3,8 @@ model does not hold, and region A off the true FOE."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -444,3 +446,18 @@ def test_px_parameters_follow_the_focal_length():
     f.setup(FoeFit.Params(margin_px=7.0, max_deviation_px=30.0), Context())
     f._start(Geometry(640, 480, f=2 * REFERENCE_FOCAL_PX))
     assert (f._prm.margin, f._max_deviation) == (7.0, 30.0)
+
+
+def test_median_of_the_probes_is_numpys_bit_for_bit():
+    from evchain.filters.foe_fit import _median
+
+    rng = np.random.default_rng(7)
+    for n in range(1, 7):
+        for _ in range(200):
+            v = rng.normal(0.0, 10.0, n) * 10.0 ** rng.integers(-8, 8)
+            assert _median(list(v)) == float(np.median(v))
+    assert _median([1.0, 3.0]) == 2.0 and _median([3.0, 1.0, 2.0]) == 2.0
+    assert _median([0.1, 0.2]) == float(np.median([0.1, 0.2]))
+    with np.errstate(invalid="ignore"):
+        assert math.isnan(_median([1.0, math.nan, 2.0]))
+        assert math.isnan(float(np.median([1.0, math.nan, 2.0])))
