@@ -20,8 +20,6 @@ from evchain.errors import DataError
 THESIS8BIT_UNIT = math.log(256.0) / 255.0
 #: relative threshold floor after mismatch (a threshold is never <= 0)
 MISMATCH_FLOOR = 0.01
-#: float64 slots of a pixel's state row (128 bytes)
-ROW = 16
 
 
 class Emulator(Filter):
@@ -121,20 +119,21 @@ class Emulator(Filter):
             coff = c_off * np.maximum(1.0 + sigma * self._rng_mismatch.standard_normal(npix),
                                       MISMATCH_FLOOR)
         thr = K.threshold_rows(con, coff)
-        # all per-pixel state touched on events lives in one 128-byte row per pixel (array
-        # of structs, rows aligned to 128 bytes): an event visit touches one pair of adjacent
-        # cache lines instead of one line per array. A chunk's rows are filled when the scan
-        # first finds a candidate in it, so set-up writes only the gates
-        buf = np.empty(npix * ROW + ROW)
-        off = (-buf.ctypes.data % (ROW * 8)) // 8
-        aos = buf[off:off + npix * ROW].reshape(npix, ROW)
-        counts = aos.view(np.int64)
+        # all per-pixel state touched on events lives in one 64-byte row per pixel (array
+        # of structs, rows aligned to 64 bytes): an event visit touches one cache line
+        # instead of one line per array. A chunk's rows are filled when the scan first finds
+        # a candidate in it, so set-up writes only the gates
+        row = K.ROW
+        buf = np.empty(npix * row + row)
+        off = (-buf.ctypes.data % (row * 8)) // 8
+        aos = buf[off:off + npix * row].reshape(npix, row)
+        counts = aos.view(np.int32)
         st = {"hi": np.empty(npix, np.float32), "lo": np.empty(npix, np.float32),
               "first": np.empty(npix, np.float32), "thr": thr,
               "ready": np.zeros(-(-npix // K.CHUNK) + 1, np.int64)}
         # the kernel reads the rows whole (one 2-D array: one address computation per pixel
         # for all fields, instead of one per strided view)
-        self._rows, self._irows = aos, counts
+        self._rows, self._counts = aos, counts
         first = np.ascontiguousarray(frames[0], dtype=np.float32)
         p = self.params
         rule = K.make_rule(p.interpolation == "cubic", eps, p.tie_tolerance,
@@ -162,7 +161,7 @@ class Emulator(Filter):
     def _pixels(self, st):
         from evchain.kernels.emulator_state import Pixels
 
-        return Pixels(self._rows, self._irows, st["hi"], st["lo"], st["first"], st["thr"],
+        return Pixels(self._rows, self._counts, st["hi"], st["lo"], st["first"], st["thr"],
                       st["ready"])
 
     @staticmethod
@@ -254,10 +253,14 @@ class Emulator(Filter):
             carry = (cx, cy, ct, ctf, cp)
         rule = make_rule(cubic, self._eps, p.tie_tolerance, float(p.refractory_us), cap,
                          self._strip, self.block_intervals or K.BLOCK)
-        x, y, tt, tf, pol, n, err, ef, ey, ex, self._scratch = emulate(
-            FrameList(self._held, frames, times, base, total), j0, j1, rule,
-            self._pixels(st), Noise(*nf), self._cap_hint,
-            carry, keep_tf, self._scratch)
+        try:
+            x, y, tt, tf, pol, n, err, ef, ey, ex, self._scratch = emulate(
+                FrameList(self._held, frames, times, base, total), j0, j1, rule,
+                self._pixels(st), Noise(*nf), self._cap_hint,
+                carry, keep_tf, self._scratch)
+        except OverflowError as e:
+            raise DataError(f"emulator input: in the packet [{packet.t_start}, "
+                            f"{packet.t_end}) us, {e}") from None
         if err:
             self._raise_pixel(err, packet, ef - nh, ey, ex)
         self._cap_hint = max(4096, int((n - len(carry[0])) * 1.25))

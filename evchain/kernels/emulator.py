@@ -38,21 +38,18 @@ from numba import njit
 
 from evchain.kernels.emulator_crossings import _times, slope3
 from evchain.kernels.emulator_state import (
+    C_NOFF,
+    C_NON,
     CHUNK,
     ERR_NEGATIVE,
     ERR_NONE,
     ERR_NONFINITE,
+    MAX_COUNT,
     NO_CACHE,
-    S_COFF,
-    S_CON,
     S_EREF,
     S_L0,
     S_LAST,
     S_LC,
-    S_NOFF,
-    S_NON,
-    S_ROFF,
-    S_RON,
     Scratch,
     gates,
     init_rows,
@@ -262,7 +259,9 @@ def _interval(iv, rule, pixels, nc, sc, u):
     the last interval jg in which the pixel was examined. The state is read through the 2-D
     ``rows`` with an unsigned row index: one address computation per pixel for all fields
     (strided 1-D views per field cost one multiply, a wraparound test and, with so many
-    arrays, stack reloads of their pointers and strides per access).
+    arrays, stack reloads of their pointers and strides per access); the thresholds from the
+    pixel's row of ``pixels.thr`` (one row for all pixels without mismatch). Raises
+    OverflowError when a pixel's count of reference moves would pass ``MAX_COUNT``.
 
     Passes (after :func:`_candidates`): :func:`_gather`, :func:`_logs`, then the exact rule per
     candidate, written out here (as an inlined helper its interpolation piece ran 1.5x
@@ -275,7 +274,9 @@ def _interval(iv, rule, pixels, nc, sc, u):
     interval > 0, so the python model's zero test per division only cost time, ~2 %.)
     """
     rows = pixels.rows
-    irows = pixels.irows
+    counts = pixels.counts
+    thr = pixels.thr
+    mt = np.uint64(thr.shape[0] - 1)
     hi = pixels.hi
     lo = pixels.lo
     cand = sc.cand
@@ -322,10 +323,11 @@ def _interval(iv, rule, pixels, nc, sc, u):
             lb = rows[r, S_LC + 3]
         else:
             lb = llb[qk]
-        con = rows[r, S_CON]
-        coff = rows[r, S_COFF]
-        k_on = irows[r, S_NON]
-        k_off = irows[r, S_NOFF]
+        t = min(r, mt)
+        con = thr[t, 0]
+        coff = thr[t, 1]
+        k_on = np.int64(counts[r, C_NON])
+        k_off = np.int64(counts[r, C_NOFF])
         base = rows[r, S_L0]
         lev = base + ((k_on + 1) * con - k_off * coff)
         if lb < lev - tol:
@@ -334,7 +336,7 @@ def _interval(iv, rule, pixels, nc, sc, u):
                 # prefilter false alarm: refresh the gates exactly
                 e = np.exp(base + (k_on * con - k_off * coff))
                 rows[r, S_EREF] = e
-                hi[r], lo[r] = gates(e, rows[r, S_RON], rows[r, S_ROFF], eps, k_hi, k_lo)
+                hi[r], lo[r] = gates(e, thr[t, 2], thr[t, 3], eps, k_hi, k_lo)
                 continue
         la = rows[r, S_LC + 2] if cached else lla[qk]
         m0 = lb - la
@@ -369,8 +371,8 @@ def _interval(iv, rule, pixels, nc, sc, u):
             rows[r, S_LC] = jg
             rows[r, S_LC + 2] = lb
         e = rows[r, S_EREF]
-        ron = rows[r, S_RON]
-        roff = rows[r, S_ROFF]
+        ron = thr[t, 2]
+        roff = thr[t, 3]
         uu = u
         count = 0
         while cap < 0 or count < cap:
@@ -405,8 +407,11 @@ def _interval(iv, rule, pixels, nc, sc, u):
             piece[6, v] = rows[r, S_LAST]
             uu += 1
         u = uu
-        irows[r, S_NON] = k_on
-        irows[r, S_NOFF] = k_off
+        if k_on > MAX_COUNT or k_off > MAX_COUNT:
+            raise OverflowError("emulator: a pixel made more than 2^31 - 1 reference moves "
+                                "of one polarity")
+        counts[r, C_NON] = k_on
+        counts[r, C_NOFF] = k_off
         rows[r, S_EREF] = e
         hi[r], lo[r] = gates(e, ron, roff, eps, k_hi, k_lo)
     return _times(u_in, u, cubic, t0, dt, rule.refractory_us, ui, utf, up_, piece, rows), -1

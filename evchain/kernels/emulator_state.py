@@ -3,19 +3,20 @@
 prefilter gates, and the records the kernels take (named tuples: numba passes them like their
 fields).
 
-Per pixel state: ``l0`` (float64 log level of the first frame), ``n_on``, ``n_off`` (int64
-counts of reference moves), ``c_on``, ``c_off`` (float64 thresholds in natural log units),
-``last_t`` (float64 µs of the last emitted event, for the refractory period), ``e_ref``
-(float64 exp of the reference, kept by multiplication), ``r_on = exp(c_on)``,
-``r_off = exp(-c_off)``, the log cache, and the float32 intensity gates ``hi``/``lo``; all but
-the gates are columns ``S_*`` of one 128-byte row per pixel, which the
-kernels read as the 2-D ``rows`` (``irows``: its int64 view for the counts). The reference
-level is always recomputed from the integer state, ``L_ref = l0 + (n_on*c_on - n_off*c_off)``,
-so it never drifts.
+Per pixel state: ``l0`` (float64 log level of the first frame), ``n_on``, ``n_off`` (int32
+counts of reference moves, at most ``MAX_COUNT`` each), ``last_t`` (float64 µs of the last
+emitted event, for the refractory period), ``e_ref`` (float64 exp of the reference, kept by
+multiplication), the log cache, and the float32 intensity gates ``hi``/``lo``; all but the
+gates are columns ``S_*`` of one 64-byte row per pixel (one cache line), which the kernels
+read as the 2-D ``rows`` (``counts``: its int32 view, columns ``C_NON``, ``C_NOFF``). The
+thresholds ``c_on``, ``c_off`` (float64, natural log units), ``r_on = exp(c_on)`` and
+``r_off = exp(-c_off)`` are rows of ``Pixels.thr``: one row for all pixels, or one per pixel
+with threshold mismatch. The reference level is always recomputed from the integer state,
+``L_ref = l0 + (n_on*c_on - n_off*c_off)``, so it never drifts.
 
 Set-up (:func:`init_gates`) writes only what the first interval's scan reads: the gates, from
 the first frame, which is kept; the rows of a chunk of ``CHUNK`` pixels are filled from that
-frame and the thresholds (:func:`init_rows`; ``Pixels.ready`` marks the chunk) when the scan
+frame (:func:`init_rows`; ``Pixels.ready`` marks the chunk) when the scan
 first finds a candidate in it. A pixel inside its gates cannot fire and reads nothing else, so
 its row is never needed before that, and the filled row holds the same values as one filled
 at set-up.
@@ -39,13 +40,20 @@ GATE_MARGIN = 1e-6
 NO_CACHE = -10.0
 #: minus the smallest normal float32: the OFF gate when no OFF level is reachable
 LO_NONE = -1.1754944e-38
-#: columns of a pixel's state row (``rows``: float64 [H*W, 16]; ``irows``: its int64 view):
-#: l0, c_on, c_off, r_on, r_off, e_ref, last_t, n_on, n_off (int64), the log cache (4 columns)
-S_L0, S_CON, S_COFF, S_RON, S_ROFF, S_EREF, S_LAST, S_NON, S_NOFF, S_LC = range(10)
+#: float64 slots of a pixel's state row (64 bytes: one cache line)
+ROW = 8
+#: columns of a pixel's state row (``rows``: float64 [H*W, ROW]): l0, e_ref, last_t, the
+#: counts (two int32), the log cache (4 columns)
+S_L0, S_EREF, S_LAST, S_CNT, S_LC = range(5)
+#: columns of n_on and n_off in the rows' int32 view (``counts``: int32 [H*W, 2 ROW])
+C_NON, C_NOFF = 2 * S_CNT, 2 * S_CNT + 1
+#: the most reference moves of one polarity a pixel can make (int32 counts; beyond it
+#: ``emulate`` raises OverflowError)
+MAX_COUNT = 2**31 - 1
 #: pixels per chunk of the candidate scan, and per fill of state rows
 CHUNK = 64
 #: pixels per strip: the event loop runs a block of intervals on one strip before the next, so
-#: that the strip's state (gates 8 bytes, state row 128 bytes per pixel: 10.6 MiB) stays in
+#: that the strip's state (gates 8 bytes, state row 64 bytes per pixel: 5.6 MiB) stays in
 #: the last-level cache from one interval to the next; 320x240 (76 800 pixels) is one strip
 STRIP = 81920
 #: frame intervals run strip by strip at a time: their events wait in a list until every strip
@@ -70,8 +78,8 @@ class Rule(NamedTuple):
 class Pixels(NamedTuple):
     """Every pixel's state (H*W pixels, flat index y W + x)."""
 
-    rows: np.ndarray        #: float64 [H*W, 16]: the state row of each pixel, columns ``S_*``
-    irows: np.ndarray       #: int64 [H*W, 16]: the same memory, for the counts
+    rows: np.ndarray        #: float64 [H*W, ROW]: the state row of each pixel, columns ``S_*``
+    counts: np.ndarray      #: int32 [H*W, 2 ROW]: the same memory, for the counts (``C_*``)
     hi: np.ndarray          #: float32 [H*W]: ON gate of the prefilter
     lo: np.ndarray          #: float32 [H*W]: OFF gate of the prefilter
     first: np.ndarray       #: float32 [H*W]: the first frame (rows are filled from it)
@@ -165,7 +173,7 @@ def threshold_rows(con, coff):
 @njit(cache=True)
 def init_gates(frame, rule, pixels):
     """Set-up: check the first frame, keep it (``pixels.first``) and write every pixel's gates
-    from it; the rows stay unfilled until :func:`init_row`.
+    from it; the rows stay unfilled until :func:`init_rows`.
 
     Parameters
     ----------
@@ -209,24 +217,17 @@ def init_gates(frame, rule, pixels):
 @njit(cache=True)
 def init_rows(pixels, c, eps):
     """Fill the state rows of chunk c (pixels ``c*CHUNK`` .. ``c*CHUNK + CHUNK - 1``) from the
-    first frame and their thresholds, and mark it ready: the state its pixels had since
+    first frame, and mark it ready: the state its pixels had since
     set-up (their gates came from the same values)."""
     rows = pixels.rows
-    irows = pixels.irows
-    thr = pixels.thr
+    counts = pixels.counts
     first = pixels.first
-    mt = thr.shape[0] - 1
     for i in range(c * CHUNK, min(c * CHUNK + CHUNK, first.shape[0])):
-        t = min(i, mt)
         v = np.float64(first[i])
         rows[i, S_L0] = ln(v + eps)
-        irows[i, S_NON] = 0
-        irows[i, S_NOFF] = 0
+        counts[i, C_NON] = 0
+        counts[i, C_NOFF] = 0
         rows[i, S_LAST] = -1e300
-        rows[i, S_CON] = thr[t, 0]
-        rows[i, S_COFF] = thr[t, 1]
-        rows[i, S_RON] = thr[t, 2]
-        rows[i, S_ROFF] = thr[t, 3]
         rows[i, S_EREF] = v + eps
         rows[i, S_LC] = NO_CACHE
     pixels.ready[c] = 1

@@ -212,7 +212,7 @@ def test_many_crossings_in_one_interval_match_naive(interpolation):
 def test_batched_times_match_bisection():
     # _times (lockstep Newton over all crossings, checked step, fallback) against bisection
     from evchain.kernels.emulator_crossings import _times
-    from evchain.kernels.emulator_state import S_LAST
+    from evchain.kernels.emulator_state import ROW, S_LAST
     from tests.naive.emulator import _hermite, _solve
 
     rng = np.random.default_rng(5)
@@ -225,7 +225,7 @@ def test_batched_times_match_bisection():
         ui = np.arange(n, dtype=np.int64)
         utf = np.empty(n)
         up_ = np.ones(n, np.int8)
-        rows = np.zeros((n, 16))              # the pixels' state rows (only last_t used)
+        rows = np.zeros((n, ROW))             # the pixels' state rows (only last_t used)
         rows[:, S_LAST] = -1e300
         assert _times(0, n, cubic, 0.0, 1.0, 0.0, ui, utf, up_, piece.copy(), rows) == n
         assert np.array_equal(rows[:, S_LAST], utf)
@@ -390,3 +390,26 @@ def test_first_bad_pixel_across_strips(strip, block):
     with pytest.raises(DataError, match=r"frame 3 .*not finite .*pixel \(x=30, y=9\)"):
         run_filter(frames, times, strip=strip, block=block, threshold_on=0.2,
                    threshold_off=0.2)
+
+
+def test_count_overflow_is_an_error():
+    # a pixel's counts are int32: a move past MAX_COUNT is refused, not wrapped. The counts
+    # are set to the limit after a first packet (n_on = n_off: the reference level stays at
+    # l0 when c_on = c_off), then the next crossing passes it
+    from evchain.errors import DataError
+    from evchain.kernels.emulator_state import C_NOFF, C_NON, MAX_COUNT
+
+    frames = np.full((6, 2, 64), 0.5, np.float32)
+    frames[1:3, 0, 3] = 0.3                        # a candidate: its row is filled
+    frames[3:, 0, 3] = 0.9                         # beyond its gates again: a crossing
+    times = np.arange(6, dtype=np.int64) * 1000
+    g = Geometry(64, 2)
+    f = Emulator()
+    f.setup(Emulator.Params(threshold_on=0.2, threshold_off=0.2), Context(seed=0))
+    f.process(FramePacket(geometry=g, t_start=0, t_end=3000, frames=frames[:3], t=times[:3]))
+    assert f._state["ready"][0] == 1
+    f._counts[3, C_NON] = MAX_COUNT
+    f._counts[3, C_NOFF] = MAX_COUNT
+    with pytest.raises(DataError, match=r"\[3000, 6001\) us, .*2\^31 - 1 reference moves"):
+        f.process(FramePacket(geometry=g, t_start=3000, t_end=6001, frames=frames[3:],
+                              t=times[3:]))
