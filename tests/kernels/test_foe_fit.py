@@ -436,3 +436,48 @@ def test_nearer_the_horizon_obstacle_does_not_pull_the_foe():
 
     dx, dy = _obstacle_fits(30.0, FoeFit.Params().tolerance)
     assert abs(dx) < 0.5 and abs(dy) < 0.5
+
+
+def _street(far_ratio, split=40.0, n=20000, seed=1):
+    """A street as the camera sees it: road edges across the road (vertical normals, which say
+    nothing about the FOE's column), facades with window edges (half horizontal, half vertical
+    normals); the left facade's columns within ``split`` px of the FOE (its far buildings) have
+    their scale times ``far_ratio`` (those buildings stand nearer the road by that ratio)."""
+    rng = np.random.default_rng(seed)
+    foe = (159.5, 119.5)
+    x = rng.integers(0, 320, n) + 0.5
+    y = rng.integers(0, 240, n) + 0.5
+    dxx, dyy = x - foe[0], y - foe[1]
+    g_road = np.where(dyy > 0, A[0] * dyy, 0.0)
+    a_left = np.where(-dxx < split, A[1] * far_ratio, A[1])
+    g_fac = np.where(dxx < 0, a_left * -dxx, A[2] * dxx)
+    road = g_road > g_fac
+    ang = np.where(road | (rng.random(n) < 0.5), np.pi / 2, 0.0) + rng.normal(0, 0.05, n)
+    nx, ny = np.cos(ang), np.sin(ang)
+    dn = dxx * nx + dyy * ny
+    flip = dn < 0
+    nx[flip], ny[flip], dn[flip] = -nx[flip], -ny[flip], -dn[flip]
+    s = dn * np.where(road, g_road, g_fac) * (1 + 0.1 * rng.standard_normal(n))
+    k = s > 1e-3
+    return foe, (x[k], y[k], nx[k], ny[k], s[k])
+
+
+def _street_column_error(far_ratio):
+    from evchain.filters.foe_fit import FoeFit
+
+    foe, (x, y, nx, ny, s) = _street(far_ratio)
+    th = np.array((foe[0], foe[1], np.nan, np.nan, np.nan))
+    for _ in range(40):  # warm-started fits in a row, as the filter runs them
+        ok, th, _, _, _, _ = _run(x, y, nx, ny, s, th, c=FoeFit.Params().tolerance, iters=4)
+        assert ok and np.isfinite(th[:2]).all()
+    return th[0] - foe[0]
+
+
+def test_buildings_at_different_setbacks_shift_the_column():
+    """One scale per side: when a side's far buildings stand nearer the road than its near
+    ones (the street's layout), the fit moves the FOE's column away from that side, and
+    towards it when they stand farther (docs/explanation/foe_ttc.md, "The column on other
+    streets"); a street of one setback per side leaves the column."""
+    assert abs(_street_column_error(1.0)) < 0.1
+    assert _street_column_error(1.15) > 0.3
+    assert _street_column_error(1 / 1.15) < -0.3
