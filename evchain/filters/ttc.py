@@ -17,11 +17,6 @@ from evchain.errors import DataError
 TTC_DTYPE = TTC.dtype
 #: the largest relative spread of a credible cluster's samples (see Ttc.Params.max_rel_spread)
 MAX_REL_SPREAD = 1.0
-#: the longest time without a sample of a credible cluster, over the time its samples span
-#: (see Ttc.Params.max_silence_per_span)
-MAX_SILENCE_PER_SPAN = None
-#: ... or the largest predicted shift in that time, px (Ttc.Params.max_silent_shift_px)
-MAX_SILENT_SHIFT_PX = None
 CLUSTER_DTYPE = TTC_CLUSTERS.dtype
 
 
@@ -160,16 +155,6 @@ class Ttc(Filter):
             MAX_REL_SPREAD, gt=0, description="a cluster is credible (can be the obstacle) "
             "only when the relative spread of its recent samples, 1.4826 MAD / median, is at "
             "most this; null: any spread")
-        max_silence_per_span: float | None = Field(
-            MAX_SILENCE_PER_SPAN, ge=0, description="a cluster is credible only while the "
-            "time since the newest sample of its last measurement is at most this times the "
-            "time that measurement's samples span (oldest to newest: a track longer than its "
-            "gap), or its shift in that time is at most max_silent_shift_px; null: no limit")
-        max_silent_shift_px: float | None = Field(
-            MAX_SILENT_SHIFT_PX, ge=0, description="...or while its centre, r px from the FOE, "
-            "is predicted to have moved at most this many px since that sample (r dt / tau: "
-            "an approaching edge that moved farther crossed pixels and gave events); px of "
-            "the grid, not derived; null: no limit")
 
     def reset(self) -> None:
         self._state = None
@@ -210,8 +195,6 @@ class Ttc(Filter):
             base_px=p.baseline_px, base_age_us=p.baseline_max_ms * 1000.0,
             base_width=p.baseline_width_px,
             max_spread=math.inf if p.max_rel_spread is None else p.max_rel_spread,
-            silence_span=math.inf if p.max_silence_per_span is None else p.max_silence_per_span,
-            silent_shift=math.inf if p.max_silent_shift_px is None else p.max_silent_shift_px,
             f=g.f or 0.0, cx=g.cx, cy=g.cy)
 
     def process(self, packet: FlowPacket) -> FlowPacket:

@@ -28,13 +28,12 @@ from numba import njit
 #: decayed activity (events) at ``t_last`` (µs), fused tau (s) with variance (s^2) at ``t_tau``
 #: (µs), ``has_tau`` 1 once it has one, consecutive gated ``misses``, ground ratio ``rho``,
 #: ``spread``: the relative spread of its samples at its last measurement (1.4826 MAD / |median|),
-#: ``t_meas``: the time of the newest sample of that measurement (µs), ``t_first``: that of the
-#: oldest sample it used (µs)
+#: ``t_meas``: the time of the newest sample of that measurement (µs)
 CLUSTER_STATE = np.dtype([("id", "i8"), ("active", "i8"), ("n_samples", "i8"), ("ring_pos", "i8"),
                           ("cx", "f8"), ("cy", "f8"), ("size", "f8"), ("activity", "f8"),
                           ("t_last", "f8"), ("tau", "f8"), ("var", "f8"), ("has_tau", "f8"),
                           ("misses", "f8"), ("t_tau", "f8"), ("rho", "f8"), ("spread", "f8"),
-                          ("t_meas", "f8"), ("t_first", "f8")])
+                          ("t_meas", "f8")])
 #: carried from packet to packet: ``has_foe`` 1 once an FOE is known, at (``foe_x``,
 #: ``foe_y``), with the camera's angular velocity (``foe_wx``, ``foe_wy``, ``foe_wz``, rad/s;
 #: 0 where not estimated); the next tick (µs) and cluster id; the ground constant K (s px),
@@ -73,9 +72,6 @@ class TtcParams(NamedTuple):
     min_tau: float              #: per-event tau range, s
     max_tau: float
     max_spread: float           #: credible clusters: relative spread of samples at most this
-    silence_span: float         #: credible clusters: time since the newest sample over the
-                                #: time the samples span, at most this ...
-    silent_shift: float         #: ... or the predicted shift since that sample at most this, px
     init_size: float            #: half-size of a new cluster, px
     max_size: float             #: largest half-size, px
     join_margin: float          #: events this far outside a square still join it, px
@@ -382,16 +378,6 @@ def _newest(ST, k, nb):
 
 
 @njit(cache=True)
-def _oldest_recent(ST, k, nb, T, max_age_us):
-    """The time of cluster k's oldest sample at most ``max_age_us`` old at T (µs)."""
-    t = math.inf
-    for j in range(nb):
-        if T - ST[k, j] <= max_age_us:
-            t = min(t, ST[k, j])
-    return t
-
-
-@njit(cache=True)
 def _fuse(c, med, r, T, gate):
     """Fuse the measurement ``med`` (variance ``r``) into the cluster's predicted tau: the first
     one starts it; a gated-out one counts a miss (three in a row restart from the
@@ -437,7 +423,6 @@ def _cluster_estimate(cl, k, ST, SV, SK, T, k_ground, buf, prm):
         return
     med, mad = _median_mad(buf, n)
     c.t_meas = _newest(ST, k, nb)
-    c.t_first = _oldest_recent(ST, k, nb, T, prm.max_age_us)
     c.spread = 1.4826 * mad / med if med > 0.0 else math.inf
     sigma = 1.4826 * mad / math.sqrt(n) + prm.rel_floor * abs(med)
     _fuse(c, med, sigma * sigma + 1e-12, T, prm.gate)
@@ -471,27 +456,18 @@ def _credible(c, g, T, prm):
     at most ``max_spread``: one approaching surface has one TTC, a cluster of rotational flow
     or of several objects does not), the newest sample of its last measurement is no older
     than its tau (a tau predicted forward over more than the time left to contact rests on
-    no data: a cluster kept alive without new samples counted down to 0 that way), the
-    silence since that sample is explained (it lasted at most ``silence_span`` times the time
-    the measurement's samples span, oldest to newest: a track longer than its gap; or the
-    cluster's centre, r px from the FOE, is predicted to have moved at most ``silent_shift``
-    px in it, r (T - t_meas) / tau: too little to cross pixels and give events; a cluster
-    near the horizon in a curve got its samples in one short burst and was then predicted on
-    alone, to a TTC under 0.1 s) and its tau lies within the per-event bounds (at least
-    ``min_tau``, and its centre's distance from the FOE over tau, the image speed it implies,
-    at most ``max_speed``); fusion and the forward prediction can leave both bounds."""
+    no data: a cluster kept alive without new samples counted down to 0 that way) and its
+    tau lies within the
+    per-event bounds (at least ``min_tau``, and its centre's distance from the FOE over tau,
+    the image speed it implies, at most ``max_speed``); fusion and the forward prediction can
+    leave both bounds."""
     if not (c.spread <= prm.max_spread) or c.tau < prm.min_tau:
         return False
     if T - c.t_meas > c.tau * 1e6:
         return False
     dx = c.cx - g.foe_x
     dy = c.cy - g.foe_y
-    r2 = dx * dx + dy * dy
-    silence = T - c.t_meas
-    if (silence > prm.silence_span * (c.t_meas - c.t_first)
-            and math.sqrt(r2) * silence * 1e-6 > prm.silent_shift * c.tau):
-        return False
-    return r2 <= (c.tau * prm.max_speed) ** 2
+    return dx * dx + dy * dy <= (c.tau * prm.max_speed) ** 2
 
 
 @njit(cache=True, inline="always")
@@ -671,7 +647,6 @@ def _new_cluster(c, g, px, py, ti, prm):
     c.rho = math.nan
     c.spread = math.inf
     c.t_meas = ti
-    c.t_first = ti
 
 
 @njit(cache=True)

@@ -130,7 +130,6 @@ class Cluster:
         self.rho = math.nan      # median(tau * dy) / K
         self.spread = math.inf   # 1.4826 MAD / median of the samples at the last measurement
         self.t_meas = float(t)   # the newest sample's time at the last measurement (µs)
-        self.t_first = float(t)  # the oldest sample's time used by that measurement (µs)
 
     def activity_at(self, t, tau_us):
         return self.activity * math.exp(-(t - self.t_last) / tau_us)
@@ -161,8 +160,6 @@ def ttc_naive(packets, q, width, height, no_ttc=None, f=None, cx=None, cy=None):
     ttc_rows, cluster_rows = [], []
     reasons = {"no_foe": 0, "no_cluster": 0, "not_credible": 0, "on_road": 0, "no_slot": 0}
     max_spread = math.inf if q.max_rel_spread is None else q.max_rel_spread
-    silence = math.inf if q.max_silence_per_span is None else q.max_silence_per_span
-    silent = math.inf if q.max_silent_shift_px is None else q.max_silent_shift_px
 
     def apply_foe(entries, upto):
         nonlocal foe, omega
@@ -208,12 +205,8 @@ def ttc_naive(packets, q, width, height, no_ttc=None, f=None, cx=None, cy=None):
                 gy = max(0.0, abs(c.cy - foe[1]) - c.size)
                 d = math.sqrt(gx * gx + gy * gy)
             considered += 1
-            rx, ry = c.cx - foe[0], c.cy - foe[1]
             if not (c.spread <= max_spread and c.tau >= q.min_tau_s
                     and T - c.t_meas <= c.tau * 1e6
-                    and (T - c.t_meas <= silence * (c.t_meas - c.t_first)
-                         or math.sqrt(rx * rx + ry * ry) * (T - c.t_meas) * 1e-6
-                         <= silent * c.tau)
                     and math.hypot(c.cx - foe[0], c.cy - foe[1]) <= c.tau * q.max_speed_pxs):
                 continue
             credible += 1
@@ -253,7 +246,6 @@ def ttc_naive(packets, q, width, height, no_ttc=None, f=None, cx=None, cy=None):
         mad = median([abs(v - med) for v in taus])
         c.spread = 1.4826 * mad / med if med > 0.0 else math.inf
         c.t_meas = max(s[0] for s in c.samples)
-        c.t_first = min(s[0] for s in recent)
         sigma = 1.4826 * mad / math.sqrt(len(taus)) + q.rel_noise_floor * abs(med)
         r = sigma * sigma + 1e-12
         if c.tau is None:
