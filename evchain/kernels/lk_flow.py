@@ -223,7 +223,7 @@ def _solve_rows(GX, GY, keep, m, b, eig_ratio):
     return ex * proj, ey * proj, True
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _calibrated_sg(U, W, FV, keep, m, w_inv, tol):
     """Calibrated Savitzky-Golay: least-squares plane of F over the ``m`` pixels with events
     (``U``, ``W``: coordinates centred on the event, ``FV``: F; listed by the gather, ``keep``
@@ -252,7 +252,7 @@ def _calibrated_sg(U, W, FV, keep, m, w_inv, tol):
     return gx * w_inv / g2, gy * w_inv / g2, True
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _centre_offset_points(U, W, FV, m, vx, vy, w_inv):
     """How far (px, along the normal) the current event's onset lies from the plane that the
     flow v implies through the other active pixels of the (2r+1)^2 neighbourhood (the ``m``
@@ -462,11 +462,11 @@ def _next_window(ok, vx, vy, win, slow_us, max_window_us):
     return max_window_us if want >= max_window_us else np.int64(np.ceil(want))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _reestimate(last, second, fifo, k, xe, ye, te, window_us, R, S, d, min_active, prm, F, V,
                 LI, LJ, PU, PW, FV, keep, GX, GY):
-    """:func:`_estimate_calibrated` with another window (not inlined: the main loop keeps one
-    copy of the estimate, for speed)."""
+    """:func:`_estimate_calibrated` with another window (inlined, as are the fits it calls: a
+    call with the scratch arrays as arguments costs more than the copies of the code)."""
     return _estimate_calibrated(last, second, fifo, k, xe, ye, te, window_us, 1.0 / window_us,
                                 1e6 / window_us, R, S, d, min_active, prm, F, V, LI, LJ, PU, PW,
                                 FV, keep, GX, GY)
