@@ -17,7 +17,6 @@ class ExactSpeed(Filter):
 
     With the same events and directions, a later stage's error that remains is its model's
     error, not the flow's speeds' (docs/explanation/foe_ttc.md, "The column on other streets").
-    Needs the source's flow truth.
     """
 
     name = "exact_speed"
