@@ -46,13 +46,13 @@ class Context:
 
     ``geometry``, ``truth`` and ``renderer`` are set by the source during its ``setup``:
     ``truth`` is the ground-truth provider (protocols in :mod:`evchain.core.truth`), read by
-    scorers and picture sinks only; ``renderer`` renders the source's frames at any time, for
-    picture sinks (:mod:`evchain.core.renderer`). ``metrics`` is filled by scorers (it becomes
-    ``report.json``'s ``metrics``); ``out_dir`` is where sinks write; ``warnings``
-    (:meth:`warn`) become ``report.json``'s ``warnings``. ``stop`` is set when the user asks
-    the run to stop (the first Ctrl-C): the chain ends the stream after the packet in flight
-    and flushes every filter; a source that waits for data (a live stream) checks it while it
-    waits and returns.
+    scorers, picture sinks and oracles (``exact_speed``) only; ``renderer`` renders the source's
+    frames at any time, for picture sinks (:mod:`evchain.core.renderer`). ``metrics`` is filled
+    by scorers (it becomes ``report.json``'s ``metrics``); ``out_dir`` is where sinks write;
+    ``warnings`` (:meth:`warn`) become ``report.json``'s ``warnings``. ``stop`` is set when the
+    user asks the run to stop (the first Ctrl-C): the chain ends the stream after the packet in
+    flight and flushes every filter; a source that waits for data (a live stream) checks it
+    while it waits and returns.
     """
 
     seed: int = 0

@@ -27,3 +27,16 @@ def test_pipeline_validates(path):
         for key in stage.cls.input_paths:
             value = getattr(stage.params, key)
             assert value is None or Path(value).is_absolute() and Path(value).exists()
+
+
+def test_exact_speed_pipeline_is_reference_lk_with_the_oracle():
+    """reference-lk-exact-speed.yaml differs from reference-lk.yaml only by exact_speed right
+    after lk_flow, so that its errors compare with reference-lk's."""
+    root = Path(__file__).resolve().parents[2] / "pipelines"
+    registry = make_registry()
+    lk = load_pipeline(root / "reference-lk.yaml", registry).resolved()
+    oracle = load_pipeline(root / "reference-lk-exact-speed.yaml", registry).resolved()
+    uses = [s["use"] for s in oracle["chain"]]
+    assert uses[uses.index("lk_flow") + 1] == "exact_speed"
+    assert [s for s in oracle["chain"] if s["use"] != "exact_speed"] == lk["chain"]
+    assert oracle["seed"] == lk["seed"]
