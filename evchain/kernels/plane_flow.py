@@ -442,13 +442,16 @@ def _gather_points(ts, pi, xi, yi, ti, w, r, X, Y, T, use):
 
 
 @njit(cache=True, inline="always")
-def _least_spread(n, sx, sy, sxx, syy, sxy):
-    """Smallest eigenvalue of the points' position covariance (px^2)."""
-    cxx = (sxx - sx * sx / n) / n
-    cyy = (syy - sy * sy / n) / n
-    cxy = (sxy - sx * sy / n) / n
-    half = 0.5 * (cxx + cyy)
-    return half - math.sqrt(max(0.25 * (cxx - cyy) ** 2 + cxy * cxy, 0.0))
+def _spread_at_least(n, sx, sy, sxx, syy, sxy, spread2):
+    """Whether the points' position covariance has its smallest eigenvalue >= ``spread2``
+    (px^2): n^2 (cov - spread2 I) = [[a, b], [b, c]] - s must be positive semi-definite. The
+    sums are of integer offsets, so a, b, c are exact and a tie on the bound is decided the
+    same by every order of summation."""
+    s = n * n * spread2
+    a = n * sxx - sx * sx - s
+    c = n * syy - sy * sy - s
+    b = n * sxy - sx * sy
+    return a >= 0.0 and c >= 0.0 and a * c >= b * b
 
 
 @njit(cache=True, inline="always")
@@ -575,7 +578,7 @@ def event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, adaptive, gather):
             ok = False
             if n < prm.min_points or n < 3:
                 continue
-            if spread2 > 0.0 and _least_spread(n, sx, sy, sxx, syy, sxy) < spread2:
+            if spread2 > 0.0 and not _spread_at_least(n, sx, sy, sxx, syy, sxy, spread2):
                 continue
             # (gx, gy): the gradient (dt/dx, dt/dy) in s/px; for original its velocity
             if gather == MASKS:

@@ -92,6 +92,18 @@ def test_random_parameters_match_reference(seed, variant, r, window_us, refracto
                 max_speed=200.0, min_spread=min_spread, centre_check=centre_check)
 
 
+def test_spread_bound_tie_matches_reference():
+    """An event whose neighbours' least spread is exactly min_spread (5 points, covariance
+    eigenvalue 0.36 = 0.6^2): kernel and reference must decide the tie alike (an eigenvalue
+    formula rounded it to either side, so they disagreed on event 145)."""
+    g = Geometry(16, 14)
+    ev = random_events(500, g, 0, 100_000, seed=24)
+    got = assert_same(ev, g.width, g.height, variant="single", r=2, window_us=10519,
+                      refractory_us=0, margin=0, min_points=3, th2=1e-3, max_speed=200.0,
+                      min_spread=0.6, centre_check=False)
+    assert 145 in got[0]  # the tie passes the bound (>=)
+
+
 def test_noisy_edge_matches_reference():
     """A moving edge with jittered timestamps and noise: iterations actually drop points."""
     g = Geometry(32, 24)

@@ -66,6 +66,21 @@ def _iterate(pts, fit, resid, params_of, th1, th2, max_iter):
     return sol
 
 
+def _spread_at_least(offsets, min_spread):
+    """The smallest eigenvalue of the offsets' covariance is >= min_spread^2: n^2 (cov -
+    min_spread^2 I) is positive semi-definite (diagonal and determinant >= 0). The offsets are
+    integers, so the n^2-scaled moments are exact integers and a tie on the bound is decided
+    by one rounding of n^2 min_spread^2 only."""
+    n = len(offsets)
+    sx = sum(dx for dx, _ in offsets)
+    sy = sum(dy for _, dy in offsets)
+    s = n * n * (min_spread * min_spread)
+    a = n * sum(dx * dx for dx, _ in offsets) - sx * sx - s
+    c = n * sum(dy * dy for _, dy in offsets) - sy * sy - s
+    b = n * sum(dx * dy for dx, dy in offsets) - sx * sy
+    return a >= 0 and c >= 0 and a * c >= b * b
+
+
 def _sg(win, valid):
     size = win.shape[0]
     sx, nx, sy, ny = 0.0, 0, 0.0, 0
@@ -94,11 +109,8 @@ def _estimate(ts, xi, yi, ti, pi, width, height, variant, r, window_us, min_poin
                 pts.append((xx - xi, yy - yi, (tt - ti) * 1e-6))
     if len(pts) < max(min_points, 3):
         return None
-    if min_spread > 0:
-        P = np.array([q[:2] for q in pts], float)
-        cov = np.cov(P.T, bias=True)
-        if np.linalg.eigvalsh(cov)[0] < min_spread ** 2:
-            return None
+    if min_spread > 0 and not _spread_at_least([q[:2] for q in pts], min_spread):
+        return None
     if variant == "savitzky_golay":
         win = np.zeros((2 * r + 1, 2 * r + 1))
         valid = np.zeros_like(win, bool)
