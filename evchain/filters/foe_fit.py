@@ -4,6 +4,7 @@ piecewise-planar scene model."""
 from __future__ import annotations
 
 import math
+import statistics
 from collections import deque
 
 import numpy as np
@@ -21,13 +22,9 @@ LEVEL, PITCHING, TURNING = -1, 0, 1
 
 
 def _median(values: list) -> float:
-    """np.median of a few floats, the same value bit for bit (the mean of the two middle ones
-    for an even count, NaN when one is NaN) without its array machinery."""
-    if any(v != v for v in values):
-        return math.nan
-    v = sorted(values)
-    h = len(v) // 2
-    return float(v[h]) if len(v) % 2 else float((v[h - 1] + v[h]) / 2)
+    """np.median of a few floats, the same value bit for bit (NaN when one is NaN), without its
+    array machinery."""
+    return math.nan if any(math.isnan(v) for v in values) else float(statistics.median(values))
 
 
 class FoeFit(Filter):

@@ -159,7 +159,6 @@ class Ttc(Filter):
     def reset(self) -> None:
         self._state = None
         self._ticks = self._rows = 0
-        self._slotless = 0
 
     def params_on(self, g: Geometry) -> Params:
         """The parameters on the camera ``g``: those left null derived from its focal length."""
@@ -234,12 +233,13 @@ class Ttc(Filter):
 
         why = {"no FOE yet": 0, "no cluster": 0, "no credible cluster": 0,
                "only road clusters": 0}
+        slotless = 0
         if self._state is not None:
             n = kern.no_ttc_counts(self._state)
             why = {"no FOE yet": n["no_foe"], "no cluster": n["no_cluster"],
                    "no credible cluster": n["not_credible"], "only road clusters": n["on_road"]}
-            self._slotless = kern.slotless_events(self._state)
+            slotless = kern.slotless_events(self._state)
         self.context.metrics[self.metrics_key("ttc_filter")] = {
             "ticks": self._ticks, "estimates": self._rows, "no_estimate": why,
-            "events_without_a_slot": self._slotless}
+            "events_without_a_slot": slotless}
         return None
