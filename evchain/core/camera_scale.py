@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 
 from evchain.core.packets import Geometry
+from evchain.errors import ConfigError
 
 #: the reference camera's focal length, px: 240 rows, 35 deg vertical field of view
 REFERENCE_FOCAL_PX = 120.0 / math.tan(math.radians(35.0) / 2.0)
@@ -42,3 +43,17 @@ def derived_us(value: int | None, reference_us: int, geometry: Geometry) -> int:
     by :func:`px_scale`, rounded to whole µs: the time in which an image speed, which grows
     with the scale, covers the same pixels."""
     return int(value) if value is not None else round(reference_us / px_scale(geometry))
+
+
+def check_window_order(stage: str, window: int, longest: int, shortest: int,
+                       geometry: Geometry) -> None:
+    """A flow's windows on this camera (after deriving): the longest (adaptive) window, when on,
+    must exceed ``window`` and the shortest, when on, be shorter; else a ConfigError naming
+    ``stage`` and the camera."""
+    size = f"on this {geometry.width}x{geometry.height} camera"
+    if longest and longest <= window:
+        raise ConfigError(f"{stage}: max_window_us ({longest}) must exceed window_us "
+                          f"({window}) {size}, or be 0 (off)")
+    if shortest and shortest >= window:
+        raise ConfigError(f"{stage}: min_window_us ({shortest}) must be shorter than "
+                          f"window_us ({window}) {size}, or be 0 (off)")

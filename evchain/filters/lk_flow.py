@@ -7,11 +7,11 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from evchain.core.camera_scale import derived, derived_us
+from evchain.core.camera_scale import check_window_order, derived, derived_us
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import EventPacket, FlowPacket, Geometry
 from evchain.core.series import DENSITY_BIN_US, FLOW_DENSITY, DensityCounter
-from evchain.errors import ConfigError, FilterError
+from evchain.errors import FilterError
 
 DENSITY_SERIES = FLOW_DENSITY.name
 
@@ -133,14 +133,7 @@ class LKFlow(Filter):
         q = self.params
         window = derived_us(q.window_us, 80_000, geometry)
         longest = 0 if q.mode == "faithful" else derived_us(q.max_window_us, 300_000, geometry)
-        if longest and longest <= window:
-            raise ConfigError(f"lk_flow: max_window_us ({longest}) must exceed window_us "
-                              f"({window}) on this {geometry.width}x{geometry.height} camera, "
-                              "or be 0 (off)")
-        if q.min_window_us and q.min_window_us >= window:
-            raise ConfigError(f"lk_flow: min_window_us ({q.min_window_us}) must be shorter "
-                              f"than window_us ({window}) on this {geometry.width}x"
-                              f"{geometry.height} camera, or be 0 (off)")
+        check_window_order("lk_flow", window, longest, q.min_window_us, geometry)
         return record(
             LKParams, r=q.search_distance, window_us=window,
             refractory_us=derived_us(q.refractory_us, 150_000, geometry),

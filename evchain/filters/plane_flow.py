@@ -7,11 +7,10 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from evchain.core.camera_scale import derived, derived_us, px_scale
+from evchain.core.camera_scale import check_window_order, derived, derived_us, px_scale
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import EventPacket, FlowPacket, Geometry
 from evchain.core.series import DENSITY_BIN_US, FLOW_DENSITY, DensityCounter
-from evchain.errors import ConfigError
 
 DENSITY_SERIES = FLOW_DENSITY.name
 
@@ -143,13 +142,7 @@ class PlaneFlow(Filter):
         window = derived_us(q.window_us, 80_000, geometry)
         longest = (0 if q.variant == "original"
                    else derived_us(q.max_window_us, 500_000, geometry))
-        size = f"on this {geometry.width}x{geometry.height} camera"
-        if longest and longest <= window:
-            raise ConfigError(f"plane_flow: max_window_us ({longest}) must exceed window_us "
-                              f"({window}) {size}, or be 0 (off)")
-        if q.min_window_us and q.min_window_us >= window:
-            raise ConfigError(f"plane_flow: min_window_us ({q.min_window_us}) must be shorter "
-                              f"than window_us ({window}) {size}, or be 0 (off)")
+        check_window_order("plane_flow", window, longest, q.min_window_us, geometry)
         return record(
             PlaneParams, variant=VARIANTS[q.variant], r=q.search_distance,
             window_us=window, refractory_us=q.refractory_us,
