@@ -368,24 +368,18 @@ class FoeFit(Filter):
         self._level_fit = (tl, ol)
         return inl > inl_level
 
-    @staticmethod
-    def _pitch_from_scratch(run, th, om):
-        """(ok, inlier weight, total weight, th, om) of a pitching fit started from scratch at
-        the FOE of ``th`` (scales unknown, every slab's pitch 0): a cold start finds every
-        slab's pitch robustly, where a warm fit leaves the slabs that already pitch as outliers
-        at pitch 0 and refits only the newest."""
+    def _pitch_start(self, run, th, om, inl) -> None:
+        """Entering the pitching mode: the fits go on from a pitching fit started from scratch
+        at the level fit's FOE (scales unknown, every slab's pitch 0) if it explains more of the
+        flow than the level fit (``th, om, inl``): a cold start finds every slab's pitch
+        robustly, where a warm fit leaves the slabs that already pitch as outliers at pitch 0
+        and refits only the newest."""
         from evchain.kernels import foe_fit as k
 
         tp = k.initial_theta(th[k.FOE_X], th[k.FOE_Y])
         op = om.copy()
         op[:, PITCHING] = 0.0
-        ok, inl, tot = run(tp, op, np.array([True, True, False, False]))
-        return ok, inl, tot, tp, op
-
-    def _pitch_start(self, run, th, om, inl) -> None:
-        """Entering the pitching mode: the fits go on from a pitching fit from scratch at the
-        level fit's FOE if it explains more of the flow than the level fit (``th, om, inl``)."""
-        ok, inl_p, _, tp, op = self._pitch_from_scratch(run, th, om)
+        ok, inl_p, _ = run(tp, op, np.array([True, True, False, False]))
         if ok and inl_p > inl:
             self._th, self._om = tp, op
 
