@@ -10,7 +10,7 @@ from collections import deque
 import numpy as np
 from pydantic import Field
 
-from evchain.core.camera_scale import derived, px_scale
+from evchain.core.camera_scale import REFERENCE_FOCAL_PX, derived, px_scale
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import FlowPacket, Geometry
 from evchain.core.series import FOE, FOE_VOTES
@@ -36,6 +36,9 @@ class FoeFit(Filter):
     a facade point ``dx`` columns beside it ``a1 |dx|`` (left) or ``a2 |dx|`` (right), so its
     normal flow speed is ``(p - foe).n`` times that, plus the normal component of the rotational
     flow of the camera's angular velocity ``w`` (independent of depth; needs the focal length).
+    Buildings stand at different setbacks, so each side's scale is times a ratio per depth
+    band (``facade_bands`` bands of ``facade_band_depth`` times the facade's lateral
+    distance), refitted after every fit and tied to 1 by ``facade_band_prior``.
     Every ``estimate_every_us`` the FOE, the scales and ``w`` are fitted jointly to the flow
     events of the last ``3 tau_ms`` (weights decaying with ``tau_ms``, Tukey on the relative
     speed residual), ``w`` constant within each ``estimate_every_us`` of that stretch, and every
@@ -120,6 +123,17 @@ class FoeFit(Filter):
             "null: 40 px x f / 380.6 px")
         min_inliers: float = Field(50.0, ge=0, description="fall back when the decayed "
                                    "inlier weight is below this")
+        facade_bands: int = Field(
+            16, ge=0, description="depth bands per facade, each with its own scale (buildings "
+            "at other setbacks): a ratio to the side's scale, refitted after each fit and tied "
+            "to 1 by facade_band_prior; 0: one scale per side")
+        facade_band_depth: float = Field(
+            0.5, gt=0, description="depth extent of a facade band in units of the facade's "
+            "lateral distance: an event |dx| px beside the FOE is in band "
+            "floor(f / (facade_band_depth |dx|))")
+        facade_band_prior: float = Field(
+            20.0, ge=0, description="decayed event weight that ties each band's scale ratio "
+            "to 1 (a ridge: a band with fewer events keeps the side's scale)")
         turn_gain: float = Field(
             0.2, ge=0, description="the turning mode is entered only when its fit's decayed "
             "inlier weight exceeds that of the level fit (FOE column free, no yaw) by more than "
@@ -137,7 +151,7 @@ class FoeFit(Filter):
         self._t = np.zeros(0, np.int64)
         self._lo = self._hi = 0  # the buffer's live events: [lo, hi)
         self._next: int | None = None
-        self._th = k.initial_theta(math.nan, math.nan)
+        self._th = k.initial_theta(math.nan, math.nan, p.facade_bands)
         self._vote: tuple[int, float, float] | None = None
         self._won = -math.inf  # time a far fit last beat a fit started from the votes
         n_slabs = math.ceil(3 * p.tau_ms * 1000.0 / p.estimate_every_us) + 1
@@ -168,7 +182,10 @@ class FoeFit(Filter):
                            tolerance=p.tolerance, max_iter=p.max_iter, max_step=3.0 * scale,
                            min_step=0.05 * scale, slab_us=p.estimate_every_us,
                            f=geometry.f if self._rotation else 1.0, cx=geometry.cx,
-                           cy=geometry.cy)
+                           cy=geometry.cy,
+                           band_px=derived(None, REFERENCE_FOCAL_PX, geometry)
+                           / p.facade_band_depth,
+                           band_prior=p.facade_band_prior)
         self._turn_pxs = math.radians(p.rotation_threshold_deg_s) * self._prm.f
 
     def process(self, packet: FlowPacket) -> FlowPacket:
@@ -275,7 +292,7 @@ class FoeFit(Filter):
         self._shift_slabs(T)
         warm = not math.isnan(self._th[k.FOE_X])
         if not warm:
-            self._th = k.initial_theta(vx, vy)
+            self._th = k.initial_theta(vx, vy, p.facade_bands)
         free = self._free()
         if not free[0]:
             self._th[k.FOE_X] = self._held_x
@@ -301,7 +318,7 @@ class FoeFit(Filter):
             # A warm fit that won stays unchallenged for tau (the window's weights change by
             # 1/e), which keeps the extra fits to a few per cent while the votes are off.
             if T - self._won >= tau_us:
-                tv = k.initial_theta(vx, vy)
+                tv = k.initial_theta(vx, vy, p.facade_bands)
                 if not free[0]:
                     tv[k.FOE_X] = self._held_x
                 okv, inlv, _ = run(tv, self._om.copy())
@@ -351,7 +368,8 @@ class FoeFit(Filter):
         more = 1.0 + self.params.turn_gain
         if self._mode != TURNING:
             self._level_fit = (th.copy(), om.copy())
-            tt = k.initial_theta(float(np.median([c for _, c in self._level_x])), th[k.FOE_Y])
+            tt = k.initial_theta(float(np.median([c for _, c in self._level_x])), th[k.FOE_Y],
+                                 self.params.facade_bands)
             ot = om.copy()
             ok, inl_turn, _ = run(tt, ot, np.array([False, False, True, False]))
             if ok and inl_turn > more * inl:
@@ -376,7 +394,7 @@ class FoeFit(Filter):
         and refits only the newest."""
         from evchain.kernels import foe_fit as k
 
-        tp = k.initial_theta(th[k.FOE_X], th[k.FOE_Y])
+        tp = k.initial_theta(th[k.FOE_X], th[k.FOE_Y], self.params.facade_bands)
         op = om.copy()
         op[:, PITCHING] = 0.0
         ok, inl_p, _ = run(tp, op, np.array([True, True, False, False]))

@@ -8,7 +8,15 @@ normal n has speed ``s = (p - foe).n g + c.Om`` with ``Om = f w`` in px/s (the r
 at the principal point) and ``c = n.B(p) / f`` (:func:`rotation_coefficients`). Three planes
 are modelled, each with its own scale: the road seen by a level camera (``g = a0 dy``,
 ``dy = y - y_foe`` rows below the FOE), a facade left of the FOE (``g = a1 (x_foe - x)``) and
-one right of it (``g = a2 (x - x_foe)``). Unknowns ``th = (x_foe, y_foe, a0, a1, a2)`` and the
+one right of it (``g = a2 (x - x_foe)``). A side's buildings stand at different setbacks
+(``a = V / (f D)`` at lateral distance D), so each side is split into depth bands (a facade
+point ``|dx|`` px beside the FOE lies at depth ``Z = f D / |dx|``, band
+``floor(band_px / |dx|)``, the last band taking the rest), each with its own ratio to the
+side's scale, ``th[NP:]`` (left bands, then right; none: one scale per side). The ratios are
+refitted after each fit with the FOE and the scales held (:func:`_update_bands`) and tied to 1
+by a ridge, so that a band with few events keeps the side's scale and the FOE's column stays
+constrained by how the speeds vary within each band. Unknowns
+``th = (x_foe, y_foe, a0, a1, a2)`` and the
 rotation ``om[k]`` of every slab ``k``: the events of a fit span several hundred ms while the
 rotation changes faster (a pitch oscillation at 2 Hz), so it is piecewise constant in time,
 one ``Om`` per slab of ``slab_us`` counted back from the fit time T (slab k: times in
@@ -94,12 +102,16 @@ class FitParams(NamedTuple):
     f: float          #: focal length, px
     cx: float         #: principal point, px
     cy: float
+    band_px: float    #: a facade event ``|dx|`` px beside the FOE is in depth band
+    #: ``floor(band_px / |dx|)`` (the last band takes the rest)
+    band_prior: float  #: decayed weight that ties each band's ratio to 1 (a ridge)
 
 
-def initial_theta(foe_x: float, foe_y: float) -> np.ndarray:
+def initial_theta(foe_x: float, foe_y: float, n_bands: int = 0) -> np.ndarray:
     """Shared unknowns for a fit starting at the FOE (foe_x, foe_y), the planes' scales
-    unknown."""
-    th = np.full(NP, np.nan)
+    unknown, followed by ``n_bands`` depth bands' scale ratios per facade (left, then right;
+    NaN: 1)."""
+    th = np.full(NP + 2 * n_bands, np.nan)
     th[FOE_X] = foe_x
     th[FOE_Y] = foe_y
     return th
@@ -206,6 +218,16 @@ def _applies(k, dxx, dyy, margin):
     return -dxx > margin if k == 1 else dxx > margin
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _band_index(dxx, nb, band_px):
+    """Index into the band ratios ``th[NP:]`` of a facade event ``dxx`` px beside the FOE: its
+    depth band ``floor(band_px / |dx|)`` (at most ``nb - 1``) on its side (left first).
+    Branch-free; ``nb`` is at least 1."""
+    top = nb - 1.0
+    q = band_px / abs(dxx) if dxx != 0.0 else top
+    return int(min(q, top)) + (0 if dxx < 0.0 else nb)
+
+
 @njit(cache=True, error_model="numpy")
 def _weighted_median(r, w, m):
     """The weighted median of ``r[:m]`` (weights ``w[:m]``): the first value in sorted order
@@ -253,7 +275,7 @@ def _init_scales(w, lo, hi, om, g, th, margin):
 
 
 @njit(cache=True, error_model="numpy")
-def _slab_l1(w, a, b, g, th, om, k, margin, c, n_iter, free):
+def _slab_l1(w, a, b, g, th, om, k, margin, c, n_iter, free, rat, nb, band_px):
     """A robust start for slab k's rotation with the shared unknowns held: ``n_iter``
     iteratively reweighted least-squares steps towards the least relative residual
     ``sum w_t rho(|s - pred| / s)`` over the slab's events ``a <= j < b`` (each assigned to the
@@ -261,7 +283,7 @@ def _slab_l1(w, a, b, g, th, om, k, margin, c, n_iter, free):
     beyond (a pure absolute residual passes through a few events and is ill-conditioned).
     Unlike the Tukey weights of the fit, this reaches a rotation far from the start (a curve's
     sudden yaw, a cold start) and is pulled little by outliers. Axes that are not ``free`` keep
-    their values."""
+    their values. ``rat``: the facades' band ratios (``nb`` per side, :func:`_band_index`)."""
     xw, yw, mx, my, s, e, c0, c1, c2 = w
     K = np.empty((3, 3))
     h = np.empty(3)
@@ -278,12 +300,13 @@ def _slab_l1(w, a, b, g, th, om, k, margin, c, n_iter, free):
             dyy = yw[j] - th[FOE_Y]
             dn = dxx * mx[j] + dyy * my[j]
             rot = c0[j] * o0 + c1[j] * o1 + c2[j] * o2
+            rho = rat[_band_index(dxx, nb, band_px)]
             err = np.inf
             pt = 0.0
             for q in range(3):
                 if math.isnan(th[ROAD + q]) or not _applies(q, dxx, dyy, margin):
                     continue
-                pq = th[ROAD + q] * dn * _lever(q, dxx, dyy)
+                pq = th[ROAD + q] * dn * _lever(q, dxx, dyy) * (rho if q else 1.0)
                 eq = abs(s[j] - pq - rot)
                 if eq < err:
                     err, pt = eq, pq
@@ -317,16 +340,19 @@ def _slab_l1(w, a, b, g, th, om, k, margin, c, n_iter, free):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _event(dxx, dyy, mxj, myj, sj, rot, wti, a0, al, ar, has_road, has_l, has_r, margin, c):
+def _event(dxx, dyy, mxj, myj, sj, rot, wti, a0, al, ar, rho, has_road, has_l, has_r, margin,
+           c):
     """The model at one event (translational part from the FOE offset ``dxx, dyy`` and the
-    normal ``mxj, myj``, rotational part ``rot``, decay weight ``wti``), assigned to the plane
-    predicting it best (road wins ties): (applicable weight, inlier weight, robust weight,
-    residual, J0, J1, Ja, is road, is left facade, is right facade). Branch-free."""
+    normal ``mxj, myj``, rotational part ``rot``, decay weight ``wti``, the ratio ``rho`` of its
+    facade's depth band), assigned to the plane predicting it best (road wins ties):
+    (applicable weight, inlier weight, robust weight, residual, J0, J1, Ja, is road, is left
+    facade, is right facade); Ja is the derivative by the plane's scale (a facade's: the
+    side's). Branch-free."""
     dn = dxx * mxj + dyy * myj
     road_ok = has_road and dyy > margin
     left = dxx < 0.0
     adx = abs(dxx)
-    a_s = al if left else ar
+    a_s = (al if left else ar) * rho
     side_ok = adx > margin and (has_l if left else has_r)
     pr = a0 * dn * dyy + rot
     ps = a_s * dn * adx + rot
@@ -343,7 +369,7 @@ def _event(dxx, dyy, mxj, myj, sj, rot, wti, a0, al, ar, has_road, has_l, has_r,
     sg = 1.0 if left else -1.0
     j0 = sg * a_s * (mxj * dxx + dn) if use_side else -a0 * mxj * dyy
     j1 = sg * a_s * myj * dxx if use_side else -a0 * (myj * dyy + dn)
-    ja = dn * adx if use_side else dn * dyy
+    ja = dn * adx * rho if use_side else dn * dyy
     mr = 0.0 if use_side else 1.0
     ml = 1.0 if use_side and left else 0.0
     mq = 1.0 if use_side and not left else 0.0
@@ -362,13 +388,15 @@ def _scales(th):
 
 
 @njit(cache=True, error_model="numpy", fastmath={"reassoc", "contract"})
-def _sums(w, a, b, om0, om1, om2, g, th, margin, c, out, with_slab, with_rot):
+def _sums(w, a, b, om0, om1, om2, g, th, margin, c, rat, nb, band_px, out, with_slab,
+          with_rot):
     """One Gauss-Newton pass over the events ``a <= j < b`` of one slab with rotation
     ``(om0, om1, om2)``: adds the 19 shared sums to ``out[:19]`` (a00, a01, a11, b0, b1,
     inlier weight, applicable weight, then per plane road / left / right: w J0 Ja, w J1 Ja,
     w Ja Ja, w r Ja) and, with ``with_slab``, writes the slab's :data:`NS` sums of its rotation
     to ``out[19:]`` (w c c^T: 00 01 02 11 12 22; w c J0, w c J1 per axis; w c Ja per plane and
-    axis; w r c per axis). Without ``with_rot`` (a slab that does not turn, its rotation 0)
+    axis; w r c per axis). ``rat``: the facades' band ratios, ``nb`` per side
+    (:func:`_band_index`). Without ``with_rot`` (a slab that does not turn, its rotation 0)
     the rotation coefficients are not read and every rotational speed is 0: the same sums, a
     third less memory read. ``with_slab`` and ``with_rot`` are compile-time constants
     (``literally``): each pair compiles its own loop. Branch-free (selects, one
@@ -391,9 +419,10 @@ def _sums(w, a, b, om0, om1, om2, g, th, margin, c, out, with_slab, with_rot):
             rot = z0 * om0 + z1 * om1 + z2 * om2
         else:
             z0 = z1 = z2 = rot = 0.0
+        dxx = xw[j] - xf
         vw, iw, wt, res, j0, j1, ja, mr, ml, mq = _event(
-            xw[j] - xf, yw[j] - yf, mx[j], my[j], s[j], rot, e[j] * g, a0, al, ar, has_road,
-            has_l, has_r, margin, c)
+            dxx, yw[j] - yf, mx[j], my[j], s[j], rot, e[j] * g, a0, al, ar,
+            rat[_band_index(dxx, nb, band_px)], has_road, has_l, has_r, margin, c)
         tot += vw
         inl += iw
         wr = wt * res
@@ -459,7 +488,7 @@ def _sums(w, a, b, om0, om1, om2, g, th, margin, c, out, with_slab, with_rot):
 
 
 @njit(cache=True, error_model="numpy")
-def _pass(w, lo, hi, om, g, th, margin, c, rotating, shared, slabs):
+def _pass(w, lo, hi, om, g, th, margin, c, rat, nb, band_px, rotating, shared, slabs):
     """One Gauss-Newton pass over every slab: the 19 shared sums into ``shared`` and, when
     some rotation axis is free (``rotating``), each slab's :data:`NS` sums into ``slabs[k]``
     (see :func:`_sums`; else they are 0)."""
@@ -468,15 +497,45 @@ def _pass(w, lo, hi, om, g, th, margin, c, rotating, shared, slabs):
     for k in range(len(lo)):
         if rotating:
             out[19:] = 0.0
-            _sums(w, lo[k], hi[k], om[k, 0], om[k, 1], om[k, 2], g, th, margin, c, out, True,
-                  True)
+            _sums(w, lo[k], hi[k], om[k, 0], om[k, 1], om[k, 2], g, th, margin, c, rat, nb,
+                  band_px, out, True, True)
             slabs[k, :] = out[19:]
         elif om[k, 0] != 0.0 or om[k, 1] != 0.0 or om[k, 2] != 0.0:
-            _sums(w, lo[k], hi[k], om[k, 0], om[k, 1], om[k, 2], g, th, margin, c, out, False,
-                  True)
+            _sums(w, lo[k], hi[k], om[k, 0], om[k, 1], om[k, 2], g, th, margin, c, rat, nb,
+                  band_px, out, False, True)
         else:  # no rotation: rot is 0 for every event, and the coefficients are not read
-            _sums(w, lo[k], hi[k], 0.0, 0.0, 0.0, g, th, margin, c, out, False, False)
+            _sums(w, lo[k], hi[k], 0.0, 0.0, 0.0, g, th, margin, c, rat, nb, band_px, out,
+                  False, False)
     shared[:] = out[:19]
+
+
+@njit(cache=True, error_model="numpy")
+def _update_bands(w, lo, hi, om, g, th, margin, c, nb, band_px, prior):
+    """Each facade depth band's scale ratio ``th[NP + i]`` (:func:`_band_index`) from the
+    events the model assigns to it at ``th``, ``om``: the robustly weighted least-squares ratio
+    of their translational speed ``s - c.Om`` to the side's prediction ``P = a (p - foe).n
+    |dx|``, tied to 1 by ``prior`` (decayed weight): ``(sum w P (s - c.Om) + prior) /
+    (sum w P^2 + prior)``, ``w`` the fit's robust weight. The side's scale and the FOE stay."""
+    xw, yw, mx, my, s, e, c0, c1, c2 = w
+    rat = th[NP:]
+    a0, al, ar, has_road, has_l, has_r = _scales(th)
+    num = np.zeros(2 * nb)
+    den = np.zeros(2 * nb)
+    for k in range(len(lo)):
+        for j in range(lo[k], hi[k]):
+            dxx = xw[j] - th[FOE_X]
+            dyy = yw[j] - th[FOE_Y]
+            rot = c0[j] * om[k, 0] + c1[j] * om[k, 1] + c2[j] * om[k, 2]
+            i = _band_index(dxx, nb, band_px)
+            _, _, wt, _, _, _, _, mr, _, _ = _event(
+                dxx, dyy, mx[j], my[j], s[j], rot, e[j] * g, a0, al, ar, rat[i], has_road,
+                has_l, has_r, margin, c)
+            if wt > 0.0 and mr == 0.0:
+                pb = (al if dxx < 0.0 else ar) * (dxx * mx[j] + dyy * my[j]) * abs(dxx)
+                num[i] += wt * pb * (s[j] - rot)
+                den[i] += wt * pb * pb
+    for i in range(2 * nb):
+        rat[i] = (num[i] + prior) / (den[i] + prior)
 
 
 @njit(cache=True, error_model="numpy")
@@ -709,20 +768,28 @@ def fit(events, i0, i1, T, g, th, om, free, probe, prm):
     n_slabs = om.shape[0]
     lo, hi = slab_bounds(events.t, i0, i1, T, prm.slab_us, n_slabs)
     w = _window(events, i0, i1, T, lo, hi, om, prm)
-    unknown = np.isnan(th[ROAD:])
+    nb = (len(th) - NP) // 2
+    for q in range(2):  # a side without a scale, and a band without a ratio, start at 1
+        for i in range(NP + q * nb, NP + (q + 1) * nb):
+            if math.isnan(th[LEFT + q]) or math.isnan(th[i]):
+                th[i] = 1.0
+    rat = th[NP:] if nb else np.ones(2)
+    nbe = max(nb, 1)
+    unknown = np.isnan(th[ROAD:NP])
     if unknown.any():  # a cold start: scales and rotations from each other, robustly
         for _ in range(COLD_ROUNDS):
-            th[ROAD:][unknown] = np.nan
+            th[ROAD:NP][unknown] = np.nan
             _init_scales(w, lo, hi, om, g, th, prm.margin)
             for k in range(n_slabs):
                 _slab_l1(w, lo[k], hi[k], g, th, om, k, prm.margin, prm.tolerance, L1_ITER,
-                         free)
+                         free, rat, nbe, prm.band_px)
             w = _window(events, i0, i1, T, lo, hi, om, prm)
-        th[ROAD:][unknown] = np.nan
+        th[ROAD:NP][unknown] = np.nan
         _init_scales(w, lo, hi, om, g, th, prm.margin)
     elif n_slabs and (free[1] or free[2] or free[3]):  # the newest slab: however far its
         # rotation jumped
-        _slab_l1(w, lo[0], hi[0], g, th, om, 0, prm.margin, prm.tolerance, L1_ITER, free)
+        _slab_l1(w, lo[0], hi[0], g, th, om, 0, prm.margin, prm.tolerance, L1_ITER, free,
+                 rat, nbe, prm.band_px)
     rotating = free[1] or free[2] or free[3]
     A = np.zeros((NP, NP))
     b = np.zeros(NP)
@@ -732,7 +799,8 @@ def fit(events, i0, i1, T, g, th, om, free, probe, prm):
     inl = 0.0
     tot = 0.0
     for _ in range(prm.max_iter):
-        _pass(w, lo, hi, om, g, th, prm.margin, prm.tolerance, rotating, shared, slabs)
+        _pass(w, lo, hi, om, g, th, prm.margin, prm.tolerance, rat, nbe, prm.band_px, rotating,
+              shared, slabs)
         inl, tot = shared[5], shared[6]
         if not _step(shared, slabs, A, b, d_om, free):
             return False, inl, tot
@@ -741,9 +809,12 @@ def fit(events, i0, i1, T, g, th, om, free, probe, prm):
             return False, inl, tot
         if step < prm.min_step:  # a warm-started fit moves less after 1-2 iterations
             break
+    if nb:  # the bands' ratios for the next fit
+        _update_bands(w, lo, hi, om, g, th, prm.margin, prm.tolerance, nb, prm.band_px,
+                      prm.band_prior)
     if n_slabs:  # the newest slab's rotation with every axis free, the rest held
         first = om[:1].copy()
         _slab_l1(w, lo[0], hi[0], g, th, first, 0, prm.margin, prm.tolerance, L1_ITER,
-                 np.ones(4, np.bool_))
+                 np.ones(4, np.bool_), rat, nbe, prm.band_px)
         probe[:] = first[0]
     return True, inl, tot

@@ -432,7 +432,8 @@ def test_no_estimate_once_the_votes_are_gone():
 
 def test_px_parameters_follow_the_focal_length():
     """margin_px and max_deviation_px left null (and the kernel's step bounds) are their
-    reference camera values times f / 380.6 px."""
+    reference camera values times f / 380.6 px; the facades' depth bands are
+    ``f / facade_band_depth`` px (a band's depth in units of the facade's distance)."""
     from evchain.core.camera_scale import REFERENCE_FOCAL_PX
 
     for scale in (1.0, 2.0, 0.75):
@@ -442,6 +443,7 @@ def test_px_parameters_follow_the_focal_length():
         assert f._prm.margin == pytest.approx(10.0 * scale, rel=1e-12)
         assert f._max_deviation == pytest.approx(40.0 * scale, rel=1e-12)
         assert (f._prm.max_step, f._prm.min_step) == pytest.approx((3 * scale, 0.05 * scale))
+        assert f._prm.band_px == pytest.approx(scale * REFERENCE_FOCAL_PX / 0.5, rel=1e-12)
     f = FoeFit()
     f.setup(FoeFit.Params(margin_px=7.0, max_deviation_px=30.0), Context())
     f._start(Geometry(640, 480, f=2 * REFERENCE_FOCAL_PX))

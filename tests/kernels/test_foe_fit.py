@@ -25,9 +25,13 @@ def _events(x, y, nx, ny, s, t):
                                                             if len(t) else 1.0)
 
 
-def _prm(margin=10.0, c=0.5, iters=12):
+BAND_PX, BAND_PRIOR = 2 * F, 20.0  # depth bands of half a facade's lateral distance
+
+
+def _prm(margin=10.0, c=0.5, iters=12, band_px=BAND_PX, band_prior=BAND_PRIOR):
     return record(k.FitParams, margin=margin, tolerance=c, max_iter=iters, max_step=3.0,
-                  min_step=0.05, slab_us=SLAB, f=F, cx=CX, cy=CY)
+                  min_step=0.05, slab_us=SLAB, f=F, cx=CX, cy=CY, band_px=band_px,
+                  band_prior=band_prior)
 
 
 def _run(x, y, nx, ny, s, th0, t=None, om=None, free=LEVEL, margin=10.0, c=0.5, iters=12):
@@ -47,7 +51,7 @@ def _naive(x, y, nx, ny, s, th0, t=None, om=None, free=LEVEL, margin=10.0, c=0.5
     t = np.full(len(x), T - 1, np.int64) if t is None else np.asarray(t, np.int64)
     om = np.zeros((61, 3)) if om is None else om
     return naive.fit(x, y, nx, ny, s, t, T, TAU, th0, om, free, margin, c, iters, 3.0, SLAB, F,
-                     CX, CY)
+                     CX, CY, band_px=BAND_PX, band_prior=BAND_PRIOR)
 
 
 def _same(got, want, atol=1e-6, om_atol=1e-3, rotation=True):
@@ -481,3 +485,117 @@ def test_buildings_at_different_setbacks_shift_the_column():
     assert abs(_street_column_error(1.0)) < 0.1
     assert _street_column_error(1.15) > 0.3
     assert _street_column_error(1 / 1.15) < -0.3
+
+
+def test_matches_naive_with_facade_bands():
+    """Depth bands per facade: kernel and reference agree on random rotating and level flow,
+    cold and warm, with band ratios far from 1 at the start, and on hard inputs: events on
+    the FOE's column (|dx| = 0), exactly on the bands' borders (|dx| = band_px / m), a side
+    without events, nothing but road."""
+    rng = np.random.default_rng(11)
+    for trial in range(4):
+        foe = rng.uniform(60, 200, 2)
+        om_true = _slabs(pitch_deg_s=rng.uniform(0, 10), yaw_deg_s=rng.uniform(-20, 20))
+        x, y, nx, ny, s, t = naive.rotating_planar_flow(12000, foe, A, om_true, T, SLAB, F, rng,
+                                                        noise=0.2, outliers=0.2)
+        free = [ALL, LEVEL, (False, True, False, True), (True, False, True, False)][trial]
+        nb = (1, 4, 8, 16)[trial]
+        scales = (np.nan, 0.03, np.nan) if trial % 2 == 0 else A
+        th0 = (foe[0] + rng.normal(0, 5), foe[1] + rng.normal(0, 5), *scales,
+               *rng.uniform(0.7, 1.3, 2 * nb))
+        om0 = om_true + rng.normal(0, 5, om_true.shape)
+        _same(_run(x, y, nx, ny, s, th0, t=t, om=om0, free=free),
+              _naive(x, y, nx, ny, s, th0, t=t, om=om0, free=free))
+    foe = (159.5, 119.5)
+    x, y, nx, ny, s = naive.planar_flow(3000, foe, A, rng, noise=0.1, outliers=0.1)
+    m = np.arange(1, 41)
+    x[:40] = foe[0] - BAND_PX / m  # on the borders, left and right
+    x[40:80] = foe[0] + BAND_PX / m
+    x[80:120] = foe[0]  # on the FOE's column
+    t = np.sort(rng.integers(T - 600_000, T, len(x)))
+    right = x > foe[0] + 10
+    road = y > foe[1] + 10
+    for nb in (1, 6):
+        ratios = np.linspace(0.8, 1.2, 2 * nb)
+        for keep in (np.ones(len(x), bool), ~right, road & (np.abs(x - foe[0]) < 1e9)):
+            ev = tuple(v[keep] for v in (x, y, nx, ny, s))
+            for th0 in [(*foe, *A, *ratios), (foe[0] + 2, foe[1] - 1, np.nan, np.nan, np.nan,
+                                              *ratios)]:
+                for iters in (1, 4):
+                    _same(_run(*ev, th0, t=t[keep], iters=iters),
+                          _naive(*ev, th0, t=t[keep], iters=iters))
+
+
+def _setback_street(left_far, right_far, split=(60.0, 80.0), n=30000, seed=2):
+    """:func:`_street` with two buildings per side: the facade columns within ``split`` px
+    (left, right) of the FOE (the far buildings) have their side's scale times ``left_far``,
+    ``right_far`` (they stand nearer the road by that ratio)."""
+    rng = np.random.default_rng(seed)
+    foe = (159.5, 119.5)
+    x = rng.integers(0, 320, n) + 0.5
+    y = rng.integers(0, 240, n) + 0.5
+    dxx, dyy = x - foe[0], y - foe[1]
+    g_road = np.where(dyy > 0, A[0] * dyy, 0.0)
+    a_left = np.where(-dxx < split[0], A[1] * left_far, A[1])
+    a_right = np.where(dxx < split[1], A[2] * right_far, A[2])
+    g_fac = np.where(dxx < 0, a_left * -dxx, a_right * dxx)
+    road = g_road > g_fac
+    ang = np.where(road | (rng.random(n) < 0.5), np.pi / 2, 0.0) + rng.normal(0, 0.05, n)
+    nx, ny = np.cos(ang), np.sin(ang)
+    dn = dxx * nx + dyy * ny
+    flip = dn < 0
+    nx[flip], ny[flip], dn[flip] = -nx[flip], -ny[flip], -dn[flip]
+    s = dn * np.where(road, g_road, g_fac) * (1 + 0.1 * rng.standard_normal(n))
+    k_ = s > 1e-3
+    return foe, (x[k_], y[k_], nx[k_], ny[k_], s[k_])
+
+
+def _column_error(street, nb, keep=None):
+    """The FOE's column error after 40 warm-started fits in a row (as the filter runs them),
+    and the final unknowns."""
+    from evchain.filters.foe_fit import FoeFit
+
+    foe, ev = street
+    if keep is not None:
+        ev = tuple(v[keep(ev)] for v in ev)
+    th = k.initial_theta(*foe, nb)
+    for _ in range(40):
+        ok, th, _, _, _, _ = _run(*ev, th, c=FoeFit.Params().tolerance, iters=4)
+        assert ok and np.isfinite(th[:3]).all()
+    return th[0] - foe[0], th
+
+
+def test_facade_bands_follow_buildings_at_different_setbacks():
+    """Two buildings per side, the far ones 15 % nearer the road on the left and 15 % farther
+    on the right: both move the column of one scale per side to the right; a scale per depth
+    band follows them and keeps the column."""
+    street = _setback_street(1.15, 1 / 1.15)
+    one, _ = _column_error(street, 0)
+    banded, th = _column_error(street, 16)
+    assert one > 1.0
+    assert abs(banded) < 0.15
+    # the far left buildings' bands (|dx| < 60 px: bands 12 and beyond) see the larger scale
+    assert np.all(th[5 + 13:5 + 16] > 1.05)
+
+
+def test_facade_bands_keep_one_building_per_side():
+    """One setback per side, and a side with one building while the other has two: the bands
+    keep the column (their ratios stay near 1 where nothing differs)."""
+    for street in (_setback_street(1.0, 1.0), _setback_street(1.0, 1 / 1.15)):
+        err, th = _column_error(street, 16)
+        assert abs(err) < 0.15
+    err, th = _column_error(_setback_street(1.0, 1.0), 16)
+    np.testing.assert_allclose(th[5:], 1.0, atol=0.05)
+
+
+def test_facade_bands_without_facade_events():
+    """Nothing but road: every band ratio stays exactly 1 (the prior alone) and the fit is
+    the one without bands, bit for bit."""
+    def road_only(ev):
+        return ev[1] > 119.5 + 10.0
+
+    street = _setback_street(1.0, 1.0)
+    err0, th0 = _column_error(street, 0, keep=road_only)
+    err, th = _column_error(street, 6, keep=road_only)
+    assert np.all(th[5:] == 1.0)
+    assert np.array_equal(th[:5], th0, equal_nan=True)

@@ -46,18 +46,39 @@ def warp(x, y, nx, ny, b, f, cx, cy, series=False):
     return cx + f * X / D, cy + f * (cb * Y - sb) / D, m[:, 0], m[:, 1]
 
 
-def _geometry(x, y, nx, ny, th, margin):
+def band_ratio(dxx, th, band_px):
+    """Each event's facade band ratio: band ``min(floor(band_px / |dx|), nb - 1)`` of the
+    ``nb`` bands on its side (``th[5:]``: left, then right); 1 without bands."""
+    nb = (len(th) - 5) // 2
+    if nb == 0:
+        return np.ones(len(dxx))
+    band = np.minimum(np.floor(band_px / np.where(dxx != 0, np.abs(dxx), 1.0)), nb - 1)
+    band = np.where(dxx != 0, band, nb - 1).astype(np.int64)
+    return th[5:][band + np.where(dxx < 0, 0, nb)]
+
+
+def _band_of(dxx, th, band_px):
+    nb = (len(th) - 5) // 2
+    band = np.minimum(np.floor(band_px / np.where(dxx != 0, np.abs(dxx), 1.0)), nb - 1)
+    band = np.where(dxx != 0, band, nb - 1).astype(np.int64)
+    return band + np.where(dxx < 0, 0, nb)
+
+
+def _geometry(x, y, nx, ny, th, margin, band_px=1.0):
+    """Offsets from the FOE, (p - foe).n, the planes' factors d (road dy, left -dx, right dx;
+    a facade's times its band ratio) and where each plane applies."""
     dxx, dyy = x - th[0], y - th[1]
     dn = dxx * nx + dyy * ny
-    lev = np.stack([dyy, -dxx, dxx], 1)  # the planes' factors d: road, left, right
+    rho = band_ratio(dxx, th, band_px)
+    lev = np.stack([dyy, -dxx, dxx], 1)
     app = lev > margin
-    return dxx, dyy, dn, lev, app
+    return dxx, dyy, dn, lev * np.stack([np.ones(len(x)), rho, rho], 1), app
 
 
 def _init_scales(x, y, nx, ny, s, wt, rot, th, margin):
     """Each NaN scale: the weighted median of (s - rot) / ((p - foe).n d) over the plane's events
     with (p - foe).n > 0 (the facades' only above the FOE's row)."""
-    dxx, dyy, dn, lev, app = _geometry(x, y, nx, ny, th, margin)
+    dxx, dyy, dn, lev, app = _geometry(x, y, nx, ny, th[:5], margin)
     for p in range(3):
         ini = app[:, p] & (dn > 0) & ((dyy < -margin) if p else True)
         if np.isnan(th[2 + p]) and ini.any():
@@ -67,17 +88,17 @@ def _init_scales(x, y, nx, ny, s, wt, rot, th, margin):
             th[2 + p] = r[o][np.argmax(np.cumsum(w[o]) >= 0.5 * w.sum())]
 
 
-def slab_l1(x, y, nx, ny, s, wt, cc, th, om_k, margin, c, n_iter, free):
+def slab_l1(x, y, nx, ny, s, wt, cc, th, om_k, margin, c, n_iter, free, band_px=1.0):
     """The kernel's ``_slab_l1`` on one slab's (warped) events: ``n_iter`` reweighted least
     squares steps towards min sum wt huber_c(|s - pred| / s) for the free axes, the others held;
     returns the slab's rotation (om_k is copied)."""
     om_k = np.array(om_k, np.float64)
     held = ~np.asarray(free[1:], bool)
-    dxx, dyy, dn, lev, app = _geometry(x, y, nx, ny, th, margin)
-    app &= ~np.isnan(th[2:])[None, :]
+    dxx, dyy, dn, lev, app = _geometry(x, y, nx, ny, th, margin, band_px)
+    app &= ~np.isnan(th[2:5])[None, :]
     for _ in range(n_iter):
         rot = cc @ om_k
-        pt = np.where(app, th[2:][None, :] * dn[:, None] * lev, np.nan)
+        pt = np.where(app, th[2:5][None, :] * dn[:, None] * lev, np.nan)
         err = np.where(app, np.abs(s[:, None] - pt - rot[:, None]), np.inf)
         p = np.argmin(err, 1)
         idx = np.arange(len(s))
@@ -104,10 +125,15 @@ def slab_l1(x, y, nx, ny, s, wt, cc, th, om_k, margin, c, n_iter, free):
 
 
 def fit(x, y, nx, ny, s, t, T, tau_us, th, om, free, margin, c, max_iter, max_step, slab_us,
-        f, cx, cy, cold_rounds=3, l1_iter=8, min_step=0.05):
+        f, cx, cy, cold_rounds=3, l1_iter=8, min_step=0.05, band_px=190.3, band_prior=20.0):
     """Same contract as ``evchain.kernels.foe_fit.fit`` on the given events with t < T in the
-    slabs of ``om`` (th, om are copied); returns (ok, th, om, inlier weight, total, probe)."""
+    slabs of ``om`` (th, om are copied; ``th[5:]`` the facades' band ratios, left then right);
+    returns (ok, th, om, inlier weight, total, probe)."""
     th, om = np.array(th, np.float64), np.array(om, np.float64)
+    nb = (len(th) - 5) // 2
+    for q in range(2):  # a side without a scale, and a band without a ratio, start at 1
+        r = th[5 + q * nb:5 + (q + 1) * nb]
+        r[np.isnan(r) | np.isnan(th[3 + q])] = 1.0
     free = np.asarray(free, bool)
     t = np.asarray(t, np.int64)
     k = slab_of(t, T, slab_us)
@@ -125,26 +151,27 @@ def fit(x, y, nx, ny, s, t, T, tau_us, th, om, free, margin, c, max_iter, max_st
 
     x, y, nx, ny = warped()
     probe = np.zeros(3)
-    unknown = np.isnan(th[2:])
+    unknown = np.isnan(th[2:5])
     if unknown.any():  # cold start: scales and rotations from each other
         for _ in range(cold_rounds):
-            th[2:][unknown] = np.nan
+            th[2:5][unknown] = np.nan
             _init_scales(x, y, nx, ny, s, wt, np.einsum("ij,ij->i", cc, om[k]), th, margin)
             for q in range(len(om)):
                 m = k == q
                 om[q] = slab_l1(x[m], y[m], nx[m], ny[m], s[m], wt[m], cc[m], th, om[q],
-                                margin, c, l1_iter, free)
+                                margin, c, l1_iter, free, band_px)
             x, y, nx, ny = warped()
-        th[2:][unknown] = np.nan
+        th[2:5][unknown] = np.nan
         _init_scales(x, y, nx, ny, s, wt, np.einsum("ij,ij->i", cc, om[k]), th, margin)
     elif free[1:].any() and len(om):
         m = k == 0
         om[0] = slab_l1(x[m], y[m], nx[m], ny[m], s[m], wt[m], cc[m], th, om[0], margin, c,
-                        l1_iter, free)
+                        l1_iter, free, band_px)
     inl = tot = 0.0
     ns = 5 + 3 * len(om)
     for _ in range(max_iter):
-        A, b, inl, tot = normal_equations(x, y, nx, ny, s, wt, cc, k, th, om, margin, c)
+        A, b, inl, tot = normal_equations(x, y, nx, ny, s, wt, cc, k, th, om, margin, c,
+                                          band_px)
         if not free[1:].any():  # no rotation unknowns
             A[5:, :] = 0.0
             A[:, 5:] = 0.0
@@ -182,28 +209,63 @@ def fit(x, y, nx, ny, s, t, T, tau_us, th, om, free, margin, c, max_iter, max_st
             return False, th, om, inl, tot, probe
         step = max(abs(d[0]), abs(d[1]))
         d[:2] *= 1.0 if step <= max_step else max_step / step
-        th = th + d[:5]
+        th[:5] += d[:5]
         om = om + d[5:].reshape(-1, 3)
-        if not np.isfinite(th[:2]).all() or np.isinf(th[2:]).any() or \
+        if not np.isfinite(th[:2]).all() or np.isinf(th[2:5]).any() or \
                 not np.isfinite(om).all():
             return False, th, om, inl, tot, probe
         if step < min_step:  # px, as the kernel
             break
+    if nb:
+        update_bands(x, y, nx, ny, s, wt, cc, k, th, om, margin, c, band_px, band_prior)
     if len(om):
         m = k == 0
         probe = slab_l1(x[m], y[m], nx[m], ny[m], s[m], wt[m], cc[m], th, om[0], margin, c,
-                        l1_iter, np.ones(4, bool))
+                        l1_iter, np.ones(4, bool), band_px)
     return True, th, om, inl, tot, probe
 
 
-def normal_equations(x, y, nx, ny, s, wt, cc, k, th, om, margin, c):
+def _assign(x, y, nx, ny, s, wt, cc, k, th, om, margin, c, band_px):
+    """Each event's plane (the one predicting it best, road wins ties), robust weight and
+    prediction, as in one Gauss-Newton pass."""
+    dxx, dyy, dn, lev, app = _geometry(x, y, nx, ny, th, margin, band_px)
+    app &= ~np.isnan(th[2:5])[None, :]
+    rot = np.einsum("ij,ij->i", cc, om[k])
+    pred = np.where(app, th[2:5][None, :] * dn[:, None] * lev + rot[:, None], np.nan)
+    res = np.where(app, np.abs(s[:, None] - pred), np.inf)
+    p = np.argmin(res, 1)
+    idx = np.arange(len(s))
+    pk = pred[idx, p]
+    use = np.isfinite(res[idx, p]) & (pk > 0)
+    u = np.where(use, res[idx, p] / np.where(use, pk, 1.0) / c, np.inf)
+    inlier = use & (u < 1)
+    w = np.where(inlier, wt * (1 - u * u) ** 2 / np.where(inlier, pk, 1.0) ** 2, 0.0)
+    return p, w, rot, dxx, dn
+
+
+def update_bands(x, y, nx, ny, s, wt, cc, k, th, om, margin, c, band_px, prior):
+    """The facades' band ratios ``th[5:]`` (in place): per band, over the inliers the model
+    assigns to its side, ``(sum w P (s - rot) + prior) / (sum w P^2 + prior)`` with ``P`` the
+    side's prediction without the ratio and ``w`` the robust weight."""
+    p, w, rot, dxx, dn = _assign(x, y, nx, ny, s, wt, cc, k, th, om, margin, c, band_px)
+    fac = (w > 0) & (p > 0)
+    i = _band_of(dxx, th, band_px)[fac]
+    pb = np.where(dxx < 0, th[3], th[4])[fac] * dn[fac] * np.abs(dxx[fac])
+    n = len(th) - 5
+    num = np.bincount(i, w[fac] * pb * (s - rot)[fac], n)
+    den = np.bincount(i, w[fac] * pb * pb, n)
+    th[5:] = (num + prior) / (den + prior)
+
+
+def normal_equations(x, y, nx, ny, s, wt, cc, k, th, om, margin, c, band_px=1.0):
     """One Gauss-Newton pass at ``th``, ``om`` with decay weights ``wt`` on warped events:
     (J^T W J, J^T W r, inlier weight, applicable weight) over the shared unknowns and every
-    slab's rotation (columns 5 + 3 k ...)."""
-    dxx, dyy, dn, lev, app = _geometry(x, y, nx, ny, th, margin)
-    app &= ~np.isnan(th[2:])[None, :]
+    slab's rotation (columns 5 + 3 k ...); a facade's scale is its side's times its band's
+    ratio (``th[5:]``), its column in J the side's."""
+    dxx, dyy, dn, lev, app = _geometry(x, y, nx, ny, th, margin, band_px)
+    app &= ~np.isnan(th[2:5])[None, :]
     rot = np.einsum("ij,ij->i", cc, om[k])
-    pred = np.where(app, th[2:][None, :] * dn[:, None] * lev + rot[:, None], np.nan)
+    pred = np.where(app, th[2:5][None, :] * dn[:, None] * lev + rot[:, None], np.nan)
     res = np.where(app, np.abs(s[:, None] - pred), np.inf)
     p = np.argmin(res, 1)  # the plane predicting the speed best (road wins ties)
     idx = np.arange(len(s))
@@ -214,7 +276,7 @@ def normal_equations(x, y, nx, ny, s, wt, cc, k, th, om, margin, c):
     inlier = use & (u < 1)
     inl = wt[inlier].sum()
     w = np.where(inlier, wt * (1 - u * u) ** 2 / np.where(inlier, pk, 1.0) ** 2, 0.0)
-    a = th[2 + p]
+    a = th[2 + p] * np.where(p > 0, band_ratio(dxx, th, band_px), 1.0)
     J = np.zeros((len(s), 5 + 3 * len(om)))
     m0, m1, m2 = inlier & (p == 0), inlier & (p == 1), inlier & (p == 2)
     J[m0, 0] = (-a * nx * dyy)[m0]
