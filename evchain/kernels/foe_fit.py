@@ -6,23 +6,23 @@ towards the FOE and turning at ``w`` has flow ``(p - foe) g + B(p) w``, where ``
 rotational flow of a pinhole camera (independent of depth). Its normal flow along the unit
 normal n has speed ``s = (p - foe).n g + c.Om`` with ``Om = f w`` in px/s (the rotational flow
 at the principal point) and ``c = n.B(p) / f`` (:func:`rotation_coefficients`). Three planes
-are modelled, each with its own scale: the road seen by a level camera (``g = a0 dy``,
-``dy = y - y_foe`` rows below the FOE), a facade left of the FOE (``g = a1 (x_foe - x)``) and
-one right of it (``g = a2 (x - x_foe)``). A side's buildings stand at different setbacks
-(``a = V / (f D)`` at lateral distance D), so each side is split into depth bands (a facade
-point ``|dx|`` px beside the FOE lies at depth ``Z = f D / |dx|``, band
-``floor(band_px / |dx|)``, the last band taking the rest), each with its own ratio to the
-side's scale, ``th[NP:]`` (left bands, then right; none: one scale per side). The ratios are
-refitted after each fit with the FOE and the scales held (:func:`_update_bands`) and tied to 1
-by a ridge, so that a band with few events keeps the side's scale and the FOE's column stays
-constrained by how the speeds vary within each band. Unknowns
-``th = (x_foe, y_foe, a0, a1, a2)`` and the
-rotation ``om[k]`` of every slab ``k``: the events of a fit span several hundred ms while the
-rotation changes faster (a pitch oscillation at 2 Hz), so it is piecewise constant in time,
-one ``Om`` per slab of ``slab_us`` counted back from the fit time T (slab k: times in
-``[T - (k + 1) slab_us, T - k slab_us)``). Everything is fitted jointly every time, nothing is
-carried from earlier fits but the starting point: rotation and a shifted FOE explain much of
-each other's flow, and a rotation fixed from earlier fits lets that shared part drift.
+are modelled, each with its own scale: the road seen by a level camera (``g = a0 dy``, ``dy = y
+- y_foe`` rows below the FOE), a facade left of the FOE (``g = a1 (x_foe - x)``) and one right
+of it (``g = a2 (x - x_foe)``). A side's buildings stand at different setbacks (``a = V / (f
+D)`` at lateral distance D), so each side is split into depth bands (a facade point ``|dx|`` px
+beside the FOE lies at depth ``Z = f D / |dx|``, band ``floor(band_px / |dx|)``, the last band
+taking the rest), each with its own ratio to the side's scale, ``th[NP:]`` (left bands, then
+right; none: one scale per side). The events' bands are those at the FOE's column where the
+Gauss-Newton iterations start; the ratios are refitted after them from the last iteration's
+weights, the FOE and the scales held (:func:`_update_bands`), and tied to 1 by a ridge, so that
+a band with few events keeps the side's scale and the FOE's column stays constrained by how the
+speeds vary within each band. Unknowns ``th = (x_foe, y_foe, a0, a1, a2)`` and the rotation
+``om[k]`` of every slab ``k``: the events of a fit span several hundred ms while the rotation
+changes faster (a pitch oscillation at 2 Hz), so it is piecewise constant in time, one ``Om``
+per slab of ``slab_us`` counted back from the fit time T (slab k: times in ``[T - (k + 1)
+slab_us, T - k slab_us)``). Everything is fitted jointly every time, nothing is carried from
+earlier fits but the starting point: rotation and a shifted FOE explain much of each other's
+flow, and a rotation fixed from earlier fits lets that shared part drift.
 
 Pitch (turning about the camera's x axis) also moves the heading in the image, since a car's
 heading does not follow its pitch: every event is first mapped into the camera frame of the
@@ -388,20 +388,22 @@ def _scales(th):
 
 
 @njit(cache=True, error_model="numpy", fastmath={"reassoc", "contract"})
-def _sums(w, a, b, om0, om1, om2, g, th, margin, c, rat, nb, band_px, out, with_slab,
+def _sums(w, a, b, om0, om1, om2, g, th, margin, c, rho, u1, u2, out, with_slab,
           with_rot):
     """One Gauss-Newton pass over the events ``a <= j < b`` of one slab with rotation
     ``(om0, om1, om2)``: adds the 19 shared sums to ``out[:19]`` (a00, a01, a11, b0, b1,
     inlier weight, applicable weight, then per plane road / left / right: w J0 Ja, w J1 Ja,
     w Ja Ja, w r Ja) and, with ``with_slab``, writes the slab's :data:`NS` sums of its rotation
     to ``out[19:]`` (w c c^T: 00 01 02 11 12 22; w c J0, w c J1 per axis; w c Ja per plane and
-    axis; w r c per axis). ``rat``: the facades' band ratios, ``nb`` per side
-    (:func:`_band_index`). Without ``with_rot`` (a slab that does not turn, its rotation 0)
-    the rotation coefficients are not read and every rotational speed is 0: the same sums, a
-    third less memory read. ``with_slab`` and ``with_rot`` are compile-time constants
-    (``literally``): each pair compiles its own loop. Branch-free (selects, one
-    accumulator per sum, reassociated) so that LLVM vectorises it; the sums' order differs from
-    a plain loop only in rounding."""
+    axis; w r c per axis). ``rho[j]``: the ratio of event j's facade band; for each event
+    assigned to a facade, with its predicted translational speed q and robust weight w,
+    ``u1[j] = w q (s - c.Om)`` and ``u2[j] = w q^2`` (0 for the road's; the band ratios' sums,
+    :func:`_update_bands`). Without ``with_rot`` (a slab that does not turn, its rotation 0)
+    the rotation coefficients are not read and every rotational speed is 0: the same sums up
+    to the rounding of their order, a third less memory read. ``with_slab`` and ``with_rot``
+    are compile-time constants (``literally``): each pair compiles its own loop. Branch-free
+    (selects, one accumulator per sum, reassociated) so that LLVM vectorises it; the sums'
+    order differs from a plain loop only in rounding."""
     literally(with_slab)
     literally(with_rot)
     xw, yw, mx, my, s, e, cc0, cc1, cc2 = w
@@ -419,10 +421,14 @@ def _sums(w, a, b, om0, om1, om2, g, th, margin, c, rat, nb, band_px, out, with_
             rot = z0 * om0 + z1 * om1 + z2 * om2
         else:
             z0 = z1 = z2 = rot = 0.0
-        dxx = xw[j] - xf
         vw, iw, wt, res, j0, j1, ja, mr, ml, mq = _event(
-            dxx, yw[j] - yf, mx[j], my[j], s[j], rot, e[j] * g, a0, al, ar,
-            rat[_band_index(dxx, nb, band_px)], has_road, has_l, has_r, margin, c)
+            xw[j] - xf, yw[j] - yf, mx[j], my[j], s[j], rot, e[j] * g, a0, al, ar, rho[j],
+            has_road, has_l, has_r, margin, c)
+        tr = s[j] - rot
+        q = tr - res  # the predicted translational speed
+        wf = wt - mr * wt
+        u1[j] = wf * q * tr
+        u2[j] = wf * q * q
         tot += vw
         inl += iw
         wr = wt * res
@@ -488,7 +494,7 @@ def _sums(w, a, b, om0, om1, om2, g, th, margin, c, rat, nb, band_px, out, with_
 
 
 @njit(cache=True, error_model="numpy")
-def _pass(w, lo, hi, om, g, th, margin, c, rat, nb, band_px, rotating, shared, slabs):
+def _pass(w, lo, hi, om, g, th, margin, c, rho, u1, u2, rotating, shared, slabs):
     """One Gauss-Newton pass over every slab: the 19 shared sums into ``shared`` and, when
     some rotation axis is free (``rotating``), each slab's :data:`NS` sums into ``slabs[k]``
     (see :func:`_sums`; else they are 0)."""
@@ -497,44 +503,46 @@ def _pass(w, lo, hi, om, g, th, margin, c, rat, nb, band_px, rotating, shared, s
     for k in range(len(lo)):
         if rotating:
             out[19:] = 0.0
-            _sums(w, lo[k], hi[k], om[k, 0], om[k, 1], om[k, 2], g, th, margin, c, rat, nb,
-                  band_px, out, True, True)
+            _sums(w, lo[k], hi[k], om[k, 0], om[k, 1], om[k, 2], g, th, margin, c, rho, u1,
+                  u2, out, True, True)
             slabs[k, :] = out[19:]
         elif om[k, 0] != 0.0 or om[k, 1] != 0.0 or om[k, 2] != 0.0:
-            _sums(w, lo[k], hi[k], om[k, 0], om[k, 1], om[k, 2], g, th, margin, c, rat, nb,
-                  band_px, out, False, True)
+            _sums(w, lo[k], hi[k], om[k, 0], om[k, 1], om[k, 2], g, th, margin, c, rho, u1,
+                  u2, out, False, True)
         else:  # no rotation: rot is 0 for every event, and the coefficients are not read
-            _sums(w, lo[k], hi[k], 0.0, 0.0, 0.0, g, th, margin, c, rat, nb, band_px, out,
-                  False, False)
+            _sums(w, lo[k], hi[k], 0.0, 0.0, 0.0, g, th, margin, c, rho, u1, u2, out, False,
+                  False)
     shared[:] = out[:19]
 
 
 @njit(cache=True, error_model="numpy")
-def _update_bands(w, lo, hi, om, g, th, margin, c, nb, band_px, prior):
-    """Each facade depth band's scale ratio ``th[NP + i]`` (:func:`_band_index`) from the
-    events the model assigns to it at ``th``, ``om``: the robustly weighted least-squares ratio
-    of their translational speed ``s - c.Om`` to the side's prediction ``P = a (p - foe).n
-    |dx|``, tied to 1 by ``prior`` (decayed weight): ``(sum w P (s - c.Om) + prior) /
-    (sum w P^2 + prior)``, ``w`` the fit's robust weight. The side's scale and the FOE stay."""
-    xw, yw, mx, my, s, e, c0, c1, c2 = w
-    rat = th[NP:]
-    a0, al, ar, has_road, has_l, has_r = _scales(th)
-    num = np.zeros(2 * nb)
-    den = np.zeros(2 * nb)
-    for k in range(len(lo)):
-        for j in range(lo[k], hi[k]):
-            dxx = xw[j] - th[FOE_X]
-            dyy = yw[j] - th[FOE_Y]
-            rot = c0[j] * om[k, 0] + c1[j] * om[k, 1] + c2[j] * om[k, 2]
-            i = _band_index(dxx, nb, band_px)
-            _, _, wt, _, _, _, _, mr, _, _ = _event(
-                dxx, dyy, mx[j], my[j], s[j], rot, e[j] * g, a0, al, ar, rat[i], has_road,
-                has_l, has_r, margin, c)
-            if wt > 0.0 and mr == 0.0:
-                pb = (al if dxx < 0.0 else ar) * (dxx * mx[j] + dyy * my[j]) * abs(dxx)
-                num[i] += wt * pb * (s[j] - rot)
-                den[i] += wt * pb * pb
-    for i in range(2 * nb):
+def _bands(xw, x_foe, nb, band_px, rat, bi, rho):
+    """Each event's facade band ``bi[j]`` (:func:`_band_index`, from the FOE's column
+    ``x_foe``) and its ratio ``rho[j] = rat[bi[j]]``."""
+    for j in range(len(xw)):
+        i = _band_index(xw[j] - x_foe, nb, band_px)
+        bi[j] = i
+        rho[j] = rat[i]
+
+
+@njit(cache=True, error_model="numpy")
+def _update_bands(bi, u1, u2, rat, prior):
+    """Each facade depth band's scale ratio ``rat[i]`` from the sums of the last pass
+    (:func:`_sums`, the events' bands ``bi``): the robustly weighted least-squares ratio of
+    its events' translational speed ``s - c.Om`` to the side's prediction ``P = a (p - foe).n
+    |dx|`` (their predicted speed over the band's ratio), tied to 1 by ``prior`` (decayed
+    weight): ``(sum w P (s - c.Om) + prior) / (sum w P^2 + prior)``."""
+    n = len(rat)
+    num = np.zeros(n)
+    den = np.zeros(n)
+    for j in range(len(bi)):
+        num[bi[j]] += u1[j]
+        den[bi[j]] += u2[j]
+    for i in range(n):
+        r = rat[i]
+        if den[i] > 0.0:
+            num[i] /= r
+            den[i] /= r * r
         rat[i] = (num[i] + prior) / (den[i] + prior)
 
 
@@ -791,6 +799,13 @@ def fit(events, i0, i1, T, g, th, om, free, probe, prm):
         _slab_l1(w, lo[0], hi[0], g, th, om, 0, prm.margin, prm.tolerance, L1_ITER, free,
                  rat, nbe, prm.band_px)
     rotating = free[1] or free[2] or free[3]
+    n = i1 - i0
+    bi = np.zeros(n, np.int64)
+    rho = np.ones(n)
+    if nb:  # the facades' bands at the FOE's column where the fit starts
+        _bands(w[0], th[FOE_X], nb, prm.band_px, rat, bi, rho)
+    u1 = np.empty(n)
+    u2 = np.empty(n)
     A = np.zeros((NP, NP))
     b = np.zeros(NP)
     shared = np.zeros(19)
@@ -799,8 +814,8 @@ def fit(events, i0, i1, T, g, th, om, free, probe, prm):
     inl = 0.0
     tot = 0.0
     for _ in range(prm.max_iter):
-        _pass(w, lo, hi, om, g, th, prm.margin, prm.tolerance, rat, nbe, prm.band_px, rotating,
-              shared, slabs)
+        _pass(w, lo, hi, om, g, th, prm.margin, prm.tolerance, rho, u1, u2, rotating, shared,
+              slabs)
         inl, tot = shared[5], shared[6]
         if not _step(shared, slabs, A, b, d_om, free):
             return False, inl, tot
@@ -809,9 +824,8 @@ def fit(events, i0, i1, T, g, th, om, free, probe, prm):
             return False, inl, tot
         if step < prm.min_step:  # a warm-started fit moves less after 1-2 iterations
             break
-    if nb:  # the bands' ratios for the next fit
-        _update_bands(w, lo, hi, om, g, th, prm.margin, prm.tolerance, nb, prm.band_px,
-                      prm.band_prior)
+    if nb:  # the bands' ratios for the next fit, from the last pass
+        _update_bands(bi, u1, u2, rat, prm.band_prior)
     if n_slabs:  # the newest slab's rotation with every axis free, the rest held
         first = om[:1].copy()
         _slab_l1(w, lo[0], hi[0], g, th, first, 0, prm.margin, prm.tolerance, L1_ITER,

@@ -64,12 +64,13 @@ def _band_of(dxx, th, band_px):
     return band + np.where(dxx < 0, 0, nb)
 
 
-def _geometry(x, y, nx, ny, th, margin, band_px=1.0):
+def _geometry(x, y, nx, ny, th, margin, band_px=1.0, rho=None):
     """Offsets from the FOE, (p - foe).n, the planes' factors d (road dy, left -dx, right dx;
-    a facade's times its band ratio) and where each plane applies."""
+    a facade's times its band ratio ``rho``, by default that of its band at ``th``) and where
+    each plane applies."""
     dxx, dyy = x - th[0], y - th[1]
     dn = dxx * nx + dyy * ny
-    rho = band_ratio(dxx, th, band_px)
+    rho = band_ratio(dxx, th, band_px) if rho is None else rho
     lev = np.stack([dyy, -dxx, dxx], 1)
     app = lev > margin
     return dxx, dyy, dn, lev * np.stack([np.ones(len(x)), rho, rho], 1), app
@@ -169,9 +170,13 @@ def fit(x, y, nx, ny, s, t, T, tau_us, th, om, free, margin, c, max_iter, max_st
                         l1_iter, free, band_px)
     inl = tot = 0.0
     ns = 5 + 3 * len(om)
+    # the bands at the column where the iterations start
+    band = _band_of(x - th[0], th, band_px) if nb else None
+    rho = th[5:][band] if nb else np.ones(len(x))
     for _ in range(max_iter):
+        th_pass, om_pass = th.copy(), om.copy()
         A, b, inl, tot = normal_equations(x, y, nx, ny, s, wt, cc, k, th, om, margin, c,
-                                          band_px)
+                                          band_px, rho)
         if not free[1:].any():  # no rotation unknowns
             A[5:, :] = 0.0
             A[:, 5:] = 0.0
@@ -216,8 +221,9 @@ def fit(x, y, nx, ny, s, t, T, tau_us, th, om, free, margin, c, max_iter, max_st
             return False, th, om, inl, tot, probe
         if step < min_step:  # px, as the kernel
             break
-    if nb:
-        update_bands(x, y, nx, ny, s, wt, cc, k, th, om, margin, c, band_px, band_prior)
+    if nb:  # from the last pass
+        th[5:] = band_ratios(x, y, nx, ny, s, wt, cc, k, th_pass, om_pass, margin, c, rho,
+                             band, band_prior)
     if len(om):
         m = k == 0
         probe = slab_l1(x[m], y[m], nx[m], ny[m], s[m], wt[m], cc[m], th, om[0], margin, c,
@@ -225,10 +231,10 @@ def fit(x, y, nx, ny, s, t, T, tau_us, th, om, free, margin, c, max_iter, max_st
     return True, th, om, inl, tot, probe
 
 
-def _assign(x, y, nx, ny, s, wt, cc, k, th, om, margin, c, band_px):
-    """Each event's plane (the one predicting it best, road wins ties), robust weight and
-    prediction, as in one Gauss-Newton pass."""
-    dxx, dyy, dn, lev, app = _geometry(x, y, nx, ny, th, margin, band_px)
+def _assign(x, y, nx, ny, s, wt, cc, k, th, om, margin, c, rho):
+    """Each event's plane (the one predicting it best, road wins ties), robust weight,
+    rotational speed and prediction, as in one Gauss-Newton pass."""
+    dxx, dyy, dn, lev, app = _geometry(x, y, nx, ny, th, margin, rho=rho)
     app &= ~np.isnan(th[2:5])[None, :]
     rot = np.einsum("ij,ij->i", cc, om[k])
     pred = np.where(app, th[2:5][None, :] * dn[:, None] * lev + rot[:, None], np.nan)
@@ -240,29 +246,31 @@ def _assign(x, y, nx, ny, s, wt, cc, k, th, om, margin, c, band_px):
     u = np.where(use, res[idx, p] / np.where(use, pk, 1.0) / c, np.inf)
     inlier = use & (u < 1)
     w = np.where(inlier, wt * (1 - u * u) ** 2 / np.where(inlier, pk, 1.0) ** 2, 0.0)
-    return p, w, rot, dxx, dn
+    return p, w, rot, pk
 
 
-def update_bands(x, y, nx, ny, s, wt, cc, k, th, om, margin, c, band_px, prior):
-    """The facades' band ratios ``th[5:]`` (in place): per band, over the inliers the model
-    assigns to its side, ``(sum w P (s - rot) + prior) / (sum w P^2 + prior)`` with ``P`` the
-    side's prediction without the ratio and ``w`` the robust weight."""
-    p, w, rot, dxx, dn = _assign(x, y, nx, ny, s, wt, cc, k, th, om, margin, c, band_px)
+def band_ratios(x, y, nx, ny, s, wt, cc, k, th, om, margin, c, rho, band, prior):
+    """The facades' band ratios after a pass at ``th``, ``om`` with the events' ratios
+    ``rho`` and bands ``band``: per band, over the events the pass assigns to a facade,
+    ``(sum w P (s - rot) + prior) / (sum w P^2 + prior)`` with ``P`` the side's prediction
+    (the translational prediction over the band's ratio) and ``w`` the robust weight."""
+    p, w, rot, pk = _assign(x, y, nx, ny, s, wt, cc, k, th, om, margin, c, rho)
     fac = (w > 0) & (p > 0)
-    i = _band_of(dxx, th, band_px)[fac]
-    pb = np.where(dxx < 0, th[3], th[4])[fac] * dn[fac] * np.abs(dxx[fac])
+    pb = (pk - rot)[fac] / rho[fac]
     n = len(th) - 5
-    num = np.bincount(i, w[fac] * pb * (s - rot)[fac], n)
-    den = np.bincount(i, w[fac] * pb * pb, n)
-    th[5:] = (num + prior) / (den + prior)
+    num = np.bincount(band[fac], w[fac] * pb * (s - rot)[fac], n)
+    den = np.bincount(band[fac], w[fac] * pb * pb, n)
+    return (num + prior) / (den + prior)
 
 
-def normal_equations(x, y, nx, ny, s, wt, cc, k, th, om, margin, c, band_px=1.0):
+def normal_equations(x, y, nx, ny, s, wt, cc, k, th, om, margin, c, band_px=1.0, rho=None):
     """One Gauss-Newton pass at ``th``, ``om`` with decay weights ``wt`` on warped events:
     (J^T W J, J^T W r, inlier weight, applicable weight) over the shared unknowns and every
     slab's rotation (columns 5 + 3 k ...); a facade's scale is its side's times its band's
-    ratio (``th[5:]``), its column in J the side's."""
-    dxx, dyy, dn, lev, app = _geometry(x, y, nx, ny, th, margin, band_px)
+    ratio (``rho`` per event, by default from ``th[5:]``), its column in J the side's."""
+    if rho is None:
+        rho = band_ratio(x - th[0], th, band_px)
+    dxx, dyy, dn, lev, app = _geometry(x, y, nx, ny, th, margin, rho=rho)
     app &= ~np.isnan(th[2:5])[None, :]
     rot = np.einsum("ij,ij->i", cc, om[k])
     pred = np.where(app, th[2:5][None, :] * dn[:, None] * lev + rot[:, None], np.nan)
@@ -276,7 +284,7 @@ def normal_equations(x, y, nx, ny, s, wt, cc, k, th, om, margin, c, band_px=1.0)
     inlier = use & (u < 1)
     inl = wt[inlier].sum()
     w = np.where(inlier, wt * (1 - u * u) ** 2 / np.where(inlier, pk, 1.0) ** 2, 0.0)
-    a = th[2 + p] * np.where(p > 0, band_ratio(dxx, th, band_px), 1.0)
+    a = th[2 + p] * np.where(p > 0, rho, 1.0)
     J = np.zeros((len(s), 5 + 3 * len(om)))
     m0, m1, m2 = inlier & (p == 0), inlier & (p == 1), inlier & (p == 2)
     J[m0, 0] = (-a * nx * dyy)[m0]
