@@ -165,6 +165,7 @@ class FoeFit(Filter):
         self._held_x = math.nan  # the FOE column while turning
         self._level_fit = None  # (th, om) of the level fit kept alongside while turning
         self._warm_since: int | None = None  # time of the first fit since the last cold start
+        self._work = tuple(np.empty(0) for _ in range(4))  # the kernel's scratch space
         self._counts = {"fit times": 0, "fits": 0, "votes": 0, "no voting estimate": 0}
 
     def _start(self, geometry: Geometry) -> None:
@@ -302,7 +303,10 @@ class FoeFit(Filter):
         probe = np.zeros(3)
 
         def run(th, om, axes=free):
-            ok, inl, tot = k.fit(events, i0, i1, T, g, th, om, axes, probe, self._prm)
+            if len(self._work[0]) < i1 - i0:  # grown by doubling, kept from fit to fit
+                self._work = tuple(np.empty(2 * (i1 - i0)) for _ in range(4))
+            ok, inl, tot = k.fit(events, i0, i1, T, g, th, om, axes, probe, self._prm,
+                                 self._work)
             return ok and inl >= p.min_inliers, inl, tot
 
         th, om = self._th.copy(), self._om.copy()

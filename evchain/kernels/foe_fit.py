@@ -518,7 +518,7 @@ def _pass(w, lo, hi, om, g, th, margin, c, rho, u1, u2, rotating, shared, slabs)
 @njit(cache=True, error_model="numpy")
 def _bands(xw, x_foe, nb, band_px, rat, bi, rho):
     """Each event's facade band ``bi[j]`` (:func:`_band_index`, from the FOE's column
-    ``x_foe``) and its ratio ``rho[j] = rat[bi[j]]``."""
+    ``x_foe``; a float64 holding the integer) and its ratio ``rho[j] = rat[bi[j]]``."""
     for j in range(len(xw)):
         i = _band_index(xw[j] - x_foe, nb, band_px)
         bi[j] = i
@@ -536,8 +536,9 @@ def _update_bands(bi, u1, u2, rat, prior):
     num = np.zeros(n)
     den = np.zeros(n)
     for j in range(len(bi)):
-        num[bi[j]] += u1[j]
-        den[bi[j]] += u2[j]
+        i = int(bi[j])
+        num[i] += u1[j]
+        den[i] += u2[j]
     for i in range(n):
         r = rat[i]
         if den[i] > 0.0:
@@ -732,7 +733,7 @@ def _window(events, i0, i1, T, lo, hi, om, prm):
 
 
 @njit(cache=True, error_model="numpy")
-def fit(events, i0, i1, T, g, th, om, free, probe, prm):
+def fit(events, i0, i1, T, g, th, om, free, probe, prm, work):
     """Fit the shared unknowns ``th`` and the slabs' rotations ``om`` to the events
     ``i0..i1``; robust Gauss-Newton (module docstring).
 
@@ -766,6 +767,10 @@ def fit(events, i0, i1, T, g, th, om, free, probe, prm):
         robust start of :func:`_slab_l1`), px/s; whether a held axis turns.
     prm : FitParams
         The constants.
+    work : tuple of 4 float64 ndarrays, each at least ``i1 - i0`` long
+        Scratch space, kept by the caller from fit to fit (arrays allocated per fit cost more
+        than a fit's pass): each event's band ratio, its two terms of the bands' sums and its
+        band.
 
     Returns
     -------
@@ -800,12 +805,13 @@ def fit(events, i0, i1, T, g, th, om, free, probe, prm):
                  rat, nbe, prm.band_px)
     rotating = free[1] or free[2] or free[3]
     n = i1 - i0
-    bi = np.zeros(n, np.int64)
-    rho = np.ones(n)
+    if len(work[0]) < n or len(work[1]) < n or len(work[2]) < n or len(work[3]) < n:
+        raise ValueError("foe_fit: the scratch space is smaller than the window")
+    rho, u1, u2, bi = work[0][:n], work[1][:n], work[2][:n], work[3][:n]
     if nb:  # the facades' bands at the FOE's column where the fit starts
         _bands(w[0], th[FOE_X], nb, prm.band_px, rat, bi, rho)
-    u1 = np.empty(n)
-    u2 = np.empty(n)
+    else:
+        rho[:] = 1.0
     A = np.zeros((NP, NP))
     b = np.zeros(NP)
     shared = np.zeros(19)
