@@ -46,8 +46,10 @@ om = rng.normal(0, 30, (2, 3))
 out = []
 for rotating in (True, False):
     shared, slabs = np.zeros(19), np.zeros((2, k.NS))
-    k._pass((x, y, nx, ny, s, e, *c), lo, hi, om, 1.0, th, 10.0, 0.5, rotating, shared, slabs)
-    out += [*shared, *slabs.ravel()]
+    rho, u1, u2 = rng.uniform(0.8, 1.2, n), np.zeros(n), np.zeros(n)
+    k._pass((x, y, nx, ny, s, e, *c), lo, hi, om, 1.0, th, 10.0, 0.5, rho, u1, u2, rotating,
+            shared, slabs)
+    out += [*shared, *slabs.ravel(), *u1, *u2]
 print([float(v).hex() for v in out])
 """
 
