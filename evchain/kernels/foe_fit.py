@@ -388,22 +388,22 @@ def _scales(th):
 
 
 @njit(cache=True, error_model="numpy", fastmath={"reassoc", "contract"})
-def _sums(w, a, b, om0, om1, om2, g, th, margin, c, rho, u1, u2, out, with_slab,
-          with_rot):
+def _sums(w, a, b, om0, om1, om2, g, th, margin, c, rho, out, with_slab, with_rot):
     """One Gauss-Newton pass over the events ``a <= j < b`` of one slab with rotation
     ``(om0, om1, om2)``: adds the 19 shared sums to ``out[:19]`` (a00, a01, a11, b0, b1,
     inlier weight, applicable weight, then per plane road / left / right: w J0 Ja, w J1 Ja,
     w Ja Ja, w r Ja) and, with ``with_slab``, writes the slab's :data:`NS` sums of its rotation
     to ``out[19:]`` (w c c^T: 00 01 02 11 12 22; w c J0, w c J1 per axis; w c Ja per plane and
-    axis; w r c per axis). ``rho[j]``: the ratio of event j's facade band; for each event
-    assigned to a facade, with its predicted translational speed q and robust weight w,
-    ``u1[j] = w q (s - c.Om)`` and ``u2[j] = w q^2`` (0 for the road's; the band ratios' sums,
-    :func:`_update_bands`). Without ``with_rot`` (a slab that does not turn, its rotation 0)
-    the rotation coefficients are not read and every rotational speed is 0: the same sums up
-    to the rounding of their order, a third less memory read. ``with_slab`` and ``with_rot``
-    are compile-time constants (``literally``): each pair compiles its own loop. Branch-free
-    (selects, one accumulator per sum, reassociated) so that LLVM vectorises it; the sums'
-    order differs from a plain loop only in rounding."""
+    axis; w r c per axis). ``rho[j]``: the ratio of event j's facade band. Without
+    ``with_rot`` (a slab that does not turn, its rotation 0) the rotation coefficients are not
+    read and every rotational speed is 0: the same sums up to the rounding of their order, a
+    third less memory read. ``with_slab`` and ``with_rot`` are compile-time constants
+    (``literally``): each pair compiles its own loop. Branch-free (selects, one accumulator
+    per sum, reassociated) so that LLVM vectorises it; the sums' order differs from a plain
+    loop only in rounding. The loop stores nothing: with a store per event LLVM checks at run
+    time how far the stored array lies from each array read and runs the vectorised or the
+    scalar loop accordingly, so the sums' last bits depended on where the arrays lay in memory
+    (:func:`_band_terms` writes the per-event terms)."""
     literally(with_slab)
     literally(with_rot)
     xw, yw, mx, my, s, e, cc0, cc1, cc2 = w
@@ -424,11 +424,6 @@ def _sums(w, a, b, om0, om1, om2, g, th, margin, c, rho, u1, u2, out, with_slab,
         vw, iw, wt, res, j0, j1, ja, mr, ml, mq = _event(
             xw[j] - xf, yw[j] - yf, mx[j], my[j], s[j], rot, e[j] * g, a0, al, ar, rho[j],
             has_road, has_l, has_r, margin, c)
-        tr = s[j] - rot
-        q = tr - res  # the predicted translational speed
-        wf = wt - mr * wt
-        u1[j] = wf * q * tr
-        u2[j] = wf * q * q
         tot += vw
         inl += iw
         wr = wt * res
@@ -494,7 +489,7 @@ def _sums(w, a, b, om0, om1, om2, g, th, margin, c, rho, u1, u2, out, with_slab,
 
 
 @njit(cache=True, error_model="numpy")
-def _pass(w, lo, hi, om, g, th, margin, c, rho, u1, u2, rotating, shared, slabs):
+def _pass(w, lo, hi, om, g, th, margin, c, rho, rotating, shared, slabs):
     """One Gauss-Newton pass over every slab: the 19 shared sums into ``shared`` and, when
     some rotation axis is free (``rotating``), each slab's :data:`NS` sums into ``slabs[k]``
     (see :func:`_sums`; else they are 0)."""
@@ -503,16 +498,39 @@ def _pass(w, lo, hi, om, g, th, margin, c, rho, u1, u2, rotating, shared, slabs)
     for k in range(len(lo)):
         if rotating:
             out[19:] = 0.0
-            _sums(w, lo[k], hi[k], om[k, 0], om[k, 1], om[k, 2], g, th, margin, c, rho, u1,
-                  u2, out, True, True)
+            _sums(w, lo[k], hi[k], om[k, 0], om[k, 1], om[k, 2], g, th, margin, c, rho, out,
+                  True, True)
             slabs[k, :] = out[19:]
         elif om[k, 0] != 0.0 or om[k, 1] != 0.0 or om[k, 2] != 0.0:
-            _sums(w, lo[k], hi[k], om[k, 0], om[k, 1], om[k, 2], g, th, margin, c, rho, u1,
-                  u2, out, False, True)
+            _sums(w, lo[k], hi[k], om[k, 0], om[k, 1], om[k, 2], g, th, margin, c, rho, out,
+                  False, True)
         else:  # no rotation: rot is 0 for every event, and the coefficients are not read
-            _sums(w, lo[k], hi[k], 0.0, 0.0, 0.0, g, th, margin, c, rho, u1, u2, out, False,
-                  False)
+            _sums(w, lo[k], hi[k], 0.0, 0.0, 0.0, g, th, margin, c, rho, out, False, False)
     shared[:] = out[:19]
+
+
+@njit(cache=True, error_model="numpy")
+def _band_terms(w, lo, hi, om, g, th, margin, c, rho, u1, u2):
+    """The per-event terms of the band ratios' sums (:func:`_update_bands`) at the model of a
+    pass (the same ``th``, ``om``, ``rho`` as :func:`_pass`): for each event assigned to a
+    facade, with its predicted translational speed q and robust weight w, ``u1[j] = w q (s -
+    c.Om)`` and ``u2[j] = w q^2`` (0 for the road's and the rest). One element-wise loop per
+    slab without sums and without fastmath: the same bits however it is vectorised."""
+    xw, yw, mx, my, s, e, cc0, cc1, cc2 = w
+    xf, yf = th[0], th[1]
+    a0, al, ar, has_road, has_l, has_r = _scales(th)
+    for k in range(len(lo)):
+        om0, om1, om2 = om[k, 0], om[k, 1], om[k, 2]
+        for j in range(lo[k], hi[k]):
+            rot = cc0[j] * om0 + cc1[j] * om1 + cc2[j] * om2
+            _, _, wt, res, _, _, _, mr, _, _ = _event(
+                xw[j] - xf, yw[j] - yf, mx[j], my[j], s[j], rot, e[j] * g, a0, al, ar,
+                rho[j], has_road, has_l, has_r, margin, c)
+            tr = s[j] - rot
+            q = tr - res  # the predicted translational speed
+            wf = wt - mr * wt
+            u1[j] = wf * q * tr
+            u2[j] = wf * q * q
 
 
 @njit(cache=True, error_model="numpy")
@@ -527,11 +545,11 @@ def _bands(xw, x_foe, nb, band_px, rat, bi, rho):
 
 @njit(cache=True, error_model="numpy")
 def _update_bands(bi, u1, u2, rat, prior):
-    """Each facade depth band's scale ratio ``rat[i]`` from the sums of the last pass
-    (:func:`_sums`, the events' bands ``bi``): the robustly weighted least-squares ratio of
-    its events' translational speed ``s - c.Om`` to the side's prediction ``P = a (p - foe).n
-    |dx|`` (their predicted speed over the band's ratio), tied to 1 by ``prior`` (decayed
-    weight): ``(sum w P (s - c.Om) + prior) / (sum w P^2 + prior)``."""
+    """Each facade depth band's scale ratio ``rat[i]`` from the per-event terms of the last
+    pass (:func:`_band_terms`, the events' bands ``bi``): the robustly weighted least-squares
+    ratio of its events' translational speed ``s - c.Om`` to the side's prediction ``P = a (p
+    - foe).n |dx|`` (their predicted speed over the band's ratio), tied to 1 by ``prior``
+    (decayed weight): ``(sum w P (s - c.Om) + prior) / (sum w P^2 + prior)``."""
     n = len(rat)
     num = np.zeros(n)
     den = np.zeros(n)
@@ -817,11 +835,15 @@ def fit(events, i0, i1, T, g, th, om, free, probe, prm, work):
     shared = np.zeros(19)
     slabs = np.zeros((n_slabs, NS))
     d_om = np.zeros((n_slabs, 3))
+    th_pass = th.copy()  # the model of the last pass, for the bands' update
+    om_pass = om.copy()
     inl = 0.0
     tot = 0.0
     for _ in range(prm.max_iter):
-        _pass(w, lo, hi, om, g, th, prm.margin, prm.tolerance, rho, u1, u2, rotating, shared,
-              slabs)
+        if nb:
+            th_pass[:] = th
+            om_pass[:] = om
+        _pass(w, lo, hi, om, g, th, prm.margin, prm.tolerance, rho, rotating, shared, slabs)
         inl, tot = shared[5], shared[6]
         if not _step(shared, slabs, A, b, d_om, free):
             return False, inl, tot
@@ -830,7 +852,8 @@ def fit(events, i0, i1, T, g, th, om, free, probe, prm, work):
             return False, inl, tot
         if step < prm.min_step:  # a warm-started fit moves less after 1-2 iterations
             break
-    if nb:  # the bands' ratios for the next fit, from the last pass
+    if nb and prm.max_iter > 0:  # the bands' ratios for the next fit, from the last pass
+        _band_terms(w, lo, hi, om_pass, g, th_pass, prm.margin, prm.tolerance, rho, u1, u2)
         _update_bands(bi, u1, u2, rat, prm.band_prior)
     if n_slabs:  # the newest slab's rotation with every axis free, the rest held
         first = om[:1].copy()

@@ -2,8 +2,11 @@
 
 A reduction compiled with ``fastmath={"reassoc"}`` may be vectorised differently in the two
 paths, so a first run and later runs can differ in their last bits (as ``foe_map``'s estimates
-did with a reassociated reduction). Each case runs in two subprocesses sharing a new cache
-folder: the first compiles, the second loads.
+did with a reassociated reduction), and a reduction loop that also stores per element runs
+its vectorised or its scalar code by run-time checks of where the arrays lie, which differs
+between a process that compiles and one that loads (as ``foe_fit``'s pass did with its band
+terms). Each case runs in two subprocesses sharing a new cache folder: the first compiles, the
+second loads.
 """
 
 from __future__ import annotations
@@ -47,8 +50,9 @@ out = []
 for rotating in (True, False):
     shared, slabs = np.zeros(19), np.zeros((2, k.NS))
     rho, u1, u2 = rng.uniform(0.8, 1.2, n), np.zeros(n), np.zeros(n)
-    k._pass((x, y, nx, ny, s, e, *c), lo, hi, om, 1.0, th, 10.0, 0.5, rho, u1, u2, rotating,
-            shared, slabs)
+    w = (x, y, nx, ny, s, e, *c)
+    k._pass(w, lo, hi, om, 1.0, th, 10.0, 0.5, rho, rotating, shared, slabs)
+    k._band_terms(w, lo, hi, om, 1.0, th, 10.0, 0.5, rho, u1, u2)
     out += [*shared, *slabs.ravel(), *u1, *u2]
 print([float(v).hex() for v in out])
 """
