@@ -16,7 +16,7 @@ from evchain.kernels.scene_geometry import road_coords_nrc
 _J = dict(cache=True, error_model="numpy")
 _I = dict(cache=True, error_model="numpy", inline="always")   # helpers of the hot loops
 # Floors used as floats are np.floor: numba's math.floor returns an int, and the conversions
-# to int and back on every sample cost a few percent of a frame (same values below 2^53).
+# to int and back on every sample are measurable (same values below 2^53).
 
 # Width of a sample's box filter on the box faces' textures, in sample spacings. 1 would be the
 # sample's own share of the pixel; a GPU's mip-mapped bilinear lookup (TORCS, the thesis's
