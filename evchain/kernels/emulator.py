@@ -309,6 +309,28 @@ def _logs(iv, rule, sc, nc):
     _scatter(ly, unc, lla, nu)
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _kind(lb, k_on, k_off, base, con, coff, tol, more):
+    """(what the rule does, ``K_*``; the first event's level with the tolerance) for a pixel
+    at L = lb with counts k_on, k_off (float64) and ``more`` if a second crossing would be
+    taken: the general loop's first two steps, by the same operations, as selects."""
+    lon = base + ((k_on + 1.0) * con - k_off * coff)
+    loff = base + (k_on * con - (k_off + 1.0) * coff)
+    none = (lb < lon - tol) & (lb > loff + tol)
+    on = lb >= lon - tol
+    off = (lb <= loff + tol) & (not on)
+    # the state after the first event, and whether a second one fires
+    kon1 = k_on + (1.0 if on else 0.0)
+    koff1 = k_off + (1.0 if off else 0.0)
+    lon2 = base + ((kon1 + 1.0) * con - koff1 * coff)
+    loff2 = base + (kon1 * con - (koff1 + 1.0) * coff)
+    second = (lb >= lon2 - tol) | (lb <= loff2 + tol)
+    one = (on | off) & ((not second) | (not more))
+    kd = K_ON if on else K_OFF
+    kd = kd if one else K_MORE
+    return (K_NONE if none else kd), (lon - tol if on else loff + tol)
+
+
 @njit(cache=True, error_model="numpy")
 def _first_crossings(iv, rule, sc, nc):
     """Pass 3a: per candidate k, the interpolation piece (``sc.cv`` rows ``CV_LB`` ..
@@ -351,6 +373,22 @@ def _first_crossings(iv, rule, sc, nc):
     has_prev = iv.has_prev
     has_next = iv.has_next
     jm = np.float64(iv.jg - 1)
+    if not cubic:
+        # linear: the piece is the secant (its cache keeps only la)
+        for k in range(np.uint64(nc)):
+            c0 = lc0[k]
+            c2 = lc2[k]
+            lb = llb[k]
+            ua = lla[k]
+            la = c2 if c0 == jm else ua
+            kd, lev = _kind(lb, non[k], noff[k], l0[k], vcon[k], vcoff[k], tol, more)
+            kind[k] = kd
+            vlb[k] = lb
+            vla[k] = la
+            vm0[k] = lb - la
+            vm1[k] = lb - la
+            vlev[k] = lev
+        return
     for k in range(np.uint64(nc)):
         # every load first, then selects (a load inside a conditional keeps the loop scalar)
         c0 = lc0[k]
@@ -361,10 +399,10 @@ def _first_crossings(iv, rule, sc, nc):
         ua = lla[k]
         lm = llm[k]
         lp = llp[k]
-        # logs of this pixel from the previous interval (frames jg-1 .. jg+1 when cubic,
-        # jg-1 .. jg when linear): the same float64 values, computed once
+        # logs of this pixel from the previous interval (frames jg-1 .. jg+1): the same
+        # float64 values, computed once
         cached = c0 == jm
-        lb = c3 if cubic & cached else ub
+        lb = c3 if cached else ub
         la = c2 if cached else ua
         sec = (lb - la) / dt
         # cached: the slope at frame jg the previous interval computed as its end slope (the
@@ -376,34 +414,14 @@ def _first_crossings(iv, rule, sc, nc):
         sp = slope3(sec, (lp - lb) / hnext, dt, hnext)
         sp = sp if np.isfinite(lp) else sec
         db = sp if has_next else sec
-        m0 = da * dt if cubic else lb - la
-        m1 = db * dt if cubic else lb - la
-        con = vcon[k]
-        coff = vcoff[k]
-        k_on = non[k]
-        k_off = noff[k]
-        base = l0[k]
-        lon = base + ((k_on + 1.0) * con - k_off * coff)
-        loff = base + (k_on * con - (k_off + 1.0) * coff)
-        none = (lb < lon - tol) & (lb > loff + tol)
-        on = lb >= lon - tol
-        off = (lb <= loff + tol) & (not on)
-        # the state after the first event, and whether a second one fires
-        kon1 = k_on + (1.0 if on else 0.0)
-        koff1 = k_off + (1.0 if off else 0.0)
-        lon2 = base + ((kon1 + 1.0) * con - koff1 * coff)
-        loff2 = base + (kon1 * con - (koff1 + 1.0) * coff)
-        second = (lb >= lon2 - tol) | (lb <= loff2 + tol)
-        one = (on | off) & ((not second) | (not more))
-        kd = K_ON if on else K_OFF
-        kd = kd if one else K_MORE
-        kind[k] = K_NONE if none else kd
+        kd, lev = _kind(lb, non[k], noff[k], l0[k], vcon[k], vcoff[k], tol, more)
+        kind[k] = kd
         vlb[k] = lb
         vla[k] = la
-        vm0[k] = m0
-        vm1[k] = m1
+        vm0[k] = da * dt
+        vm1[k] = db * dt
         vdb[k] = db
-        vlev[k] = lon - tol if on else loff + tol
+        vlev[k] = lev
 
 
 @njit(cache=True, error_model="numpy")
