@@ -65,6 +65,7 @@ from evchain.kernels.emulator_state import (
     K_ON,
     MAX_COUNT,
     NO_CACHE,
+    ROW_PAD,
     S_EREF,
     S_L0,
     S_LAST,
@@ -624,6 +625,17 @@ def _grow_events(sc, n):
 
 
 @njit(cache=True)
+def _grow_cv(sc, n):
+    """``sc`` with room for at least n candidates in ``cv`` (its contents are dead between
+    :func:`_interval` calls): twice the room, in multiples of 512 (see ``ROW_PAD``)."""
+    m = max(2 * (sc.cv.shape[1] - ROW_PAD), n)
+    m = (m + 511) // 512 * 512
+    return Scratch(sc.cand, sc.g0, sc.gm, sc.gp, sc.ui, sc.utf, sc.up_, sc.ub, sc.piece,
+                   sc.perm, sc.buckets, sc.logs, sc.unc, sc.lst,
+                   np.empty((sc.cv.shape[0], m + ROW_PAD)), sc.kind)
+
+
+@njit(cache=True)
 def _sort_order(sc, u, it0, nb):
     """The order of the interval's u events by rounded time ``sc.ub`` (relative to it0, in
     [0, nb)): a stable counting sort over the generation order, or a stable merge sort when
@@ -684,6 +696,8 @@ def _pixel_events(frames, j_first, j_last, rule, pixels, sc):
                 continue
             iv = _interval_of(frames, j_first + k, rule.cubic)
             nc, bad = _candidates(iv.f1, iv.fp, pixels.hi, pixels.lo, p0, p1, sc.cand)
+            if nc > sc.cv.shape[1] - ROW_PAD:
+                sc = _grow_cv(sc, nc)
             _fill_rows(pixels, rule.eps, sc.cand, nc)
             while nc > 0:
                 u, resume = _interval(iv, rule, pixels, nc, sc, u)

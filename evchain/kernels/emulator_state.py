@@ -60,11 +60,15 @@ CV_ROWS = 15
 #: ``Scratch.kind``: no crossing (gates to refresh), one ON event, one OFF event, anything else
 #: (several crossings: the general loop)
 K_NONE, K_ON, K_OFF, K_MORE = 0, 1, -1, 2
-#: float64 slots added to each row of the per-candidate 2-D work arrays (``logs``, ``cv``): a
-#: strip's pixels are a multiple of 4 KiB apart, and rows that far apart fall into the same
-#: set of the core's first-level cache, so that a pass over more rows than its ways (8)
-#: evicted its own lines (the gather 10x slower); 72 slots stagger them by 9 lines
+#: float64 slots added to each row of the per-candidate 2-D work arrays (``logs``, ``cv``):
+#: their lengths (a strip's pixels, ``cv``'s capacity) are multiples of 512 slots, 4 KiB,
+#: and rows that far apart fall into the same set of the core's first-level cache, so that a
+#: pass over more rows than its ways (8) evicted its own lines (the gather 10x slower); 72
+#: slots stagger them by 9 lines
 ROW_PAD = 72
+#: candidates ``Scratch.cv`` has room for at first (grown in steps of 512 when a strip and
+#: interval has more): sized to the strip, its 15 rows (10 MB) made sparse-640x480 0.85x
+CV_START = 4096
 #: pixels per chunk of the candidate scan, and per fill of state rows
 CHUNK = 64
 #: pixels per strip: the event loop runs a block of intervals on one strip before the next, so
@@ -132,7 +136,8 @@ class Scratch(NamedTuple):
     polarity; ``lst``: one interval's events by their place in that list; ``ub``: their
     rounded times; ``perm``: their sorted order), per crossing of a strip and interval
     (``piece`` [7, n]: its interpolation piece), ``buckets`` of the counting sort, and per
-    candidate its state and the rule's first pass (``cv`` [CV_ROWS, strip]: rows ``CV_*``;
+    candidate its state and the rule's first pass (``cv`` [CV_ROWS, capacity + ROW_PAD]: rows
+    ``CV_*``;
     ``kind``: what the pixel does, ``K_*``)."""
 
     cand: np.ndarray
@@ -263,6 +268,6 @@ def new_scratch(npix, ucap):
                    np.empty(ucap, np.int64), np.empty(ucap, np.float64), np.empty(ucap, np.int8),
                    np.empty(ucap, np.int64), np.empty((7, ucap)), np.empty(ucap, np.int64),
                    np.zeros(1, np.int64), np.empty((6, npix + ROW_PAD)), np.empty(npix, np.int64),
-                   np.empty(ucap, np.int64), np.empty((CV_ROWS, npix + ROW_PAD)),
+                   np.empty(ucap, np.int64), np.empty((CV_ROWS, min(npix, CV_START) + ROW_PAD)),
                    np.empty(npix, np.int8))
 

@@ -463,3 +463,19 @@ def test_slope3_matches_naive():
                     for i, j in rng.integers(0, len(d), (3000, 2))]
     for d1, d2, h1, h2 in cases:
         assert slope3(d1, d2, h1, h2) == _slope3(d1, d2, h1, h2), (d1, d2, h1, h2)
+
+
+@pytest.mark.parametrize("interpolation", ["linear", "cubic"])
+def test_more_candidates_than_first_room_match_naive(interpolation):
+    # 5 120 pixels firing in one strip and interval: more than the first pass's first room
+    # (CV_START = 4 096), so its arrays grow mid-call
+    from evchain.kernels.emulator_state import CV_START
+
+    h, w = 64, 80
+    assert h * w > CV_START
+    rng = np.random.default_rng(12)
+    base = rng.uniform(0.05, 1.0, (h, w))
+    frames = np.stack([base, base * 1.6, base * 0.5, base * 2.5, base]).astype(np.float32)
+    times = np.array([0, 1000, 1800, 3100, 4000], np.int64)
+    ev = compare(frames, times, c=0.2, interpolation=interpolation)
+    assert len(ev) > 4 * h * w
