@@ -17,13 +17,16 @@ next; the intervals' events are then merged in pixel order and sorted by rounded
 frame prefetched ``PREFETCH_AHEAD`` pixels ahead) with a branch-free, vectorised bit mask
 of the pixels outside their gates and lists these candidates from the set bits, in pixel
 order; pass 2 gathers their values of the other frames (independent loads, so cache misses
-overlap); pass 2b computes the logarithms the rule needs in vectorised passes over the candidates
-(``veclog.log_pass``, within 1 ulp of libm; ``l0`` comes from the same function, ``veclog.ln``,
-so a pixel back at its first intensity has exactly its first level); pass 3
-runs the exact rule per candidate. ``lcache`` keeps, per pixel, the logs of the last interval
-it was examined in and (cubic) its end slope, so a pixel active in consecutive intervals
-computes one new logarithm instead of four and one limited slope instead of two (the next
-interval's start slope has the same operands, hence the same bits). The scan also prefetches
+overlap) and copies their state into contiguous arrays; pass 2b computes the logarithms the
+rule needs in vectorised passes over the candidates (``veclog.log_pass``, within 1 ulp of
+libm; ``l0`` comes from the same function, ``veclog.ln``, so a pixel back at its first
+intensity has exactly its first level); pass 3a (:func:`_first_crossings`, branch-free and
+vectorised) finds each candidate's interpolation piece and whether it makes no event, one or
+more; pass 3b writes the state and lists the events, running the general rule (level after
+level) only for pixels with several crossings. ``lcache`` keeps, per pixel, the logs of the
+last interval it was examined in and (cubic) its end slope, so a pixel active in consecutive
+intervals computes one new logarithm instead of four and one limited slope instead of two (the
+next interval's start slope has the same operands, hence the same bits). The scan also prefetches
 the look-ahead frame (cubic), whose values the gather reads for every candidate. Every value
 is computed by the same float64 operations as before, so events and float times do not depend
 on these shortcuts.
