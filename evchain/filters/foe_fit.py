@@ -70,6 +70,15 @@ class FoeFit(Filter):
     is kept alongside and takes over once the turning fit no longer explains more.
     Roll is not fitted (held at 0).
 
+    The road's scale ``a0 = V / (f h)`` changes only with the car's speed. As an obstacle
+    fills the lower view its rows (a fronto-parallel surface, one inverse time to contact)
+    fit the road model with a higher FOE row and a smaller scale, and near contact the road
+    below it no longer pins the row. So a fit whose road scale falls below
+    ``min_road_scale_ratio`` times the median of the fits over the last ``heading_memory_s``
+    while its FOE row rises above theirs is refitted with the FOE's row and the road's scale
+    held at those medians (the rest free), and the fits stay held while the free fit's row
+    stays above the held one.
+
     Each fit starts from the previous one, else from the latest ``foe_map`` estimate. When the
     fit fails (singular, fewer than ``min_inliers`` decayed inliers, or farther than
     ``max_deviation_px`` from the voting estimate while a fit started from the votes explains
@@ -106,7 +115,8 @@ class FoeFit(Filter):
             "below for 3 tau (else it is held at 0)")
         heading_memory_s: float = Field(
             0.5, gt=0, description="while turning the FOE's column is held at the median of "
-            "the fits over this last stretch before the turn")
+            "the fits over this last stretch before the turn; the road's row and scale are "
+            "compared with (and held at) their medians over this last stretch")
         margin_px: float | None = Field(
             None, ge=0, description="events closer than this to a plane's vanishing line (the "
             "FOE's row or column) are left out of that plane, px; null: 10 px x f / 380.6 px "
@@ -139,6 +149,11 @@ class FoeFit(Filter):
             "inlier weight exceeds that of the level fit (FOE column free, no yaw) by more than "
             "this share, and left once it no longer exceeds it (else the yaw is a sideways "
             "shift of the FOE)")
+        min_road_scale_ratio: float = Field(
+            0.97, ge=0, le=1, description="a fit whose road scale (the speed over the camera's "
+            "height) falls below this share of the median over the last heading_memory_s while "
+            "its FOE row rises is an obstacle's rows fitted as road: the FOE's row and the "
+            "road's scale are held at their medians (0: never)")
 
     def reset(self) -> None:
         from evchain.kernels import foe_fit as k
@@ -164,6 +179,8 @@ class FoeFit(Filter):
         self._level_x: deque[tuple[int, float]] = deque()  # (t, FOE column) of settled fits
         self._held_x = math.nan  # the FOE column while turning
         self._level_fit = None  # (th, om) of the level fit kept alongside while turning
+        self._road: deque[tuple[int, float, float]] = deque()  # (t, FOE row, road scale)
+        self._road_held: tuple[float, float] | None = None  # (FOE row, road scale) held
         self._warm_since: int | None = None  # time of the first fit since the last cold start
         self._work = tuple(np.empty(0) for _ in range(4))  # the kernel's scratch space
         self._counts = {"fit times": 0, "fits": 0, "votes": 0, "no voting estimate": 0}
@@ -312,6 +329,13 @@ class FoeFit(Filter):
         th, om = self._th.copy(), self._om.copy()
         ok, inl, tot = run(th, om)
         found = probe.copy()
+        held = self._held_road(th) if ok and warm else None
+        if held is not None:  # an obstacle's rows counted as road: the road's row and scale
+            free = np.append(free, False)
+            th, om = self._th.copy(), self._om.copy()
+            th[k.FOE_Y], th[k.ROAD] = held
+            ok, inl, tot = run(th, om, free)
+            found = probe.copy()
         # a held FOE column is not the fit's: only the row can run away
         far = math.hypot(th[k.FOE_X] - vx if free[0] else 0.0,
                          th[k.FOE_Y] - vy) > self._max_deviation
@@ -325,7 +349,9 @@ class FoeFit(Filter):
                 tv = k.initial_theta(vx, vy, p.facade_bands)
                 if not free[0]:
                     tv[k.FOE_X] = self._held_x
-                okv, inlv, _ = run(tv, self._om.copy())
+                if held is not None:
+                    tv[k.FOE_Y], tv[k.ROAD] = held
+                okv, inlv, _ = run(tv, self._om.copy(), free)
                 ok = not okv or inl >= inlv
                 if ok:
                     self._won = T
@@ -336,6 +362,8 @@ class FoeFit(Filter):
         if ok:
             self._th, self._om = th, om
             self._counts["fits"] += 1
+            if held is None:
+                self._remember_road(T, th[k.FOE_Y], th[k.ROAD])
             if not warm:
                 self._warm_since = T
             if self._rotation:
@@ -347,8 +375,39 @@ class FoeFit(Filter):
             return (th[k.FOE_X], th[k.FOE_Y], inl, tot, 0.0, 0.0, 0.0, 0)
         self._th[:] = np.nan
         self._won = -math.inf
+        self._road_held = None
         self._counts["votes"] += 1
         return (vx, vy, inl, tot, 0.0, 0.0, 0.0, 0)
+
+    def _remember_road(self, T: int, y: float, a0: float) -> None:
+        """Record a fit's FOE row and road scale, over the last ``heading_memory_s``."""
+        self._road.append((T, y, a0))
+        while self._road[0][0] < T - int(self.params.heading_memory_s * 1e6):
+            self._road.popleft()
+
+    def _held_road(self, th: np.ndarray) -> tuple[float, float] | None:
+        """(FOE row, road scale) to hold the fit ``th`` at, or None when it is not running away:
+        the road's scale ``a0 = V / (f h)`` changes only with the car's speed, so a fit whose
+        scale fell below ``min_road_scale_ratio`` times the median of the recent fits (the last
+        ``heading_memory_s`` of fits not held) while its FOE row rose above theirs fits an
+        approaching obstacle's rows (a fronto-parallel surface, constant inverse time to
+        contact) as road: the row and the scale are held at those medians, and stay held while
+        the free fit's row stays above the held one."""
+        from evchain.kernels import foe_fit as k
+
+        if self._road_held is not None:  # held while the free fit's row stays above it
+            if th[k.FOE_Y] < self._road_held[0]:
+                return self._road_held
+            self._road_held = None
+            return None
+        memory = self.params.heading_memory_s * 1e6
+        if not self._road or self._road[-1][0] - self._road[0][0] < 0.9 * memory:
+            return None
+        y = _median([r[1] for r in self._road])
+        a0 = _median([r[2] for r in self._road])
+        if th[k.ROAD] < self.params.min_road_scale_ratio * a0 and th[k.FOE_Y] < y:
+            self._road_held = (y, a0)
+        return self._road_held
 
     def flush(self):
         c = self._counts

@@ -13,6 +13,9 @@ from evchain.core.packets import FlowPacket
 from evchain.core.series import FOE, FOE_ERROR, ROTATION_FIELDS, TTC, TTC_CLUSTERS, TTC_ERROR
 from evchain.core.truth import FoeTruth, ObjectTruth, RotationTruth, TtcTruth, not_scored
 
+#: bins of the true TTC (s) for ``bias_on_obstacle_by_ttc``
+TTC_BINS_S = ((0.0, 0.5), (0.5, 1.0), (1.0, 2.0), (2.0, 3.0))
+
 
 def _truth_foe(truth: FoeTruth, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     if len(t) == 0:
@@ -172,8 +175,12 @@ class FoeTtcScorer(Filter):
       obstacle (None if never); ``misses``: the shares of the window's times lost, by reason
       (no estimate; the reported cluster off the obstacle, and of those the times at which a
       live cluster of ``ttc_clusters`` lay on it, None without that series; on the obstacle
-      but more than 20 % off: these three and the headline sum to 1). All four are None when
-      the truth knows no objects (no ``object_id``, e.g. the synthetic expansion or recorded
+      but more than 20 % off: these three and the headline sum to 1);
+      ``bias_on_obstacle_by_ttc``: the median signed relative error (estimate - true) / true at
+      the times on the obstacle, by the true TTC's bin (keys 0-500ms, 500-1000ms,
+      1000-2000ms, 2000-3000ms; None in a bin without such times): whether the reported TTC
+      runs long or short as the obstacle nears. All five are None when the truth knows no
+      objects (no ``object_id``, e.g. the synthetic expansion or recorded
       data: then ``not_scored`` names them) or no obstacle.
     * ``median_rel_error_last3s``, ``share_within_10pct``, ``share_within_20pct``,
       ``coverage_last3s``: whatever cluster is reported, so a roadside object whose TTC happens
@@ -409,7 +416,10 @@ class FoeTtcScorer(Filter):
         relw = rel[win]
         t_first = int(grid[win][0])
         window_s = (t_last - t_first) * 1e-6
-        m = {**self._obstacle_metrics(ttc, grid[win], idx[win], have[win], relw),
+        with np.errstate(invalid="ignore", divide="ignore"):
+            signed = (est[win] - truth[win]) / truth[win]
+        m = {**self._obstacle_metrics(ttc, grid[win], idx[win], have[win], relw, signed,
+                                      truth[win]),
              "median_rel_error_last3s": _median_or_none(relw),
              "share_within_10pct": float(np.mean(relw <= 0.10)),
              "share_within_20pct": float(np.mean(relw <= 0.20)),
@@ -440,15 +450,17 @@ class FoeTtcScorer(Filter):
         return m, curves
 
     def _obstacle_metrics(self, ttc: np.ndarray, grid: np.ndarray, idx: np.ndarray,
-                          have: np.ndarray, rel: np.ndarray) -> dict:
+                          have: np.ndarray, rel: np.ndarray, signed: np.ndarray,
+                          truth: np.ndarray) -> dict:
         """The on-obstacle metrics over the window's grid times (estimate index idx where have,
-        relative errors rel); None each when the truth cannot tell."""
+        relative errors rel, signed relative errors signed, true TTCs truth); None each when
+        the truth cannot tell."""
         on = np.zeros(len(grid), bool)
         sub = on_obstacle(self.truth, ttc["x"][idx[have]], ttc["y"][idx[have]],
                           grid[have], self._margin())
         if sub is None:
             keys = ("share_on_obstacle_within_20pct", "coverage_on_obstacle",
-                    "median_rel_error_on_obstacle", "misses")
+                    "median_rel_error_on_obstacle", "misses", "bias_on_obstacle_by_ttc")
             if not isinstance(self.truth, ObjectTruth):
                 return {**dict.fromkeys(keys),
                         "not_scored": not_scored(keys, self.truth, ObjectTruth)}
@@ -463,10 +475,15 @@ class FoeTtcScorer(Filter):
                   "off_obstacle_with_a_cluster_on_it": (None if there is None else
                                                         float(np.sum(off & there) / n)),
                   "on_obstacle_over_20pct": float(np.sum(on & ~hit) / n)}
+        bias = {}
+        for lo, hi in TTC_BINS_S:
+            sel = on & (truth >= lo) & (truth < hi)
+            key = f"{lo * 1000:g}-{hi * 1000:g}ms"
+            bias[key] = float(np.median(signed[sel])) if sel.any() else None
         return {"share_on_obstacle_within_20pct": float(np.mean(hit)),
                 "coverage_on_obstacle": float(np.mean(on)),
                 "median_rel_error_on_obstacle": float(np.median(rel[on])) if on.any() else None,
-                "misses": misses}
+                "misses": misses, "bias_on_obstacle_by_ttc": bias}
 
     def _obstacle_cluster_at(self, grid: np.ndarray) -> np.ndarray | None:
         """Per grid time: whether any live cluster of the latest ``ttc_clusters`` tick at most

@@ -17,13 +17,16 @@ next; the intervals' events are then merged in pixel order and sorted by rounded
 frame prefetched ``PREFETCH_AHEAD`` pixels ahead) with a branch-free, vectorised bit mask
 of the pixels outside their gates and lists these candidates from the set bits, in pixel
 order; pass 2 gathers their values of the other frames (independent loads, so cache misses
-overlap); pass 2b computes the logarithms the rule needs in vectorised passes over the candidates
-(``veclog.log_pass``, within 1 ulp of libm; ``l0`` comes from the same function, ``veclog.ln``,
-so a pixel back at its first intensity has exactly its first level); pass 3
-runs the exact rule per candidate. ``lcache`` keeps, per pixel, the logs of the last interval
-it was examined in and (cubic) its end slope, so a pixel active in consecutive intervals
-computes one new logarithm instead of four and one limited slope instead of two (the next
-interval's start slope has the same operands, hence the same bits). The scan also prefetches
+overlap) and copies their state into contiguous arrays; pass 2b computes the logarithms the
+rule needs in vectorised passes over the candidates (``veclog.log_pass``, within 1 ulp of
+libm; ``l0`` comes from the same function, ``veclog.ln``, so a pixel back at its first
+intensity has exactly its first level); pass 3a (:func:`_first_crossings`, branch-free and
+vectorised) finds each candidate's interpolation piece and whether it makes no event, one or
+more; pass 3b writes the state and lists the events, running the general rule (level after
+level) only for pixels with several crossings. ``lcache`` keeps, per pixel, the logs of the
+last interval it was examined in and (cubic) its end slope, so a pixel active in consecutive
+intervals computes one new logarithm instead of four and one limited slope instead of two (the
+next interval's start slope has the same operands, hence the same bits). The scan also prefetches
 the look-ahead frame (cubic), whose values the gather reads for every candidate. Every value
 is computed by the same float64 operations as before, so events and float times do not depend
 on these shortcuts.
@@ -41,11 +44,31 @@ from evchain.kernels.emulator_state import (
     C_NOFF,
     C_NON,
     CHUNK,
+    CV_COFF,
+    CV_CON,
+    CV_DB,
+    CV_L0,
+    CV_LA,
+    CV_LB,
+    CV_LC0,
+    CV_LC1,
+    CV_LC2,
+    CV_LC3,
+    CV_LEV,
+    CV_M0,
+    CV_M1,
+    CV_NOFF,
+    CV_NON,
     ERR_NEGATIVE,
     ERR_NONE,
     ERR_NONFINITE,
+    K_MORE,
+    K_NONE,
+    K_OFF,
+    K_ON,
     MAX_COUNT,
     NO_CACHE,
+    ROW_PAD,
     S_EREF,
     S_L0,
     S_LAST,
@@ -177,14 +200,29 @@ def _fill_rows(pixels, eps, cand, nc):
 
 
 @njit(cache=True, error_model="numpy")
-def _gather(iv, sc, rows, nc):
+def _gather(iv, sc, pixels, nc):
     """Pass 2: the candidates' values of the interval's other frames, and their state rows
-    touched; these loads are independent, so their cache misses overlap (one pass per interval
-    instead of one miss after another inside the event loop)."""
+    touched (these loads are independent, so their cache misses overlap), then their state
+    (log cache, ``l0``, counts, thresholds) copied from the rows into the contiguous rows of
+    ``sc.cv``, so that the passes after it read contiguous arrays (which vectorise)."""
+    rows = pixels.rows
+    counts = pixels.counts
+    thr = pixels.thr
+    mt = np.uint64(thr.shape[0] - 1)
     cand = sc.cand
     g0 = sc.g0
     gm = sc.gm
     gp = sc.gp
+    cv = sc.cv
+    lc0 = cv[CV_LC0]
+    lc1 = cv[CV_LC1]
+    lc2 = cv[CV_LC2]
+    lc3 = cv[CV_LC3]
+    l0 = cv[CV_L0]
+    non = cv[CV_NON]
+    noff = cv[CV_NOFF]
+    con = cv[CV_CON]
+    coff = cv[CV_COFF]
     f0 = iv.f0
     fm = iv.fm
     fp = iv.fp
@@ -197,22 +235,45 @@ def _gather(iv, sc, rows, nc):
         touch += rows[r, S_L0] + rows[r, S_LC]
     if touch == 1e308:
         g0[0] = 0.0                      # never: keeps the loads
+    # the rows are in cache now: copied in a loop of their own (stores in the loop above
+    # filled the store buffer, so that fewer of its cache misses overlapped: 4x slower)
+    for k in range(np.uint64(nc)):
+        r = np.uint64(cand[k])
+        lc0[k] = rows[r, S_LC]
+        lc1[k] = rows[r, S_LC + 1]
+        lc2[k] = rows[r, S_LC + 2]
+        lc3[k] = rows[r, S_LC + 3]
+        l0[k] = rows[r, S_L0]
+        non[k] = counts[r, C_NON]
+        noff[k] = counts[r, C_NOFF]
+        t = min(r, mt)
+        con[k] = thr[t, 0]
+        coff[k] = thr[t, 1]
 
 
 @njit(cache=True, error_model="numpy")
-def _logs(iv, rule, sc, rows, nc):
+def _scatter(src, idx, dst, n):
+    """``dst[idx[q]] = src[q]`` for q < n."""
+    for q in range(np.uint64(n)):
+        dst[np.uint64(idx[q])] = src[q]
+
+
+@njit(cache=True, error_model="numpy")
+def _logs(iv, rule, sc, nc):
     """Pass 2b: the logarithms the rule needs, in vectorised passes (``log_pass``; ~3x the
-    libm calls' throughput) into ``sc.logs`` rows (lb, la, lm, lp, scratch): the look-ahead
-    frame's log of every candidate (cubic), the current frame's of every candidate (linear:
-    its cache keeps only la), then for the candidates without cached logs (listed
-    branch-free in ``sc.unc``, their values compacted into the scratch row) those of the
-    interval's other frames, indexed by their rank q among the uncached. Returns their
-    number."""
+    libm calls' throughput) into ``sc.logs`` rows (lb, la, lm, lp, then two rows of scratch),
+    indexed by candidate: the look-ahead frame's log of every candidate (cubic), the current
+    frame's of every candidate (linear: its cache keeps only la), then for the candidates
+    without cached logs (listed branch-free in ``sc.unc``) those of the interval's other
+    frames, computed on their values compacted into a scratch row and put back at their
+    candidates (the other candidates' entries are left as they were: the rule takes their
+    cached values)."""
     cubic = rule.cubic
     eps = rule.eps
     cand = sc.cand
     unc = sc.unc
     logs = sc.logs
+    lc0 = sc.cv[CV_LC0]
     f1 = iv.f1
     gm = sc.gm
     g0 = sc.g0
@@ -223,6 +284,7 @@ def _logs(iv, rule, sc, rows, nc):
     llm = logs[2]
     llp = logs[3]
     lx = logs[4]
+    ly = logs[5]
     if iv.has_next:
         for k in range(np.uint64(nc)):
             lx[k] = np.float64(gp[k]) + eps
@@ -234,18 +296,136 @@ def _logs(iv, rule, sc, rows, nc):
     nu = np.uint64(0)
     for k in range(np.uint64(nc)):
         unc[nu] = k
-        nu += np.uint64(rows[np.uint64(cand[k]), S_LC] != jm)
+        nu += np.uint64(lc0[k] != jm)
     if cubic:
         for q in range(nu):
             lx[q] = np.float64(f1[np.uint64(cand[np.uint64(unc[q])])]) + eps
-        log_pass(lx, llb, nu)
+        log_pass(lx, ly, nu)
+        _scatter(ly, unc, llb, nu)
     if iv.has_prev:
         for q in range(nu):
             lx[q] = np.float64(gm[np.uint64(unc[q])]) + eps
-        log_pass(lx, llm, nu)
+        log_pass(lx, ly, nu)
+        _scatter(ly, unc, llm, nu)
     for q in range(nu):
         lx[q] = np.float64(g0[np.uint64(unc[q])]) + eps
-    log_pass(lx, lla, nu)
+    log_pass(lx, ly, nu)
+    _scatter(ly, unc, lla, nu)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _kind(lb, k_on, k_off, base, con, coff, tol, more):
+    """(what the rule does, ``K_*``; the first event's level with the tolerance) for a pixel
+    at L = lb with counts k_on, k_off (float64) and ``more`` if a second crossing would be
+    taken: the general loop's first two steps, by the same operations, as selects."""
+    lon = base + ((k_on + 1.0) * con - k_off * coff)
+    loff = base + (k_on * con - (k_off + 1.0) * coff)
+    none = (lb < lon - tol) & (lb > loff + tol)
+    on = lb >= lon - tol
+    off = (lb <= loff + tol) & (not on)
+    # the state after the first event, and whether a second one fires
+    kon1 = k_on + (1.0 if on else 0.0)
+    koff1 = k_off + (1.0 if off else 0.0)
+    lon2 = base + ((kon1 + 1.0) * con - koff1 * coff)
+    loff2 = base + (kon1 * con - (koff1 + 1.0) * coff)
+    second = (lb >= lon2 - tol) | (lb <= loff2 + tol)
+    one = (on | off) & ((not second) | (not more))
+    kd = K_ON if on else K_OFF
+    kd = kd if one else K_MORE
+    return (K_NONE if none else kd), (lon - tol if on else loff + tol)
+
+
+@njit(cache=True, error_model="numpy")
+def _first_crossings(iv, rule, sc, nc):
+    """Pass 3a: per candidate k, the interpolation piece (``sc.cv`` rows ``CV_LB`` ..
+    ``CV_DB``) and what the rule does (``sc.kind[k]``, ``K_*``): no crossing, exactly one ON
+    or OFF event (its level with the tolerance in row ``CV_LEV``), or anything else (several
+    crossings, left to the general loop of :func:`_interval`). Over contiguous rows only
+    (:func:`_gather` copied the state) and branch-free (the log cache's hits, the polarity
+    and the slopes' limits are selects), so that it vectorises: the divisions of several
+    pixels run together, and pixels of random polarity and cache state cost no mispredicted
+    branches. The values are those the general loop computes, by the same operations
+    (counts as float64: exact, as they are below 2^31)."""
+    logs = sc.logs
+    llb = logs[0]
+    lla = logs[1]
+    llm = logs[2]
+    llp = logs[3]
+    cv = sc.cv
+    lc0 = cv[CV_LC0]
+    lc1 = cv[CV_LC1]
+    lc2 = cv[CV_LC2]
+    lc3 = cv[CV_LC3]
+    l0 = cv[CV_L0]
+    non = cv[CV_NON]
+    noff = cv[CV_NOFF]
+    vcon = cv[CV_CON]
+    vcoff = cv[CV_COFF]
+    vlb = cv[CV_LB]
+    vla = cv[CV_LA]
+    vm0 = cv[CV_M0]
+    vm1 = cv[CV_M1]
+    vdb = cv[CV_DB]
+    vlev = cv[CV_LEV]
+    kind = sc.kind
+    cubic = rule.cubic
+    tol = rule.tol
+    more = rule.cap < 0 or rule.cap > 1     # a second crossing would be taken
+    dt = iv.dt
+    hprev = iv.hprev
+    hnext = iv.hnext
+    has_prev = iv.has_prev
+    has_next = iv.has_next
+    jm = np.float64(iv.jg - 1)
+    if not cubic:
+        # linear: the piece is the secant (its cache keeps only la)
+        for k in range(np.uint64(nc)):
+            c0 = lc0[k]
+            c2 = lc2[k]
+            lb = llb[k]
+            ua = lla[k]
+            la = c2 if c0 == jm else ua
+            kd, lev = _kind(lb, non[k], noff[k], l0[k], vcon[k], vcoff[k], tol, more)
+            kind[k] = kd
+            vlb[k] = lb
+            vla[k] = la
+            vm0[k] = lb - la
+            vm1[k] = lb - la
+            vlev[k] = lev
+        return
+    for k in range(np.uint64(nc)):
+        # every load first, then selects (a load inside a conditional keeps the loop scalar)
+        c0 = lc0[k]
+        c1 = lc1[k]
+        c2 = lc2[k]
+        c3 = lc3[k]
+        ub = llb[k]
+        ua = lla[k]
+        lm = llm[k]
+        lp = llp[k]
+        # logs of this pixel from the previous interval (frames jg-1 .. jg+1): the same
+        # float64 values, computed once
+        cached = c0 == jm
+        lb = c3 if cached else ub
+        la = c2 if cached else ua
+        sec = (lb - la) / dt
+        # cached: the slope at frame jg the previous interval computed as its end slope (the
+        # same operands: hprev here = its dt, dt here = its hnext)
+        sm = slope3((la - lm) / hprev, sec, hprev, dt)
+        sm = sm if np.isfinite(lm) else sec
+        sm = c1 if cached else sm
+        da = sm if has_prev else sec
+        sp = slope3(sec, (lp - lb) / hnext, dt, hnext)
+        sp = sp if np.isfinite(lp) else sec
+        db = sp if has_next else sec
+        kd, lev = _kind(lb, non[k], noff[k], l0[k], vcon[k], vcoff[k], tol, more)
+        kind[k] = kd
+        vlb[k] = lb
+        vla[k] = la
+        vm0[k] = da * dt
+        vm1[k] = db * dt
+        vdb[k] = db
+        vlev[k] = lev
 
 
 @njit(cache=True, error_model="numpy")
@@ -296,117 +476,108 @@ def _interval(iv, rule, pixels, nc, sc, u):
     cap_u = min(ui.shape[0], u + piece.shape[1])
     u_in = u
     jg = iv.jg
-    jm = np.float64(jg - 1)
-    has_prev = iv.has_prev
     has_next = iv.has_next
-    hprev = iv.hprev
-    hnext = iv.hnext
-    llb = logs[0]
-    lla = logs[1]
-    llm = logs[2]
     llp = logs[3]
-    _gather(iv, sc, rows, nc)
-    _logs(iv, rule, sc, rows, nc)
-    q = np.uint64(0)
-    # pass 3: the candidates' events
+    _gather(iv, sc, pixels, nc)
+    _logs(iv, rule, sc, nc)
+    kind = sc.kind
+    vlb = sc.cv[CV_LB]
+    vla = sc.cv[CV_LA]
+    vm0 = sc.cv[CV_M0]
+    vm1 = sc.cv[CV_M1]
+    vdb = sc.cv[CV_DB]
+    vlev = sc.cv[CV_LEV]
+    _first_crossings(iv, rule, sc, nc)
+    # pass 3b: the candidates' state and events
     for k in range(nc):
         i = cand[k]
         r = np.uint64(i)                 # unsigned: no wraparound test per state access
-        # logs of this pixel from the previous interval (frames jg-1 .. jg+1 when cubic,
-        # jg-1 .. jg when linear): the same float64 values, computed once
-        cached = rows[r, S_LC] == jm
-        qk = q                           # rank among the uncached
-        q += np.uint64(not cached)
-        if not cubic:
-            lb = llb[k]
-        elif cached:
-            lb = rows[r, S_LC + 3]
-        else:
-            lb = llb[qk]
+        kd = kind[k]
         t = min(r, mt)
-        con = thr[t, 0]
-        coff = thr[t, 1]
         k_on = np.int64(counts[r, C_NON])
         k_off = np.int64(counts[r, C_NOFF])
-        base = rows[r, S_L0]
-        lev = base + ((k_on + 1) * con - k_off * coff)
-        if lb < lev - tol:
-            lev = base + (k_on * con - (k_off + 1) * coff)
-            if lb > lev + tol:
-                # prefilter false alarm: refresh the gates exactly
-                e = np.exp(base + (k_on * con - k_off * coff))
-                rows[r, S_EREF] = e
-                hi[r], lo[r] = gates(e, thr[t, 2], thr[t, 3], eps, k_hi, k_lo)
-                continue
-        la = rows[r, S_LC + 2] if cached else lla[qk]
-        m0 = lb - la
-        m1 = lb - la
+        ron = thr[t, 2]
+        roff = thr[t, 3]
+        if kd == K_NONE:
+            # prefilter false alarm: refresh the gates exactly
+            e = np.exp(rows[r, S_L0] + (k_on * thr[t, 0] - k_off * thr[t, 1]))
+            rows[r, S_EREF] = e
+            hi[r], lo[r] = gates(e, ron, roff, eps, k_hi, k_lo)
+            continue
+        lb = vlb[k]
+        la = vla[k]
+        m0 = vm0[k]
+        m1 = vm1[k]
         if cubic:
-            sec = (lb - la) / dt
-            da = sec
-            db = sec
-            if has_prev:
-                if cached:
-                    # the slope at frame jg the previous interval computed as its end slope:
-                    # the same operands (hprev here = its dt, dt here = its hnext), so the
-                    # same bits
-                    da = rows[r, S_LC + 1]
-                else:
-                    lm = llm[qk]
-                    if np.isfinite(lm):
-                        da = slope3((la - lm) / hprev, sec, hprev, dt)
             if has_next:
-                lp = llp[k]
-                if np.isfinite(lp):
-                    db = slope3(sec, (lp - lb) / hnext, dt, hnext)
                 rows[r, S_LC] = jg
-                rows[r, S_LC + 1] = db
+                rows[r, S_LC + 1] = vdb[k]
                 rows[r, S_LC + 2] = lb
-                rows[r, S_LC + 3] = lp
+                rows[r, S_LC + 3] = llp[k]
             else:
                 rows[r, S_LC] = NO_CACHE
-            m0 = da * dt
-            m1 = db * dt
         else:
             rows[r, S_LC] = jg
             rows[r, S_LC + 2] = lb
         e = rows[r, S_EREF]
-        ron = thr[t, 2]
-        roff = thr[t, 3]
-        uu = u
-        count = 0
-        while cap < 0 or count < cap:
-            lev = base + ((k_on + 1) * con - k_off * coff)
-            if lb >= lev - tol:
-                k_on += 1
-                e *= ron
-                pol = 1
-            else:
-                lev = base + (k_on * con - (k_off + 1) * coff)
-                if lb <= lev + tol:
-                    k_off += 1
-                    e *= roff
-                    pol = -1
-                else:
-                    break
-            count += 1
-            # the event time is where the firing rule turns true: L = level -+ tol
-            lev = lev - tol if pol > 0 else lev + tol
-            if uu >= cap_u:
+        if kd != K_MORE:
+            # one event, its polarity and level from the first pass (no branch on them)
+            if u >= cap_u:
                 # pixel i not committed
                 return _times(u_in, u, cubic, t0, dt, rule.refractory_us, ui, utf, up_,
                               piece, rows), k
-            ui[np.uint64(uu)] = i
-            up_[np.uint64(uu)] = pol
-            v = np.uint64(uu - u_in)
-            piece[0, v] = lev
+            on = kd == K_ON
+            k_on += np.int64(on)
+            k_off += np.int64(not on)
+            e *= ron if on else roff
+            ui[np.uint64(u)] = i
+            up_[np.uint64(u)] = kd
+            v = np.uint64(u - u_in)
+            piece[0, v] = vlev[k]
             piece[1, v] = la
             piece[2, v] = lb
             piece[3, v] = m0
             piece[4, v] = m1
             piece[6, v] = rows[r, S_LAST]
-            uu += 1
-        u = uu
+            u += 1
+        else:
+            con = thr[t, 0]
+            coff = thr[t, 1]
+            base = rows[r, S_L0]
+            uu = u
+            count = 0
+            while cap < 0 or count < cap:
+                lev = base + ((k_on + 1) * con - k_off * coff)
+                if lb >= lev - tol:
+                    k_on += 1
+                    e *= ron
+                    pol = 1
+                else:
+                    lev = base + (k_on * con - (k_off + 1) * coff)
+                    if lb <= lev + tol:
+                        k_off += 1
+                        e *= roff
+                        pol = -1
+                    else:
+                        break
+                count += 1
+                # the event time is where the firing rule turns true: L = level -+ tol
+                lev = lev - tol if pol > 0 else lev + tol
+                if uu >= cap_u:
+                    # pixel i not committed
+                    return _times(u_in, u, cubic, t0, dt, rule.refractory_us, ui, utf, up_,
+                                  piece, rows), k
+                ui[np.uint64(uu)] = i
+                up_[np.uint64(uu)] = pol
+                v = np.uint64(uu - u_in)
+                piece[0, v] = lev
+                piece[1, v] = la
+                piece[2, v] = lb
+                piece[3, v] = m0
+                piece[4, v] = m1
+                piece[6, v] = rows[r, S_LAST]
+                uu += 1
+            u = uu
         if k_on > MAX_COUNT or k_off > MAX_COUNT:
             raise OverflowError("emulator: a pixel made more than 2^31 - 1 reference moves "
                                 "of one polarity")
@@ -453,7 +624,18 @@ def _grow_events(sc, n):
     return Scratch(sc.cand, sc.g0, sc.gm, sc.gp, _grow(sc.ui, n), _grow(sc.utf, n),
                    _grow(sc.up_, n), _grow(sc.ub, n), np.empty((sc.piece.shape[0],
                                                                  2 * sc.piece.shape[1])),
-                   sc.perm, sc.buckets, sc.logs, sc.unc, _grow(sc.lst, n))
+                   sc.perm, sc.buckets, sc.logs, sc.unc, _grow(sc.lst, n), sc.cv, sc.kind)
+
+
+@njit(cache=True)
+def _grow_cv(sc, n):
+    """``sc`` with room for at least n candidates in ``cv`` (its contents are dead between
+    :func:`_interval` calls): twice the room, in multiples of 512 (see ``ROW_PAD``)."""
+    m = max(2 * (sc.cv.shape[1] - ROW_PAD), n)
+    m = (m + 511) // 512 * 512
+    return Scratch(sc.cand, sc.g0, sc.gm, sc.gp, sc.ui, sc.utf, sc.up_, sc.ub, sc.piece,
+                   sc.perm, sc.buckets, sc.logs, sc.unc, sc.lst,
+                   np.empty((sc.cv.shape[0], m + ROW_PAD)), sc.kind)
 
 
 @njit(cache=True)
@@ -483,7 +665,7 @@ def _sort_order(sc, u, it0, nb):
     else:
         perm = np.argsort(ub[:u], kind="mergesort")
     return Scratch(sc.cand, sc.g0, sc.gm, sc.gp, sc.ui, sc.utf, sc.up_, ub, sc.piece, perm,
-                   buckets, sc.logs, sc.unc, sc.lst), perm
+                   buckets, sc.logs, sc.unc, sc.lst, sc.cv, sc.kind), perm
 
 
 @njit(cache=True)
@@ -517,6 +699,8 @@ def _pixel_events(frames, j_first, j_last, rule, pixels, sc):
                 continue
             iv = _interval_of(frames, j_first + k, rule.cubic)
             nc, bad = _candidates(iv.f1, iv.fp, pixels.hi, pixels.lo, p0, p1, sc.cand)
+            if nc > sc.cv.shape[1] - ROW_PAD:
+                sc = _grow_cv(sc, nc)
             _fill_rows(pixels, rule.eps, sc.cand, nc)
             while nc > 0:
                 u, resume = _interval(iv, rule, pixels, nc, sc, u)
@@ -595,6 +779,7 @@ def emulate(frames, j_first, j_last, rule, pixels, noise, cap_hint, carry, keep_
         otf[:nc0] = ctf
     n = nc0
     sc = scratch
+    inv_w = 1.0 / w
     for jb in range(j_first, j_last, rule.block):
         je = min(jb + rule.block, j_last)
         sc, seg, u, err_k, ep = _pixel_events(frames, jb, je, rule, pixels, sc)
@@ -650,8 +835,13 @@ def emulate(frames, j_first, j_last, rule, pixels, noise, cap_hint, carry, keep_
                 qq = np.uint64(perm[r])
                 q = np.uint64(lst[qq])
                 pos = np.uint64(n) + r
-                yy = ui[q] // w
-                ox[pos] = ui[q] - yy * w
+                i = ui[q]
+                # row i // w by the reciprocal, corrected to exact (an integer division
+                # per event cost ~10 % of the bar's time)
+                yy = np.int64(np.float64(i) * inv_w)
+                yy -= np.int64(yy * w > i)
+                yy += np.int64((yy + 1) * w <= i)
+                ox[pos] = i - yy * w
                 oy[pos] = yy
                 ot[pos] = ub[qq] + it0
                 if keep_tf:

@@ -18,21 +18,22 @@ SOLVE_TOL = 1e-13
 NEWTON_LOCKSTEP = 2
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy")
 def slope3(d1, d2, h1, h2):
     """Limited three-point slope at a node between secants d1 (width h1) and d2 (width h2).
 
     Exact for quadratics; zero at extrema; clipped to 3*min(|d1|, |d2|) (Fritsch-Carlson), so
-    the cubic Hermite pieces on both sides stay monotone. (numpy error model, as in
-    ``_interval``: no zero-divisor test per division; h1 + h2 > 0 as frame times increase.)
+    the cubic Hermite pieces on both sides stay monotone. Written as selects (no branches),
+    so that a loop over pixels calling it has no branch to mispredict. (numpy error model, as
+    in ``_interval``: no zero-divisor test per division; h1 + h2 > 0 as frame times
+    increase.)
     """
-    if d1 * d2 <= 0.0:
-        return 0.0
     d = (h2 * d1 + h1 * d2) / (h1 + h2)
-    m = 3.0 * min(abs(d1), abs(d2))
-    if abs(d) > m:
-        d = m if d > 0 else -m
-    return d
+    a1 = abs(d1)
+    a2 = abs(d2)
+    m = 3.0 * (a1 if a1 < a2 else a2)     # min: NaN only where d is NaN too
+    c = (m if d > 0 else -m) if abs(d) > m else d
+    return 0.0 if d1 * d2 <= 0.0 else c
 
 
 @njit(cache=True)

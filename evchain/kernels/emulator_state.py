@@ -50,6 +50,25 @@ C_NON, C_NOFF = 2 * S_CNT, 2 * S_CNT + 1
 #: the most reference moves of one polarity a pixel can make (int32 counts; beyond it
 #: ``emulate`` raises OverflowError)
 MAX_COUNT = 2**31 - 1
+#: rows of ``Scratch.cv``, per candidate: its state row's log cache (4 columns), ``l0``, the
+#: counts and thresholds (gathered from the rows), then the rule's first pass: L at the
+#: interval's end and start, the piece's end slopes (times the interval), the end slope, the
+#: first event's level
+(CV_LC0, CV_LC1, CV_LC2, CV_LC3, CV_L0, CV_NON, CV_NOFF, CV_CON, CV_COFF,
+ CV_LB, CV_LA, CV_M0, CV_M1, CV_DB, CV_LEV) = range(15)
+CV_ROWS = 15
+#: ``Scratch.kind``: no crossing (gates to refresh), one ON event, one OFF event, anything else
+#: (several crossings: the general loop)
+K_NONE, K_ON, K_OFF, K_MORE = 0, 1, -1, 2
+#: float64 slots added to each row of the per-candidate 2-D work arrays (``logs``, ``cv``):
+#: their lengths (a strip's pixels, ``cv``'s capacity) are multiples of 512 slots, 4 KiB,
+#: and rows that far apart fall into the same set of the core's first-level cache, so that a
+#: pass over more rows than its ways (8) evicted its own lines (the gather 10x slower); 72
+#: slots stagger them by 9 lines
+ROW_PAD = 72
+#: candidates ``Scratch.cv`` has room for at first (grown in steps of 512 when a strip and
+#: interval has more): sized to the strip, its 15 rows (10 MB) made sparse-640x480 0.85x
+CV_START = 4096
 #: pixels per chunk of the candidate scan, and per fill of state rows
 CHUNK = 64
 #: pixels per strip: the event loop runs a block of intervals on one strip before the next, so
@@ -116,7 +135,10 @@ class Scratch(NamedTuple):
     without cached logs), per event of a call (``ui``, ``utf``, ``up_``: pixel, float time and
     polarity; ``lst``: one interval's events by their place in that list; ``ub``: their
     rounded times; ``perm``: their sorted order), per crossing of a strip and interval
-    (``piece`` [7, n]: its interpolation piece) and ``buckets`` of the counting sort."""
+    (``piece`` [7, n]: its interpolation piece), ``buckets`` of the counting sort, and per
+    candidate its state and the rule's first pass (``cv`` [CV_ROWS, capacity + ROW_PAD]: rows
+    ``CV_*``;
+    ``kind``: what the pixel does, ``K_*``)."""
 
     cand: np.ndarray
     g0: np.ndarray
@@ -132,6 +154,8 @@ class Scratch(NamedTuple):
     logs: np.ndarray
     unc: np.ndarray
     lst: np.ndarray
+    cv: np.ndarray
+    kind: np.ndarray
 
 
 @njit(cache=True)
@@ -243,6 +267,7 @@ def new_scratch(npix, ucap):
                    np.empty(npix, np.float32), np.empty(npix, np.float32),
                    np.empty(ucap, np.int64), np.empty(ucap, np.float64), np.empty(ucap, np.int8),
                    np.empty(ucap, np.int64), np.empty((7, ucap)), np.empty(ucap, np.int64),
-                   np.zeros(1, np.int64), np.empty((5, npix)), np.empty(npix, np.int64),
-                   np.empty(ucap, np.int64))
+                   np.zeros(1, np.int64), np.empty((6, npix + ROW_PAD)), np.empty(npix, np.int64),
+                   np.empty(ucap, np.int64), np.empty((CV_ROWS, min(npix, CV_START) + ROW_PAD)),
+                   np.empty(npix, np.int8))
 

@@ -46,7 +46,8 @@ events, far more numerous, would set the facades' scales several times too large
 local minimum the fit does not leave).
 
 The unknowns a fit may change are chosen per call (``free``: the FOE's column, each rotation
-axis); the others keep their values. Rotation and scales feed each other's starting values:
+axis, the FOE's row and the road's scale together); the others keep their values. Rotation
+and scales feed each other's starting values:
 a cold start (scales unknown) alternates scales from the rotations and each slab's rotation
 from the scales by least absolute residuals (:func:`_slab_l1`), which reaches a rotation far
 from its start where the Tukey weights would reject the whole slab; a warm start does that for
@@ -599,10 +600,11 @@ def _slab_system(sl, K, C, h):
 
 
 @njit(cache=True, error_model="numpy")
-def _condition(A, b, free_x):
-    """Keep a plane's scale without events, and the FOE's column unless ``free_x`` (their row
-    and column become the identity, no step), and add a 1e-9 ridge relative to the trace;
-    False when the trace is not positive. Returns the kept unknowns as a mask."""
+def _condition(A, b, free):
+    """Keep a plane's scale without events, the FOE's column unless ``free[0]``, and the FOE's
+    row and the road's scale when ``free`` has a fifth entry that is False (their row and column
+    become the identity, no step), and add a 1e-9 ridge relative to the trace; False when the
+    trace is not positive. Returns the kept unknowns as a mask."""
     keep = np.zeros(NP, np.bool_)
     tr = 0.0
     for p in range(NP):
@@ -610,7 +612,9 @@ def _condition(A, b, free_x):
     if not tr > 0.0:
         return False, keep
     for p in range(NP):
-        if A[p, p] <= 1e-12 * tr or (p == FOE_X and not free_x):  # keep the value
+        held = (p == FOE_X and not free[0]) or (
+            (p == FOE_Y or p == ROAD) and len(free) > 4 and not free[4])
+        if A[p, p] <= 1e-12 * tr or held:  # keep the value
             keep[p] = True
             for q in range(NP):
                 A[p, q] = 0.0
@@ -663,7 +667,7 @@ def _step(shared, slabs, A, b, d_om, free):
     from the arrow-shaped system, by the Schur complement of the slab blocks. A slab without
     events (a block with no positive trace) keeps its rotation. False when singular."""
     _shared_system(shared, A, b)
-    ok, keep = _condition(A, b, free[0])
+    ok, keep = _condition(A, b, free)
     if not ok:
         return False
     n = slabs.shape[0]
@@ -780,9 +784,10 @@ def fit(events, i0, i1, T, g, th, om, free, probe, prm, work):
     om : float64 ndarray, shape (n_slabs, 3)
         In/out: the rotation ``Om = f w`` (px/s) of every slab, ``om[0]`` the latest; the
         pitch rates at entry set the warp. Slabs without events keep their values.
-    free : bool ndarray, shape (4,)
+    free : bool ndarray, shape (4,) or (5,)
         Which unknowns the fit may change: ``free[0]`` the FOE's column, ``free[1 + a]``
-        rotation axis a in every slab; the others keep their values.
+        rotation axis a in every slab, ``free[4]`` (True when absent) the FOE's row and the
+        road's scale together; the others keep their values.
     probe : float64 ndarray, shape (3,)
         Out: the newest slab's rotation refitted with every axis free and the rest held (the
         robust start of :func:`_slab_l1`), px/s; whether a held axis turns.

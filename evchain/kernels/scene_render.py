@@ -1,6 +1,6 @@
 """Numba kernels of the scene renderer: a frame rendered row by row, k x k samples per pixel,
 each sample row traced against the ground and the visible boxes (nearest first, only the
-sample columns a box can cover) and shaded in passes; the largest image speed over the samples
+sample columns of a box's projection) and shaded in passes; the largest image speed over the samples
 bounds the next time step.
 
 Entry points: :func:`render` (a frame), :func:`render_rows` (every jstep-th row of a frame,
@@ -17,7 +17,6 @@ import math
 import numpy as np
 from numba import njit
 
-from evchain.kernels.scene_culling import box_span
 from evchain.kernels.scene_geometry import INF
 from evchain.kernels.scene_shading import (
     TEXTURE_FOOTPRINT,
@@ -104,6 +103,26 @@ def level_work(ntex):
 
 
 @njit(**_J)
+def visible_columns(vis, bbox, f, cx, k, n):
+    """Sample columns [c0, c1] that the q-th visible box vis[q] can cover in any row (its
+    projection's bounding rectangle bbox, with a margin of two samples): int64 [nvis, 2]."""
+    vcol = np.empty((vis.shape[0], 2), np.int64)
+    for q in range(vis.shape[0]):
+        bq = vis[q]
+        c0 = 0
+        c1 = n - 1
+        bx0 = bbox[bq, 0] * f + cx
+        bx1 = bbox[bq, 1] * f + cx
+        if bx0 > -1e6:
+            c0 = max(c0, int(math.floor((bx0 + 0.5) * k - 0.5)) - 2)
+        if bx1 < 1e6:
+            c1 = min(c1, int(math.ceil((bx1 + 0.5) * k - 0.5)) + 2)
+        vcol[q, 0] = c0
+        vcol[q, 1] = c1
+    return vcol
+
+
+@njit(**_J)
 def row_work(n):
     """Scratch arrays of one sample row of n samples: float64 [8, n], int32 [3, n] (small
     enough to stay in the L1 cache with the rest) and the per-block depth bound of blocks of 16
@@ -114,18 +133,19 @@ def row_work(n):
 
 @njit(**_J)
 def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground, light,
-               lit, tex, tex_inv, tex_off, vis, minz, bbox, xbs, tm, pcol, fw, iw, bmax, rprev,
-               lv_inv, lv_off, lv_mask, acc, out):
+               lit, tex, tex_inv, tex_off, vis, minz, bbox, vcol, xbs, tm, pcol, fw, iw, bmax,
+               rprev, lv_inv, lv_off, lv_mask, acc, out):
     """Render image row j into out[j]; return the largest squared image speed of its first
     sample row (the time step's bound on motion: the k sample rows of a pixel row differ by
     less than a pixel).
 
     Per sample row: the ground hit is one division (no roll: every ray of a row has the same
-    world dz); each visible box gets its exact z-slab for the row and the span of sample columns
-    it can cover (:func:`box_span`); boxes are visited nearest-first and only the samples of
-    their span whose current hit is farther than the box's nearest corner get the exact slab
-    test (blocks of 16 samples whose farthest current hit is nearer are skipped whole). The
-    result equals testing every box for every sample.
+    world dz); each visible box whose projection's bounding rectangle contains the row gets its
+    exact z-slab for the row; boxes are visited nearest-first and only the samples of the
+    frame's column range of the box (vcol[q]: :func:`visible_columns`) whose current hit is
+    farther than the box's nearest corner get the exact slab test (blocks of 16 samples whose
+    farthest current hit is nearer are skipped whole). The result equals testing every box for
+    every sample.
 
     lit: :func:`face_light`; tm: :func:`flow_terms`; pcol: pixel column of every sample;
     fw, iw, bmax, rprev: scratch (:func:`row_work`, kept between the rows of one frame);
@@ -211,20 +231,8 @@ def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
             tzf = max(t1, t2)
             if tzf <= 0.0 or tzn >= tg:
                 continue
-            ta = max(tzn, mz, 1e-9)
-            tz = min(tzf, tg)
-            if tzn != tzn or tzf != tzf:
-                ta = 1e-9
-                tz = tg
-            c0, c1 = box_span(boxes[bq, 0], boxes[bq, 1], boxes[bq, 3], boxes[bq, 4], ox, oy,
-                              xh0, xh1, r0, r1, ta * (1.0 - 1e-9), tz * (1.0 + 1e-9), f, cx,
-                              k, n)
-            bx0 = bbox[bq, 0] * f + cx
-            bx1 = bbox[bq, 1] * f + cx
-            if bx0 > -1e6:
-                c0 = max(c0, int(math.floor((bx0 + 0.5) * k - 0.5)) - 2)
-            if bx1 < 1e6:
-                c1 = min(c1, int(math.ceil((bx1 + 0.5) * k - 0.5)) + 2)
+            c0 = vcol[q, 0]
+            c1 = vcol[q, 1]
             ex0 = boxes[bq, 0] - ox
             ex1 = boxes[bq, 3] - ox
             ey0 = boxes[bq, 1] - oy
@@ -341,14 +349,15 @@ def render_row_set(frame, world, out, rows, i0, istep, row_v2):
     lv_inv, lv_off, lv_mask = level_work(world.tex_inv.shape[0])
     acc = np.empty(w)
     lit = face_light(world.light)
+    vcol = visible_columns(frame.vis, frame.bbox, frame.f, frame.cx, k, w * k)
     for i in range(i0, rows.shape[0], istep):
         j = rows[i]
         row_v2[j] = render_row(j, frame.pos, frame.rot, frame.vc, frame.wc, frame.f, frame.cx,
                                frame.cy, k, world.boxes, world.box_mat, world.box_par,
                                world.segs, world.ground, world.light, lit, world.tex,
                                world.tex_inv, world.tex_off, frame.vis, frame.minz, frame.bbox,
-                               xbs, tm, pcol, fw, iw, bmax, rprev, lv_inv, lv_off, lv_mask, acc,
-                               out)
+                               vcol, xbs, tm, pcol, fw, iw, bmax, rprev, lv_inv, lv_off, lv_mask,
+                               acc, out)
 
 
 @njit(cache=True, error_model="numpy", nogil=True)

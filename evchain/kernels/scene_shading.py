@@ -15,6 +15,8 @@ from evchain.kernels.scene_geometry import road_coords_nrc
 
 _J = dict(cache=True, error_model="numpy")
 _I = dict(cache=True, error_model="numpy", inline="always")   # helpers of the hot loops
+# Floors used as floats are np.floor: numba's math.floor returns an int, and the conversions
+# to int and back on every sample are measurable (same values below 2^53).
 
 # Width of a sample's box filter on the box faces' textures, in sample spacings. 1 would be the
 # sample's own share of the pixel; a GPU's mip-mapped bilinear lookup (TORCS, the thesis's
@@ -57,7 +59,7 @@ def ground_levels(fp, tex_inv, tex_off, lv_inv, lv_off, lv_mask):
 @njit(**_I)
 def orange_wall(p0, z):
     """Albedo of the orange wall at height z: p0 with a darker band every 0.6 m."""
-    return p0 * 0.75 if z - 0.6 * math.floor(z / 0.6) < 0.06 else p0
+    return p0 * 0.75 if z - 0.6 * np.floor(z / 0.6) < 0.06 else p0
 
 
 @njit(**_I)
@@ -194,7 +196,7 @@ def ground_pass(kd, dxs, dys, tg, ox, oy, pcol, segs, ground, light, tex, lv_inv
         if w < hw:
             a = -1.0
             if w < lw:
-                if s - per * math.floor(s / per) < dash:
+                if s - per * np.floor(s / per) < dash:
                     a = 0.75
             if abs(w - edge) < lw:
                 a = 0.75
@@ -206,8 +208,8 @@ def ground_pass(kd, dxs, dys, tg, ox, oy, pcol, segs, ground, light, tex, lv_inv
             if w < hw + 0.3:
                 a = 0.45
             else:
-                u = s - sl * math.floor(s / sl)
-                v = (w - hw) - sl * math.floor((w - hw) / sl)
+                u = s - sl * np.floor(s / sl)
+                v = (w - hw) - sl * np.floor((w - hw) / sl)
                 if u < 0.05 or v < 0.05:
                     a = 0.2
                 else:
@@ -265,7 +267,7 @@ def box_pass(kd, tb, hid, fc, dxs, dys, gxs, gys, ox, oy, oz, dz, pcol, box_mat,
                     pf = -1.5      # no floor: the hashes are stale
                 z = oz + t * dz
                 zf = z * ifh
-                fi = math.floor(zf)
+                fi = np.floor(zf)
                 fz = zf - fi
                 if fi != pf:
                     wall0 = box_par[idx, 0] + 0.06 * (hash3(np.int64(fi), idx, 77) - 0.5)
@@ -284,7 +286,7 @@ def box_pass(kd, tb, hid, fc, dxs, dys, gxs, gys, ox, oy, oz, dz, pcol, box_mat,
                         wn = t * gxs[c] * icw
                     s0 = su - 0.5 * wn          # footprint [s0, s1] in window columns
                     s1 = s0 + wn
-                    c0 = math.floor(s0)
+                    c0 = np.floor(s0)
                     if s1 <= c0 + 1.0 + ulo:    # no window but column c0's: its share
                         ov = min(s1, c0 + uhi) - max(s0, c0 + ulo)
                         if ov >= 0.0:           # it touches the window
@@ -300,8 +302,8 @@ def box_pass(kd, tb, hid, fc, dxs, dys, gxs, gys, ox, oy, oz, dz, pcol, box_mat,
                             wn = 64.0
                             s0 = su - 0.5 * wn
                             s1 = s0 + wn
-                            c0 = math.floor(s0)
-                        c1 = math.floor(s1 - ulo)
+                            c0 = np.floor(s0)
+                        c1 = np.floor(s1 - ulo)
                         sw = 0.0
                         so = 0.0
                         for ci in range(np.int64(c0), np.int64(c1) + 1):

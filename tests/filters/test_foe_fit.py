@@ -279,10 +279,13 @@ def test_a_pitch_of_one_sign_that_lasts_is_not_the_body_pitching():
     stay level (no pitch fitted) instead of following it; the same rate oscillating is
     followed (test above). Only until the probes' mean over ``heading_memory_s`` (0.5 s)
     reaches the threshold (3 deg/s, after 0.15 s of this pitch) can it pass for the body's
-    pitch. A camera that really keeps pitching is outside this model."""
+    pitch. A camera that really keeps pitching is outside this model. The road's row is not
+    held here (``min_road_scale_ratio`` 0): the level fits do not follow this pitch's 60 px
+    of row, and a held row gives the probes another course (pitch is entered in the last
+    30 ms)."""
     rate = np.radians(10.0) * G.f
     pk, _, _, _ = rotating_packets(lambda t: (rate if t >= 1.0 else 0.0, 0.0, 0.0))
-    s = _fit_stream(pk)
+    s = _fit_stream(pk, min_road_scale_ratio=0.0)
     assert np.all(s["wx_deg_s"][(s["t"] < 1_000_000) | (s["t"] >= 1_200_000)] == 0)
     s_osc = _fit_stream(rotating_packets(
         lambda t: (rate * np.sin(2 * np.pi * 2.0 * (t - 1.0)) if t >= 1.0 else 0.0, 0.0, 0.0))[0])
@@ -465,3 +468,55 @@ def test_median_of_the_probes_is_numpys_bit_for_bit():
     with np.errstate(invalid="ignore"):
         assert math.isnan(_median([1.0, math.nan, 2.0]))
         assert math.isnan(float(np.median([1.0, math.nan, 2.0])))
+
+
+def obstacle_packets(foot=30.0, appear_us=1_000_000, duration_us=2_000_000, rate=60_000,
+                     slab_us=10_000, seed=0):
+    """Flow packets of 10 ms of a level camera's road and facades (the reference drive's
+    scales); from ``appear_us`` on a car stands on the road ``foot`` rows below the FOE, hides
+    road and facades in its box and gives as many events as the rest of the scene on its lower
+    part (a fronto-parallel surface: one inverse time to contact). Votes 3 px off the FOE."""
+    from tests.naive.foe_fit import obstacle_flow
+
+    rng = np.random.default_rng(seed)
+    foe, a, hw = (159.5, 119.5), (1 / 22.8, 1 / 200.0, 1 / 170.0), 86.0
+    parts = []
+    for t0, t1, car in ((0, appear_us, False), (appear_us, duration_us, True)):
+        n = rate * (t1 - t0) // 1_000_000
+        x, y, nx, ny, s = planar_flow(n, foe, a, rng, noise=0.1, outliers=0.1)
+        if car:
+            seen = ~((np.abs(x - foe[0]) < hw) & (y - foe[1] > -10) & (y - foe[1] < foot))
+            ev = [v[seen] for v in (x, y, nx, ny, s)]
+            ob = obstacle_flow(int(seen.sum()), foe, a[0], (foot, hw, 0.6 * foot), rng,
+                               noise=0.1)
+            x, y, nx, ny, s = (np.concatenate([u, v]) for u, v in zip(ev, ob, strict=True))
+        t = rng.integers(t0, t1, len(x))
+        parts.append((x, y, nx, ny, s, t))
+    x, y, nx, ny, s, t = (np.concatenate(v) for v in zip(*parts, strict=True))
+    o = np.argsort(t, kind="stable")
+    x, y, nx, ny, s, t = (v[o] for v in (x, y, nx, ny, s, t))
+    out = []
+    for t0 in range(0, duration_us, slab_us):
+        m = (t >= t0) & (t < t0 + slab_us)
+        out.append(FlowPacket(geometry=G, t_start=t0, t_end=t0 + slab_us, t=t[m],
+                              x=x[m].astype(np.uint16), y=y[m].astype(np.uint16),
+                              p=np.ones(m.sum(), np.int8), vx=(s * nx)[m].astype(np.float32),
+                              vy=(s * ny)[m].astype(np.float32),
+                              series={"foe": FOE.array(t=[t0], x=[foe[0] + 3], y=[foe[1] - 3],
+                                                       support=[1.0], total=[1.0])}))
+    return out, foe
+
+
+def test_an_obstacle_filling_the_lower_view_does_not_pull_the_row_up():
+    """A car 30 rows below the FOE: its rows (one inverse time to contact) fit the road model
+    with a higher FOE row and a smaller road scale, and the free fits' row runs up; the road's
+    scale (the speed over the camera's height) falling while the row rises holds the row and
+    the scale at their recent medians."""
+    pk, foe = obstacle_packets()
+    late = slice(-30, None)  # the last 0.3 s
+    free = _fit_stream(pk, min_road_scale_ratio=0.0)
+    assert np.median(free["y"][late]) - foe[1] < -2.0
+    held = _fit_stream(pk)
+    assert abs(np.median(held["y"][late]) - foe[1]) < 0.5
+    # a fit or two run up before the hold starts (it needs the scale 3 % down)
+    assert np.abs(held["y"] - foe[1])[held["t"] >= 500_000].max() < 2.0

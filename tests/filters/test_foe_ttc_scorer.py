@@ -186,6 +186,10 @@ def test_on_obstacle_within_20pct_counts(tmp_path):
     t = m["ttc"]
     assert t["share_on_obstacle_within_20pct"] == 1.0 and t["coverage_on_obstacle"] == 1.0
     assert t["median_rel_error_on_obstacle"] == pytest.approx(0.15)
+    assert list(t["bias_on_obstacle_by_ttc"]) == ["0-500ms", "500-1000ms", "1000-2000ms",
+                                                  "2000-3000ms"]
+    assert t["bias_on_obstacle_by_ttc"]["0-500ms"] == pytest.approx(0.15)
+    assert t["bias_on_obstacle_by_ttc"]["2000-3000ms"] == pytest.approx(0.15)
     assert (out.series["ttc_error"]["on_obstacle"] == 1).all()
     assert out.series["ttc_error"]["on_obstacle"].dtype == np.int8
     # vectorised: one query of 5 x 5 positions per packet's 10 ticks, one for the window
@@ -194,6 +198,8 @@ def test_on_obstacle_within_20pct_counts(tmp_path):
     t = m["ttc"]
     assert t["share_on_obstacle_within_20pct"] == 0.0 and t["coverage_on_obstacle"] == 1.0
     assert t["median_rel_error_on_obstacle"] == pytest.approx(0.3)
+    m, _ = score(*stream(tau_factor=0.7, at=on_car)[:1], ObjectTruth(4.0), tmp_path)
+    assert all(v == pytest.approx(-0.3) for v in m["ttc"]["bias_on_obstacle_by_ttc"].values())
 
 
 def test_obstacle_margin(tmp_path):
@@ -224,6 +230,9 @@ def test_on_obstacle_part_of_the_window(tmp_path):
     assert t["coverage_on_obstacle"] == pytest.approx(140 / WINDOW)
     err = out.series["ttc_error"]
     np.testing.assert_array_equal(err["on_obstacle"], err["t"] >= 2_500_000)
+    # on the obstacle from a true TTC of 1.5 s: the far bin has no times on it
+    bias = t["bias_on_obstacle_by_ttc"]
+    assert bias["2000-3000ms"] is None and bias["1000-2000ms"] == pytest.approx(0.0, abs=1e-9)
 
 
 def test_stale_estimates_on_obstacle_count_as_misses(tmp_path):
@@ -241,7 +250,7 @@ def test_truth_without_objects_gives_none(tmp_path, truth):
     t = m["ttc"]
     assert t["share_within_20pct"] == 1.0
     keys = ("share_on_obstacle_within_20pct", "coverage_on_obstacle",
-            "median_rel_error_on_obstacle", "misses")
+            "median_rel_error_on_obstacle", "misses", "bias_on_obstacle_by_ttc")
     for key in keys:
         assert key in t and t[key] is None
     assert (out.series["ttc_error"]["on_obstacle"] == -1).all()

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from evchain.core.filter import Context
 from evchain.core.packets import EventPacket, FramePacket, Geometry
@@ -413,3 +415,67 @@ def test_count_overflow_is_an_error():
     with pytest.raises(DataError, match=r"\[3000, 6001\) us, .*2\^31 - 1 reference moves"):
         f.process(FramePacket(geometry=g, t_start=3000, t_end=6001, frames=frames[3:],
                               t=times[3:]))
+
+
+@st.composite
+def level_streams(draw):
+    """Frames on and between a pixel's exact levels (ties), zeros, jumps of several levels
+    and quiet pixels, at uneven frame times: every kind of the rule's first pass (no
+    crossing, one ON or OFF event, several) and its log cache's hits and misses."""
+    n = draw(st.integers(3, 9))
+    h = draw(st.integers(1, 3))
+    w = draw(st.integers(1, 5))
+    eps = 1e-3
+    start = draw(st.floats(0.01, 1.0))
+    steps = draw(st.lists(st.sampled_from([-3, -1, -1, 0, 0, 0, 0.5, 1, 1, 2]), min_size=n * h * w,
+                          max_size=n * h * w))
+    k = np.cumsum(np.array(steps, np.float64).reshape(n, h, w), axis=0)
+    frames = (np.exp(np.log(start + eps) + 0.2 * k) - eps).astype(np.float32)
+    frames = np.maximum(frames, 0)
+    zero = draw(st.lists(st.booleans(), min_size=n * h * w, max_size=n * h * w))
+    frames[np.array(zero).reshape(n, h, w) & (np.arange(n * h * w).reshape(n, h, w) % 7 == 0)] = 0
+    dts = draw(st.lists(st.integers(20, 3000), min_size=n, max_size=n))
+    return frames, np.cumsum(np.array(dts, np.int64))
+
+
+@pytest.mark.parametrize("interpolation", ["linear", "cubic"])
+@settings(max_examples=40, deadline=None)
+@given(stream=level_streams(), cap=st.sampled_from([None, 1, 2]),
+       tol=st.sampled_from([0.0, 1e-6]), refractory=st.sampled_from([0.0, 150.0]))
+def test_first_pass_kinds_match_naive(interpolation, stream, cap, tol, refractory):
+    frames, times = stream
+    compare(frames, times, c=0.2, interpolation=interpolation, max_events_per_interval=cap,
+            tie_tolerance=tol, refractory_us=refractory)
+
+
+def test_slope3_matches_naive():
+    # the kernel's select form against the reference's branches: random secants, zeros,
+    # opposite signs, ties at the clip and infinities (bit for bit)
+    from evchain.kernels.emulator_crossings import slope3
+    from tests.naive.emulator import _slope3
+
+    rng = np.random.default_rng(4)
+    d = np.concatenate([rng.normal(0, 1, 400), [0.0, -0.0, 1.0, -1.0, 3.0, np.inf, -np.inf]])
+    h = rng.uniform(0.01, 5, 40)
+    hard = [(1.0, 1.0, 1.0, 1.0), (1.0, 3.0, 1.0, 1.0), (1.0, 0.0, 2.0, 1.0),
+            (np.inf, 1.0, 1.0, 1.0), (-2.0, -1e-300, 1.0, 3.0)]
+    cases = hard + [(d[i], d[j], h[i % 40], h[j % 40])
+                    for i, j in rng.integers(0, len(d), (3000, 2))]
+    for d1, d2, h1, h2 in cases:
+        assert slope3(d1, d2, h1, h2) == _slope3(d1, d2, h1, h2), (d1, d2, h1, h2)
+
+
+@pytest.mark.parametrize("interpolation", ["linear", "cubic"])
+def test_more_candidates_than_first_room_match_naive(interpolation):
+    # 5 120 pixels firing in one strip and interval: more than the first pass's first room
+    # (CV_START = 4 096), so its arrays grow mid-call
+    from evchain.kernels.emulator_state import CV_START
+
+    h, w = 64, 80
+    assert h * w > CV_START
+    rng = np.random.default_rng(12)
+    base = rng.uniform(0.05, 1.0, (h, w))
+    frames = np.stack([base, base * 1.6, base * 0.5, base * 2.5, base]).astype(np.float32)
+    times = np.array([0, 1000, 1800, 3100, 4000], np.int64)
+    ev = compare(frames, times, c=0.2, interpolation=interpolation)
+    assert len(ev) > 4 * h * w

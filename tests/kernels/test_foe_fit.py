@@ -126,6 +126,22 @@ def test_held_axes_keep_their_values_and_the_probe_sees_them():
     assert abs(np.degrees(probe[1] / F) - 5.0) < 0.5
 
 
+def test_held_road_keeps_the_row_and_the_scale_and_matches_naive():
+    """``free[4]`` False: the FOE's row and the road's scale keep their values (here 3 px off and
+    20 % low) while the column, the facades and the rotation are fitted; the reference agrees."""
+    om_true = _slabs(pitch_deg_s=4.0)
+    foe = (150.0, 112.0)
+    rng = np.random.default_rng(8)
+    x, y, nx, ny, s, t = naive.rotating_planar_flow(12000, foe, A, om_true, T, SLAB, F, rng,
+                                                    noise=0.1, outliers=0.1)
+    th0 = (foe[0] + 4.0, foe[1] - 3.0, 0.8 * A[0], np.nan, A[2])
+    for free in [(True, False, False, False, False), (True, True, False, False, False)]:
+        got = _run(x, y, nx, ny, s, th0, t=t, om=om_true, free=free, c=0.25, iters=4)
+        assert got[0] and got[1][1] == th0[1] and got[1][2] == th0[2]
+        assert abs(got[1][0] - th0[0]) > 0.5  # the column moved
+        _same(got, _naive(x, y, nx, ny, s, th0, t=t, om=om_true, free=free, c=0.25, iters=4))
+
+
 def test_matches_naive_on_random_input():
     rng = np.random.default_rng(4)
     for trial in range(6):

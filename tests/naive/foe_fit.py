@@ -94,7 +94,7 @@ def slab_l1(x, y, nx, ny, s, wt, cc, th, om_k, margin, c, n_iter, free, band_px=
     squares steps towards min sum wt huber_c(|s - pred| / s) for the free axes, the others held;
     returns the slab's rotation (om_k is copied)."""
     om_k = np.array(om_k, np.float64)
-    held = ~np.asarray(free[1:], bool)
+    held = ~np.asarray(free[1:4], bool)
     dxx, dyy, dn, lev, app = _geometry(x, y, nx, ny, th, margin, band_px)
     app &= ~np.isnan(th[2:5])[None, :]
     for _ in range(n_iter):
@@ -164,7 +164,7 @@ def fit(x, y, nx, ny, s, t, T, tau_us, th, om, free, margin, c, max_iter, max_st
             x, y, nx, ny = warped()
         th[2:5][unknown] = np.nan
         _init_scales(x, y, nx, ny, s, wt, np.einsum("ij,ij->i", cc, om[k]), th, margin)
-    elif free[1:].any() and len(om):
+    elif free[1:4].any() and len(om):
         m = k == 0
         om[0] = slab_l1(x[m], y[m], nx[m], ny[m], s[m], wt[m], cc[m], th, om[0], margin, c,
                         l1_iter, free, band_px)
@@ -177,7 +177,7 @@ def fit(x, y, nx, ny, s, t, T, tau_us, th, om, free, margin, c, max_iter, max_st
         th_pass, om_pass = th.copy(), om.copy()
         A, b, inl, tot = normal_equations(x, y, nx, ny, s, wt, cc, k, th, om, margin, c,
                                           band_px, rho)
-        if not free[1:].any():  # no rotation unknowns
+        if not free[1:4].any():  # no rotation unknowns
             A[5:, :] = 0.0
             A[:, 5:] = 0.0
             b[5:] = 0.0
@@ -185,7 +185,8 @@ def fit(x, y, nx, ny, s, t, T, tau_us, th, om, free, margin, c, max_iter, max_st
         if not tr > 0:
             return False, th, om, inl, tot, probe
         for p in range(5):
-            if A[p, p] <= 1e-12 * tr or (p == 0 and not free[0]):  # kept
+            road_held = len(free) > 4 and not free[4]  # the FOE's row and the road's scale
+            if A[p, p] <= 1e-12 * tr or (p == 0 and not free[0]) or (p in (1, 2) and road_held):
                 A[p, :] = 0.0
                 A[:, p] = 0.0
                 A[p, p] = 1.0

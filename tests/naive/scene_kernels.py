@@ -7,6 +7,8 @@ textures written as numpy ``where`` chains, flow by finite differences of the pr
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from evchain.kernels.scene_shading import TEXTURE_FOOTPRINT
@@ -185,6 +187,20 @@ def rays(xs, ys, f, cx, cy, rot):
     """World directions (camera Z component 1) through pixel positions."""
     cam = np.stack([(xs - cx) / f, (ys - cy) / f, np.ones_like(xs)], axis=-1)
     return cam @ rot.T
+
+
+def visible_columns(vis, bbox, f, cx, k, n):
+    """Sample columns [c0, c1] of each visible box's projection's bounding rectangle (x0, x1 of
+    bbox[vis[q]], normalised) with two samples' margin, clipped to [0, n - 1]; unbounded
+    (|x| beyond 1e6 px) sides take the image's edge."""
+    out = np.zeros((len(vis), 2), np.int64)
+    for q, b in enumerate(vis):
+        x0 = bbox[b, 0] * f + cx
+        x1 = bbox[b, 1] * f + cx
+        c0 = math.floor((x0 + 0.5) * k - 0.5) - 2 if x0 > -1e6 else 0
+        c1 = math.ceil((x1 + 0.5) * k - 0.5) + 2 if x1 < 1e6 else n - 1
+        out[q] = max(c0, 0), min(c1, n - 1)
+    return out
 
 
 def trace(o, d, boxes):

@@ -194,6 +194,17 @@ def test_static_scene_and_full_ring():
         np.testing.assert_array_equal(g[1], w[1])
 
 
+def test_threads_render_the_same_frames():
+    """Two threads taking pieces of a frame's rows (several pieces per frame at 64 rows) give
+    the frames of one thread, bit for bit."""
+    kw = dict(SMALL, width=48, height=64)
+    got = list(BandFrames(Scene.from_params(threads=2, **kw), 4, 8).frames(0, 40_000, _dt_rule()))
+    want = list(BandFrames(Scene.from_params(**kw), 4, 8).frames(0, 40_000, _dt_rule()))
+    assert [g[0] for g in got] == [w[0] for w in want] and len(got) > 3
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_array_equal(g[1], w[1])
+
+
 def test_source_band_rows_and_fixed_step():
     """The source with band_rows: frames at increasing times, its rendered share in the
     metrics; with dt_us every frame renders whole (no share reported)."""

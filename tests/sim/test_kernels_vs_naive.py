@@ -8,14 +8,14 @@ import numpy as np
 import pytest
 from numba import njit
 
-from evchain.kernels.scene_culling import box_span
+from evchain.kernels.scene_culling import frame_boxes
 from evchain.kernels.scene_geometry import road_coords
 from evchain.kernels.scene_render import (
     flow_terms,
     level_work,
     render_rows,
     row_vmax2,
-    sample_columns,
+    visible_columns,
 )
 from evchain.kernels.scene_shading import (
     box_albedo,
@@ -385,31 +385,50 @@ def test_render_larger_frames_vs_naive(name):
         np.testing.assert_allclose(frame, N.render(sc, t), rtol=2e-6, atol=2e-6)
 
 
-def test_box_span_covers_every_hit():
-    """Every sample of a row whose ray hits a box (naive trace) lies inside the box's span."""
+def test_visible_columns_vs_naive():
+    """The column range of each visible box against the numpy reference: random rectangles,
+    unbounded sides (a box reaching behind the camera), rectangles beyond either edge."""
     rng = np.random.default_rng(6)
     f, cx, k, w = 300.0, 31.5, 2, 64
     n = w * k
-    xbs = sample_columns(w, k, cx, f)
-    for trial in range(40):
-        psi = rng.uniform(-0.6, 0.6)
-        theta = rng.uniform(-0.1, 0.1)
-        rot = N.rotation(psi, theta)
-        o = np.array([0.0, 0.0, 1.2])
-        lo = rng.uniform([-5, -15, 0], [40, 10, 3])
-        box = np.concatenate([lo, lo + rng.uniform([0.1, 0.1, 0.2], [20, 15, 40])])
-        for yb in rng.uniform(-0.4, 0.4, 6):
-            d = np.stack([xbs, np.full(n, yb), np.ones(n)], 1) @ rot.T
-            t, kind, _, _ = N.trace(o, d, box[None])
-            hit = np.flatnonzero(kind == 2)
-            dz = d[0, 2]
-            tz = sorted(((box[2] - o[2]) / dz, (box[5] - o[2]) / dz)) if dz else [1e-9, np.inf]
-            r0 = rot[0, 1] * yb + rot[0, 2]
-            r1 = rot[1, 1] * yb + rot[1, 2]
-            c0, c1 = box_span(box[0], box[1], box[3], box[4], o[0], o[1], rot[0, 0],
-                              rot[1, 0], r0, r1, max(tz[0], 1e-9), tz[1], f, cx, k, n)
+    bbox = np.sort(rng.uniform(-0.3, 0.3, (60, 2)), axis=1)
+    bbox = np.concatenate([bbox, np.zeros((60, 2))], axis=1)
+    bbox[:5, 0] = -np.inf
+    bbox[5:10, 1] = np.inf
+    bbox[10:12, :2] = [[-1e9, 1e9], [-np.inf, np.inf]]
+    bbox[12:14, :2] = [[-0.5, -0.2], [0.2, 0.6]]          # left of, right of the image
+    vis = rng.permutation(60)[:50]
+    got = visible_columns(vis, bbox, f, cx, k, n)
+    np.testing.assert_array_equal(got, N.visible_columns(vis, bbox, f, cx, k, n))
+
+
+@pytest.mark.parametrize("name", ["high-rise", "rotation", "pitch"])
+def test_visible_columns_cover_every_hit(name):
+    """Every sample whose ray hits a box (the numpy trace against that box alone, nearest or
+    not) lies in the box's column range, so the renderer's restriction to it loses no hit."""
+    sc = Scene.from_params(width=40, height=30, supersample=2, **SCENES[name])
+    cam = sc.camera
+    k, n = 2, 80
+    for t in (0.0, 0.6, 1.9):
+        pos, rot, _, _ = sc.state(t)
+        nb = len(sc.boxes)
+        order, minz, bbox = np.zeros(nb, np.int64), np.zeros(nb), np.zeros((nb, 4))
+        nvis = frame_boxes(sc.boxes, pos, rot, cam.f, cam.cx, cam.cy, cam.width, cam.height,
+                           order, minz, bbox)
+        vcol = visible_columns(order[:nvis], bbox, cam.f, cam.cx, k, n)
+        col = dict(zip(order[:nvis].tolist(), vcol.tolist(), strict=True))
+        xs, ys = np.meshgrid((np.arange(n) + 0.5) / k - 0.5, (np.arange(60) + 0.5) / k - 0.5)
+        d = N.rays(xs.ravel(), ys.ravel(), cam.f, cam.cx, cam.cy, rot)
+        c = np.tile(np.arange(n), 60)
+        hits = 0
+        for b, box in enumerate(sc.boxes):
+            _, kind, _, _ = N.trace(pos, d, box[None])
+            hit = c[kind == 2]
             if len(hit):
-                assert c0 <= hit.min() and hit.max() <= c1, (trial, yb, c0, c1, hit)
+                assert b in col, (t, b)
+                assert col[b][0] <= hit.min() and hit.max() <= col[b][1], (t, b, col[b])
+                hits += 1
+        assert hits > 3
 
 
 def _with_boxes(sc, boxes, mats):
