@@ -517,23 +517,7 @@ def _street(far_ratio, split=40.0, n=20000, seed=1):
     nothing about the FOE's column), facades with window edges (half horizontal, half vertical
     normals); the left facade's columns within ``split`` px of the FOE (its far buildings) have
     their scale times ``far_ratio`` (those buildings stand nearer the road by that ratio)."""
-    rng = np.random.default_rng(seed)
-    foe = (159.5, 119.5)
-    x = rng.integers(0, 320, n) + 0.5
-    y = rng.integers(0, 240, n) + 0.5
-    dxx, dyy = x - foe[0], y - foe[1]
-    g_road = np.where(dyy > 0, A[0] * dyy, 0.0)
-    a_left = np.where(-dxx < split, A[1] * far_ratio, A[1])
-    g_fac = np.where(dxx < 0, a_left * -dxx, A[2] * dxx)
-    road = g_road > g_fac
-    ang = np.where(road | (rng.random(n) < 0.5), np.pi / 2, 0.0) + rng.normal(0, 0.05, n)
-    nx, ny = np.cos(ang), np.sin(ang)
-    dn = dxx * nx + dyy * ny
-    flip = dn < 0
-    nx[flip], ny[flip], dn[flip] = -nx[flip], -ny[flip], -dn[flip]
-    s = dn * np.where(road, g_road, g_fac) * (1 + 0.1 * rng.standard_normal(n))
-    k = s > 1e-3
-    return foe, (x[k], y[k], nx[k], ny[k], s[k])
+    return _setback_street(far_ratio, 1.0, (split, 0.0), n, seed)
 
 
 def _street_column_error(far_ratio):
