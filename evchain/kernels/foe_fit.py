@@ -794,9 +794,8 @@ def fit(events, i0, i1, T, g, th, om, free, probe, prm, work):
     prm : FitParams
         The constants.
     work : tuple of 4 float64 ndarrays, each at least ``i1 - i0`` long
-        Scratch space, kept by the caller from fit to fit (arrays allocated per fit cost more
-        than a fit's pass): each event's band ratio, its two terms of the bands' sums and its
-        band.
+        Scratch space, kept by the caller from fit to fit: each event's band ratio, its two
+        terms of the bands' sums and its band.
 
     Returns
     -------
