@@ -182,7 +182,6 @@ class FoeFit(Filter):
         self._road: deque[tuple[int, float, float]] = deque()  # (t, FOE row, road scale)
         self._road_held: tuple[float, float] | None = None  # (FOE row, road scale) held
         self._warm_since: int | None = None  # time of the first fit since the last cold start
-        self._work = tuple(np.empty(0) for _ in range(4))  # the kernel's scratch space
         self._counts = {"fit times": 0, "fits": 0, "votes": 0, "no voting estimate": 0}
 
     def _start(self, geometry: Geometry) -> None:
@@ -320,10 +319,7 @@ class FoeFit(Filter):
         probe = np.zeros(3)
 
         def run(th, om, axes=free):
-            if len(self._work[0]) < i1 - i0:  # grown by doubling, kept from fit to fit
-                self._work = tuple(np.empty(2 * (i1 - i0)) for _ in range(4))
-            ok, inl, tot = k.fit(events, i0, i1, T, g, th, om, axes, probe, self._prm,
-                                 self._work)
+            ok, inl, tot = k.fit(events, i0, i1, T, g, th, om, axes, probe, self._prm)
             return ok and inl >= p.min_inliers, inl, tot
 
         th, om = self._th.copy(), self._om.copy()

@@ -758,7 +758,7 @@ def _window(events, i0, i1, T, lo, hi, om, prm):
 
 
 @njit(cache=True, error_model="numpy")
-def fit(events, i0, i1, T, g, th, om, free, probe, prm, work):
+def fit(events, i0, i1, T, g, th, om, free, probe, prm):
     """Fit the shared unknowns ``th`` and the slabs' rotations ``om`` to the events
     ``i0..i1``; robust Gauss-Newton (module docstring).
 
@@ -793,9 +793,6 @@ def fit(events, i0, i1, T, g, th, om, free, probe, prm, work):
         robust start of :func:`_slab_l1`), px/s; whether a held axis turns.
     prm : FitParams
         The constants.
-    work : tuple of 4 float64 ndarrays, each at least ``i1 - i0`` long
-        Scratch space, kept by the caller from fit to fit: each event's band ratio, its two
-        terms of the bands' sums and its band.
 
     Returns
     -------
@@ -830,9 +827,7 @@ def fit(events, i0, i1, T, g, th, om, free, probe, prm, work):
                  rat, nbe, prm.band_px)
     rotating = free[1] or free[2] or free[3]
     n = i1 - i0
-    if len(work[0]) < n or len(work[1]) < n or len(work[2]) < n or len(work[3]) < n:
-        raise ValueError("foe_fit: the scratch space is smaller than the window")
-    rho, u1, u2, bi = work[0][:n], work[1][:n], work[2][:n], work[3][:n]
+    rho, u1, u2, bi = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
     if nb:  # the facades' bands at the FOE's column where the fit starts
         _bands(w[0], th[FOE_X], nb, prm.band_px, rat, bi, rho)
     else:

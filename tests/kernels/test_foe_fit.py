@@ -43,7 +43,7 @@ def _run(x, y, nx, ny, s, th0, t=None, om=None, free=LEVEL, margin=10.0, c=0.5, 
     th = np.array(th0, np.float64)
     probe = np.zeros(3)
     ok, inl, tot = k.fit(ev, 0, len(x), T, g, th, om, np.array(free), probe,
-                         _prm(margin, c, iters), tuple(np.empty(len(x)) for _ in range(4)))
+                         _prm(margin, c, iters))
     return ok, th, om, inl, tot, probe
 
 
