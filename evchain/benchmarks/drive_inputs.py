@@ -29,7 +29,7 @@ FLOW_STAGES = ("lk_flow", "plane_flow", "frame_flow")
 #: the sources that make the scene's frames and the aps frames from them
 APS_SOURCES = (*(s for s in SIMULATOR_SOURCES if "emulator" not in s), "filters/aps.py")
 EVENT_COLUMNS = ("x", "y", "t", "p")
-FLOW_COLUMNS = ("x", "y", "t", "p", "vx", "vy")
+FLOW_COLUMNS = ("x", "y", "t", "p", "vx", "vy", "t_edge")
 
 
 def relative(path: Path) -> str:
@@ -132,7 +132,8 @@ def drive_flow(pipeline: Path, start_m: float, duration_s: float) -> BenchInput:
                 "bounds": _bounds(outs)}
 
     label = f"{source.label}, {stage.use} of {Path(pipeline).name}"
-    sources = tuple(f for f in (f"filters/{stage.use}.py", f"kernels/{stage.use}.py")
+    sources = tuple(f for f in (f"filters/{stage.use}.py", f"kernels/{stage.use}.py",
+                                "core/edge_arrival.py", "kernels/edge_arrival.py")
                     if (ROOT / "evchain" / f).is_file())
     return BenchInput("drive-flow", label, params, sources, make, (source,))
 

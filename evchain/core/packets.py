@@ -255,31 +255,48 @@ class EventPacket(Packet):
 
 @dataclass(frozen=True, eq=False)
 class FlowPacket(EventPacket):
-    """Events that got a flow estimate, with ``vx``, ``vy`` (float32, px/s).
+    """Events that got a flow estimate, with ``vx``, ``vy`` (float32, px/s) and ``t_edge``.
 
     Normal flow (the component along the local edge normal) unless the producing filter says
-    it gives full flow.
+    it gives full flow. ``t_edge`` (int64 µs, at most ``t``) is when the edge that fired the
+    event reached its pixel: the first event of the pixel's current run of same-polarity
+    events, among all events the flow stage received (:mod:`evchain.core.edge_arrival`). An
+    edge crossing a pixel fires a run of events spread over the crossing, and the flow stage
+    keeps only some of them, so comparing two pixels' flow-event times mixes early and late
+    events of their crossings; their arrival times compare like with like. A producer that
+    does not track runs gives ``t`` (the default).
     """
 
     vx: np.ndarray = None  # type: ignore[assignment]
     vy: np.ndarray = None  # type: ignore[assignment]
+    t_edge: np.ndarray = None  # type: ignore[assignment]
 
     columns: ClassVar[dict[str, type]] = {**EventPacket.columns, "vx": np.float32,
-                                          "vy": np.float32}
+                                          "vy": np.float32, "t_edge": np.int64}
+
+    def __post_init__(self) -> None:
+        if self.t_edge is None and self.t is not None:
+            object.__setattr__(self, "t_edge", self.t)
 
     def _validate_more(self, where: str) -> None:
         super()._validate_more(where)
         if len(self) and not (np.isfinite(self.vx).all() and np.isfinite(self.vy).all()):
             raise DataError(f"{where}: flow must be finite")
+        if len(self) and np.any(self.t_edge > self.t):
+            i = int(np.argmax(self.t_edge > self.t))
+            raise DataError(f"{where}: event {i}'s edge arrival t_edge {self.t_edge[i]} us is "
+                            f"after its time {self.t[i]} us")
 
     @classmethod
     def from_events(cls, events: EventPacket, index: np.ndarray, vx: np.ndarray,
-                    vy: np.ndarray) -> FlowPacket:
-        """Flow for the events at ``index`` of ``events`` (same slice and series)."""
+                    vy: np.ndarray, t_edge: np.ndarray | None = None) -> FlowPacket:
+        """Flow for the events at ``index`` of ``events`` (same slice and series);
+        ``t_edge``, when given, holds the arrival time of every event of ``events``."""
         return cls(geometry=events.geometry, t_start=events.t_start, t_end=events.t_end,
                    series=events.series, x=events.x[index], y=events.y[index],
                    t=events.t[index], p=events.p[index], vx=np.asarray(vx, np.float32),
-                   vy=np.asarray(vy, np.float32))
+                   vy=np.asarray(vy, np.float32),
+                   t_edge=None if t_edge is None else t_edge[index])
 
 
 _FIELDS: dict[type, frozenset[str]] = {}

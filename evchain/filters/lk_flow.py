@@ -8,6 +8,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from evchain.core.camera_scale import check_window_order, derived, derived_us
+from evchain.core.edge_arrival import EdgeArrivals
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import EventPacket, FlowPacket, Geometry
 from evchain.core.series import DENSITY_BIN_US, FLOW_DENSITY, DensityCounter
@@ -158,6 +159,7 @@ class LKFlow(Filter):
             self._prm = self.kernel_params(g)
             self._state = new_state(g.height, g.width, self.params.fifo_depth)
             self._shape = (g.height, g.width)
+            self._arrivals = EdgeArrivals(g.height, g.width)
 
     def process(self, packet: EventPacket) -> FlowPacket:
         from evchain.kernels.lk_flow import lk_flow_run
@@ -172,6 +174,7 @@ class LKFlow(Filter):
             from evchain.kernels.lk_flow import new_state
             self._state = new_state(g.height, g.width, self.params.fifo_depth)
             self._shape = (g.height, g.width)
+            self._arrivals = EdgeArrivals(g.height, g.width)
         n = len(packet)
         idx = np.empty(n, np.int64)
         vx = np.empty(n, np.float64)
@@ -182,7 +185,8 @@ class LKFlow(Filter):
         else:
             n_out = 0
         idx = idx[:n_out]
-        out = FlowPacket.from_events(packet, idx, vx[:n_out], vy[:n_out])
+        out = FlowPacket.from_events(packet, idx, vx[:n_out], vy[:n_out],
+                                     self._arrivals.of(packet))
         self._last = packet
         return out.with_series(DENSITY_SERIES, self._density.add(packet.t, packet.t[idx],
                                                                  packet.t_end))

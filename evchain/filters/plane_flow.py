@@ -8,6 +8,7 @@ import numpy as np
 from pydantic import Field, model_validator
 
 from evchain.core.camera_scale import check_window_order, derived, derived_us, px_scale
+from evchain.core.edge_arrival import EdgeArrivals
 from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import EventPacket, FlowPacket, Geometry
 from evchain.core.series import DENSITY_BIN_US, FLOW_DENSITY, DensityCounter
@@ -160,6 +161,7 @@ class PlaneFlow(Filter):
 
         g = self.context.geometry
         self._state = None if g is None else new_state(g.width, g.height)
+        self._arrivals = None if g is None else EdgeArrivals(g.height, g.width)
         self._prm = None if g is None else self.kernel_params(g)
         self._density = DensityCounter(DENSITY_BIN_US)
         self._end = None
@@ -171,6 +173,7 @@ class PlaneFlow(Filter):
         g = packet.geometry
         if self._state is None or self._state.shape[1:] != (g.height, g.width):
             self._state = new_state(g.width, g.height)
+            self._arrivals = EdgeArrivals(g.height, g.width)
             self._prm = self.kernel_params(g)
         self._geometry = g
         n = len(packet)
@@ -182,7 +185,7 @@ class PlaneFlow(Filter):
             k = plane_flow_kernel(packet.x, packet.y, packet.t, packet.p, self._state,
                                   self._prm, idx, vx, vy)
         idx = idx[:k]
-        out = FlowPacket.from_events(packet, idx, vx[:k], vy[:k])
+        out = FlowPacket.from_events(packet, idx, vx[:k], vy[:k], self._arrivals.of(packet))
         self._end = packet.t_end
         return out.with_series(DENSITY_SERIES, self._density.add(packet.t, packet.t[idx],
                                                                  packet.t_end))

@@ -29,7 +29,9 @@ class Ttc(Filter):
     one tau each: with ``baseline_px`` > 0 from where the edge was earlier (each pixel's last
     flow-event time, walked back along the flow direction, at each step the newest of the
     pixels up to ``baseline_width_px`` beside it along the edge: a baseline of up to
-    ``baseline_max_ms``, positions and times only), else from the flow's magnitude. They are
+    ``baseline_max_ms``, positions and times only; each time is the edge's arrival at the
+    pixel, the flow packet's ``t_edge``, while its run is shorter than ``edge_run_px`` px of
+    the edge's motion), else from the flow's magnitude. They are
     assigned to square clusters (centre of mass, activity-weighted updates, growth, decay,
     removal below ``min_activity``). At every multiple of
     ``estimate_every_us`` each cluster's tau is the median of its recent samples, each moved
@@ -149,6 +151,13 @@ class Ttc(Filter):
                                        "it along the edge and take the one that fired last (a "
                                        "far obstacle's edge crosses a row in bursts that "
                                        "cover only part of it); 0: the pixel straight behind")
+        edge_run_px: float = Field(5.0, ge=0, description="the baseline compares the "
+                                   "pixels' edge arrival times (the flow packet's t_edge: the "
+                                   "start of each pixel's run of same-polarity events) while "
+                                   "the run is no longer than the edge takes to cross this "
+                                   "many px at the event's flow speed; a longer run holds "
+                                   "several edges, and the event's own time is used. 0: "
+                                   "always the events' own times. Px of the grid")
         ground_fallback: bool = Field(True, description="with no cluster off the road, select "
                                       "among all clusters (else: no obstacle at that tick)")
         max_rel_spread: float | None = Field(
@@ -192,7 +201,7 @@ class Ttc(Filter):
             ground_min_events=p.ground_min_events, ground_fallback=p.ground_fallback,
             corridor=p.corridor_half_width_h or 0.0, hold=p.select_hold,
             base_px=p.baseline_px, base_age_us=p.baseline_max_ms * 1000.0,
-            base_width=p.baseline_width_px,
+            base_width=p.baseline_width_px, run_px=p.edge_run_px,
             max_spread=math.inf if p.max_rel_spread is None else p.max_rel_spread,
             f=g.f or 0.0, cx=g.cx, cy=g.cy)
 
@@ -221,7 +230,8 @@ class Ttc(Filter):
         n_ticks = max(0, -(-(packet.t_end - kern.next_tick(self._state)) // period))
         ttc = np.zeros(n_ticks, TTC_DTYPE)
         cl = np.zeros(n_ticks * p.max_clusters, CLUSTER_DTYPE)
-        no, nc = kern.process((packet.x, packet.y, packet.t, packet.p, packet.vx, packet.vy),
+        no, nc = kern.process((packet.x, packet.y, packet.t, packet.p, packet.vx, packet.vy,
+                               packet.t_edge),
                               entries, self._state, self._prm, int(packet.t_end), ttc, cl)
         self._ticks += n_ticks
         self._rows += no

@@ -92,6 +92,7 @@ class TtcParams(NamedTuple):
     base_px: int                #: baseline tau over up to this many px (0: from the flow)
     base_age_us: float          #: longest baseline, µs
     base_width: int             #: baseline: pixels searched beside each step along the edge
+    run_px: float               #: baseline: t_edge counts while its run is this many px of motion
     f: float                    #: focal length, px (0: the flow is not derotated)
     cx: float                   #: principal point, px
     cy: float
@@ -105,14 +106,14 @@ class TtcState(NamedTuple):
     samples_tau: np.ndarray  #: float64 [max_clusters, ring]: sample tau, s
     samples_kg: np.ndarray   #: float64 [max_clusters, ring]: sample tau * dy, s px
     carry: np.ndarray        #: CARRY [1]
-    last_t: np.ndarray       #: float64 [2, H, W] (or [2, 0, 0]): last flow-event time, µs
+    last_t: np.ndarray       #: float64 [2, H, W] (or [2, 0, 0]): last flow event's edge arrival, µs
     ground_hist: np.ndarray  #: float64 [KG_BINS]: the ground votes
 
 
 def new_state(max_clusters: int, ring: int, height: int, width: int,
               baseline: bool) -> TtcState:
     """Empty state: no cluster, no FOE, no votes, the first tick still to be set
-    (:func:`start`); each pixel's last flow-event time only with ``baseline``."""
+    (:func:`start`); each pixel's last flow event's edge arrival only with ``baseline``."""
     carry = np.zeros(1, CARRY)
     carry["held_id"] = -1.0
     return TtcState(np.zeros(max_clusters, CLUSTER_STATE), np.zeros((max_clusters, ring)),
@@ -190,7 +191,8 @@ def event_tau(px, py, vx, vy, fx, fy, prm):
 def baseline_tau(S, pol, px, py, nx, ny, d0, rot, ti, max_px, max_age_us, width):
     """tau from where the edge through (px, py) was earlier, or -1 when nothing qualifies.
 
-    ``S[pol]`` holds each pixel's last flow-event time (µs). Walking back from p against the
+    ``S[pol]`` holds the edge arrival time (µs) of each pixel's last flow event; ``ti`` is
+    p's (the caller moves the tau forward to the event's time). Walking back from p against the
     unit normal n (the direction the edge moved in; ``d0 = (p - foe).n``) by 1..``max_px`` px,
     at each step the pixel nearest that point and those up to ``width`` px beside it along the
     edge (the tangent (-ny, nx)) are looked at, and the one that fired last, strictly before
@@ -704,9 +706,10 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
 
     Parameters
     ----------
-    events : tuple (x, y, t, p, vx, vy)
+    events : tuple (x, y, t, p, vx, vy, t_edge)
         The flow events in time order: x, y uint16 [n] px; t int64 [n] µs; p int8 [n]
-        polarity; vx, vy float32 [n] flow, px/s.
+        polarity; vx, vy float32 [n] flow, px/s; t_edge int64 [n] µs, when the event's edge
+        reached its pixel (the baseline compares these).
     foe : tuple (t, x, y, wx, wy, wz)
         FOE entries: t int64 [m] µs, x, y float64 [m] px (NaN: no estimate), the camera's
         angular velocity wx, wy, wz float64 [m] rad/s (0 where not estimated).
@@ -727,7 +730,7 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
     (int, int)
         The rows written into ``ttc_out`` and ``clusters_out``.
     """
-    x, y, t, pol, vx, vy = events
+    x, y, t, pol, vx, vy, te = events
     # the state's arrays as locals, passed on one by one (a tuple of arrays passed on costs
     # reference counts per event)
     cl, ST, SV, SK, carry, last_t, hist = state
@@ -758,6 +761,11 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
             # the flow's rotational part along its normal
             rot = rotational_speed(px, py, evx / sp, evy / sp, g.foe_wx, g.foe_wy, g.foe_wz,
                                    prm.f, prm.cx, prm.cy)
+        # when the event's edge reached its pixel: the start of the pixel's run of events,
+        # unless the run lasted longer than the edge takes to cross run_px px (several edges)
+        ta = float(te[i])
+        if (ti - ta) * 1e-6 * sp > prm.run_px:
+            ta = float(ti)
         tau = -1.0
         if g.has_foe > 0.0:  # from the translational part of the normal flow, sp - rot
             if rot != 0.0:
@@ -768,8 +776,9 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
         if tau > 0.0 and prm.base_px > 0:  # from where the edge was earlier
             d0 = tau * (sp - rot)  # (p - foe).n
             tau = baseline_tau(last_t, 1 if pol[i] > 0 else 0, px, py, evx / sp, evy / sp,
-                               d0, rot, float(ti), prm.base_px, prm.base_age_us,
-                               prm.base_width)
+                               d0, rot, ta, prm.base_px, prm.base_age_us, prm.base_width)
+            if tau > 0.0:
+                tau -= (ti - ta) * 1e-6  # moved forward from the arrival to the event
             if tau < prm.min_tau or tau > prm.max_tau:
                 tau = -1.0
         if tau > 0.0:  # to its cluster: the nearest whose widened square holds it, or a new one
@@ -788,7 +797,7 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
                 # K learns from events of clusters not (yet) known to be off the road
                 if not (cl[kb].rho < 1.0 - prm.ground_tol):
                     ground_vote(hist, carry, kg, float(ti), prm.ground_memory_us)
-        _remember_time(last_t, x[i], y[i], pol[i], ti)
+        _remember_time(last_t, x[i], y[i], pol[i], ta)
         i += 1
     _apply_foe(foe, j, _FOREVER, g)  # entries after the last event count next
     return no, nc
@@ -796,7 +805,8 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
 
 @njit(cache=True)
 def _remember_time(last_t, x, y, pol, ti):
-    """The pixel's last flow-event time (kept only for the baseline tau)."""
+    """The edge arrival time of the pixel's last flow event (kept only for the baseline
+    tau)."""
     if last_t.shape[1] > 0:
         qx = int(x)
         qy = int(y)

@@ -7,6 +7,7 @@ import pytest
 from evchain.bench import cut_every
 from evchain.benchmarks import foe_ttc
 from evchain.benchmarks.drive_inputs import (
+    FLOW_COLUMNS,
     PIPELINES,
     drive_events,
     drive_flow,
@@ -114,7 +115,7 @@ def _fake_flow(path, quick):
                                     n_packets=100, normal_only=True)
     flow = FlowPacket.concat(packets)
     inp.path.parent.mkdir(parents=True, exist_ok=True)
-    np.savez(inp.path, **{c: getattr(flow, c) for c in ("x", "y", "t", "p", "vx", "vy")},
+    np.savez(inp.path, **{c: getattr(flow, c) for c in FLOW_COLUMNS},
              bounds=np.array([p.t_start for p in packets] + [packets[-1].t_end]))
     return inp
 

@@ -74,6 +74,22 @@ def test_flow_finite_and_concat():
     assert (len(both), both.t_start, both.t_end) == (12, 0, 200)
 
 
+def test_flow_edge_arrival_defaults_to_the_event_time_and_never_follows_it():
+    ev = random_events(10, G, 0, 100)
+    flow = FlowPacket.from_events(ev, np.arange(3, 8), np.ones(5), np.zeros(5)).validate()
+    np.testing.assert_array_equal(flow.t_edge, ev.t[3:8])
+    arrival = ev.t - 7
+    flow = FlowPacket.from_events(ev, np.arange(3, 8), np.ones(5), np.zeros(5), arrival)
+    np.testing.assert_array_equal(flow.validate().t_edge, arrival[3:8])
+    late = flow.t_edge.copy()
+    late[2] = flow.t[2] + 1
+    with pytest.raises(DataError, match="event 2's edge arrival"):
+        flow.replace(t_edge=late).validate()
+    assert FlowPacket.empty(G, 0, 10).validate().t_edge.dtype == np.int64
+    both = FlowPacket.concat([flow, FlowPacket.empty(G, flow.t_end, flow.t_end)])
+    np.testing.assert_array_equal(both.t_edge, arrival[3:8])
+
+
 def test_empty_packets():
     e = EventPacket.empty(G, 5, 5).validate()
     assert len(e) == 0

@@ -273,3 +273,30 @@ def test_windows_given_are_kept():
         50_000, 0, 0, 300.0)
     f.setup(LKFlow.Params(mode="faithful"), Context())  # no adaptive window in faithful mode
     assert f.kernel_params(Geometry(640, 480, f=2 * REFERENCE_FOCAL_PX)).max_window_us == 0
+
+
+@pytest.mark.parametrize("flow", ["lk_flow", "plane_flow"])
+def test_flow_events_carry_their_edge_arrival(flow):
+    """t_edge of each flow event is its pixel's run start over every event the stage saw,
+    across packet cuts (the naive reference over the whole stream)."""
+    from evchain.core.registry import make_registry
+    from tests.naive.edge_arrival import arrivals
+
+    g = Geometry(24, 18)
+    # two slow ON edges 3 px apart (one run per pixel), then an OFF edge (new runs)
+    edges = [moving_edge_events(6.0, 2.0, g, 8_000_000, pol, off)
+             for pol, off in ((1, 0.0), (1, 3.0), (-1, 8.0))]
+    ev = EventPacket.concat(edges)
+    ev = ev.select(np.argsort(ev.t, kind="stable")).validate()
+    f = make_registry().get(flow)()
+    f.setup(f.Params(), Context(geometry=g))
+    out = FlowPacket.concat([f.process(p) for p in recut([ev], [900_000, 2_500_000])])
+    assert len(out) > 100
+    key = list(zip(ev.x.tolist(), ev.y.tolist(), ev.t.tolist(), ev.p.tolist(), strict=True))
+    want = dict(zip(key, arrivals(key, 1_000_000), strict=True))
+    got = [want[k] for k in zip(out.x.tolist(), out.y.tolist(), out.t.tolist(),
+                                out.p.tolist(), strict=True)]
+    np.testing.assert_array_equal(out.t_edge, got)
+    # plane fitting gives the second edge flow (its events' arrival is the first edge's);
+    # LK's window still holds the first edge there and gives it none
+    assert np.sum(out.t_edge < out.t) == (280 if flow == "plane_flow" else 0)

@@ -349,6 +349,88 @@ def test_baseline_recovers_ttc_of_slow_edges(speed_factor, jitter_us):
         assert np.median(np.abs(s0["tau_s"] - truth0) / truth0) > 0.3
 
 
+def edge_approach_in_runs(tc=3.0, duration_s=2.0, seed=0):
+    """:func:`edge_approach`'s rectangle with two events per edge crossing, as a rendered edge
+    stepping over a pixel's two sample lines fires them: when it passes a quarter pixel before
+    and after the pixel's centre. The flow stage keeps one of the two at random, at some
+    pixels both; ``t_edge`` is the first one's time (the run's start) either way."""
+    rng = np.random.default_rng(seed)
+    fx, fy = FOE
+    xl, xr, yt, yb = -30.0, 30.0, 6.0, 30.0
+    ev = []
+
+    def crossing(c, row, r, e, pol, along_x):
+        times = [tc - e / (r - 0.25 * np.sign(r)), tc - e / (r + 0.25 * np.sign(r))]
+        if not (0 <= times[0] and times[1] < duration_s):
+            return
+        keep = rng.choice(3, p=[0.3, 0.1, 0.6])   # 0: the first, 1: the second, 2: both
+        for k, t in enumerate(times):
+            if keep == 2 or keep == k:
+                v = r / (tc - t)
+                ev.append((c, row, t * 1e6, 2 * pol - 1, v if along_x else 0.0,
+                           0.0 if along_x else v, times[0] * 1e6))
+
+    for c in range(G.width):
+        for xe, pol in ((xl, 0), (xr, 1)):
+            r = c - fx
+            if r * xe > 0 and abs(r) > 0.25:
+                tau = xe / r
+                for row in range(int(np.ceil(fy + yt / tau)), int(np.floor(fy + yb / tau)) + 1):
+                    if 0 <= row < G.height:
+                        crossing(c, row, r, xe, pol, True)
+    for row in range(G.height):
+        for ye, pol in ((yt, 0), (yb, 1)):
+            r = row - fy
+            if r > 0.25:
+                tau = ye / r
+                for c in range(int(np.ceil(fx + xl / tau)), int(np.floor(fx + xr / tau)) + 1):
+                    if 0 <= c < G.width:
+                        crossing(c, row, r, ye, pol, False)
+    a = np.array(ev)
+    a = a[np.argsort(a[:, 2], kind="stable")]
+    bounds = np.linspace(0, duration_s * 1e6, 11).astype(np.int64)
+    idx = np.searchsorted(a[:, 2], bounds)
+    return [FlowPacket(geometry=G, t_start=int(b0), t_end=int(b1),
+                       x=a[i:j, 0].astype(np.uint16), y=a[i:j, 1].astype(np.uint16),
+                       t=a[i:j, 2].astype(np.int64), p=a[i:j, 3].astype(np.int8),
+                       vx=a[i:j, 4].astype(np.float32), vy=a[i:j, 5].astype(np.float32),
+                       t_edge=a[i:j, 6].astype(np.int64)).validate()
+            for b0, b1, i, j in zip(bounds[:-1], bounds[1:], idx[:-1], idx[1:], strict=True)]
+
+
+def test_baseline_compares_edge_arrivals_not_flow_event_times():
+    """Two events per crossing, half a pixel apart, of which the flow stage keeps either: the
+    pixels' last flow-event times mix early and late ones (a pixel-to-pixel time off by up to
+    half of itself); their runs' starts (``t_edge``) compare like with like."""
+    packets = with_true_foe(edge_approach_in_runs())
+
+    def errors(**params):
+        # baselines of a pixel or two, as for a far obstacle's slow edges
+        s = run_ttc(packets, baseline_px=6, baseline_max_ms=300.0, min_samples=4,
+                    **params).series["ttc"]
+        s = s[(s["t"] >= 500_000) & (s["t"] < 1_200_000)]
+        assert len(s) > 30 and np.isfinite(s["tau_s"]).all()
+        truth = 3.0 - s["t"] * 1e-6
+        return np.abs(s["tau_s"] - truth) / truth
+
+    with_arrivals = errors()
+    assert np.median(with_arrivals) <= 0.03, np.median(with_arrivals)
+    assert np.mean(with_arrivals <= 0.10) >= 0.9
+    own_times = errors(edge_run_px=0.0)
+    assert np.median(own_times) > 2 * np.median(with_arrivals) + 0.02, np.median(own_times)
+
+
+def test_a_run_longer_than_edge_run_px_uses_the_events_own_time():
+    """With every t_edge far in the past (runs spanning many edges) the baseline falls back to
+    the events' own times: the same series as flow packets without t_edge."""
+    base = with_true_foe(edge_approach(duration_s=1.0))
+    stale = [p.replace(t_edge=p.t - 100_000_000) for p in base]
+    a = run_ttc(base, baseline_px=6, min_samples=4).series["ttc"]
+    b = run_ttc(stale, baseline_px=6, min_samples=4, edge_run_px=5.0).series["ttc"]
+    assert len(a) > 5
+    np.testing.assert_array_equal(a, b)
+
+
 def test_baseline_hard_inputs_are_finite():
     for case in [(0.0, 0.0, 70, 60), (0.0, 30.0, 60, 70), (25.0, 0.0, 80, 60),
                  (10.0, 10.0, 60, 40), (1e-30, 0.0, 70, 60)]:

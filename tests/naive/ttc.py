@@ -298,7 +298,7 @@ def ttc_naive(packets, q, width, height, no_ttc=None, f=None, cx=None, cy=None):
             votes_kg.append(kg)
             votes_t.append(float(ti))
 
-    def tau_of(px, py, vx, vy, pol, ti):
+    def tau_of(px, py, vx, vy, pol, ti, ta):
         sp = math.sqrt(vx * vx + vy * vy)
         rot = 0.0
         if f and sp > 0:
@@ -310,9 +310,12 @@ def ttc_naive(packets, q, width, height, no_ttc=None, f=None, cx=None, cy=None):
                                     q.min_tau_s, q.max_tau_s)[0])
         if tau > 0.0 and q.baseline_px > 0:
             d0 = (px - foe[0]) * vx / sp + (py - foe[1]) * vy / sp
+            # compared at the edge's arrival at p, then moved forward to the event's time
             tau = baseline_tau_naive(last_t[pol], px, py, vx / sp, vy / sp, d0, rot,
-                                     float(ti), q.baseline_px, q.baseline_max_ms * 1000.0,
+                                     float(ta), q.baseline_px, q.baseline_max_ms * 1000.0,
                                      q.baseline_width_px)
+            if tau > 0.0:
+                tau -= (ti - ta) * 1e-6
             if tau < q.min_tau_s or tau > q.max_tau_s:
                 tau = -1.0
         return tau
@@ -337,12 +340,17 @@ def ttc_naive(packets, q, width, height, no_ttc=None, f=None, cx=None, cy=None):
             px, py = float(pk.x[i]), float(pk.y[i])
             vx, vy = float(pk.vx[i]), float(pk.vy[i])
             pol = 1 if pk.p[i] > 0 else 0
+            # the edge's arrival: its pixel's run start, unless the run spans more than
+            # edge_run_px px of the edge's motion
+            ta = int(pk.t_edge[i])
+            if (ti - ta) * 1e-6 * math.sqrt(vx * vx + vy * vy) > q.edge_run_px:
+                ta = ti
             if foe is not None:
-                tau = tau_of(px, py, vx, vy, pol, ti)
+                tau = tau_of(px, py, vx, vy, pol, ti, ta)
                 if tau > 0.0:
                     add_event(px, py, ti, tau)
             if q.baseline_px > 0 and 0 <= pk.x[i] < width and 0 <= pk.y[i] < height:
-                last_t[pol, pk.y[i], pk.x[i]] = ti
+                last_t[pol, pk.y[i], pk.x[i]] = ta
         while tick < pk.t_end:
             do_tick(float(tick))
             tick += period
