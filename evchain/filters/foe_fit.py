@@ -149,9 +149,6 @@ class FoeFit(Filter):
             "inlier weight exceeds that of the level fit (FOE column free, no yaw) by more than "
             "this share, and left once it no longer exceeds it (else the yaw is a sideways "
             "shift of the FOE)")
-        road_row_spread_px: float = Field(0.0, ge=0, description="the road is held only while "
-                                          "the recent fits' FOE rows agree: 1.4826 MAD at most "
-                                          "this, px; 0: always")
         min_road_scale_ratio: float = Field(
             0.97, ge=0, le=1, description="a fit whose road scale (the speed over the camera's "
             "height) falls below this share of the median over the last heading_memory_s while "
@@ -404,9 +401,6 @@ class FoeFit(Filter):
             return None
         y = _median([r[1] for r in self._road])
         a0 = _median([r[2] for r in self._road])
-        spread = 1.4826 * _median([abs(r[1] - y) for r in self._road])
-        if self.params.road_row_spread_px and not spread <= self.params.road_row_spread_px:
-            return None
         if th[k.ROAD] < self.params.min_road_scale_ratio * a0 and th[k.FOE_Y] < y:
             self._road_held = (y, a0)
         return self._road_held
