@@ -158,9 +158,6 @@ class Ttc(Filter):
                                    "many px at the event's flow speed; a longer run holds "
                                    "several edges, and the event's own time is used. 0: "
                                    "always the events' own times. Px of the grid")
-        road_event_tol: float = Field(0.0, ge=0, description="an event whose tau * dy lies "
-                                      "within this fraction of the road constant K (once K "
-                                      "is known) votes for K and joins no cluster; 0: off")
         ground_fallback: bool = Field(True, description="with no cluster off the road, select "
                                       "among all clusters (else: no obstacle at that tick)")
         max_rel_spread: float | None = Field(
@@ -205,7 +202,6 @@ class Ttc(Filter):
             corridor=p.corridor_half_width_h or 0.0, hold=p.select_hold,
             base_px=p.baseline_px, base_age_us=p.baseline_max_ms * 1000.0,
             base_width=p.baseline_width_px, run_px=p.edge_run_px,
-            road_event_tol=p.road_event_tol,
             max_spread=math.inf if p.max_rel_spread is None else p.max_rel_spread,
             f=g.f or 0.0, cx=g.cx, cy=g.cy)
 

@@ -93,7 +93,6 @@ class TtcParams(NamedTuple):
     base_age_us: float          #: longest baseline, µs
     base_width: int             #: baseline: pixels searched beside each step along the edge
     run_px: float               #: baseline: t_edge counts while its run is this many px of motion
-    road_event_tol: float       #: events with |tau dy / K - 1| below this join no cluster (0: off)
     f: float                    #: focal length, px (0: the flow is not derotated)
     cx: float                   #: principal point, px
     cy: float
@@ -782,12 +781,6 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
                 tau -= (ti - ta) * 1e-6  # moved forward from the arrival to the event
             if tau < prm.min_tau or tau > prm.max_tau:
                 tau = -1.0
-        if tau > 0.0 and prm.road_event_tol > 0.0 and g.k_ground > 0.0 and \
-                g.n_votes >= prm.ground_min_events:
-            kg = tau * (py - g.foe_y)
-            if abs(kg / g.k_ground - 1.0) < prm.road_event_tol:
-                ground_vote(hist, carry, kg, float(ti), prm.ground_memory_us)
-                tau = -1.0  # a road point: it teaches K and joins no cluster
         if tau > 0.0:  # to its cluster: the nearest whose widened square holds it, or a new one
             kg = tau * (py - g.foe_y)
             kb, db = _nearest_cluster(cl, px, py, prm)
