@@ -321,13 +321,20 @@ def edge_approach(tc=3.0, duration_s=2.0, speed_factor=1.0, jitter_us=0.0, seed=
     a = np.array(ev)
     a[:, 2] = np.clip(a[:, 2] * 1e6 + rng.normal(0, jitter_us, len(a)) if jitter_us else
                       a[:, 2] * 1e6, 0, duration_s * 1e6 - 1)
+    return _packets(a, duration_s)
+
+
+def _packets(a, duration_s):
+    """Ten flow packets of the rows (x, y, t µs, p, vx, vy[, t_edge µs]) of ``a``."""
     a = a[np.argsort(a[:, 2], kind="stable")]
     bounds = np.linspace(0, duration_s * 1e6, 11).astype(np.int64)
     idx = np.searchsorted(a[:, 2], bounds)
     return [FlowPacket(geometry=G, t_start=int(b0), t_end=int(b1),
                        x=a[i:j, 0].astype(np.uint16), y=a[i:j, 1].astype(np.uint16),
                        t=a[i:j, 2].astype(np.int64), p=a[i:j, 3].astype(np.int8),
-                       vx=a[i:j, 4].astype(np.float32), vy=a[i:j, 5].astype(np.float32))
+                       vx=a[i:j, 4].astype(np.float32), vy=a[i:j, 5].astype(np.float32),
+                       t_edge=a[i:j, 6].astype(np.int64) if a.shape[1] > 6 else None
+                       ).validate()
             for b0, b1, i, j in zip(bounds[:-1], bounds[1:], idx[:-1], idx[1:], strict=True)]
 
 
@@ -386,16 +393,7 @@ def edge_approach_in_runs(tc=3.0, duration_s=2.0, seed=0):
                 for c in range(int(np.ceil(fx + xl / tau)), int(np.floor(fx + xr / tau)) + 1):
                     if 0 <= c < G.width:
                         crossing(c, row, r, ye, pol, False)
-    a = np.array(ev)
-    a = a[np.argsort(a[:, 2], kind="stable")]
-    bounds = np.linspace(0, duration_s * 1e6, 11).astype(np.int64)
-    idx = np.searchsorted(a[:, 2], bounds)
-    return [FlowPacket(geometry=G, t_start=int(b0), t_end=int(b1),
-                       x=a[i:j, 0].astype(np.uint16), y=a[i:j, 1].astype(np.uint16),
-                       t=a[i:j, 2].astype(np.int64), p=a[i:j, 3].astype(np.int8),
-                       vx=a[i:j, 4].astype(np.float32), vy=a[i:j, 5].astype(np.float32),
-                       t_edge=a[i:j, 6].astype(np.int64)).validate()
-            for b0, b1, i, j in zip(bounds[:-1], bounds[1:], idx[:-1], idx[1:], strict=True)]
+    return _packets(np.array(ev), duration_s)
 
 
 def test_baseline_compares_edge_arrivals_not_flow_event_times():
