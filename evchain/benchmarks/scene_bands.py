@@ -84,10 +84,13 @@ def drive_events(overrides: list[str], registry=None) -> tuple[EventPacket, dict
                     "rendered_share": scene.get("rendered_share", 1.0)}
 
 
-def agreement(overrides: list[str], band_rows: int, registry=None) -> dict:
-    """Both modes on one stretch: the whole-frame run, the banded one and their comparison."""
+def agreement(overrides: list[str], band_rows: int, registry=None, band_cols: int = 0
+              ) -> dict:
+    """Both modes on one stretch: the whole-frame run, the banded one (tiled with
+    ``band_cols``) and their comparison."""
     whole, run_a = drive_events([*overrides, "scene.band_rows=0"], registry)
-    banded, run_b = drive_events([*overrides, f"scene.band_rows={band_rows}"], registry)
+    banded, run_b = drive_events([*overrides, f"scene.band_rows={band_rows}",
+                                  f"scene.band_cols={band_cols}"], registry)
     return {**compare_events(whole, banded), "whole": run_a, "banded": run_b}
 
 
