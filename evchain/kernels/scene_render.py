@@ -172,8 +172,9 @@ def render_row(j, x0, x1, tcols, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat,
     s0 = x0 * k            # the sample columns [s0, s1)
     s1 = x1 * k
     nvis = vis.shape[0]
-    for i in range(x0, x1):
-        acc[i] = 0.0
+    accr = acc[x0:x1]
+    for i in range(x1 - x0):
+        accr[i] = 0.0
     tb = fw[0]
     dxs = fw[1]
     dys = fw[2]
@@ -185,6 +186,21 @@ def render_row(j, x0, x1, tcols, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat,
     kd = iw[0]
     hid = iw[1]
     fc = iw[2]
+    # the range's samples as slices (loops over range(len) of a slice vectorise, loops over
+    # range(s0, s1) do not), made once per row
+    ns = s1 - s0
+    tbr = tb[s0:s1]
+    kdr = kd[s0:s1]
+    dxr = dxs[s0:s1]
+    dyr = dys[s0:s1]
+    pcr = pcol[s0:s1]
+    hir = hid[s0:s1]
+    fcr = fc[s0:s1]
+    gxr = gxs[s0:s1]
+    gyr = gys[s0:s1]
+    ixr = ixs[s0:s1]
+    iyr = iys[s0:s1]
+    xbr = xbs[s0:s1]
     xh0 = rot[0, 0]
     xh1 = rot[1, 0]
     sky0 = light[5]
@@ -199,9 +215,9 @@ def render_row(j, x0, x1, tcols, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat,
         if dz < 0.0 and oz > 0.0:
             tg = -oz / dz
             kind0 = 1
-        for c in range(s0, s1):
-            tb[c] = tg
-            kd[c] = kind0          # hid and fc are read only where kd == 2
+        for c in range(ns):
+            tbr[c] = tg
+            kdr[c] = kind0          # hid and fc are read only where kd == 2
         # the horizontal directions depend on the row only through r0, r1, which are the same
         # in every row when the camera does not pitch: recomputed (two divisions per sample)
         # only when r0 or r1 differs from the row before, bit pattern and sign of zero
@@ -210,19 +226,19 @@ def render_row(j, x0, x1, tcols, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat,
                 and math.copysign(1.0, r0) == math.copysign(1.0, rprev[0])
                 and math.copysign(1.0, r1) == math.copysign(1.0, rprev[1])
                 and rprev[2] <= s0 and s1 <= rprev[3]):
-            for c in range(s0, s1):
-                xb = xbs[c]
+            for c in range(ns):
+                xb = xbr[c]
                 dx = xh0 * xb + r0
                 dy = xh1 * xb + r1
-                dxs[c] = dx
-                dys[c] = dy
+                dxr[c] = dx
+                dyr[c] = dy
                 ix = 1.0 / dx
                 iy = 1.0 / dy
-                ixs[c] = ix
-                iys[c] = iy
+                ixr[c] = ix
+                iyr[c] = iy
                 # texture footprints along u on faces of constant y and x, per unit of t
-                gxs[c] = abs(xh0 - dx * xh1 * iy) * fscale * TEXTURE_FOOTPRINT
-                gys[c] = abs(xh1 - dy * xh0 * ix) * fscale * TEXTURE_FOOTPRINT
+                gxr[c] = abs(xh0 - dx * xh1 * iy) * fscale * TEXTURE_FOOTPRINT
+                gyr[c] = abs(xh1 - dy * xh0 * ix) * fscale * TEXTURE_FOOTPRINT
             rprev[0] = r0
             rprev[1] = r1
             rprev[2] = s0
@@ -304,20 +320,21 @@ def render_row(j, x0, x1, tcols, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat,
             dyb = xh1 * xbs[n - 1] + r1
             d2 = max(dxa ** 2 + dya ** 2, dxb ** 2 + dyb ** 2) + dz * dz
             ground_levels(tg * fscale * d2 / (-dz), tex_inv, tex_off, lv_inv, lv_off, lv_mask)
-        for c in range(s0, s1):
-            if kd[c] == 0:
-                ddx = dxs[c]
-                ddy = dys[c]
+        for c in range(ns):
+            if kdr[c] == 0:
+                ddx = dxr[c]
+                ddy = dyr[c]
                 e = dz / math.sqrt(ddx * ddx + ddy * ddy + dz * dz)
                 if e < 0.0:
                     e = 0.0
-                acc[pcol[c]] += sky0 + (sky1 - sky0) * e
-        ground_pass(kd[s0:s1], dxs[s0:s1], dys[s0:s1], tg, ox, oy, pcol[s0:s1], segs, ground,
-                    light, tex, lv_inv, lv_off, lv_mask, acc)
-        box_pass(kd[s0:s1], tb[s0:s1], hid[s0:s1], fc[s0:s1], dxs[s0:s1], dys[s0:s1],
-                 gxs[s0:s1], gys[s0:s1], ox, oy, oz, dz, pcol[s0:s1], box_mat, box_par, lit, acc)
-    for i in range(x0, x1):
-        out[j, i] = acc[i] * inv_k2
+                acc[pcr[c]] += sky0 + (sky1 - sky0) * e
+        ground_pass(kdr, dxr, dyr, tg, ox, oy, pcr, segs, ground, light, tex, lv_inv, lv_off,
+                    lv_mask, acc)
+        box_pass(kdr, tbr, hir, fcr, dxr, dyr, gxr, gyr, ox, oy, oz, dz, pcr, box_mat, box_par,
+                 lit, acc)
+    outr = out[j, x0:x1]
+    for i in range(x1 - x0):
+        outr[i] = accr[i] * inv_k2
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
