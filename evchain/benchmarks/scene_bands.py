@@ -1,13 +1,11 @@
-"""How far the scene's row bands (``band_rows``) and tiles (``band_cols``) move the events from
-those of frames rendered whole: the same stretch of a drive through scene -> emulator in both
-modes, compared.
+"""How far the scene's row bands (``band_rows``) move the events from those of frames rendered
+whole: the same stretch of a drive through scene -> emulator in both modes, compared.
 
 * ``scene-bands``: bands of 16 rows, one row per stretch (the reference drive's first second
   and its last second before the obstacle, and the evaluation cells ``speed-27`` and
   ``pitch``; quick: 0.25 s of each): throughput = the banded run's simulated s per wall s;
   error = the median |time difference| of matched events (µs); extra:
-  :func:`compare_events`'s table and both runs' wall time and rendered share (of pixels).
-* ``scene-tiles``: the same with tiles of 16 x 16 pixels (``band_cols: 16``).
+  :func:`compare_events`'s table and both runs' wall time and rendered share.
 """
 
 from __future__ import annotations
@@ -20,7 +18,7 @@ import numpy as np
 
 from evchain.bench import BenchRow
 from evchain.benchmarks.drive_inputs import relative
-from evchain.benchmarks.scene_render import BAND_COLS, BAND_ROWS
+from evchain.benchmarks.scene_render import BAND_ROWS
 from evchain.core.packets import EventPacket
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -86,19 +84,14 @@ def drive_events(overrides: list[str], registry=None) -> tuple[EventPacket, dict
                     "rendered_share": scene.get("rendered_share", 1.0)}
 
 
-def agreement(overrides: list[str], band_rows: int, registry=None, band_cols: int = 0
-              ) -> dict:
-    """Both modes on one stretch: the whole-frame run, the banded one (tiled with
-    ``band_cols``) and their comparison."""
+def agreement(overrides: list[str], band_rows: int, registry=None) -> dict:
+    """Both modes on one stretch: the whole-frame run, the banded one and their comparison."""
     whole, run_a = drive_events([*overrides, "scene.band_rows=0"], registry)
-    banded, run_b = drive_events([*overrides, f"scene.band_rows={band_rows}",
-                                  f"scene.band_cols={band_cols}"], registry)
+    banded, run_b = drive_events([*overrides, f"scene.band_rows={band_rows}"], registry)
     return {**compare_events(whole, banded), "whole": run_a, "banded": run_b}
 
 
-def _agreement_rows(prefix: str, band_cols: int, quick: bool) -> list[BenchRow]:
-    """One row per stretch: bands of :data:`BAND_ROWS` rows (tiles of ``band_cols`` columns)
-    against whole frames."""
+def scene_bands(quick: bool) -> list[BenchRow]:
     from evchain.core.registry import make_registry
 
     registry = make_registry()
@@ -107,30 +100,20 @@ def _agreement_rows(prefix: str, band_cols: int, quick: bool) -> list[BenchRow]:
     drive_events(["scene.duration_s=0.002"], registry)          # compile
     rows = []
     for name, overrides in STRETCHES.items():
-        res = agreement([*overrides, f"scene.duration_s={duration:g}"], band_rows, registry,
-                        band_cols)
+        res = agreement([*overrides, f"scene.duration_s={duration:g}"], band_rows, registry)
         banded = res.pop("banded")
         whole = res.pop("whole")
-        what = f"tiles of {band_rows}x{band_cols}" if band_cols else "banded"
         rows.append(BenchRow(
-            f"{prefix}-{name}", "scene+emulator",
+            f"scene-bands-{name}", "scene+emulator",
             banded["simulated_s"] / banded["wall_s"], "sim s/s",
             error=res["median_abs_dt_us"], error_name="median |dt| of matched events (µs)",
-            extra={**res, "band_rows": band_rows, "band_cols": band_cols,
+            extra={**res, "band_rows": band_rows,
                    "rendered_share": banded["rendered_share"],
                    "whole_sim_s_per_s": whole["simulated_s"] / whole["wall_s"]},
-            data=f"{name}: reference.yaml {' '.join(overrides)}, {duration:g} s, {what} "
+            data=f"{name}: reference.yaml {' '.join(overrides)}, {duration:g} s, banded "
                  "against whole frames",
             params_from=relative(PIPELINE)))
     return rows
 
 
-def scene_bands(quick: bool) -> list[BenchRow]:
-    return _agreement_rows("scene-bands", 0, quick)
-
-
-def scene_tiles(quick: bool) -> list[BenchRow]:
-    return _agreement_rows("scene-tiles", BAND_COLS, quick)
-
-
-WORKLOADS = {"scene-bands": scene_bands, "scene-tiles": scene_tiles}
+WORKLOADS = {"scene-bands": scene_bands}

@@ -10,8 +10,7 @@
   parameters) over the whole 14 s drive (quick: the first 1 s), rendered in the run, as
   simulated seconds per wall second; reports the event rate next to the thesis's 259 k events/s.
   ``reference-drive-bands``: the same with row bands (``band_rows: 16``; the pipeline renders
-  every frame whole), and ``reference-drive-tiles`` with tiles of 16 x 16 pixels
-  (``band_rows: 16``, ``band_cols: 16``), measured in the same run, in that order.
+  every frame whole), measured in the same run.
 """
 
 from __future__ import annotations
@@ -96,44 +95,30 @@ def _drive_row(name: str, overrides: list[str], registry) -> BenchRow:
     extra = {"simulated_s": sim_s, "wall_s": wall, "frames": scene["frames"],
              "rendered_share": scene.get("rendered_share", 1.0),
              "band_rows": spec.stages[0].params.band_rows,
-             "band_cols": spec.stages[0].params.band_cols,
              "events": events, "event_rate_eps": events / sim_s,
              "thesis_event_rate_eps": 259_000,
              "scene_wall_s": stages["scene"]["wall_s"],
              "emulator_wall_s": stages.get("emulator", {}).get("wall_s")}
     return BenchRow(name, "scene+emulator", sim_s / wall, "sim s/s",
                     error=events / sim_s, error_name="event rate (events/s)", extra=extra,
-                    data=f"reference drive 0-{sim_s:g} s, rendered in the run" + _mode(spec),
+                    data=f"reference drive 0-{sim_s:g} s, rendered in the run"
+                         + (f", bands of {BAND_ROWS} rows" if "bands" in name else ""),
                     params_from=relative(PIPELINE))
 
 
-def _mode(spec) -> str:
-    p = spec.stages[0].params
-    if not p.band_rows:
-        return ""
-    return (f", tiles of {p.band_rows}x{p.band_cols}" if p.band_cols
-            else f", bands of {p.band_rows} rows")
-
-
-#: rows per band of the banded rows (``reference-drive-bands``, ``scene-bands``) and of the
-#: tiles (``reference-drive-tiles``, ``scene-tiles``)
+#: rows per band of the banded rows (``reference-drive-bands``, ``scene-bands``)
 BAND_ROWS = 16
-#: columns per tile of the tiled rows
-BAND_COLS = 16
 
 
 def reference_drive(quick: bool) -> list[BenchRow]:
     """The drive as the pipeline sets it (every frame rendered whole), then with row bands
-    (``band_rows`` :data:`BAND_ROWS`), then with tiles (and ``band_cols`` :data:`BAND_COLS`),
-    in one run so that all see the same load."""
+    (``band_rows`` :data:`BAND_ROWS`), in one run so that both see the same load."""
     from evchain.core.registry import make_registry
 
     registry = make_registry()
     base = ["scene.duration_s=1.0"] if quick else []
-    bands = [*base, f"scene.band_rows={BAND_ROWS}"]
     return [_drive_row("reference-drive", base, registry),
-            _drive_row("reference-drive-bands", bands, registry),
-            _drive_row("reference-drive-tiles", [*bands, f"scene.band_cols={BAND_COLS}"],
+            _drive_row("reference-drive-bands", [*base, f"scene.band_rows={BAND_ROWS}"],
                        registry)]
 
 

@@ -27,8 +27,8 @@ class SceneSource(Filter):
     Frames are emitted so that no pixel moves more than ``max_motion_px`` between two frames
     (from the exact motion field at the earlier frame), bounded by ``dt_min_us``/``dt_max_us``;
     ``dt_us`` fixes the step instead (thesis Table 4.4: 20 or 40 µs). ``band_rows`` renders
-    each band of rows (with ``band_cols``, each tile of a band) only at its own step and fills
-    the frames between by interpolation (:mod:`evchain.sim.bands`). Packets cover
+    each band of rows only at its own step and fills the frames between by interpolation
+    (:mod:`evchain.sim.bands`). Packets cover
     ``packet_us`` slices (shorter when ``max_frames_per_packet`` is reached). Sets
     ``context.geometry`` (with f, cx, cy), ``context.truth`` (flow, FOE, camera rotation, TTC,
     depth, object ids) and ``context.renderer`` (frames at any time, for picture sinks). With
@@ -58,10 +58,6 @@ class SceneSource(Filter):
             "slowly, at the cost of events that differ from whole frames' (changes faster than "
             "a band's step are smoothed or lost; docs/explanation/scene.md) and one packet "
             "more of frame memory; 0 (or dt_us): every frame rendered whole"))
-        band_cols: int = Field(0, ge=0, le=8192, description=(
-            "with band_rows: each band cut into tiles of this many columns, each rendered at "
-            "its own step as a band is (fewer pixels rendered where part of a band moves "
-            "slowly, more per-tile overhead); 0: whole rows"))
         max_frames_per_packet: int = Field(64, ge=1, le=100_000,
                                            description="bound on memory per packet")
         # threads != 1 also renders packets ahead in a background thread (_render_ahead)
@@ -82,9 +78,6 @@ class SceneSource(Filter):
         def _check_dt(self):
             if self.dt_min_us > self.dt_max_us:
                 raise ValueError(f"dt_min_us {self.dt_min_us} exceeds dt_max_us {self.dt_max_us}")
-            if self.band_cols and not self.band_rows:
-                raise ValueError(f"band_cols {self.band_cols} needs band_rows > 0 (tiles are "
-                                 "pieces of row bands)")
             return self
 
     @classmethod
@@ -122,18 +115,9 @@ class SceneSource(Filter):
     def time_span_us(self) -> tuple[int, int]:
         return (0, self.duration_us)
 
-    def next_dt_us(self, vmax_pxs: float | np.ndarray) -> int | np.ndarray:
-        """Frame interval after a frame whose fastest sample moves at ``vmax_pxs`` px/s (for an
-        array of speeds: the int64 array of intervals, elementwise)."""
+    def next_dt_us(self, vmax_pxs: float) -> int:
+        """Frame interval after a frame whose fastest sample moves at ``vmax_pxs``."""
         p = self.params
-        if np.ndim(vmax_pxs):
-            v = np.asarray(vmax_pxs, np.float64)
-            if p.dt_us is not None:
-                return np.full(v.shape, p.dt_us, np.int64)
-            with np.errstate(divide="ignore", over="ignore"):
-                dt = np.floor(p.max_motion_px / np.where(v > 0, v, 1.0) * 1e6)
-            return np.where(v > 0, np.clip(dt, p.dt_min_us, p.dt_max_us),
-                            p.dt_max_us).astype(np.int64)
         if p.dt_us is not None:
             return p.dt_us
         if vmax_pxs <= 0:
@@ -217,7 +201,7 @@ class SceneSource(Filter):
         if p.band_rows and p.dt_us is None:
             from evchain.sim.bands import BandFrames
 
-            bands = BandFrames(self.scene, p.band_rows, p.max_frames_per_packet, p.band_cols)
+            bands = BandFrames(self.scene, p.band_rows, p.max_frames_per_packet)
             seq = bands.frames(0, end, self.next_dt_us)
         else:
             def step(vmax: float) -> int:
@@ -255,9 +239,9 @@ class SceneSource(Filter):
             "speed_mps": p.speed_mps,
             "f_px": geom.f,
         }
-        if bands is not None:     # share of the emitted frames' pixels that were rendered
-            metrics["rendered_share"] = (bands.pixels_rendered / (bands.frames_emitted
-                                                                  * geom.height * geom.width)
+        if bands is not None:     # share of the emitted frames' pixel rows that were rendered
+            metrics["rendered_share"] = (bands.rows_rendered / (bands.frames_emitted
+                                                                * geom.height)
                                          if bands.frames_emitted else 1.0)
         self.context.metrics["scene"] = metrics
 

@@ -4,8 +4,7 @@ sample columns of a box's projection) and shaded in passes; the largest image sp
 bounds the next time step.
 
 Entry points: :func:`render` (a frame), :func:`render_rows` (every jstep-th row of a frame,
-for threads) and :func:`render_spans` (chosen column ranges of chosen rows, each tile of them
-with its own speed bound), all on
+for threads) and :func:`render_row_set` (chosen rows, each with its own speed bound), all on
 a :class:`~evchain.kernels.scene_geometry.FrameView` (the frame's camera and visible boxes) and
 a :class:`~evchain.kernels.scene_geometry.WorldArrays` (array layouts in
 :mod:`evchain.kernels.scene_geometry`).
@@ -48,18 +47,16 @@ def flow_terms(xbs, vc, wc):
 
 
 @njit(**_J)
-def row_vmax2(tm, lo, hi, yb, tb, f, vc, wc, m2):
-    """Largest squared motion-field magnitude (px/s)^2 over the samples lo <= c < hi of a row
-    at yb with depths tb[c] (the columns' terms tm from :func:`flow_terms`: the same
-    operations as :func:`~evchain.kernels.scene_geometry.flow_at`, in its order); m2: scratch
-    [n]. (Two loops over contiguous slices, both vectorised.)"""
-    a0 = tm[0, lo:hi]
-    a1 = tm[1, lo:hi]
-    a2 = tm[2, lo:hi]
-    a3 = tm[3, lo:hi]
-    a4 = tm[4, lo:hi]
-    tb = tb[lo:hi]
-    m2 = m2[lo:hi]
+def row_vmax2(tm, yb, tb, f, vc, wc, m2):
+    """Largest squared motion-field magnitude (px/s)^2 over the samples of a row at yb with
+    depths tb[c] (the columns' terms tm from :func:`flow_terms`: the same operations as
+    :func:`~evchain.kernels.scene_geometry.flow_at`, in its order); m2: scratch [n]. (Two
+    loops, both vectorised.)"""
+    a0 = tm[0]
+    a1 = tm[1]
+    a2 = tm[2]
+    a3 = tm[3]
+    a4 = tm[4]
     w2y = wc[2] * yb
     dv = -vc[1] + yb * vc[2]
     ev = wc[0] * (1.0 + yb * yb)
@@ -129,22 +126,18 @@ def visible_columns(vis, bbox, f, cx, k, n):
 def row_work(n):
     """Scratch arrays of one sample row of n samples: float64 [8, n], int32 [3, n] (small
     enough to stay in the L1 cache with the rest) and the per-block depth bound of blocks of 16
-    samples; the last is r0, r1 of the row whose directions the scratch holds (NaN: none) and
-    the sample columns [s0, s1) it holds them for."""
+    samples; the last pair is r0, r1 of the row whose directions the scratch holds (NaN: none)."""
     return (np.empty((8, n)), np.empty((3, n), np.int32), np.empty(n // 16 + 1),
-            np.full(4, np.nan))
+            np.full(2, np.nan))
 
 
 @njit(**_J)
-def render_row(j, x0, x1, tcols, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs,
-               ground, light, lit, tex, tex_inv, tex_off, vis, minz, bbox, vcol, xbs, tm, pcol,
-               fw, iw, bmax, rprev, lv_inv, lv_off, lv_mask, acc, out, v2):
-    """Render the pixel columns x0 <= i < x1 of image row j into out[j, x0:x1] (each pixel the
-    same bits as when the row renders whole) and write into v2[t] the largest squared image
-    speed of the first sample row over the columns of tile t (pixel columns
-    [t tcols, (t + 1) tcols)) within [x0, x1), for each tile t they meet (the time step's
-    bound on motion: the k sample rows of a pixel row differ by less than a pixel). A whole
-    row: x0 = 0, x1 = tcols = width.
+def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground, light,
+               lit, tex, tex_inv, tex_off, vis, minz, bbox, vcol, xbs, tm, pcol, fw, iw, bmax,
+               rprev, lv_inv, lv_off, lv_mask, acc, out):
+    """Render image row j into out[j]; return the largest squared image speed of its first
+    sample row (the time step's bound on motion: the k sample rows of a pixel row differ by
+    less than a pixel).
 
     Per sample row: the ground hit is one division (no roll: every ray of a row has the same
     world dz); each visible box whose projection's bounding rectangle contains the row gets its
@@ -156,11 +149,8 @@ def render_row(j, x0, x1, tcols, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat,
 
     lit: :func:`face_light`; tm: :func:`flow_terms`; pcol: pixel column of every sample;
     fw, iw, bmax, rprev: scratch (:func:`row_work`, kept between the rows of one frame);
-    acc: [W]. Only the samples of [x0, x1) are traced and shaded (a box's column range and
-    the depth bound of a block of 16 samples clipped to them); the ground's texture levels
-    are the whole row's (from its end columns). The arguments are those of
-    :func:`render_spans`' records, unpacked: passed as records to this per-row call they cost
-    5 % of the frame rate."""
+    acc: [W]. The arguments are those of :func:`render_rows`' records, unpacked: passed as
+    records to this per-row call they cost 5 % of the frame rate."""
     w = out.shape[1]
     n = w * k
     inv_k2 = 1.0 / (k * k)
@@ -169,12 +159,11 @@ def render_row(j, x0, x1, tcols, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat,
     ox = pos[0]
     oy = pos[1]
     oz = pos[2]
-    s0 = x0 * k            # the sample columns [s0, s1)
-    s1 = x1 * k
+    vmax2 = 0.0
     nvis = vis.shape[0]
-    accr = acc[x0:x1]
-    for i in range(x1 - x0):
-        accr[i] = 0.0
+    nblk = (n + 15) // 16
+    for i in range(w):
+        acc[i] = 0.0
     tb = fw[0]
     dxs = fw[1]
     dys = fw[2]
@@ -186,21 +175,6 @@ def render_row(j, x0, x1, tcols, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat,
     kd = iw[0]
     hid = iw[1]
     fc = iw[2]
-    # the range's samples as slices (loops over range(len) of a slice vectorise, loops over
-    # range(s0, s1) do not), made once per row
-    ns = s1 - s0
-    tbr = tb[s0:s1]
-    kdr = kd[s0:s1]
-    dxr = dxs[s0:s1]
-    dyr = dys[s0:s1]
-    pcr = pcol[s0:s1]
-    hir = hid[s0:s1]
-    fcr = fc[s0:s1]
-    gxr = gxs[s0:s1]
-    gyr = gys[s0:s1]
-    ixr = ixs[s0:s1]
-    iyr = iys[s0:s1]
-    xbr = xbs[s0:s1]
     xh0 = rot[0, 0]
     xh1 = rot[1, 0]
     sky0 = light[5]
@@ -215,35 +189,31 @@ def render_row(j, x0, x1, tcols, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat,
         if dz < 0.0 and oz > 0.0:
             tg = -oz / dz
             kind0 = 1
-        for c in range(ns):
-            tbr[c] = tg
-            kdr[c] = kind0          # hid and fc are read only where kd == 2
+        for c in range(n):
+            tb[c] = tg
+            kd[c] = kind0          # hid and fc are read only where kd == 2
         # the horizontal directions depend on the row only through r0, r1, which are the same
         # in every row when the camera does not pitch: recomputed (two divisions per sample)
-        # only when r0 or r1 differs from the row before, bit pattern and sign of zero
-        # included, or the columns held do not cover [s0, s1)
+        # only when r0 or r1 differs from the row before, bit pattern and sign of zero included
         if not (r0 == rprev[0] and r1 == rprev[1]
                 and math.copysign(1.0, r0) == math.copysign(1.0, rprev[0])
-                and math.copysign(1.0, r1) == math.copysign(1.0, rprev[1])
-                and rprev[2] <= s0 and s1 <= rprev[3]):
-            for c in range(ns):
-                xb = xbr[c]
+                and math.copysign(1.0, r1) == math.copysign(1.0, rprev[1])):
+            for c in range(n):
+                xb = xbs[c]
                 dx = xh0 * xb + r0
                 dy = xh1 * xb + r1
-                dxr[c] = dx
-                dyr[c] = dy
+                dxs[c] = dx
+                dys[c] = dy
                 ix = 1.0 / dx
                 iy = 1.0 / dy
-                ixr[c] = ix
-                iyr[c] = iy
+                ixs[c] = ix
+                iys[c] = iy
                 # texture footprints along u on faces of constant y and x, per unit of t
-                gxr[c] = abs(xh0 - dx * xh1 * iy) * fscale * TEXTURE_FOOTPRINT
-                gyr[c] = abs(xh1 - dy * xh0 * ix) * fscale * TEXTURE_FOOTPRINT
+                gxs[c] = abs(xh0 - dx * xh1 * iy) * fscale * TEXTURE_FOOTPRINT
+                gys[c] = abs(xh1 - dy * xh0 * ix) * fscale * TEXTURE_FOOTPRINT
             rprev[0] = r0
             rprev[1] = r1
-            rprev[2] = s0
-            rprev[3] = s1
-        for q in range(s0 >> 4, ((s1 - 1) >> 4) + 1):
+        for q in range(nblk):
             bmax[q] = tg
         iz = 1.0 / dz
         for q in range(nvis):
@@ -261,15 +231,13 @@ def render_row(j, x0, x1, tcols, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat,
             tzf = max(t1, t2)
             if tzf <= 0.0 or tzn >= tg:
                 continue
-            c0 = max(vcol[q, 0], s0)
-            c1 = min(vcol[q, 1], s1 - 1)
-            if c1 < c0:
-                continue
+            c0 = vcol[q, 0]
+            c1 = vcol[q, 1]
             ex0 = boxes[bq, 0] - ox
             ex1 = boxes[bq, 3] - ox
             ey0 = boxes[bq, 1] - oy
             ey1 = boxes[bq, 4] - oy
-            for blk in range(c0 >> 4, (c1 >> 4) + 1):
+            for blk in range(c0 >> 4, (c1 >> 4) + 1 if c1 >= c0 else c0 >> 4):
                 if mz >= bmax[blk]:
                     continue
                 lo = max(c0, blk << 4)
@@ -303,38 +271,34 @@ def render_row(j, x0, x1, tcols, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat,
                             fc[c] = 4 if dz > 0 else 5
                 if hit:
                     m = 0.0
-                    for c in range(max(s0, blk << 4), min(s1, (blk + 1) << 4)):
+                    for c in range(blk << 4, min(n, (blk + 1) << 4)):
                         if tb[c] > m:
                             m = tb[c]
                     bmax[blk] = m
         if b == 0:    # the speed bound of the time step: one sample row per pixel row is enough
-            for t in range(x0 // tcols, (x1 - 1) // tcols + 1):
-                v2[t] = row_vmax2(tm, max(s0, t * tcols * k), min(s1, (t + 1) * tcols * k),
-                                  yb, tb, f, vc, wc, m2s)
+            m2 = row_vmax2(tm, yb, tb, f, vc, wc, m2s)
+            if m2 > vmax2:
+                vmax2 = m2
         # shading in separate simple passes over the row (one huge inlined loop body compiles
         # to slower code): sky here, ground and box samples by their own kernels
         if kind0 == 1:      # texture levels for the row's largest ground footprint
-            dxa = xh0 * xbs[0] + r0         # the end columns' directions, as above
-            dya = xh1 * xbs[0] + r1
-            dxb = xh0 * xbs[n - 1] + r0
-            dyb = xh1 * xbs[n - 1] + r1
-            d2 = max(dxa ** 2 + dya ** 2, dxb ** 2 + dyb ** 2) + dz * dz
+            d2 = max(dxs[0] ** 2 + dys[0] ** 2, dxs[n - 1] ** 2 + dys[n - 1] ** 2) + dz * dz
             ground_levels(tg * fscale * d2 / (-dz), tex_inv, tex_off, lv_inv, lv_off, lv_mask)
-        for c in range(ns):
-            if kdr[c] == 0:
-                ddx = dxr[c]
-                ddy = dyr[c]
+        for c in range(n):
+            if kd[c] == 0:
+                ddx = dxs[c]
+                ddy = dys[c]
                 e = dz / math.sqrt(ddx * ddx + ddy * ddy + dz * dz)
                 if e < 0.0:
                     e = 0.0
-                acc[pcr[c]] += sky0 + (sky1 - sky0) * e
-        ground_pass(kdr, dxr, dyr, tg, ox, oy, pcr, segs, ground, light, tex, lv_inv, lv_off,
+                acc[pcol[c]] += sky0 + (sky1 - sky0) * e
+        ground_pass(kd, dxs, dys, tg, ox, oy, pcol, segs, ground, light, tex, lv_inv, lv_off,
                     lv_mask, acc)
-        box_pass(kdr, tbr, hir, fcr, dxr, dyr, gxr, gyr, ox, oy, oz, dz, pcr, box_mat, box_par,
+        box_pass(kd, tb, hid, fc, dxs, dys, gxs, gys, ox, oy, oz, dz, pcol, box_mat, box_par,
                  lit, acc)
-    outr = out[j, x0:x1]
-    for i in range(x1 - x0):
-        outr[i] = accr[i] * inv_k2
+    for i in range(w):
+        out[j, i] = acc[i] * inv_k2
+    return vmax2
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
@@ -360,26 +324,22 @@ def render_rows(frame, world, out, j0, jstep):
         The largest motion-field magnitude (px/s) over the first sample row of each of the
         rows.
     """
-    h, w = out.shape
-    v2 = np.zeros((h, 1))
-    rows = np.arange(h)
-    render_spans(frame, world, out, rows, np.zeros(h, np.int64), np.full(h, w), w, j0, jstep,
-                 v2)
+    h = out.shape[0]
+    row_v2 = np.zeros(h)
+    render_row_set(frame, world, out, np.arange(h), j0, jstep, row_v2)
     vmax2 = 0.0
     for j in range(j0, h, jstep):
-        if v2[j, 0] > vmax2:
-            vmax2 = v2[j, 0]
+        if row_v2[j] > vmax2:
+            vmax2 = row_v2[j]
     return math.sqrt(vmax2)
 
 
 @njit(cache=True, error_model="numpy", nogil=True)
-def render_spans(frame, world, out, rows, x0s, x1s, tcols, i0, istep, v2):
-    """Render the spans i = i0, i0 + istep, ... (threads take interleaved spans) of a frame
-    into ``out``: pixel row ``rows[i]``, columns ``x0s[i] <= x < x1s[i]`` (not empty), the same
-    values as :func:`render` there; write into ``v2[rows[i], t]`` (float64 [H, ceil(W /
-    tcols)]) the largest squared motion-field magnitude, (px/s)^2 over the first sample row,
-    within the span and tile t (columns [t tcols, (t + 1) tcols)), for each tile the span
-    meets. Other pixels of ``out`` and entries of ``v2`` are left as they are."""
+def render_row_set(frame, world, out, rows, i0, istep, row_v2):
+    """Render the rows ``rows[i0], rows[i0 + istep], ...`` of a frame into ``out`` (the same
+    values as :func:`render` in those rows; threads take interleaved entries) and write each
+    one's largest squared motion-field magnitude, (px/s)^2 over its first sample row, into
+    ``row_v2[row]`` (float64 [H]); other rows of ``out`` and ``row_v2`` are left as they are."""
     w = out.shape[1]
     k = frame.k
     xbs = sample_columns(w, k, frame.cx, frame.f)
@@ -392,11 +352,12 @@ def render_spans(frame, world, out, rows, x0s, x1s, tcols, i0, istep, v2):
     vcol = visible_columns(frame.vis, frame.bbox, frame.f, frame.cx, k, w * k)
     for i in range(i0, rows.shape[0], istep):
         j = rows[i]
-        render_row(j, x0s[i], x1s[i], tcols, frame.pos, frame.rot, frame.vc, frame.wc, frame.f,
-                   frame.cx, frame.cy, k, world.boxes, world.box_mat, world.box_par, world.segs,
-                   world.ground, world.light, lit, world.tex, world.tex_inv, world.tex_off,
-                   frame.vis, frame.minz, frame.bbox, vcol, xbs, tm, pcol, fw, iw, bmax, rprev,
-                   lv_inv, lv_off, lv_mask, acc, out, v2[j])
+        row_v2[j] = render_row(j, frame.pos, frame.rot, frame.vc, frame.wc, frame.f, frame.cx,
+                               frame.cy, k, world.boxes, world.box_mat, world.box_par,
+                               world.segs, world.ground, world.light, lit, world.tex,
+                               world.tex_inv, world.tex_off, frame.vis, frame.minz, frame.bbox,
+                               vcol, xbs, tm, pcol, fw, iw, bmax, rprev, lv_inv, lv_off, lv_mask,
+                               acc, out)
 
 
 @njit(cache=True, error_model="numpy", nogil=True)

@@ -1,15 +1,14 @@
-"""Frames of a drive at the global frame times, with each tile (a band of rows, or a block of
-columns of one) rendered only as often as its own motion needs (the ``scene`` source's
-``band_rows`` and ``band_cols``).
+"""Frames of a drive at the global frame times, with each band of rows rendered only as often
+as its own motion needs (the ``scene`` source's ``band_rows``).
 
-The global times are those of the fastest tile (no pixel of it moves more than the source's
-``max_motion_px`` between frames). A tile is rendered at a global time only if the next global
+The global times are those of the fastest band (no pixel of it moves more than the source's
+``max_motion_px`` between frames). A band is rendered at a global time only if the next global
 time would lie beyond its own step (the same rule for :data:`BAND_SPEED_MARGIN` times the
 fastest motion of its pixels, from the exact motion field at its last render); in the frames
-between two of its renders its pixels are the linear interpolation in intensity between them
-(:func:`interpolate_tiles`). A frame is emitted once every tile has been rendered at or after
+between two of its renders its rows are the linear interpolation in intensity between them
+(:func:`interpolate_band`). A frame is emitted once every band has been rendered at or after
 its time, so frames wait in a ring of ``capacity`` frames; when the ring would fill, every
-tile renders (bounded memory).
+band renders (bounded memory).
 """
 
 from __future__ import annotations
@@ -18,80 +17,81 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 
-from evchain.kernels.scene_bands import interpolate_tiles
+from evchain.kernels.scene_bands import interpolate_band
 from evchain.sim.drive import Scene
 
-#: a tile's step is the frame step for its fastest pixel's speed times this: a tile moves at
+#: a band's step is the frame step for its fastest pixel's speed times this: a band moves at
 #: most ``max_motion_px`` / 1.5 between its renders (at 1.0 the events of 0.1 s of the
 #: evaluation cell speed-27 differed from whole frames' by a median of 12 µs, at 1.5 by 0)
 BAND_SPEED_MARGIN = 1.5
 
 
 class BandFrames:
-    """Frames of ``scene`` with tiles of ``band_rows`` rows by ``band_cols`` columns (0: whole
-    rows, row bands) rendered at their own steps; the last tile of a row or column is shorter
-    when the size does not divide the image's."""
+    """Frames of ``scene`` with row bands of ``band_rows`` rows rendered at their own steps."""
 
-    def __init__(self, scene: Scene, band_rows: int, capacity: int, band_cols: int = 0):
-        if band_rows < 1 or capacity < 1 or band_cols < 0:
-            raise ValueError(f"band_rows {band_rows} and capacity {capacity} must be >= 1, "
-                             f"band_cols {band_cols} >= 0")
+    def __init__(self, scene: Scene, band_rows: int, capacity: int):
+        if band_rows < 1 or capacity < 1:
+            raise ValueError(f"band_rows {band_rows} and capacity {capacity} must be >= 1")
         cam = scene.camera
         self.scene = scene
         self.height, self.width = cam.height, cam.width
-        self.tile_cols = band_cols or self.width
-        self.edges = _edges(self.height, band_rows)         # rows of band b: edges[b:b + 2]
-        self.col_edges = _edges(self.width, self.tile_cols)
+        self.edges = np.arange(0, self.height + band_rows, band_rows).clip(max=self.height)
+        self.edges = np.unique(self.edges)
         self.capacity = capacity
-        #: pixels rendered and frames emitted so far (the share of pixels rendered)
-        self.pixels_rendered = 0
+        #: rows rendered and frames emitted so far (the share of pixel rows rendered)
+        self.rows_rendered = 0
         self.frames_emitted = 0
 
     @property
     def nbands(self) -> int:
         return len(self.edges) - 1
 
-    @property
-    def shape(self) -> tuple[int, int]:
-        """Tiles per column and per row of the image."""
-        return len(self.edges) - 1, len(self.col_edges) - 1
-
-    def frames(self, t_us: int, end_us: int, next_dt_us: Callable
+    def frames(self, t_us: int, end_us: int, next_dt_us: Callable[[float], int]
                ) -> Iterator[tuple[int, np.ndarray, int]]:
         """(t, frame, dt) for t = t_us, t + dt, ... while t < end_us; ``next_dt_us(v)`` is the
-        step after a frame whose fastest pixel moves at v px/s (it must not grow with v; for
-        a float array of speeds it returns the int64 array of steps)."""
-        (nb, nc), h, w, cap = self.shape, self.height, self.width, self.capacity
+        step after a frame whose fastest pixel moves at v px/s (it must not grow with v)."""
+        nb, h, w, cap = self.nbands, self.height, self.width, self.capacity
+        edges = self.edges
         ring = np.empty((cap, h, w), np.float32)
         ring_t = np.zeros(cap, np.int64)
         ring_dt = np.zeros(cap, np.int64)
-        start = np.empty((h, w), np.float32)      # each tile's pixels at its last render
-        last_t = np.full((nb, nc), -1, np.int64)
-        v = np.zeros((nb, nc))
-        tile_dt = np.zeros((nb, nc), np.int64)
-        v2 = np.zeros((h, nc))                   # per row and tile: squared speed bound
+        start = np.empty((h, w), np.float32)      # each band's rows at its last render
+        last_t = np.full(nb, -1, np.int64)
+        v = np.zeros(nb)
+        band_dt = np.zeros(nb, np.int64)
+        row_v2 = np.zeros(h)
+        band_rows = [np.arange(edges[b], edges[b + 1]) for b in range(nb)]
         head = count = 0
         t = t_us
         while t < end_us:
             slot = (head + count) % cap
             ring_t[slot] = t
-            done = np.zeros((nb, nc), bool)
+            done = np.zeros(nb, bool)
             force = count + 1 == cap        # the ring is full after this frame
             while True:
-                dt = int(next_dt_us(float(v.max())))
+                dt = next_dt_us(float(v.max()))
                 due = ~done & ((last_t < 0) | force | (t + dt >= end_us)
-                               | (t + dt > last_t + tile_dt))
+                               | (t + dt > last_t + band_dt))
                 if not due.any():
                     break
-                self._render_spans(t, ring[slot], *self._spans(due), v2)
-                band_v2 = np.maximum.reduceat(v2, self.edges[:-1], axis=0)
-                v[due] = np.sqrt(band_v2[due])
-                tile_dt[due] = next_dt_us(v[due] * BAND_SPEED_MARGIN)
+                due_bands = np.flatnonzero(due)
+                rows = np.concatenate([band_rows[b] for b in due_bands])
+                self._render_rows(t, ring[slot], rows, row_v2)
+                for b in due_bands:
+                    v[b] = np.sqrt(row_v2[edges[b]:edges[b + 1]].max())
+                    band_dt[b] = next_dt_us(float(v[b]) * BAND_SPEED_MARGIN)
                 done |= due
             ring_dt[slot] = dt
-            pending = np.arange(head, head + count) % cap
-            interpolate_tiles(ring, pending, ring_t[pending], done, last_t, self.edges,
-                              self.col_edges, start, t, slot)
+            pending = (np.arange(head, head + count) % cap)
+            pending_t = ring_t[pending]
+            for b in np.flatnonzero(done):
+                r0, r1 = edges[b], edges[b + 1]
+                if last_t[b] >= 0 and count:
+                    between = pending_t > last_t[b]
+                    if between.any():
+                        interpolate_band(ring, pending[between], pending_t[between], r0, r1,
+                                         start, last_t[b], t, slot)
+                start[r0:r1] = ring[slot, r0:r1]
             last_t[done] = t
             count += 1
             complete = last_t.min()
@@ -102,51 +102,31 @@ class BandFrames:
                 count -= 1
             t += dt
 
-    def _spans(self, due: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(rows, x0s, x1s) of the pieces of rows to render for the ``due`` tiles: each run of
-        due tiles next to each other in a band is one column range, rendered in each of the
-        band's rows (run by run, rows in order within a run)."""
-        nb, nc = due.shape
-        padded = np.zeros((nb, nc + 2), np.int8)
-        padded[:, 1:-1] = due
-        step = np.diff(padded, axis=1)
-        band, c0 = np.nonzero(step == 1)          # runs, band by band, left to right
-        c1 = np.nonzero(step == -1)[1]
-        first = self.edges[band]
-        nrows = self.edges[band + 1] - first
-        ends = np.cumsum(nrows)
-        rows = np.repeat(first - (ends - nrows), nrows) + np.arange(ends[-1])
-        return (rows, np.repeat(self.col_edges[c0], nrows),
-                np.repeat(self.col_edges[c1], nrows))
-
-    def _render_spans(self, t_us: int, out: np.ndarray, rows: np.ndarray, x0s: np.ndarray,
-                      x1s: np.ndarray, v2: np.ndarray) -> None:
-        """Render columns [x0s[i], x1s[i]) of rows[i] of the frame at t_us into ``out``
-        (contrast applied) and their tiles' speed bounds into ``v2``; spans spread over the
-        scene's threads."""
-        from evchain.kernels.scene_render import render_spans
+    def _render_rows(self, t_us: int, out: np.ndarray, rows: np.ndarray,
+                     row_v2: np.ndarray) -> None:
+        """Render ``rows`` of the frame at t_us into ``out`` (contrast applied) and their speed
+        bounds into ``row_v2``; rows spread over the scene's threads."""
+        from evchain.kernels.scene_render import render_row_set
 
         scene = self.scene
         frame, world, _ = scene._frame_args(t_us * 1e-6, out, scene._scratch())
-        args = (frame, world, out, rows, x0s, x1s, self.tile_cols)
         nt = min(scene._nthreads(), max(1, len(rows) // 8))
         if nt == 1:
-            render_spans(*args, 0, 1, v2)
+            render_row_set(frame, world, out, rows, 0, 1, row_v2)
         else:
             pool = scene._pool_of(scene._nthreads())
-            jobs = [pool.submit(render_spans, *args, i, nt, v2) for i in range(1, nt)]
-            render_spans(*args, 0, nt, v2)
+            jobs = [pool.submit(render_row_set, frame, world, out, rows, i, nt, row_v2)
+                    for i in range(1, nt)]
+            render_row_set(frame, world, out, rows, 0, nt, row_v2)
             for job in jobs:
                 job.result()
-        self.pixels_rendered += int((x1s - x0s).sum())
-        if scene.cfg.contrast != 1.0:       # by rectangles: runs of rows with one range
-            cut = (np.diff(rows) != 1) | (np.diff(x0s) != 0) | (np.diff(x1s) != 0)
-            firsts = np.concatenate([[0], np.flatnonzero(cut) + 1])
-            lasts = np.concatenate([firsts[1:], [len(rows)]]) - 1
-            for i, e in zip(firsts, lasts, strict=True):
-                scene._contrast(out[rows[i]:rows[e] + 1, x0s[i]:x1s[i]])
+        self.rows_rendered += len(rows)
+        if scene.cfg.contrast != 1.0:
+            for r0, r1 in _runs(rows):
+                scene._contrast(out[r0:r1])
 
 
-def _edges(n: int, size: int) -> np.ndarray:
-    """Edges 0, size, 2 size, ..., n of pieces of ``size`` (the last one shorter)."""
-    return np.unique(np.arange(0, n + size, size).clip(max=n)).astype(np.int64)
+def _runs(rows: np.ndarray) -> list[tuple[int, int]]:
+    """Consecutive runs [r0, r1) of the sorted ``rows``."""
+    cuts = np.flatnonzero(np.diff(rows) != 1) + 1
+    return [(int(p[0]), int(p[-1]) + 1) for p in np.split(rows, cuts)]

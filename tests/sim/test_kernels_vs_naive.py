@@ -496,7 +496,7 @@ def test_row_speed_maximum_vs_naive():
             vc[:2] = 0.0
             wc[:] = 0.0
             tb[:] = 0.0
-        got = row_vmax2(flow_terms(xbs, vc, wc), 0, n, yb, tb, 300.0, vc, wc, np.empty(n))
+        got = row_vmax2(flow_terms(xbs, vc, wc), yb, tb, 300.0, vc, wc, np.empty(n))
         want = N.row_speed2_max(xbs, yb, tb, 300.0, vc, wc)
         assert got == want, (trial, got, want)
 
