@@ -25,7 +25,6 @@ class EdgeArrivals:
     def __init__(self, height: int, width: int, gap_us: int = RUN_GAP_US):
         from evchain.kernels.edge_arrival import new_state
 
-        self.shape = (height, width)
         self.gap_us = int(gap_us)
         self._state = new_state(height, width)
 

@@ -147,8 +147,6 @@ class LKFlow(Filter):
             fast_px=q.fast_px)
 
     def reset(self) -> None:
-        from evchain.kernels.lk_flow import new_state
-
         self._density = DensityCounter(DENSITY_BIN_US)
         self._last = None
         g = self.context.geometry
@@ -157,9 +155,15 @@ class LKFlow(Filter):
         self._prm = None
         if g is not None:
             self._prm = self.kernel_params(g)
-            self._state = new_state(g.height, g.width, self.params.fifo_depth)
-            self._shape = (g.height, g.width)
-            self._arrivals = EdgeArrivals(g.height, g.width)
+            self._new_state(g)
+
+    def _new_state(self, g: Geometry) -> None:
+        """The kernel's per-pixel state and the pixels' runs (``t_edge``) for sensor ``g``."""
+        from evchain.kernels.lk_flow import new_state
+
+        self._state = new_state(g.height, g.width, self.params.fifo_depth)
+        self._shape = (g.height, g.width)
+        self._arrivals = EdgeArrivals(g.height, g.width)
 
     def process(self, packet: EventPacket) -> FlowPacket:
         from evchain.kernels.lk_flow import lk_flow_run
@@ -171,10 +175,7 @@ class LKFlow(Filter):
             if self._state is not None:
                 raise FilterError(f"lk_flow: sensor changed from {self._shape[1]}x"
                                   f"{self._shape[0]} to {g.width}x{g.height} mid-stream")
-            from evchain.kernels.lk_flow import new_state
-            self._state = new_state(g.height, g.width, self.params.fifo_depth)
-            self._shape = (g.height, g.width)
-            self._arrivals = EdgeArrivals(g.height, g.width)
+            self._new_state(g)
         n = len(packet)
         idx = np.empty(n, np.int64)
         vx = np.empty(n, np.float64)

@@ -157,24 +157,28 @@ class PlaneFlow(Filter):
             fast_px=q.fast_px)
 
     def reset(self) -> None:
-        from evchain.kernels.plane_flow import new_state
-
         g = self.context.geometry
-        self._state = None if g is None else new_state(g.width, g.height)
-        self._arrivals = None if g is None else EdgeArrivals(g.height, g.width)
-        self._prm = None if g is None else self.kernel_params(g)
+        self._state = self._arrivals = self._prm = None
+        if g is not None:
+            self._new_state(g)
         self._density = DensityCounter(DENSITY_BIN_US)
         self._end = None
         self._geometry = g
 
+    def _new_state(self, g: Geometry) -> None:
+        """The surface, the pixels' runs (``t_edge``) and the kernel's constants for ``g``."""
+        from evchain.kernels.plane_flow import new_state
+
+        self._state = new_state(g.width, g.height)
+        self._arrivals = EdgeArrivals(g.height, g.width)
+        self._prm = self.kernel_params(g)
+
     def process(self, packet: EventPacket) -> FlowPacket:
-        from evchain.kernels.plane_flow import new_state, plane_flow_kernel
+        from evchain.kernels.plane_flow import plane_flow_kernel
 
         g = packet.geometry
         if self._state is None or self._state.shape[1:] != (g.height, g.width):
-            self._state = new_state(g.width, g.height)
-            self._arrivals = EdgeArrivals(g.height, g.width)
-            self._prm = self.kernel_params(g)
+            self._new_state(g)
         self._geometry = g
         n = len(packet)
         idx = np.empty(n, np.int64)

@@ -26,12 +26,12 @@ class Ttc(Filter):
     Uses the latest estimate of the ``foe`` series (from ``foe_map`` upstream; nothing before
     the first one). Flow events below the FOE, within ``region_b_half_width_px`` of it
     horizontally, at least ``min_distance_px`` from it, diverging and of plausible speed give
-    one tau each: with ``baseline_px`` > 0 from where the edge was earlier (each pixel's last
-    flow-event time, walked back along the flow direction, at each step the newest of the
-    pixels up to ``baseline_width_px`` beside it along the edge: a baseline of up to
-    ``baseline_max_ms``, positions and times only; each time is the edge's arrival at the
-    pixel, the flow packet's ``t_edge``, while its run is shorter than ``edge_run_px`` px of
-    the edge's motion), else from the flow's magnitude. They are
+    one tau each: with ``baseline_px`` > 0 from where the edge was earlier (the edge's arrival
+    at each pixel, the flow packet's ``t_edge`` of the pixel's last flow event, or its own
+    time where the pixel's run spans more than ``edge_run_px`` px of the edge's motion; walked
+    back along the flow direction, at each step the newest of the pixels up to
+    ``baseline_width_px`` beside it along the edge: a baseline of up to ``baseline_max_ms``,
+    positions and times only), else from the flow's magnitude. They are
     assigned to square clusters (centre of mass, activity-weighted updates, growth, decay,
     removal below ``min_activity``). At every multiple of
     ``estimate_every_us`` each cluster's tau is the median of its recent samples, each moved
