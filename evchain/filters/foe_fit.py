@@ -358,7 +358,8 @@ class FoeFit(Filter):
         if ok:
             self._th, self._om = th, om
             self._counts["fits"] += 1
-            self._remember_road(T, th[k.FOE_Y], th[k.ROAD])  # a held fit at its held values
+            if held is None:
+                self._remember_road(T, th[k.FOE_Y], th[k.ROAD])
             if not warm:
                 self._warm_since = T
             if self._rotation:
@@ -384,10 +385,10 @@ class FoeFit(Filter):
         """(FOE row, road scale) to hold the fit ``th`` at, or None when it is not running away:
         the road's scale ``a0 = V / (f h)`` changes only with the car's speed, so a fit whose
         scale fell below ``min_road_scale_ratio`` times the median of the recent fits (the last
-        ``heading_memory_s`` of fits, a held fit at the values it was held at) while its FOE
-        row rose above theirs fits an approaching obstacle's rows (a fronto-parallel surface,
-        constant inverse time to contact) as road: the row and the scale are held at those
-        medians, and stay held while the free fit's row stays above the held one."""
+        ``heading_memory_s`` of fits not held) while its FOE row rose above theirs fits an
+        approaching obstacle's rows (a fronto-parallel surface, constant inverse time to
+        contact) as road: the row and the scale are held at those medians, and stay held while
+        the free fit's row stays above the held one."""
         from evchain.kernels import foe_fit as k
 
         if self._road_held is not None:  # held while the free fit's row stays above it
