@@ -332,9 +332,9 @@ class FoeFit(Filter):
             th[k.FOE_Y], th[k.ROAD] = held
             ok, inl, tot = run(th, om, free)
             found = probe.copy()
-        # a held FOE column is not the fit's: only the row can run away
+        # a held FOE column or row is not the fit's: only the free ones can run away
         far = math.hypot(th[k.FOE_X] - vx if free[0] else 0.0,
-                         th[k.FOE_Y] - vy) > self._max_deviation
+                         th[k.FOE_Y] - vy if held is None else 0.0) > self._max_deviation
         if ok and far and warm:
             # Far from the votes: the votes may be the wrong ones (at 15 m/s they err by 30-50 px
             # for seconds). Refit from them; keep the warm fit unless the votes' fit explains
