@@ -540,11 +540,13 @@ def _band_terms(w, lo, hi, om, g, th, margin, c, rho, u1, u2):
 @njit(cache=True, error_model="numpy")
 def _bands(xw, x_foe, nb, band_px, rat, bi, rho):
     """Each event's facade band ``bi[j]`` (:func:`_band_index`, from the FOE's column
-    ``x_foe``; a float64 holding the integer) and its ratio ``rho[j] = rat[bi[j]]``."""
-    for j in range(len(xw)):
-        i = _band_index(xw[j] - x_foe, nb, band_px)
-        bi[j] = i
-        rho[j] = rat[i]
+    ``x_foe``; a float64 holding the integer) and its ratio ``rho[j] = rat[bi[j]]``. Two
+    loops: the bands' alone vectorises, the look-up of the ratios does not (unsigned indices,
+    as in :func:`_sums`)."""
+    for j in range(np.uint64(len(xw))):
+        bi[j] = _band_index(xw[j] - x_foe, nb, band_px)
+    for j in range(np.uint64(len(xw))):
+        rho[j] = rat[np.uint64(bi[j])]
 
 
 @njit(cache=True, error_model="numpy")
