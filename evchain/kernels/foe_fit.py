@@ -519,22 +519,37 @@ def _band_terms(w, lo, hi, om, g, th, margin, c, rho, u1, u2):
     facade, with its predicted translational speed q and robust weight w, ``u1[j] = w q (s -
     c.Om)`` and ``u2[j] = w q^2`` (0 for the road's and the rest). One element-wise loop per
     slab without sums and without fastmath: the same bits however it is vectorised (unsigned
-    indices, as in :func:`_sums`)."""
+    indices, as in :func:`_sums`). A slab that does not turn is run without reading the
+    rotation coefficients: its rotational speeds, finite coefficients times 0, are zeros,
+    which change no term."""
     xw, yw, mx, my, s, e, cc0, cc1, cc2 = w
     xf, yf = th[0], th[1]
     a0, al, ar, has_road, has_l, has_r = _scales(th)
     for k in range(len(lo)):
         om0, om1, om2 = om[k, 0], om[k, 1], om[k, 2]
-        for j in range(np.uint64(lo[k]), np.uint64(hi[k])):
-            rot = cc0[j] * om0 + cc1[j] * om1 + cc2[j] * om2
-            _, _, wt, res, _, _, _, mr, _, _ = _event(
-                xw[j] - xf, yw[j] - yf, mx[j], my[j], s[j], rot, e[j] * g, a0, al, ar,
-                rho[j], has_road, has_l, has_r, margin, c)
-            tr = s[j] - rot
-            q = tr - res  # the predicted translational speed
-            wf = wt - mr * wt
-            u1[j] = wf * q * tr
-            u2[j] = wf * q * q
+        if om0 != 0.0 or om1 != 0.0 or om2 != 0.0:
+            for j in range(np.uint64(lo[k]), np.uint64(hi[k])):
+                rot = cc0[j] * om0 + cc1[j] * om1 + cc2[j] * om2
+                u1[j], u2[j] = _band_term(xw[j] - xf, yw[j] - yf, mx[j], my[j], s[j], rot,
+                                          e[j] * g, a0, al, ar, rho[j], has_road, has_l,
+                                          has_r, margin, c)
+        else:
+            for j in range(np.uint64(lo[k]), np.uint64(hi[k])):
+                u1[j], u2[j] = _band_term(xw[j] - xf, yw[j] - yf, mx[j], my[j], s[j], 0.0,
+                                          e[j] * g, a0, al, ar, rho[j], has_road, has_l,
+                                          has_r, margin, c)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _band_term(dxx, dyy, mxj, myj, sj, rot, wti, a0, al, ar, rho, has_road, has_l, has_r,
+               margin, c):
+    """One event's terms ``(u1, u2)`` of :func:`_band_terms` (arguments as :func:`_event`)."""
+    _, _, wt, res, _, _, _, mr, _, _ = _event(dxx, dyy, mxj, myj, sj, rot, wti, a0, al, ar, rho,
+                                              has_road, has_l, has_r, margin, c)
+    tr = sj - rot
+    q = tr - res  # the predicted translational speed
+    wf = wt - mr * wt
+    return wf * q * tr, wf * q * q
 
 
 @njit(cache=True, error_model="numpy")
