@@ -555,7 +555,8 @@ def _band_term(dxx, dyy, mxj, myj, sj, rot, wti, a0, al, ar, rho, has_road, has_
 @njit(cache=True, error_model="numpy")
 def _bands(xw, x_foe, nb, band_px, rat, bi, rho):
     """Each event's facade band ``bi[j]`` (:func:`_band_index`, from the FOE's column
-    ``x_foe``; a float64 holding the integer) and its ratio ``rho[j] = rat[bi[j]]``. Two
+    ``x_foe``; int32, half the memory of a float64 to write and read back) and its ratio
+    ``rho[j] = rat[bi[j]]``. Two
     loops: the bands' alone vectorises, the look-up of the ratios does not (unsigned indices,
     as in :func:`_sums`)."""
     for j in range(np.uint64(len(xw))):
@@ -844,7 +845,7 @@ def fit(events, i0, i1, T, g, th, om, free, probe, prm):
                  rat, nbe, prm.band_px)
     rotating = free[1] or free[2] or free[3]
     n = i1 - i0
-    rho, u1, u2, bi = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+    rho, u1, u2, bi = np.empty(n), np.empty(n), np.empty(n), np.empty(n, np.int32)
     if nb:  # the facades' bands at the FOE's column where the fit starts
         _bands(w[0], th[FOE_X], nb, prm.band_px, rat, bi, rho)
     else:
