@@ -81,13 +81,14 @@ class FoeFit(Filter):
 
     Each fit starts from the previous one, else from the latest ``foe_map`` estimate. When the
     fit fails (singular, fewer than ``min_inliers`` decayed inliers, or farther than
-    ``max_deviation_px`` from the voting estimate while a fit started from the votes explains
-    more of the flow: a larger decayed inlier weight) the voting estimate is emitted and the
-    next fit starts from it again. The ``foe_map`` entries move to series ``foe_votes``; series
-    ``foe`` gets one entry per fit (t, x, y, support = decayed inlier weight, total = decayed
-    weight of modelled events, the angular velocity wx, wy, wz of the latest
-    ``estimate_every_us`` in deg/s, 0 on an axis the mode holds, and ``rotation`` 1; 0 and
-    ``rotation`` 0 when the votes are emitted or the geometry has no focal length).
+    ``max_deviation_px`` from the voting estimate, in what it is free to move, while a fit
+    started from the votes explains more of the flow: a larger decayed inlier weight) the
+    voting estimate is emitted and the next fit starts from it again. The ``foe_map`` entries
+    move to series ``foe_votes``; series ``foe`` gets one entry per fit (t, x, y, support =
+    decayed inlier weight, total = decayed weight of modelled events, the angular velocity wx,
+    wy, wz of the latest ``estimate_every_us`` in deg/s, 0 on an axis the mode holds, and
+    ``rotation`` 1; 0 and ``rotation`` 0 when the votes are emitted or the geometry has no
+    focal length).
 
     A fit needs a voting estimate at most ``tau_ms`` old: with none yet, or none for longer
     (``foe_map`` withholds its estimates while the flow's directions agree no better than
@@ -332,9 +333,9 @@ class FoeFit(Filter):
             th[k.FOE_Y], th[k.ROAD] = held
             ok, inl, tot = run(th, om, free)
             found = probe.copy()
-        # a held FOE column is not the fit's: only the row can run away
+        # a held FOE column or row is not the fit's: only the free ones can run away
         far = math.hypot(th[k.FOE_X] - vx if free[0] else 0.0,
-                         th[k.FOE_Y] - vy) > self._max_deviation
+                         th[k.FOE_Y] - vy if held is None else 0.0) > self._max_deviation
         if ok and far and warm:
             # Far from the votes: the votes may be the wrong ones (at 15 m/s they err by 30-50 px
             # for seconds). Refit from them; keep the warm fit unless the votes' fit explains

@@ -520,3 +520,34 @@ def test_an_obstacle_filling_the_lower_view_does_not_pull_the_row_up():
     assert abs(np.median(held["y"][late]) - foe[1]) < 0.5
     # a fit or two run up before the hold starts (it needs the scale 3 % down)
     assert np.abs(held["y"] - foe[1])[held["t"] >= 500_000].max() < 2.0
+
+
+def test_a_held_row_is_not_measured_against_the_votes_row(monkeypatch):
+    """While the road's row is held (an obstacle fills the lower view) the row is not the fit's,
+    so only the column counts towards the distance from the votes: votes 60 px above the FOE
+    (the obstacle's rows and a pitching camera pull them up too) start no refit from them while
+    the row is held, and the held row is emitted, not theirs."""
+    from evchain.kernels import foe_fit as k
+
+    pk, foe = obstacle_packets()
+    above = []
+    for p in pk:
+        v = p.series["foe"].copy()
+        if p.t_start >= 1_200_000:
+            v["y"] = foe[1] - 60.0
+        above.append(p.replace(series={"foe": v}))
+    held_fits, restarts = [], []  # fits with the row held; those started from the votes
+    fit = k.fit
+
+    def spy(events, i0, i1, T, g, th, om, free, probe, prm):
+        if len(free) > 4 and not free[4]:
+            held_fits.append(T)
+            if math.isnan(th[k.LEFT]):  # facade scales unknown: a start from scratch
+                restarts.append(T)
+        return fit(events, i0, i1, T, g, th, om, free, probe, prm)
+
+    monkeypatch.setattr(k, "fit", spy)
+    s = _fit_stream(above)
+    late = s["t"] >= 1_300_000
+    assert len(held_fits) > 20 and not restarts
+    assert late.sum() == 70 and np.abs(s["y"][late] - foe[1]).max() < 2.0
