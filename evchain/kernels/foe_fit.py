@@ -556,9 +556,8 @@ def _band_term(dxx, dyy, mxj, myj, sj, rot, wti, a0, al, ar, rho, has_road, has_
 def _bands(xw, x_foe, nb, band_px, rat, bi, rho):
     """Each event's facade band ``bi[j]`` (:func:`_band_index`, from the FOE's column
     ``x_foe``; int32, half the memory of a float64 to write and read back) and its ratio
-    ``rho[j] = rat[bi[j]]``. Two
-    loops: the bands' alone vectorises, the look-up of the ratios does not (unsigned indices,
-    as in :func:`_sums`)."""
+    ``rho[j] = rat[bi[j]]``. Two loops: the bands' alone vectorises, the look-up of the ratios
+    does not (unsigned indices, as in :func:`_sums`)."""
     for j in range(np.uint64(len(xw))):
         bi[j] = _band_index(xw[j] - x_foe, nb, band_px)
     for j in range(np.uint64(len(xw))):
