@@ -24,7 +24,7 @@ LEVEL, PITCHING, TURNING = -1, 0, 1
 def _median(values: list) -> float:
     """np.median of a few floats, the same value bit for bit (NaN when one is NaN), without its
     array machinery."""
-    return math.nan if any(math.isnan(v) for v in values) else float(statistics.median(values))
+    return math.nan if any(map(math.isnan, values)) else float(statistics.median(values))
 
 
 class FoeFit(Filter):

@@ -519,32 +519,49 @@ def _band_terms(w, lo, hi, om, g, th, margin, c, rho, u1, u2):
     facade, with its predicted translational speed q and robust weight w, ``u1[j] = w q (s -
     c.Om)`` and ``u2[j] = w q^2`` (0 for the road's and the rest). One element-wise loop per
     slab without sums and without fastmath: the same bits however it is vectorised (unsigned
-    indices, as in :func:`_sums`)."""
+    indices, as in :func:`_sums`). A slab that does not turn is run without reading the
+    rotation coefficients: its rotational speeds, finite coefficients times 0, are zeros,
+    which change no term."""
     xw, yw, mx, my, s, e, cc0, cc1, cc2 = w
     xf, yf = th[0], th[1]
     a0, al, ar, has_road, has_l, has_r = _scales(th)
     for k in range(len(lo)):
         om0, om1, om2 = om[k, 0], om[k, 1], om[k, 2]
-        for j in range(np.uint64(lo[k]), np.uint64(hi[k])):
-            rot = cc0[j] * om0 + cc1[j] * om1 + cc2[j] * om2
-            _, _, wt, res, _, _, _, mr, _, _ = _event(
-                xw[j] - xf, yw[j] - yf, mx[j], my[j], s[j], rot, e[j] * g, a0, al, ar,
-                rho[j], has_road, has_l, has_r, margin, c)
-            tr = s[j] - rot
-            q = tr - res  # the predicted translational speed
-            wf = wt - mr * wt
-            u1[j] = wf * q * tr
-            u2[j] = wf * q * q
+        if om0 != 0.0 or om1 != 0.0 or om2 != 0.0:
+            for j in range(np.uint64(lo[k]), np.uint64(hi[k])):
+                rot = cc0[j] * om0 + cc1[j] * om1 + cc2[j] * om2
+                u1[j], u2[j] = _band_term(xw[j] - xf, yw[j] - yf, mx[j], my[j], s[j], rot,
+                                          e[j] * g, a0, al, ar, rho[j], has_road, has_l,
+                                          has_r, margin, c)
+        else:
+            for j in range(np.uint64(lo[k]), np.uint64(hi[k])):
+                u1[j], u2[j] = _band_term(xw[j] - xf, yw[j] - yf, mx[j], my[j], s[j], 0.0,
+                                          e[j] * g, a0, al, ar, rho[j], has_road, has_l,
+                                          has_r, margin, c)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _band_term(dxx, dyy, mxj, myj, sj, rot, wti, a0, al, ar, rho, has_road, has_l, has_r,
+               margin, c):
+    """One event's terms ``(u1, u2)`` of :func:`_band_terms` (arguments as :func:`_event`)."""
+    _, _, wt, res, _, _, _, mr, _, _ = _event(dxx, dyy, mxj, myj, sj, rot, wti, a0, al, ar, rho,
+                                              has_road, has_l, has_r, margin, c)
+    tr = sj - rot
+    q = tr - res  # the predicted translational speed
+    wf = wt - mr * wt
+    return wf * q * tr, wf * q * q
 
 
 @njit(cache=True, error_model="numpy")
 def _bands(xw, x_foe, nb, band_px, rat, bi, rho):
     """Each event's facade band ``bi[j]`` (:func:`_band_index`, from the FOE's column
-    ``x_foe``; a float64 holding the integer) and its ratio ``rho[j] = rat[bi[j]]``."""
-    for j in range(len(xw)):
-        i = _band_index(xw[j] - x_foe, nb, band_px)
-        bi[j] = i
-        rho[j] = rat[i]
+    ``x_foe``; int32, half the memory of a float64 to write and read back) and its ratio
+    ``rho[j] = rat[bi[j]]``. Two loops: the bands' alone vectorises, the look-up of the ratios
+    does not (unsigned indices, as in :func:`_sums`)."""
+    for j in range(np.uint64(len(xw))):
+        bi[j] = _band_index(xw[j] - x_foe, nb, band_px)
+    for j in range(np.uint64(len(xw))):
+        rho[j] = rat[np.uint64(bi[j])]
 
 
 @njit(cache=True, error_model="numpy")
@@ -827,7 +844,7 @@ def fit(events, i0, i1, T, g, th, om, free, probe, prm):
                  rat, nbe, prm.band_px)
     rotating = free[1] or free[2] or free[3]
     n = i1 - i0
-    rho, u1, u2, bi = np.empty(n), np.empty(n), np.empty(n), np.empty(n)
+    rho, u1, u2, bi = np.empty(n), np.empty(n), np.empty(n), np.empty(n, np.int32)
     if nb:  # the facades' bands at the FOE's column where the fit starts
         _bands(w[0], th[FOE_X], nb, prm.band_px, rat, bi, rho)
     else:

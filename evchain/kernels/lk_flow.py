@@ -393,8 +393,9 @@ def _gather_calibrated(last, second, fifo, k, xe, ye, te, tmin, w_inv, R, S, d, 
             xx = xe - R + i
             oldest = last[k, yy, xx]
             if oldest < tmin:
-                F[i, j] = 0.0
-                V[i, j] = 0.0
+                if d:
+                    F[i, j] = 0.0
+                    V[i, j] = 0.0
                 continue
             if has2 and second[k, yy, xx] >= tmin:
                 oldest = second[k, yy, xx]
@@ -404,11 +405,13 @@ def _gather_calibrated(last, second, fifo, k, xe, ye, te, tmin, w_inv, R, S, d, 
                         break
                     oldest = ts
             fv = 1.0 - (te - oldest) * w_inv
-            F[i, j] = fv
-            V[i, j] = 1.0
+            if d:
+                F[i, j] = fv
+                V[i, j] = 1.0
             if i >= d and i < S - d and not jm:
-                LI[m_list] = i
-                LJ[m_list] = j
+                if d:
+                    LI[m_list] = i
+                    LJ[m_list] = j
                 PU[m_list] = float(i - R)
                 PW[m_list] = float(j - R)
                 FV[m_list] = fv

@@ -371,12 +371,10 @@ def _recent_tau(ST, SV, k, nb, T, max_age_us, buf):
 
 
 @njit(cache=True)
-def _newest(ST, k, nb):
-    """The time of cluster k's newest sample (µs)."""
-    t = -math.inf
-    for j in range(nb):
-        t = max(t, ST[k, j])
-    return t
+def _newest(ST, c, k):
+    """The time of cluster ``c``'s (slot k's) newest sample (µs): the last one added (events
+    come in time order; the cluster has at least one sample)."""
+    return ST[k, (c.ring_pos - 1) % ST.shape[1]]
 
 
 @njit(cache=True)
@@ -424,7 +422,7 @@ def _cluster_estimate(cl, k, ST, SV, SK, T, k_ground, buf, prm):
     if n < prm.min_samples:
         return
     med, mad = _median_mad(buf, n)
-    c.t_meas = _newest(ST, k, nb)
+    c.t_meas = _newest(ST, c, k)
     c.spread = 1.4826 * mad / med if med > 0.0 else math.inf
     sigma = 1.4826 * mad / math.sqrt(n) + prm.rel_floor * abs(med)
     _fuse(c, med, sigma * sigma + 1e-12, T, prm.gate)

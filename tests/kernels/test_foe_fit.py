@@ -312,7 +312,8 @@ def test_warp_moves_a_far_point_with_the_pitch():
 def test_one_pass_matches_naive_normal_equations():
     # the vectorised passes (reassociated sums) against the plain J^T W J, J^T W r on random
     # rotating input and on hard events; NaN and set scales; the shared sums and every slab's;
-    # two slabs do not turn (0 and -0: summed without the rotation coefficients)
+    # two slabs do not turn (0 and -0: summed, and their band terms made, without the rotation
+    # coefficients)
     rng = np.random.default_rng(9)
     foe = (159.5, 119.5)
     om = _slabs(pitch_deg_s=6.0, yaw_deg_s=9.0, roll_deg_s=1.0, n=8)
