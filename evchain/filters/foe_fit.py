@@ -392,9 +392,8 @@ class FoeFit(Filter):
         the free fit's row stays above the held one."""
         from evchain.kernels import foe_fit as k
 
-        if self._road_held is not None:  # held while the free fit still runs away
-            y, a0 = self._road_held
-            if th[k.FOE_Y] < y and th[k.ROAD] < self.params.min_road_scale_ratio * a0:
+        if self._road_held is not None:  # held while the free fit's row stays above it
+            if th[k.FOE_Y] < self._road_held[0]:
                 return self._road_held
             self._road_held = None
             return None
