@@ -119,3 +119,26 @@ def test_plot_imu_rate_row():
     assert math.isfinite(row.throughput) and row.throughput > 0
     assert row.error is None and row.error_name.startswith("none")  # a plot estimates nothing
     assert row.extra["bins"] > 0 and row.extra["png_bytes"] > 1000
+
+
+def test_workloads_run_with_blas_on_one_thread():
+    """BLAS's idle worker threads spin and CPU time counts them: `bench.run` limits BLAS to one
+    thread while the workloads run, and gives the previous limits back afterwards."""
+    from threadpoolctl import threadpool_info
+
+    from evchain import bench
+
+    def blas_threads():
+        return [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+
+    np.dot(np.ones((64, 64)), np.ones((64, 64)))      # numpy's BLAS is loaded
+    before = blas_threads()
+    seen = []
+
+    def workload(quick):
+        seen.extend(blas_threads())
+        return [bench.BenchRow("probe", "none", 1.0, "calls/s", data="nothing")]
+
+    bench.run({"probe": workload}, echo=lambda s: None)
+    assert seen and set(seen) == {1}
+    assert blas_threads() == before
