@@ -137,7 +137,8 @@ class FoeMap(Filter):
         self._geometry: Geometry | None = None
         self._state = None
         self._started = False
-        self._counts = {"reads": 0, "estimates": 0, "no votes yet": 0, "noise-level": 0}
+        self._reads = 0       # reads due (the noise-level ones are counted by the kernel)
+        self._estimates = 0   # estimates emitted
 
     def _allocate(self, geometry: Geometry) -> None:
         from evchain.kernels import foe_map as k
@@ -161,13 +162,11 @@ class FoeMap(Filter):
             cos_gate=math.cos(math.radians(p.max_angle_deg)) if gate_on else -1.0,
             gate_on=gate_on, period_us=p.estimate_every_us, refine_fraction=p.refine_fraction,
             min_support=p.min_support, speed_w0=derived(p.speed_weight_pxs, 5.0, geometry),
-            cx=cx, cy=cy,
-            radius=r, x0=x0, y0=y0)
-        #: ln(M / significance), M = the cells of A (the union bound of the noise test)
-        cells = int(np.maximum(hi - lo + 1, 0).sum())
-        self._log_m_alpha = (math.log(cells / p.significance) if p.significance is not None
-                             else None)
+            cx=cx, cy=cy, radius=r, x0=x0, y0=y0, noise_test=p.significance is not None,
+            log_m_alpha=self._log_m_alpha(lo, hi))
         self._period = int(p.estimate_every_us)
+        self._cell = int(p.cell_px)
+        self._next_read = self._state.carry["next_read"]  # a view: the kernel's next read
         self._kernel = k
 
     def process(self, packet: FlowPacket) -> FlowPacket:
@@ -183,46 +182,38 @@ class FoeMap(Filter):
         if not self._started:
             k.start(self._state, -(-packet.t_start // period) * period)
             self._started = True
-        n_max = max(0, -(-(packet.t_end - k.next_read(self._state)) // period))
-        self._counts["reads"] += n_max
+        n_max = max(0, -(-(packet.t_end - int(self._next_read[0])) // period))
+        self._reads += n_max
         out = np.zeros(n_max, FOE.dtype)  # the kernel writes position and weights; no rotation
-        n_votes = np.empty(n_max)
-        cell = self.params.cell_px
+        cell = self._cell
         if cell == 1:
             x, y = packet.x, packet.y
         else:
             x, y = to_cells(packet.x, cell), to_cells(packet.y, cell)
         n = k.process(x, y, packet.t, packet.vx, packet.vy, self._state_arrays, self._prm,
-                      int(packet.t_end), out, n_votes)
+                      int(packet.t_end), out)
         if n < n_max:
             out = out[:n]
-        self._counts["no votes yet"] += n_max - n
-        if self._log_m_alpha is not None and n:
-            keep = self._above_noise(out, n_votes[:n])
-            if not all(keep):
-                out = out[np.array(keep, bool)]
-        self._counts["estimates"] += len(out)
+        self._estimates += n
         if cell != 1:
             out["x"] = from_cells(out["x"], cell)
             out["y"] = from_cells(out["y"], cell)
         return packet.with_series("foe", out)
 
-    def _above_noise(self, out: np.ndarray, n_votes: np.ndarray) -> list[bool]:
-        """Which estimates' consensus (support / total) exceeds the noise bound given their
-        effective numbers of votes."""
-        lma = self._log_m_alpha
-        keep = [n > 0.0 and sup > (0.5 + math.sqrt(lma / (2.0 * n))) * tot
-                for n, sup, tot in zip(n_votes.tolist(), out["support"].tolist(),
-                                       out["total"].tolist(), strict=True)]
-        self._counts["noise-level"] += len(keep) - sum(keep)
-        return keep
+    def _log_m_alpha(self, lo: np.ndarray, hi: np.ndarray) -> float:
+        """ln(M / significance), M = the cells of A (the union bound of the noise test); 0.0
+        when the test is off."""
+        if self.params.significance is None:
+            return 0.0
+        cells = int(np.maximum(hi - lo + 1, 0).sum())
+        return math.log(cells / self.params.significance)
 
     def flush(self):
-        c = self._counts
+        noise = 0 if self._state is None else int(self._state.carry["noise_level"][0])
         self.context.metrics[self.metrics_key("foe_map")] = {
-            "reads": c["reads"], "estimates": c["estimates"],
-            "no_estimate": {"no votes yet": c["no votes yet"],
-                            "consensus at noise level": c["noise-level"]}}
+            "reads": self._reads, "estimates": self._estimates,
+            "no_estimate": {"no votes yet": self._reads - self._estimates - noise,
+                            "consensus at noise level": noise}}
         return None
 
     def map_now(self, t_us: int) -> np.ndarray:

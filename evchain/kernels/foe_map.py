@@ -32,7 +32,8 @@ State (:class:`FoeMapState`, from :func:`new_state`; constants: :func:`new_param
 * ``carry``: one record of :data:`CARRY`: the weights' reference time ``t_ref`` (µs), the next
   read (µs), whether an estimate exists and whether votes arrived since the last read; the
   votes covering all of A (``whole``), the last estimate (x, y, its maximum), the total
-  weight of accepted votes (map units) and the sum of their squared weights (``total2``);
+  weight of accepted votes (map units), the sum of their squared weights (``total2``) and the
+  number of estimates dropped at noise level (``noise_level``);
 * ``mbuf`` [rows, cols]: the dense map of a read.
 """
 
@@ -44,7 +45,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit
 
-from evchain.kernels.intrinsics import from_bits
+from evchain.kernels.intrinsics import float_bits, from_bits
 
 #: rows of ``rowv``: constR, the caps' and the touching votes' difference arrays
 CONST_R, CAPS, TOUCH = range(3)
@@ -53,16 +54,19 @@ CONST_R, CAPS, TOUCH = range(3)
 ROW_MAX, ROW_MIN, ROW_WHOLE, ROW_TOUCH, ROW_VALID, ROW_FULL = range(6)
 CARRY = np.dtype([("t_ref", "i8"), ("next_read", "i8"), ("has_estimate", "i8"), ("dirty", "i8"),
                   ("whole", "f8"), ("est_x", "f8"), ("est_y", "f8"), ("est_max", "f8"),
-                  ("total", "f8"), ("total2", "f8")])
+                  ("total", "f8"), ("total2", "f8"), ("noise_level", "i8")])
 
 
 #: the constants of :func:`process` (one record, not a named tuple: numba types it faster per
 #: call, and a packet's votes are cheap); fields as in :class:`~evchain.filters.foe_map.FoeMap`'s
-#: parameters, in µs, px/s and map cells; ``cos_gate``: cos of the gate's largest angle
+#: parameters, in µs, px/s and map cells; ``cos_gate``: cos of the gate's largest angle;
+#: ``noise_test``: drop estimates whose consensus is at noise level (:func:`_above_noise`), with
+#: ``log_m_alpha`` = ln(M / significance), M the cells of A
 PARAMS = np.dtype([("tau_us", "f8"), ("min_speed_pxs", "f8"), ("gate_on", "?"),
                    ("cos_gate", "f8"), ("period_us", "i8"), ("refine_fraction", "f8"),
                    ("min_support", "f8"), ("speed_w0", "f8"), ("cx", "f8"), ("cy", "f8"),
-                   ("radius", "f8"), ("x0", "i8"), ("y0", "i8")])
+                   ("radius", "f8"), ("x0", "i8"), ("y0", "i8"), ("noise_test", "?"),
+                   ("log_m_alpha", "f8")])
 
 
 def new_params(**values) -> np.ndarray:
@@ -103,11 +107,6 @@ def new_state(lo: np.ndarray, hi: np.ndarray, clo: np.ndarray, chi: np.ndarray) 
 def start(state: FoeMapState, first_read_us: int) -> None:
     """Set the first read (µs)."""
     state.carry["next_read"] = first_read_us
-
-
-def next_read(state: FoeMapState) -> int:
-    """The next read, µs."""
-    return int(state.carry["next_read"][0])
 
 
 def forget_row_bounds(state: FoeMapState) -> None:
@@ -292,7 +291,6 @@ def refresh(diffR, rowv, diffC, constC, lo, hi, x0, whole, total, rst, out, refi
             need[r] = True
             last = r
     _row_prefixes(diffR, lo, hi, x0, need, out)
-    keys = out.view(np.int64)
     cacc = np.zeros(nx, np.float64)
     ccum = np.cumsum(constC)
     best = -np.inf
@@ -303,19 +301,19 @@ def refresh(diffR, rowv, diffC, constC, lo, hi, x0, whole, total, rst, out, refi
         for c in range(nx):
             cacc[c] += diffC[r, c]
         if need[r]:
-            # the map values (the same sums in the same order as materialize), then the row's
-            # extrema over order-preserving int64 keys: integer max/min reductions vectorise,
-            # floating-point ones do not
+            # the map values (the same sums in the same order as materialize) and, in the same
+            # pass, the row's extrema over their order-preserving int64 keys: integer max/min
+            # reductions vectorise, floating-point ones do not
             # (unsigned indices: numba's negative-index wraparound stops vectorisation)
             a = np.uint64(lo[r] - x0)
             b = np.uint64(hi[r] - x0 + 1)
             base = whole + rc
-            for c in range(a, b):
-                out[r, c] = base + out[r, c] + ccum[c] + cacc[c]
             kb = np.int64(-0x7FFFFFFFFFFFFFFF)
             kw = np.int64(0x7FFFFFFFFFFFFFFF)
             for c in range(a, b):
-                k = keys[r, c]
+                v = base + out[r, c] + ccum[c] + cacc[c]
+                out[r, c] = v
+                k = float_bits(v)
                 k = k ^ ((k >> 63) & _SIGN)
                 kb = max(kb, k)
                 kw = min(kw, k)
@@ -419,101 +417,6 @@ def _span(m, h, origin, count, disc):
     return k0, k1
 
 
-@njit(cache=True, error_model="numpy", inline="always")
-def _vote_columns(px, py, fvx, fvy, w, xm, hx, disc, diffC, constC, rowv, clo, chi, x0, y0):
-    """A vote whose boundary is steeper than 45 degrees (|vx| >= |vy|): the columns it crosses
-    (chord centre ``xm`` +- ``hx``) get their interval's start in ``diffC`` (and the whole
-    column in ``constC`` for an interval that starts at the column's first cell); the columns
-    before and after, wholly on one side, one range update each in ``constC``; every row may
-    be reached (``rowv[TOUCH]``)."""
-    ncol = clo.shape[0]
-    rowv[TOUCH, 0] += w           # may reach every row
-    rowv[TOUCH, rowv.shape[1] - 1] -= w
-    k0, k1 = _span(xm, hx, x0, ncol, disc)
-    # vy > 0: +w to the columns' rows before the boundary (constC), -w from it on; vy < 0: +w
-    # from it on. One path for both (selects, not branches: the sign is random); adding 0.0
-    # changes nothing. vy = 0: +w to the whole column where its first cell is inside
-    level = fvy == 0.0
-    sl = fvx / fvy
-    cw = w if fvy > 0.0 else 0.0
-    sw = -w if fvy > 0.0 else w
-    if not level and k1 >= k0:
-        constC[k0] += cw
-        constC[k1 + 1] -= cw
-    for c in range(k0, k1 + 1):
-        if chi[c] < clo[c]:
-            continue
-        if level:
-            if (px - (x0 + c)) * fvx > 0.0:
-                diffC[clo[c] - y0, c] += w
-        else:
-            k = _first(clo[c], chi[c], float(x0 + c), py, px, fvy, fvx, sl)
-            diffC[k - y0, c] += sw
-    # the columns before and after: wholly on one side; test one cell each
-    c = min(k0, ncol) - 1
-    while c >= 0 and chi[c] < clo[c]:
-        c -= 1
-    cc = max(c, 0)
-    cw = w if (c >= 0) & _cond(px, py, fvx, fvy, float(x0 + cc), float(clo[cc])) else 0.0
-    constC[0] += cw
-    constC[min(k0, ncol)] -= cw
-    first = k1 + 1 if k1 >= k0 else ncol
-    c = first
-    while c < ncol and chi[c] < clo[c]:
-        c += 1
-    cc = min(c, ncol - 1)
-    cw = w if (c < ncol) & _cond(px, py, fvx, fvy, float(x0 + cc), float(clo[cc])) else 0.0
-    constC[first] += cw
-    constC[ncol] -= cw
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _vote_rows(px, py, fvx, fvy, w, ym, hy, disc, diffR, rowv, lo, hi, x0, y0):
-    """A vote whose boundary is flatter than 45 degrees: as :func:`_vote_columns` with rows
-    and columns swapped (``diffR``, ``rowv[CONST_R]``), and the rows crossed, before and after
-    recorded for the reads' bounds (``rowv[TOUCH]``, ``rowv[CAPS]``)."""
-    nrow = lo.shape[0]
-    k0, k1 = _span(ym, hy, y0, nrow, disc)
-    if k1 >= k0:                # the rows crossed
-        rowv[TOUCH, k0] += w
-        rowv[TOUCH, k1 + 1] -= w
-    level = fvx == 0.0
-    sl = fvy / fvx
-    cw = w if fvx > 0.0 else 0.0
-    sw = -w if fvx > 0.0 else w
-    if not level and k1 >= k0:
-        rowv[CONST_R, k0] += cw
-        rowv[CONST_R, k1 + 1] -= cw
-    for r in range(k0, k1 + 1):
-        if hi[r] < lo[r]:
-            continue
-        if level:
-            if (py - (y0 + r)) * fvy > 0.0:
-                diffR[r, lo[r] - x0] += w
-        else:
-            k = _first(lo[r], hi[r], float(y0 + r), px, py, fvx, fvy, sl)
-            diffR[r, k - x0] += sw
-    r = min(k0, nrow) - 1
-    while r >= 0 and hi[r] < lo[r]:
-        r -= 1
-    rc = max(r, 0)
-    cw = w if (r >= 0) & _cond(px, py, fvx, fvy, float(lo[rc]), float(y0 + rc)) else 0.0
-    rowv[CONST_R, 0] += cw
-    rowv[CONST_R, min(k0, nrow)] -= cw
-    rowv[CAPS, 0] += cw
-    rowv[CAPS, min(k0, nrow)] -= cw
-    first = k1 + 1 if k1 >= k0 else nrow
-    r = first
-    while r < nrow and hi[r] < lo[r]:
-        r += 1
-    rc = min(r, nrow - 1)
-    cw = w if (r < nrow) & _cond(px, py, fvx, fvy, float(lo[rc]), float(y0 + rc)) else 0.0
-    rowv[CONST_R, first] += cw
-    rowv[CONST_R, nrow] -= cw
-    rowv[CAPS, first] += cw
-    rowv[CAPS, nrow] -= cw
-
-
 @njit(cache=True, error_model="numpy")
 def _renormalise(state, s):
     """Scale every map by ``s`` (the weights' reference time moves on); forget the rows' bounds."""
@@ -573,14 +476,24 @@ def _accepted(px, py, fvx, fvy, s2, g, prm):
     return not rn > 1.0 or (rx * fvx + ry * fvy) / (rn * math.sqrt(s2)) >= prm.cos_gate
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _above_noise(sup, tot, total, total2, prm):
+    """Whether an estimate's consensus ``sup / tot`` exceeds the noise bound
+    1/2 + sqrt(ln(M / significance) / (2 n)), n = total^2 / total2 the effective number of
+    votes (always true without ``prm.noise_test``)."""
+    if not prm.noise_test:
+        return True
+    n = total * total / total2 if total2 > 0.0 else 0.0
+    return n > 0.0 and sup > (0.5 + math.sqrt(prm.log_m_alpha / (2.0 * n))) * tot
+
+
 @njit(cache=True, error_model="numpy")
-def process(x, y, t, vx, vy, state, prm, t_end, out, n_votes):
+def process(x, y, t, vx, vy, state, prm, t_end, out):
     """Vote with every flow event of a packet; read estimates at multiples of ``period_us``.
 
     A read at time T sees exactly the events with t < T. Reads happen before the first event at
     or after T, and at the end for every T < ``t_end``. Each vote covers all of A (O(1)), none
-    of it, or the rows (columns) its boundary crosses plus two caps (:func:`_vote_rows`,
-    :func:`_vote_columns`).
+    of it, or the rows (columns) its boundary crosses plus two caps.
 
     Parameters
     ----------
@@ -598,9 +511,9 @@ def process(x, y, t, vx, vy, state, prm, t_end, out, n_votes):
     t_end : int
         End of the packet's time slice, µs.
     out : structured ndarray (t, x, y, support, total)
-        Out: the estimates (t µs, position in cells, decayed support and total votes).
-    n_votes : float64 ndarray, shape (>= estimates,)
-        Out: per estimate, the effective number of votes (sum w)^2 / sum w^2.
+        Out: the estimates (t µs, position in cells, decayed support and total votes); an
+        estimate at noise level (:func:`_above_noise`) is not written but counted in
+        ``carry.noise_level``.
 
     Returns
     -------
@@ -637,9 +550,12 @@ def process(x, y, t, vx, vy, state, prm, t_end, out, n_votes):
                 scale = math.exp(-(t_read - t_ref) / tau_us)
                 sup = g.est_max * scale
                 if sup >= p.min_support and n_out < out.shape[0]:
-                    _emit(out, n_out, t_read, g.est_x, g.est_y, sup, total * scale)
-                    n_votes[n_out] = total * total / total2 if total2 > 0.0 else 0.0
-                    n_out += 1
+                    tot = total * scale
+                    if _above_noise(sup, tot, total, total2, p):
+                        _emit(out, n_out, t_read, g.est_x, g.est_y, sup, tot)
+                        n_out += 1
+                    else:
+                        g.noise_level += 1
             dirty = 0
             t_read = t_read + p.period_us
         if i >= n:
@@ -678,12 +594,108 @@ def process(x, y, t, vx, vy, state, prm, t_end, out, n_votes):
                 inv = 1.0 / s2
                 disc = rr2 * s2 - dn * dn
                 sq = math.sqrt(disc) * inv if disc > 0.0 else 0.0
+                # the votes are written out here, not in functions inlined by numba: their
+                # array arguments cost atomic refcount operations at every vote
                 if abs(fvx) >= abs(fvy):
-                    _vote_columns(px, py, fvx, fvy, w, cx + dn * fvx * inv, sq * abs(fvy),
-                                  disc, diffC, constC, rowv, clo, chi, x0, y0)
+                    # a boundary steeper than 45 degrees: the columns it crosses (chord centre
+                    # xm +- hx) get their interval's start in diffC (and the whole column in
+                    # constC for an interval that starts at the column's first cell); the
+                    # columns before and after, wholly on one side, one range update each in
+                    # constC; every row may be reached (rowv[TOUCH])
+                    xm = cx + dn * fvx * inv
+                    hx = sq * abs(fvy)
+                    ncol = clo.shape[0]
+                    rowv[TOUCH, 0] += w
+                    rowv[TOUCH, rowv.shape[1] - 1] -= w
+                    k0, k1 = _span(xm, hx, x0, ncol, disc)
+                    # vy > 0: +w to the columns' rows before the boundary (constC), -w from it
+                    # on; vy < 0: +w from it on. One path for both (selects, not branches: the
+                    # sign is random); adding 0.0 changes nothing. vy = 0: +w to the whole
+                    # column where its first cell is inside
+                    level = fvy == 0.0
+                    sl = fvx / fvy
+                    cw = w if fvy > 0.0 else 0.0
+                    sw = -w if fvy > 0.0 else w
+                    u0, u1 = k0, k1 + 1
+                    if level:
+                        for c in range(u0, u1):
+                            if chi[c] >= clo[c] and (px - (x0 + c)) * fvx > 0.0:
+                                diffC[clo[c] - y0, c] += w
+                    else:
+                        if k1 >= k0:
+                            constC[k0] += cw
+                            constC[k1 + 1] -= cw
+                        for c in range(u0, u1):
+                            if chi[c] >= clo[c]:
+                                k = _first(clo[c], chi[c], float(x0 + c), py, px, fvy, fvx, sl)
+                                diffC[k - y0, c] += sw
+                    # the columns before and after: wholly on one side; test one cell each
+                    c = min(k0, ncol) - 1
+                    while c >= 0 and chi[c] < clo[c]:
+                        c -= 1
+                    cc = max(c, 0)
+                    cw = (w if (c >= 0) & _cond(px, py, fvx, fvy, float(x0 + cc), float(clo[cc]))
+                          else 0.0)
+                    constC[0] += cw
+                    constC[min(k0, ncol)] -= cw
+                    first = k1 + 1 if k1 >= k0 else ncol
+                    c = first
+                    while c < ncol and chi[c] < clo[c]:
+                        c += 1
+                    cc = min(c, ncol - 1)
+                    cw = (w if (c < ncol) & _cond(px, py, fvx, fvy, float(x0 + cc), float(clo[cc]))
+                          else 0.0)
+                    constC[first] += cw
+                    constC[ncol] -= cw
                 else:
-                    _vote_rows(px, py, fvx, fvy, w, cy + dn * fvy * inv, sq * abs(fvx),
-                               disc, diffR, rowv, lo, hi, x0, y0)
+                    # flatter than 45 degrees: the same with rows and columns swapped (diffR,
+                    # rowv[CONST_R]), and the rows crossed, before and after recorded for the
+                    # reads' bounds (rowv[TOUCH], rowv[CAPS])
+                    ym = cy + dn * fvy * inv
+                    hy = sq * abs(fvx)
+                    nrow = lo.shape[0]
+                    k0, k1 = _span(ym, hy, y0, nrow, disc)
+                    if k1 >= k0:
+                        rowv[TOUCH, k0] += w
+                        rowv[TOUCH, k1 + 1] -= w
+                    level = fvx == 0.0
+                    sl = fvy / fvx
+                    cw = w if fvx > 0.0 else 0.0
+                    sw = -w if fvx > 0.0 else w
+                    u0, u1 = k0, k1 + 1
+                    if level:
+                        for r in range(u0, u1):
+                            if hi[r] >= lo[r] and (py - (y0 + r)) * fvy > 0.0:
+                                diffR[r, lo[r] - x0] += w
+                    else:
+                        if k1 >= k0:
+                            rowv[CONST_R, k0] += cw
+                            rowv[CONST_R, k1 + 1] -= cw
+                        for r in range(u0, u1):
+                            if hi[r] >= lo[r]:
+                                k = _first(lo[r], hi[r], float(y0 + r), px, py, fvx, fvy, sl)
+                                diffR[r, k - x0] += sw
+                    r = min(k0, nrow) - 1
+                    while r >= 0 and hi[r] < lo[r]:
+                        r -= 1
+                    rc = max(r, 0)
+                    cw = (w if (r >= 0) & _cond(px, py, fvx, fvy, float(lo[rc]), float(y0 + rc))
+                          else 0.0)
+                    rowv[CONST_R, 0] += cw
+                    rowv[CONST_R, min(k0, nrow)] -= cw
+                    rowv[CAPS, 0] += cw
+                    rowv[CAPS, min(k0, nrow)] -= cw
+                    first = k1 + 1 if k1 >= k0 else nrow
+                    r = first
+                    while r < nrow and hi[r] < lo[r]:
+                        r += 1
+                    rc = min(r, nrow - 1)
+                    cw = (w if (r < nrow) & _cond(px, py, fvx, fvy, float(lo[rc]), float(y0 + rc))
+                          else 0.0)
+                    rowv[CONST_R, first] += cw
+                    rowv[CONST_R, nrow] -= cw
+                    rowv[CAPS, first] += cw
+                    rowv[CAPS, nrow] -= cw
             total += w
             total2 += w * w
             dirty = 1

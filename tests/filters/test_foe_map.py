@@ -188,7 +188,8 @@ def test_expansion_in_noise_is_found():
 def test_noise_test_matches_a_plain_computation():
     """The estimates kept are exactly those whose consensus exceeds the bound computed from
     all votes before the read (weights exp(-(T - t) / tau) s0 / (s0 + |v|)), for any cuts;
-    the kernel's total is that sum of weights."""
+    the kernel's total is that sum of weights, and the metrics count the others (the kernel
+    counts them across packets)."""
     foe = (60.0, 45.0)
     flow = expansion_packets(foe=foe, n=600, geometry=G, duration_us=500_000, n_packets=1,
                              normal_only=True)[0]
@@ -217,8 +218,17 @@ def test_noise_test_matches_a_plain_computation():
 
         packets = [slice_packet(allp, a, b) for a, b in zip(cut[:-1], cut[1:], strict=True)
                    if b > a]
-        got = run(packets, **params).series["foe"]["t"]
+        f = FoeMap()
+        ctx = Context()
+        f.setup(FoeMap.Params(**{**BASE, **params}), ctx)
+        got = FlowPacket.concat([f.process(p) for p in packets]).series["foe"]["t"]
         np.testing.assert_array_equal(got, want)
+        f.flush()
+        reads = 100  # T = 0, 5000, ..., 495000
+        assert ctx.metrics["foe_map"] == {
+            "reads": reads, "estimates": len(want),
+            "no_estimate": {"no votes yet": reads - len(every),
+                            "consensus at noise level": len(every) - len(want)}}
 
 
 @pytest.mark.parametrize("scale", [1.0, 2.0, 0.75])
