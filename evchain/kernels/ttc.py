@@ -28,12 +28,13 @@ from numba import njit
 #: decayed activity (events) at ``t_last`` (µs), fused tau (s) with variance (s^2) at ``t_tau``
 #: (µs), ``has_tau`` 1 once it has one, consecutive gated ``misses``, ground ratio ``rho``,
 #: ``spread``: the relative spread of its samples at its last measurement (1.4826 MAD / |median|),
-#: ``t_meas``: the time of the newest sample of that measurement (µs)
+#: ``t_meas``: the time of the newest sample of that measurement (µs); ``mx``, ``my``: where the
+#: samples of that measurement lie that agree with it (:func:`_agreeing_position`; NaN before)
 CLUSTER_STATE = np.dtype([("id", "i8"), ("active", "i8"), ("n_samples", "i8"), ("ring_pos", "i8"),
                           ("cx", "f8"), ("cy", "f8"), ("size", "f8"), ("activity", "f8"),
                           ("t_last", "f8"), ("tau", "f8"), ("var", "f8"), ("has_tau", "f8"),
                           ("misses", "f8"), ("t_tau", "f8"), ("rho", "f8"), ("spread", "f8"),
-                          ("t_meas", "f8")])
+                          ("t_meas", "f8"), ("mx", "f8"), ("my", "f8")])
 #: carried from packet to packet: ``has_foe`` 1 once an FOE is known, at (``foe_x``,
 #: ``foe_y``), with the camera's angular velocity (``foe_wx``, ``foe_wy``, ``foe_wz``, rad/s;
 #: 0 where not estimated); the next tick (µs) and cluster id; the ground constant K (s px),
@@ -54,6 +55,8 @@ NO_TTC_REASONS = ("no_foe", "no_cluster", "not_credible", "on_road")
 KG_LN_MIN = math.log(0.01)  # ground histogram: bins of ln(tau * dy) from 0.01 s px
 KG_BIN = 0.02               # bin width in ln (2 %)
 KG_BINS = 1024              # up to 0.01 e^20.48 ~ 8e6 s px
+#: a sample agrees with its cluster's measurement when its tau is within this fraction of it
+AGREEMENT = 0.2
 #: a time after every FOE entry (µs)
 _FOREVER = np.iinfo(np.int64).max
 
@@ -105,6 +108,8 @@ class TtcState(NamedTuple):
     samples_t: np.ndarray    #: float64 [max_clusters, ring]: sample times, µs
     samples_tau: np.ndarray  #: float64 [max_clusters, ring]: sample tau, s
     samples_kg: np.ndarray   #: float64 [max_clusters, ring]: sample tau * dy, s px
+    samples_x: np.ndarray    #: float64 [max_clusters, ring]: sample position x, px
+    samples_y: np.ndarray    #: float64 [max_clusters, ring]: sample position y, px
     carry: np.ndarray        #: CARRY [1]
     last_t: np.ndarray       #: float64 [2, H, W] (or [2, 0, 0]): last flow event's edge arrival, µs
     ground_hist: np.ndarray  #: float64 [KG_BINS]: the ground votes
@@ -117,6 +122,7 @@ def new_state(max_clusters: int, ring: int, height: int, width: int,
     carry = np.zeros(1, CARRY)
     carry["held_id"] = -1.0
     return TtcState(np.zeros(max_clusters, CLUSTER_STATE), np.zeros((max_clusters, ring)),
+                    np.zeros((max_clusters, ring)), np.zeros((max_clusters, ring)),
                     np.zeros((max_clusters, ring)), np.zeros((max_clusters, ring)), carry,
                     np.full((2, height, width) if baseline else (2, 0, 0), -1e300),
                     np.zeros(KG_BINS))
@@ -405,9 +411,31 @@ def _fuse(c, med, r, T, gate):
 
 
 @njit(cache=True)
-def _cluster_estimate(cl, k, ST, SV, SK, T, k_ground, buf, prm):
-    """Update cluster k's fused tau at tick time T from its recent samples (median, MAD), and
-    its ground ratio rho (median of tau * dy over K; left as it is while K is unknown)."""
+def _agreeing_position(c, k, ST, SV, SX, SY, T, max_age_us, med, buf):
+    """Cluster k's position: the median x and y of its samples at most ``max_age_us`` old at
+    T whose tau (moved forward to T) lies within ``AGREEMENT`` of the measurement ``med``;
+    left as it is when none does."""
+    for axis in range(2):
+        S = SX if axis == 0 else SY
+        m = 0
+        for j in range(c.n_samples):
+            age = T - ST[k, j]
+            if age <= max_age_us and abs(SV[k, j] - age * 1e-6 - med) <= AGREEMENT * med:
+                buf[m] = S[k, j]
+                m += 1
+        if m == 0:
+            return
+        if axis == 0:
+            c.mx = median(buf, m)
+        else:
+            c.my = median(buf, m)
+
+
+@njit(cache=True)
+def _cluster_estimate(cl, k, ST, SV, SK, SX, SY, T, k_ground, buf, prm):
+    """Update cluster k's fused tau at tick time T from its recent samples (median, MAD), its
+    ground ratio rho (median of tau * dy over K; left as it is while K is unknown) and where
+    its samples that agree with the measurement lie."""
     c = cl[k]
     nb = c.n_samples
     n = _recent_kg(ST, SK, k, nb, T, prm.max_age_us, buf)
@@ -422,6 +450,7 @@ def _cluster_estimate(cl, k, ST, SV, SK, T, k_ground, buf, prm):
     if n < prm.min_samples:
         return
     med, mad = _median_mad(buf, n)
+    _agreeing_position(c, k, ST, SV, SX, SY, T, prm.max_age_us, med, buf)
     c.t_meas = _newest(ST, c, k)
     c.spread = 1.4826 * mad / med if med > 0.0 else math.inf
     sigma = 1.4826 * mad / math.sqrt(n) + prm.rel_floor * abs(med)
@@ -476,13 +505,21 @@ def _better(d, a, best_d, best_a):
     return d < best_d or (d == best_d and a > best_a)
 
 
+@njit(cache=True, inline="always")
+def _position(c):
+    """Where cluster ``c`` is reported: where its samples agreeing with its last measurement
+    lie, else (none yet) its square's centre."""
+    if c.mx == c.mx:
+        return c.mx, c.my
+    return c.cx, c.cy
+
+
 @njit(cache=True)
 def _emit_cluster(out, n, T, c, a, k_ground):
     """Row n of the ``ttc_clusters`` output: the cluster at tick T with activity ``a``."""
     out[n].t = T
     out[n].cluster = c.id
-    out[n].x = c.cx
-    out[n].y = c.cy
+    out[n].x, out[n].y = _position(c)
     out[n].size_px = c.size
     out[n].tau_s = c.tau
     out[n].support = a
@@ -496,8 +533,7 @@ def _emit_obstacle(out, n, T, c, support):
     out[n].t = T
     out[n].tau_s = c.tau
     out[n].cluster = c.id
-    out[n].x = c.cx
-    out[n].y = c.cy
+    out[n].x, out[n].y = _position(c)
     out[n].support = support
 
 
@@ -506,7 +542,7 @@ def _tick(state, prm, half_bins, buf, ttc_out, no, clusters_out, nc):
     """The tick at ``next_tick``: the ground constant, every live cluster's decay, estimate and
     row, the obstacle's row; moves ``next_tick`` on by a period. Returns the rows written
     (no, nc)."""
-    cl, ST, SV, SK, carry, _, hist = state
+    cl, ST, SV, SK, SX, SY, carry, _, hist = state
     g = carry[0]
     T = g.next_tick
     if g.n_votes >= prm.ground_min_events:
@@ -530,7 +566,7 @@ def _tick(state, prm, half_bins, buf, ttc_out, no, clusters_out, nc):
         if a < prm.min_activity:
             c.active = 0
             continue
-        _cluster_estimate(cl, k, ST, SV, SK, T, k_ground, buf, prm)
+        _cluster_estimate(cl, k, ST, SV, SK, SX, SY, T, k_ground, buf, prm)
         if c.has_tau > 0.0 and c.tau <= 0.0:  # passed or hit: drop it
             c.active = 0
             continue
@@ -657,6 +693,8 @@ def _new_cluster(c, g, px, py, ti, prm):
     c.rho = math.nan
     c.spread = math.inf
     c.t_meas = ti
+    c.mx = math.nan
+    c.my = math.nan
 
 
 @njit(cache=True)
@@ -674,13 +712,15 @@ def _join(c, px, py, ti, dist, prm):
 
 
 @njit(cache=True)
-def _add_sample(c, ST, SV, SK, k, ti, tau, kg):
-    """Append (ti, tau, kg) to the ring of samples of cluster ``c`` (slot k)."""
+def _add_sample(c, ST, SV, SK, SX, SY, k, ti, tau, kg, px, py):
+    """Append (ti, tau, kg) at (px, py) to the ring of samples of cluster ``c`` (slot k)."""
     p = c.ring_pos
     ring = ST.shape[1]
     ST[k, p] = ti
     SV[k, p] = tau
     SK[k, p] = kg
+    SX[k, p] = px
+    SY[k, p] = py
     c.ring_pos = (p + 1) % ring
     if c.n_samples < ring:
         c.n_samples += 1
@@ -731,7 +771,7 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
     x, y, t, pol, vx, vy, te = events
     # the state's arrays as locals, passed on one by one (a tuple of arrays passed on costs
     # reference counts per event)
-    cl, ST, SV, SK, carry, last_t, hist = state
+    cl, ST, SV, SK, SX, SY, carry, last_t, hist = state
     g = carry[0]
     half_bins = int(round(math.log(1.0 + prm.ground_tol) / KG_BIN))
     buf = np.empty(ST.shape[1], np.float64)
@@ -791,7 +831,7 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
                 else:
                     g.no_slot += 1.0
             if kb >= 0:
-                _add_sample(cl[kb], ST, SV, SK, kb, ti, tau, kg)
+                _add_sample(cl[kb], ST, SV, SK, SX, SY, kb, ti, tau, kg, px, py)
                 # K learns from events of clusters not (yet) known to be off the road
                 if not (cl[kb].rho < 1.0 - prm.ground_tol):
                     ground_vote(hist, carry, kg, float(ti), prm.ground_memory_us)

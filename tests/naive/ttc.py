@@ -115,8 +115,13 @@ def median(values) -> float:
     return v[n // 2] if n % 2 == 1 else 0.5 * (v[n // 2 - 1] + v[n // 2])
 
 
+#: a sample agrees with its cluster's measurement when its tau is within this fraction of it
+AGREEMENT = 0.2
+
+
 class Cluster:
-    """One square cluster with its recent samples (time µs, tau s, tau * dy s px)."""
+    """One square cluster with its recent samples (time µs, tau s, tau * dy s px, x px,
+    y px)."""
 
     def __init__(self, ident, x, y, t, size, ring):
         self.id = ident
@@ -130,6 +135,11 @@ class Cluster:
         self.rho = math.nan      # median(tau * dy) / K
         self.spread = math.inf   # 1.4826 MAD / median of the samples at the last measurement
         self.t_meas = float(t)   # the newest sample's time at the last measurement (µs)
+        self.mx = self.my = None  # median position of the samples agreeing with it
+
+    def position(self):
+        """Where it is reported: its agreeing samples' median position, else its centre."""
+        return (self.cx, self.cy) if self.mx is None else (self.mx, self.my)
 
     def activity_at(self, t, tau_us):
         return self.activity * math.exp(-(t - self.t_last) / tau_us)
@@ -193,7 +203,7 @@ def ttc_naive(packets, q, width, height, no_ttc=None, f=None, cx=None, cy=None):
             if c.tau is None:
                 continue
             rho = c.rho if (k_now > 0.0 and c.rho == c.rho) else -1.0
-            cluster_rows.append((T, c.id, c.cx, c.cy, c.size, c.tau, a, rho))
+            cluster_rows.append((T, c.id, *c.position(), c.size, c.tau, a, rho))
             if q.select == "nearest_foe" and a < q.select_min_activity:
                 continue
             gx = max(0.0, abs(c.cx - foe[0]) - c.size)
@@ -225,7 +235,7 @@ def ttc_naive(packets, q, width, height, no_ttc=None, f=None, cx=None, cy=None):
         held = -1 if best is None else slots[best[2]].id
         if best is not None:
             c = slots[best[2]]
-            ttc_rows.append((T, c.tau, c.id, c.cx, c.cy, best[1]))
+            ttc_rows.append((T, c.tau, c.id, *c.position(), best[1]))
         else:
             reasons["no_foe" if foe is None else "no_cluster" if not considered
                     else "not_credible" if not credible else "on_road"] += 1
@@ -243,6 +253,9 @@ def ttc_naive(packets, q, width, height, no_ttc=None, f=None, cx=None, cy=None):
         if len(taus) < q.min_samples:
             return
         med = median(taus)
+        agree = [s for s in recent if abs(s[1] - (T - s[0]) * 1e-6 - med) <= AGREEMENT * med]
+        if agree:
+            c.mx, c.my = median([s[3] for s in agree]), median([s[4] for s in agree])
         mad = median([abs(v - med) for v in taus])
         c.spread = 1.4826 * mad / med if med > 0.0 else math.inf
         c.t_meas = max(s[0] for s in c.samples)
@@ -293,7 +306,7 @@ def ttc_naive(packets, q, width, height, no_ttc=None, f=None, cx=None, cy=None):
                 c.size = min(q.max_cluster_size_px, d)
             c.cx += (px - c.cx) / a
             c.cy += (py - c.cy) / a
-        c.samples.append((float(ti), tau, kg))
+        c.samples.append((float(ti), tau, kg, px, py))
         if not (c.rho < 1.0 - q.ground_tolerance):
             votes_kg.append(kg)
             votes_t.append(float(ti))
