@@ -414,21 +414,18 @@ def _fuse(c, med, r, T, gate):
 def _agreeing_position(c, k, ST, SV, SX, SY, T, max_age_us, med, buf):
     """Cluster k's position: the median x and y of its samples at most ``max_age_us`` old at
     T whose tau (moved forward to T) lies within ``AGREEMENT`` of the measurement ``med``;
-    left as it is when none does."""
-    for axis in range(2):
-        S = SX if axis == 0 else SY
-        m = 0
-        for j in range(c.n_samples):
-            age = T - ST[k, j]
-            if age <= max_age_us and abs(SV[k, j] - age * 1e-6 - med) <= AGREEMENT * med:
-                buf[m] = S[k, j]
-                m += 1
-        if m == 0:
-            return
-        if axis == 0:
-            c.mx = median(buf, m)
-        else:
-            c.my = median(buf, m)
+    left as it is when none does. ``buf`` holds twice the ring."""
+    ring = ST.shape[1]
+    m = 0
+    for j in range(c.n_samples):
+        age = T - ST[k, j]
+        if age <= max_age_us and abs(SV[k, j] - age * 1e-6 - med) <= AGREEMENT * med:
+            buf[m] = SX[k, j]
+            buf[ring + m] = SY[k, j]
+            m += 1
+    if m > 0:
+        c.mx = median(buf, m)
+        c.my = median(buf[ring:], m)
 
 
 @njit(cache=True)
@@ -774,7 +771,7 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
     cl, ST, SV, SK, SX, SY, carry, last_t, hist = state
     g = carry[0]
     half_bins = int(round(math.log(1.0 + prm.ground_tol) / KG_BIN))
-    buf = np.empty(ST.shape[1], np.float64)
+    buf = np.empty(2 * ST.shape[1], np.float64)  # a ring's values, or two (positions)
     n = t.shape[0]
     j = 0
     i = 0

@@ -376,7 +376,7 @@ def test_a_cluster_is_reported_where_its_agreeing_samples_lie():
     SV = np.array([[2.0, 2.3, 1.75, 1.0, 1.1, 0.9, 2.0, 2.0]])    # the last two are unused
     SX = np.array([[100.0, 104.0, 101.0, 90.0, 95.0, 99.0, 0.0, 0.0]])
     SY = np.array([[50.0, 52.0, 51.0, 90.0, 91.0, 92.0, 0.0, 0.0]])
-    buf = np.empty(8)
+    buf = np.empty(16)                                             # twice the ring
     _agreeing_position(cl[0], 0, ST, SV, SX, SY, T, 500_000.0, 2.0, buf)
     assert (cl[0]["mx"], cl[0]["my"]) == (101.0, 51.0)
     # samples moved forward to T at -1 s/s: 0.3 s old, 2.0 and 2.3 s are 1.7 and 2.0 s now,
