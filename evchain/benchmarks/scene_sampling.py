@@ -7,7 +7,8 @@ pipelines/reference.yaml (scene -> emulator, rendered in the run) with one sampl
 compares its events with those of the same stretch rendered four times as finely as the
 pipeline (``max_motion_px`` 0.125, whole frames), which stands in for the continuous scene:
 
-* throughput: simulated s per wall s of the run (set-up included, 2 threads);
+* throughput: simulated s per wall s of the run (set-up included; the pipeline renders on
+  all cores);
 * error: the median |time difference| of each event to the fine render's event nearest in time
   at its pixel with its polarity (µs; :func:`evchain.benchmarks.scene_bands.nearest_dt`);
 * extra: that comparison's other fields, the frames and the share of rows rendered.
