@@ -29,7 +29,7 @@ from numba import njit
 #: (µs), ``has_tau`` 1 once it has one, consecutive gated ``misses``, ground ratio ``rho``,
 #: ``spread``: the relative spread of its samples at its last measurement (1.4826 MAD / |median|),
 #: ``t_meas``: the time of the newest sample of that measurement (µs); ``mx``, ``my``: where the
-#: samples of that measurement lie that agree with it (:func:`_agreeing_position`; NaN before)
+#: samples of that measurement lie that agree with it (:func:`_agreeing_samples`; NaN before)
 CLUSTER_STATE = np.dtype([("id", "i8"), ("active", "i8"), ("n_samples", "i8"), ("ring_pos", "i8"),
                           ("cx", "f8"), ("cy", "f8"), ("size", "f8"), ("activity", "f8"),
                           ("t_last", "f8"), ("tau", "f8"), ("var", "f8"), ("has_tau", "f8"),
@@ -411,28 +411,33 @@ def _fuse(c, med, r, T, gate):
 
 
 @njit(cache=True)
-def _agreeing_position(c, k, ST, SV, SX, SY, T, max_age_us, med, buf):
-    """Cluster k's position: the median x and y of its samples at most ``max_age_us`` old at
-    T whose tau (moved forward to T) lies within ``AGREEMENT`` of the measurement ``med``;
-    left as it is when none does. ``buf`` holds twice the ring."""
+def _agreeing_samples(c, k, ST, SV, SK, SX, SY, T, k_ground, med, buf, prm):
+    """Cluster k's samples at most ``max_age_us`` old at T whose tau (moved forward to T) lies
+    within ``AGREEMENT`` of the measurement ``med``: the cluster is reported at their median
+    position (left as it is when none agrees), and with at least ``min_samples`` of them its
+    ground ratio rho is their median tau * dy over K (else that of all its recent samples,
+    already set). ``buf`` holds three rings."""
     ring = ST.shape[1]
     m = 0
     for j in range(c.n_samples):
         age = T - ST[k, j]
-        if age <= max_age_us and abs(SV[k, j] - age * 1e-6 - med) <= AGREEMENT * med:
+        if age <= prm.max_age_us and abs(SV[k, j] - age * 1e-6 - med) <= AGREEMENT * med:
             buf[m] = SX[k, j]
             buf[ring + m] = SY[k, j]
+            buf[2 * ring + m] = SK[k, j]
             m += 1
     if m > 0:
         c.mx = median(buf, m)
         c.my = median(buf[ring:], m)
+    if m >= prm.min_samples and k_ground > 0.0:
+        c.rho = median(buf[2 * ring:], m) / k_ground
 
 
 @njit(cache=True)
 def _cluster_estimate(cl, k, ST, SV, SK, SX, SY, T, k_ground, buf, prm):
     """Update cluster k's fused tau at tick time T from its recent samples (median, MAD), its
-    ground ratio rho (median of tau * dy over K; left as it is while K is unknown) and where
-    its samples that agree with the measurement lie."""
+    ground ratio rho (median of tau * dy over K, of the samples agreeing with the measurement
+    where enough do; left as it is while K is unknown) and where its agreeing samples lie."""
     c = cl[k]
     nb = c.n_samples
     n = _recent_kg(ST, SK, k, nb, T, prm.max_age_us, buf)
@@ -447,7 +452,7 @@ def _cluster_estimate(cl, k, ST, SV, SK, SX, SY, T, k_ground, buf, prm):
     if n < prm.min_samples:
         return
     med, mad = _median_mad(buf, n)
-    _agreeing_position(c, k, ST, SV, SX, SY, T, prm.max_age_us, med, buf)
+    _agreeing_samples(c, k, ST, SV, SK, SX, SY, T, k_ground, med, buf, prm)
     c.t_meas = _newest(ST, c, k)
     c.spread = 1.4826 * mad / med if med > 0.0 else math.inf
     sigma = 1.4826 * mad / math.sqrt(n) + prm.rel_floor * abs(med)
@@ -771,7 +776,7 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
     cl, ST, SV, SK, SX, SY, carry, last_t, hist = state
     g = carry[0]
     half_bins = int(round(math.log(1.0 + prm.ground_tol) / KG_BIN))
-    buf = np.empty(2 * ST.shape[1], np.float64)  # a ring's values, or two (positions)
+    buf = np.empty(3 * ST.shape[1], np.float64)  # a ring's values, or three (agreeing)
     n = t.shape[0]
     j = 0
     i = 0

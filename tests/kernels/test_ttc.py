@@ -362,29 +362,45 @@ def test_median_matches_reference_on_hard_input(values):
     assert got == want
 
 
-def test_a_cluster_is_reported_where_its_agreeing_samples_lie():
+def test_a_cluster_is_reported_and_ground_tested_by_its_agreeing_samples():
     """Samples of a car (tau 2 s) and of the road below it (tau 1 s) in one square: the
     cluster's position is the median of the samples within 20 % of its measurement, not its
-    square's centre; with none within, it stays as it was."""
-    from evchain.kernels.ttc import CLUSTER_STATE, _agreeing_position
+    square's centre, and so is its ground ratio (their median tau * dy over K) where at least
+    ``min_samples`` agree; with none within, the position stays as it was, and with fewer than
+    ``min_samples`` the ground ratio stays."""
+    from typing import NamedTuple
+
+    from evchain.kernels.ttc import CLUSTER_STATE, _agreeing_samples
+
+    class Prm(NamedTuple):
+        max_age_us: float
+        min_samples: int
 
     cl = np.zeros(1, CLUSTER_STATE)
     cl[0]["n_samples"] = 6
-    cl[0]["mx"] = cl[0]["my"] = np.nan
+    cl[0]["mx"] = cl[0]["my"] = cl[0]["rho"] = np.nan
     T = 1_000_000.0
+    K = 10.0
     ST = np.full((1, 8), T)
     SV = np.array([[2.0, 2.3, 1.75, 1.0, 1.1, 0.9, 2.0, 2.0]])    # the last two are unused
+    SK = np.array([[7.0, 8.0, 6.0, 10.0, 10.5, 9.5, 0.0, 0.0]])   # tau * dy: car 0.7 K, road K
     SX = np.array([[100.0, 104.0, 101.0, 90.0, 95.0, 99.0, 0.0, 0.0]])
     SY = np.array([[50.0, 52.0, 51.0, 90.0, 91.0, 92.0, 0.0, 0.0]])
-    buf = np.empty(16)                                             # twice the ring
-    _agreeing_position(cl[0], 0, ST, SV, SX, SY, T, 500_000.0, 2.0, buf)
-    assert (cl[0]["mx"], cl[0]["my"]) == (101.0, 51.0)
+    buf = np.empty(24)                                             # three rings
+    _agreeing_samples(cl[0], 0, ST, SV, SK, SX, SY, T, K, 2.0, buf, Prm(500_000.0, 3))
+    assert (cl[0]["mx"], cl[0]["my"], cl[0]["rho"]) == (101.0, 51.0, 0.7)
     # samples moved forward to T at -1 s/s: 0.3 s old, 2.0 and 2.3 s are 1.7 and 2.0 s now,
-    # within 20 % of 1.9; 1.75 s is 1.45 s, not
+    # within 20 % of 1.9; 1.75 s is 1.45 s, not. Two agree: fewer than min_samples 3, so the
+    # ground ratio stays; with min_samples 2 it is theirs
     ST[0, :3] = T - 300_000.0
-    _agreeing_position(cl[0], 0, ST, SV, SX, SY, T, 500_000.0, 1.9, buf)
-    assert (cl[0]["mx"], cl[0]["my"]) == (102.0, 51.0)
-    # too old, or none agreeing: the position stays
-    _agreeing_position(cl[0], 0, ST, SV, SX, SY, T, 100_000.0, 2.0, buf)
-    _agreeing_position(cl[0], 0, ST, SV, SX, SY, T, 500_000.0, 5.0, buf)
-    assert (cl[0]["mx"], cl[0]["my"]) == (102.0, 51.0)
+    _agreeing_samples(cl[0], 0, ST, SV, SK, SX, SY, T, K, 1.9, buf, Prm(500_000.0, 3))
+    assert (cl[0]["mx"], cl[0]["my"], cl[0]["rho"]) == (102.0, 51.0, 0.7)
+    _agreeing_samples(cl[0], 0, ST, SV, SK, SX, SY, T, K, 1.9, buf, Prm(500_000.0, 2))
+    assert cl[0]["rho"] == 0.75
+    # the road's samples agree with a road measurement: a road ratio
+    _agreeing_samples(cl[0], 0, ST, SV, SK, SX, SY, T, K, 1.0, buf, Prm(500_000.0, 3))
+    assert (cl[0]["mx"], cl[0]["my"], cl[0]["rho"]) == (95.0, 91.0, 1.0)
+    # too old, or none agreeing: the position and the ratio stay
+    _agreeing_samples(cl[0], 0, ST, SV, SK, SX, SY, T, K, 2.0, buf, Prm(100_000.0, 3))
+    _agreeing_samples(cl[0], 0, ST, SV, SK, SX, SY, T, K, 5.0, buf, Prm(500_000.0, 3))
+    assert (cl[0]["mx"], cl[0]["my"], cl[0]["rho"]) == (95.0, 91.0, 1.0)

@@ -256,6 +256,8 @@ def ttc_naive(packets, q, width, height, no_ttc=None, f=None, cx=None, cy=None):
         agree = [s for s in recent if abs(s[1] - (T - s[0]) * 1e-6 - med) <= AGREEMENT * med]
         if agree:
             c.mx, c.my = median([s[3] for s in agree]), median([s[4] for s in agree])
+        if len(agree) >= q.min_samples and k_now > 0.0:
+            c.rho = median([s[2] for s in agree]) / k_now
         mad = median([abs(v - med) for v in taus])
         c.spread = 1.4826 * mad / med if med > 0.0 else math.inf
         c.t_meas = max(s[0] for s in c.samples)
