@@ -62,7 +62,10 @@ class FoeFit(Filter):
     whose FOE row is off (normal flow on a plane tells the two apart poorly), not the camera.
     The first pitching fit starts from scratch at the level fit's FOE (a gear shift's first
     slabs are outliers at pitch 0 to a warm fit) and is kept if it explains more than the
-    level fit.
+    level fit; so does a pitching fit that competes with the votes' fit when the level fit
+    would fall back to the votes while the probes call for pitch: if it explains more, the
+    mode is pitching, also within 3 ``tau_ms`` of a cold start (a gear shift there pulls the
+    votes up and the level fit off).
     Likewise a yaw can be the flow of a ground plane whose FOE column is off: turning is
     entered only when the turning fit's decayed inlier weight exceeds that of a level fit
     (column free, no yaw) by more than ``turn_gain`` (a yaw moves near and far points alike, a
@@ -350,6 +353,15 @@ class FoeFit(Filter):
                     tv[k.FOE_Y], tv[k.ROAD] = held
                 okv, inlv, _ = run(tv, self._om.copy(), free)
                 ok = not okv or inl >= inlv
+                if not ok and self._pitch_called(found):
+                    # the votes run off under pitch: a pitching fit may explain more than theirs
+                    tp = k.initial_theta(th[k.FOE_X], th[k.FOE_Y], p.facade_bands)
+                    op = om.copy()
+                    op[:, PITCHING] = 0.0
+                    okp, inlp, totp = run(tp, op, np.array([True, True, False, False]))
+                    if okp and inlp > inlv:
+                        th, om, inl, tot, ok = tp, op, inlp, totp, True
+                        self._mode, self._moved = PITCHING, T
                 if ok:
                     self._won = T
         elif ok:
@@ -445,6 +457,17 @@ class FoeFit(Filter):
             return True
         self._level_fit = (tl, ol)
         return inl > inl_level
+
+    def _pitch_called(self, probe: np.ndarray) -> bool:
+        """Whether the level mode's probes call for pitch as for entering the pitching mode: the
+        median of the last five (``probe`` the newest) turns faster than the threshold, and
+        their mean over ``heading_memory_s`` does not (:meth:`_update_mode`)."""
+        if self._mode != LEVEL or not self._rotation:
+            return False
+        latest = [*list(self._probes)[-4:], probe]
+        lasting = [w for _, w in self._pitch_probes] + [float(probe[PITCHING])]
+        return (abs(_median([q[PITCHING] for q in latest])) > self._turn_pxs
+                and abs(float(np.mean(lasting))) < self._turn_pxs)
 
     def _pitch_start(self, run, th, om, inl) -> None:
         """Entering the pitching mode: the fits go on from a pitching fit started from scratch
