@@ -465,9 +465,15 @@ class FoeFit(Filter):
         if self._mode != LEVEL or not self._rotation:
             return False
         latest = [*list(self._probes)[-4:], probe]
-        lasting = [w for _, w in self._pitch_probes] + [float(probe[PITCHING])]
+        lasting = np.array([w for _, w in self._pitch_probes] + [float(probe[PITCHING])])
         return (abs(_median([q[PITCHING] for q in latest])) > self._turn_pxs
-                and abs(float(np.mean(lasting))) < self._turn_pxs)
+                and not self._one_way(lasting))
+
+    def _one_way(self, pitch: np.ndarray) -> bool:
+        """Whether the probed pitch rates ``pitch`` (over ``heading_memory_s``) turn one way on
+        average faster than the threshold: a ground plane's FOE row off, not the body's pitch."""
+        # np.mean's own sum (pairwise) and division, without its wrapper
+        return abs(float(np.add.reduce(pitch)) / len(pitch)) >= self._turn_pxs
 
     def _pitch_start(self, run, th, om, inl) -> None:
         """Entering the pitching mode: the fits go on from a pitching fit started from scratch
@@ -508,9 +514,7 @@ class FoeFit(Filter):
         self._pitch_probes.append((T, float(probe[PITCHING])))
         while self._pitch_probes[0][0] < T - memory:
             self._pitch_probes.popleft()
-        pitch = np.array([w for _, w in self._pitch_probes])
-        # np.mean's own sum (pairwise) and division, without its wrapper
-        one_way = abs(float(np.add.reduce(pitch)) / len(pitch)) >= self._turn_pxs
+        one_way = self._one_way(np.array([w for _, w in self._pitch_probes]))
         if self._mode == PITCHING and one_way:  # not the body's pitch (see the class doc)
             self._mode = LEVEL
         if self._mode != LEVEL and rate[self._mode] >= self._turn_pxs:

@@ -41,7 +41,9 @@ class Ttc(Filter):
     clusters off the road plane (``ground_test``: tau * dy below the road's constant
     K = f h / V, estimated from the events), inside a driving corridor, held between ticks),
     series ``ttc_clusters`` (t, cluster, x, y, size_px, tau_s, support, ground_ratio) every
-    live cluster (ground_ratio = median(tau * dy) / K, -1 while K is unknown). Both place a
+    live cluster (ground_ratio = median(tau * dy) / K over its samples within 20 % of its
+    last measurement where at least ``min_samples`` are, else over all its recent samples; -1
+    while K is unknown). Both place a
     cluster at the median position of its recent samples whose tau lies within 20 % of its
     last measurement (where its TTC comes from; its square's centre until it has one).
 

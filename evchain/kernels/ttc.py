@@ -13,7 +13,8 @@ obstacle point at height hp above the road has ``tau * dy = K (1 - hp / h) < K``
 than the road at its row. K is estimated from the events themselves: the mode of ``tau * dy``
 over region-B events (a fading histogram of its log, see ``ground_vote``, ``ground_mode``;
 events joining a cluster already known to be off the road are left out); each cluster keeps
-``tau * dy`` of its samples and its ratio ``rho = median(tau * dy) / K``.
+``tau * dy`` of its samples and its ratio ``rho = median(tau * dy) / K`` (over the samples
+that agree with its measurement where enough do).
 """
 
 from __future__ import annotations
@@ -415,8 +416,8 @@ def _agreeing_samples(c, k, ST, SV, SK, SX, SY, T, k_ground, med, buf, prm):
     """Cluster k's samples at most ``max_age_us`` old at T whose tau (moved forward to T) lies
     within ``AGREEMENT`` of the measurement ``med``: the cluster is reported at their median
     position (left as it is when none agrees), and with at least ``min_samples`` of them its
-    ground ratio rho is their median tau * dy over K (else that of all its recent samples,
-    already set). ``buf`` holds three rings."""
+    ground ratio rho is their median tau * dy over K. Returns their number. ``buf`` holds
+    three rings."""
     ring = ST.shape[1]
     m = 0
     for j in range(c.n_samples):
@@ -431,6 +432,7 @@ def _agreeing_samples(c, k, ST, SV, SK, SX, SY, T, k_ground, med, buf, prm):
         c.my = median(buf[ring:], m)
     if m >= prm.min_samples and k_ground > 0.0:
         c.rho = median(buf[2 * ring:], m) / k_ground
+    return m
 
 
 @njit(cache=True)
@@ -440,9 +442,6 @@ def _cluster_estimate(cl, k, ST, SV, SK, SX, SY, T, k_ground, buf, prm):
     where enough do; left as it is while K is unknown) and where its agreeing samples lie."""
     c = cl[k]
     nb = c.n_samples
-    n = _recent_kg(ST, SK, k, nb, T, prm.max_age_us, buf)
-    if n >= prm.min_samples and k_ground > 0.0:
-        c.rho = median(buf, n) / k_ground
     n = _recent_tau(ST, SV, k, nb, T, prm.max_age_us, buf)
     if c.has_tau > 0.0:  # predict: tau falls 1 s per s
         dt = (T - c.t_tau) * 1e-6
@@ -452,7 +451,9 @@ def _cluster_estimate(cl, k, ST, SV, SK, SX, SY, T, k_ground, buf, prm):
     if n < prm.min_samples:
         return
     med, mad = _median_mad(buf, n)
-    _agreeing_samples(c, k, ST, SV, SK, SX, SY, T, k_ground, med, buf, prm)
+    m = _agreeing_samples(c, k, ST, SV, SK, SX, SY, T, k_ground, med, buf, prm)
+    if m < prm.min_samples and k_ground > 0.0:  # too few agree: all its recent samples
+        c.rho = median(buf, _recent_kg(ST, SK, k, nb, T, prm.max_age_us, buf)) / k_ground
     c.t_meas = _newest(ST, c, k)
     c.spread = 1.4826 * mad / med if med > 0.0 else math.inf
     sigma = 1.4826 * mad / math.sqrt(n) + prm.rel_floor * abs(med)
