@@ -412,7 +412,7 @@ def _fuse(c, med, r, T, gate):
 
 
 @njit(cache=True)
-def _agreeing_samples(c, k, ST, SV, SK, SX, SY, T, k_ground, med, buf, prm, n):
+def _agreeing_samples(c, k, ST, SV, SK, SX, SY, T, k_ground, med, buf, prm):
     """Cluster k's samples at most ``max_age_us`` old at T whose tau (moved forward to T) lies
     within ``AGREEMENT`` of the measurement ``med``: the cluster is reported at their median
     position (left as it is when none agrees), and with at least ``min_samples`` of them its
@@ -430,9 +430,9 @@ def _agreeing_samples(c, k, ST, SV, SK, SX, SY, T, k_ground, med, buf, prm, n):
     if m > 0:
         c.mx = median(buf, m)
         c.my = median(buf[ring:], m)
-    if m >= prm.min_samples and 2 * m >= n and k_ground > 0.0:
+    if m >= prm.min_samples and k_ground > 0.0:
         c.rho = median(buf[2 * ring:], m) / k_ground
-    return m if 2 * m >= n else 0
+    return m
 
 
 @njit(cache=True)
@@ -451,7 +451,7 @@ def _cluster_estimate(cl, k, ST, SV, SK, SX, SY, T, k_ground, buf, prm):
     if n < prm.min_samples:
         return
     med, mad = _median_mad(buf, n)
-    m = _agreeing_samples(c, k, ST, SV, SK, SX, SY, T, k_ground, med, buf, prm, n)
+    m = _agreeing_samples(c, k, ST, SV, SK, SX, SY, T, k_ground, med, buf, prm)
     if m < prm.min_samples and k_ground > 0.0:  # too few agree: all its recent samples
         c.rho = median(buf, _recent_kg(ST, SK, k, nb, T, prm.max_age_us, buf)) / k_ground
     c.t_meas = _newest(ST, c, k)
