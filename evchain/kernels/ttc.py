@@ -808,11 +808,7 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
         if (ti - ta) * 1e-6 * sp > prm.run_px:
             ta = float(ti)
         tau = -1.0
-        qx0 = int(x[i])
-        qy0 = int(y[i])
-        seen = (last_t.shape[1] > 0 and 0 <= qx0 < last_t.shape[2] and 0 <= qy0 < last_t.shape[1]
-                and last_t[1 if pol[i] > 0 else 0, qy0, qx0] == ta)
-        if g.has_foe > 0.0 and not seen:  # from the translational part of the normal flow
+        if g.has_foe > 0.0:  # from the translational part of the normal flow, sp - rot
             if rot != 0.0:
                 tau = event_tau(px, py, evx - rot * evx / sp, evy - rot * evy / sp, g.foe_x,
                                 g.foe_y, prm)
