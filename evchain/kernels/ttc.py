@@ -805,7 +805,8 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
         # when the event's edge reached its pixel: the start of the pixel's run of events,
         # unless the run lasted longer than the edge takes to cross run_px px (several edges)
         ta = float(te[i])
-        run_s = (ti - ta) * 1e-6
+        if (ti - ta) * 1e-6 * sp > prm.run_px:
+            ta = float(ti)
         tau = -1.0
         if g.has_foe > 0.0:  # from the translational part of the normal flow, sp - rot
             if rot != 0.0:
@@ -815,20 +816,12 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
                 tau = event_tau(px, py, evx, evy, g.foe_x, g.foe_y, prm)
         if tau > 0.0 and prm.base_px > 0:  # from where the edge was earlier
             d0 = tau * (sp - rot)  # (p - foe).n
-            pl = 1 if pol[i] > 0 else 0
-            tau = baseline_tau(last_t, pl, px, py, evx / sp, evy / sp, d0, rot, ta,
-                               prm.base_px, prm.base_age_us, prm.base_width)
-            if (run_s * abs(d0 / tau + rot) > prm.run_px) if tau > 0.0 else \
-                    (run_s * sp > prm.run_px):
-                ta = float(ti)
-                tau = baseline_tau(last_t, pl, px, py, evx / sp, evy / sp, d0, rot, ta,
-                                   prm.base_px, prm.base_age_us, prm.base_width)
+            tau = baseline_tau(last_t, 1 if pol[i] > 0 else 0, px, py, evx / sp, evy / sp,
+                               d0, rot, ta, prm.base_px, prm.base_age_us, prm.base_width)
             if tau > 0.0:
                 tau -= (ti - ta) * 1e-6  # moved forward from the arrival to the event
             if tau < prm.min_tau or tau > prm.max_tau:
                 tau = -1.0
-        elif run_s * sp > prm.run_px:
-            ta = float(ti)
         if tau > 0.0:  # to its cluster: the nearest whose widened square holds it, or a new one
             kg = tau * (py - g.foe_y)
             kb, db = _nearest_cluster(cl, px, py, prm)
