@@ -816,14 +816,8 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
                 tau = event_tau(px, py, evx, evy, g.foe_x, g.foe_y, prm)
         if tau > 0.0 and prm.base_px > 0:  # from where the edge was earlier
             d0 = tau * (sp - rot)  # (p - foe).n
-            if rot == 0.0:
-                rr = math.sqrt((px - g.foe_x) ** 2 + (py - g.foe_y) ** 2)
-                tau = baseline_tau(last_t, 1 if pol[i] > 0 else 0, px, py,
-                                   (px - g.foe_x) / rr, (py - g.foe_y) / rr, rr, 0.0, ta,
-                                   prm.base_px, prm.base_age_us, prm.base_width)
-            else:
-                tau = baseline_tau(last_t, 1 if pol[i] > 0 else 0, px, py, evx / sp, evy / sp,
-                                   d0, rot, ta, prm.base_px, prm.base_age_us, prm.base_width)
+            tau = baseline_tau(last_t, 1 if pol[i] > 0 else 0, px, py, evx / sp, evy / sp,
+                               d0, rot, ta, prm.base_px, prm.base_age_us, prm.base_width)
             if tau > 0.0:
                 tau -= (ti - ta) * 1e-6  # moved forward from the arrival to the event
             if tau < prm.min_tau or tau > prm.max_tau:
