@@ -252,61 +252,6 @@ def baseline_tau(S, pol, px, py, nx, ny, d0, rot, ti, max_px, max_age_us, width)
 
 
 @njit(cache=True)
-def arrival_normal(S, pol, ix, iy, ta, max_age_us):
-    """Unit direction of the arrival-time gradient around pixel (ix, iy) (arrival ta): a
-    least-squares plane t = a dx + b dy + c through the 5x5 neighbours that fired at most
-    ``max_age_us`` before ta (not after); (a, b) / |(a, b)|, ok False with fewer than 8."""
-    h = S.shape[1]
-    w = S.shape[2]
-    n = 1.0
-    sx = sy = sxx = syy = sxy = st = sxt = syt = 0.0
-    for dy in range(-2, 3):
-        for dx in range(-2, 3):
-            if dx == 0 and dy == 0:
-                continue
-            qx = ix + dx
-            qy = iy + dy
-            if qx < 0 or qy < 0 or qx >= w or qy >= h:
-                continue
-            tq = S[pol, qy, qx]
-            if not (tq <= ta and ta - tq <= max_age_us):
-                continue
-            v = (tq - ta) * 1e-6
-            n += 1.0
-            sx += dx
-            sy += dy
-            sxx += dx * dx
-            syy += dy * dy
-            sxy += dx * dy
-            st += v
-            sxt += dx * v
-            syt += dy * v
-    if n < 9.0:
-        return 0.0, 0.0, False
-    m00 = sxx
-    m01 = sxy
-    m02 = sx
-    m11 = syy
-    m12 = sy
-    m22 = n
-    r0 = sxt
-    r1 = syt
-    r2 = st
-    det = (m00 * (m11 * m22 - m12 * m12) - m01 * (m01 * m22 - m12 * m02)
-           + m02 * (m01 * m12 - m11 * m02))
-    if abs(det) < 1e-9:
-        return 0.0, 0.0, False
-    a = (r0 * (m11 * m22 - m12 * m12) - m01 * (r1 * m22 - m12 * r2)
-         + m02 * (r1 * m12 - m11 * r2)) / det
-    b = (m00 * (r1 * m22 - r2 * m12) - r0 * (m01 * m22 - m12 * m02)
-         + m02 * (m01 * r2 - r1 * m02)) / det
-    gg = math.sqrt(a * a + b * b)
-    if not (gg > 0.0):
-        return 0.0, 0.0, False
-    return a / gg, b / gg, True
-
-
-@njit(cache=True)
 def ground_vote(H, carry, kg, t_us, memory_us):
     """Add kg = tau * dy > 0 of an event at ``t_us`` to the ground histogram ``H`` (bins of
     ln kg), weighted ``exp((t_us - votes_t_ref) / memory_us)`` (older votes fade with that
@@ -871,16 +816,7 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
                 tau = event_tau(px, py, evx, evy, g.foe_x, g.foe_y, prm)
         if tau > 0.0 and prm.base_px > 0:  # from where the edge was earlier
             d0 = tau * (sp - rot)  # (p - foe).n
-            nx = evx / sp
-            ny = evy / sp
-            if rot == 0.0:
-                ax, ay, ok = arrival_normal(last_t, 1 if pol[i] > 0 else 0, int(x[i]), int(y[i]),
-                                            ta, prm.base_age_us)
-                if ok and (px - g.foe_x) * ax + (py - g.foe_y) * ay > 0.0:
-                    nx = ax
-                    ny = ay
-                    d0 = (px - g.foe_x) * ax + (py - g.foe_y) * ay
-            tau = baseline_tau(last_t, 1 if pol[i] > 0 else 0, px, py, nx, ny,
+            tau = baseline_tau(last_t, 1 if pol[i] > 0 else 0, px, py, evx / sp, evy / sp,
                                d0, rot, ta, prm.base_px, prm.base_age_us, prm.base_width)
             if tau > 0.0:
                 tau -= (ti - ta) * 1e-6  # moved forward from the arrival to the event
