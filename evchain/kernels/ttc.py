@@ -808,7 +808,7 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
         if (ti - ta) * 1e-6 * sp > prm.run_px:
             ta = float(ti)
         tau = -1.0
-        if g.has_foe > 0.0 and abs(rot) <= abs(sp - rot):  # the flow mostly translational
+        if g.has_foe > 0.0:  # from the translational part of the normal flow, sp - rot
             if rot != 0.0:
                 tau = event_tau(px, py, evx - rot * evx / sp, evy - rot * evy / sp, g.foe_x,
                                 g.foe_y, prm)
