@@ -120,10 +120,17 @@ class SceneSource(Filter):
         p = self.params
         if p.dt_us is not None:
             return p.dt_us
-        if vmax_pxs <= 0:
-            return p.dt_max_us
-        dt = int(np.floor(p.max_motion_px / vmax_pxs * 1e6))
-        return int(min(max(dt, p.dt_min_us), p.dt_max_us))
+        from evchain.kernels.scene_bands import step_us
+
+        return int(step_us(self.step_rule, float(vmax_pxs)))
+
+    @property
+    def step_rule(self):
+        """The adaptive step's rule (:class:`~evchain.kernels.scene_bands.StepRule`)."""
+        from evchain.kernels.scene_bands import StepRule
+
+        p = self.params
+        return StepRule(float(p.max_motion_px), int(p.dt_min_us), int(p.dt_max_us))
 
     def _imu(self, t_start: int, t_end: int) -> np.ndarray | None:
         """The simulated IMU's samples in ``[t_start, t_end)`` (None without an IMU), on the
@@ -202,7 +209,7 @@ class SceneSource(Filter):
             from evchain.sim.bands import BandFrames
 
             bands = BandFrames(self.scene, p.band_rows, p.max_frames_per_packet)
-            seq = bands.frames(0, end, self.next_dt_us)
+            seq = bands.frames(0, end, self.step_rule)
         else:
             def step(vmax: float) -> int:
                 dts.append(self.next_dt_us(vmax))

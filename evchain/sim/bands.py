@@ -9,21 +9,30 @@ between two of its renders its rows are the linear interpolation in intensity be
 (:func:`interpolate_band`). A frame is emitted once every band has been rendered at or after
 its time, so frames wait in a ring of ``capacity`` frames; when the ring would fill, every
 band renders (bounded memory).
+
+With more than one render thread, the schedule is predicted :data:`AHEAD` frames on, with
+every band's speed as at its last render, and the bands each predicted frame needs render
+on the scene's threads meanwhile (:class:`_Ahead`). The schedule itself is decided as
+without: a predicted render is used only where the schedule asks for those rows at that
+time, and the others are dropped, so the frames do not depend on the threads.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
+from concurrent.futures import Future
 
 import numpy as np
 
-from evchain.kernels.scene_bands import interpolate_band
+from evchain.kernels.scene_bands import StepRule, band_steps, plan, predict, settle
 from evchain.sim.drive import Scene
 
 #: a band's step is the frame step for its fastest pixel's speed times this: a band moves at
 #: most ``max_motion_px`` / 1.5 between its renders (at 1.0 the events of 0.1 s of the
 #: evaluation cell speed-27 differed from whole frames' by a median of 12 µs, at 1.5 by 0)
 BAND_SPEED_MARGIN = 1.5
+#: frames whose renders are predicted and started ahead of the schedule (threads > 1)
+AHEAD = 4
 
 
 class BandFrames:
@@ -41,17 +50,17 @@ class BandFrames:
         #: rows rendered and frames emitted so far (the share of pixel rows rendered)
         self.rows_rendered = 0
         self.frames_emitted = 0
+        self._ahead: _Ahead | None = None
 
     @property
     def nbands(self) -> int:
         return len(self.edges) - 1
 
-    def frames(self, t_us: int, end_us: int, next_dt_us: Callable[[float], int]
+    def frames(self, t_us: int, end_us: int, rule: StepRule
                ) -> Iterator[tuple[int, np.ndarray, int]]:
-        """(t, frame, dt) for t = t_us, t + dt, ... while t < end_us; ``next_dt_us(v)`` is the
-        step after a frame whose fastest pixel moves at v px/s (it must not grow with v)."""
+        """(t, frame, dt) for t = t_us, t + dt, ... while t < end_us, the steps by ``rule``."""
         nb, h, w, cap = self.nbands, self.height, self.width, self.capacity
-        edges = self.edges
+        edges = self.edges.astype(np.int64)
         ring = np.empty((cap, h, w), np.float32)
         ring_t = np.zeros(cap, np.int64)
         ring_dt = np.zeros(cap, np.int64)
@@ -60,70 +69,144 @@ class BandFrames:
         v = np.zeros(nb)
         band_dt = np.zeros(nb, np.int64)
         row_v2 = np.zeros(h)
-        band_rows = [np.arange(edges[b], edges[b + 1]) for b in range(nb)]
+        rows = np.empty(h, np.int64)
+        done = np.zeros(nb, bool)
+        self._ahead = _Ahead(self.scene, h, w, edges) if self.scene._nthreads() > 1 else None
         head = count = 0
         t = t_us
-        while t < end_us:
-            slot = (head + count) % cap
-            ring_t[slot] = t
-            done = np.zeros(nb, bool)
-            force = count + 1 == cap        # the ring is full after this frame
-            while True:
-                dt = next_dt_us(float(v.max()))
-                due = ~done & ((last_t < 0) | force | (t + dt >= end_us)
-                               | (t + dt > last_t + band_dt))
-                if not due.any():
-                    break
-                due_bands = np.flatnonzero(due)
-                rows = np.concatenate([band_rows[b] for b in due_bands])
-                self._render_rows(t, ring[slot], rows, row_v2)
-                for b in due_bands:
-                    v[b] = np.sqrt(row_v2[edges[b]:edges[b + 1]].max())
-                    band_dt[b] = next_dt_us(float(v[b]) * BAND_SPEED_MARGIN)
-                done |= due
-            ring_dt[slot] = dt
-            pending = (np.arange(head, head + count) % cap)
-            pending_t = ring_t[pending]
-            for b in np.flatnonzero(done):
-                r0, r1 = edges[b], edges[b + 1]
-                if last_t[b] >= 0 and count:
-                    between = pending_t > last_t[b]
-                    if between.any():
-                        interpolate_band(ring, pending[between], pending_t[between], r0, r1,
-                                         start, last_t[b], t, slot)
-                start[r0:r1] = ring[slot, r0:r1]
-            last_t[done] = t
-            count += 1
-            complete = last_t.min()
-            while count and ring_t[head] <= complete:
-                self.frames_emitted += 1
-                yield int(ring_t[head]), ring[head].copy(), int(ring_dt[head])
-                head = (head + 1) % cap
-                count -= 1
-            t += dt
+        try:
+            while t < end_us:
+                slot = (head + count) % cap
+                ring_t[slot] = t
+                done[:] = False
+                force = count + 1 == cap        # the ring is full after this frame
+                while True:
+                    dt, n = plan(t, end_us, force, done, last_t, band_dt, v, rule, edges, rows)
+                    if n == 0:
+                        break
+                    self._render_rows(t, ring[slot], rows[:n].copy(), row_v2)
+                    band_steps(t, end_us, force, dt, done, last_t, band_dt, v, rule,
+                               BAND_SPEED_MARGIN, edges, row_v2)
+                ring_dt[slot] = dt
+                n_out = settle(ring, ring_t, head, count, slot, t, done, last_t, edges, start)
+                count += 1
+                if self._ahead is not None:
+                    waiting = ring_t[np.arange(head + n_out, head + count) % cap]
+                    self._ahead.predict(t + dt, dt, end_us, cap, waiting, last_t, band_dt)
+                for _ in range(n_out):
+                    self.frames_emitted += 1
+                    yield int(ring_t[head]), ring[head].copy(), int(ring_dt[head])
+                    head = (head + 1) % cap
+                    count -= 1
+                t += dt
+        finally:
+            if self._ahead is not None:
+                self._ahead.close()
+                self._ahead = None
 
     def _render_rows(self, t_us: int, out: np.ndarray, rows: np.ndarray,
                      row_v2: np.ndarray) -> None:
         """Render ``rows`` of the frame at t_us into ``out`` (contrast applied) and their speed
-        bounds into ``row_v2``; rows spread over the scene's threads."""
+        bounds into ``row_v2``: from the renders started ahead where they hold these rows,
+        the rest here (with one thread) or spread over the scene's threads."""
         from evchain.kernels.scene_render import render_row_set
 
         scene = self.scene
-        frame, world, _ = scene._frame_args(t_us * 1e-6, out, scene._scratch())
-        nt = min(scene._nthreads(), max(1, len(rows) // 8))
-        if nt == 1:
-            render_row_set(frame, world, out, rows, 0, 1, row_v2)
-        else:
-            pool = scene._pool_of(scene._nthreads())
-            jobs = [pool.submit(render_row_set, frame, world, out, rows, i, nt, row_v2)
-                    for i in range(1, nt)]
-            render_row_set(frame, world, out, rows, 0, nt, row_v2)
-            for job in jobs:
-                job.result()
+        todo = rows if self._ahead is None else self._ahead.take(t_us, out, rows, row_v2)
+        if len(todo):
+            frame, world, _ = scene._frame_args(t_us * 1e-6, out, scene._scratch())
+            nt = 1 if self._ahead is not None else min(scene._nthreads(), max(1, len(todo) // 8))
+            if nt == 1:
+                render_row_set(frame, world, out, todo, 0, 1, row_v2)
+            else:
+                pool = scene._pool_of(scene._nthreads())
+                jobs = [pool.submit(render_row_set, frame, world, out, todo, i, nt, row_v2)
+                        for i in range(1, nt)]
+                render_row_set(frame, world, out, todo, 0, nt, row_v2)
+                for job in jobs:
+                    job.result()
         self.rows_rendered += len(rows)
         if scene.cfg.contrast != 1.0:
             for r0, r1 in _runs(rows):
                 scene._contrast(out[r0:r1])
+
+
+class _Ahead:
+    """Renders of the frames the schedule is predicted to need next, on the scene's threads.
+
+    :meth:`predict` runs the schedule's rule :data:`AHEAD` frames on from the current state,
+    every band's step and the global step as they are now, and starts a render of each
+    predicted frame's due rows that is not already under way (a render predicted with other
+    rows is replaced). :meth:`take` hands the schedule the rows it asks for at a time from
+    that time's render, if any; renders of earlier times are dropped."""
+
+    def __init__(self, scene: Scene, height: int, width: int, edges: np.ndarray):
+        self.scene = scene
+        self.edges = edges
+        self.masks = np.zeros((AHEAD, len(edges) - 1), bool)
+        self.pool = scene._pool_of(scene._nthreads())
+        self.shape = (height, width)
+        #: time -> (the bands rendered, future, frame, row_v2)
+        self.jobs: dict[int, tuple[np.ndarray, Future, np.ndarray, np.ndarray]] = {}
+        self.free: list[tuple[np.ndarray, np.ndarray]] = []
+
+    def predict(self, t: int, dt: int, end_us: int, cap: int, waiting: np.ndarray,
+                last_t: np.ndarray, band_dt: np.ndarray) -> None:
+        """Start the renders of the frames at t, t + dt, ... (``AHEAD`` of them, before
+        end_us) as the schedule would make them if no band's speed changed; ``waiting``: the
+        times of the frames in the ring, not yet complete."""
+        n = predict(t, dt, end_us, cap, waiting, last_t, band_dt, self.masks)
+        for k in range(n):
+            tk = t + k * dt
+            due = self.masks[k]
+            job = self.jobs.get(tk)
+            if job is None or not np.array_equal(job[0], due):
+                if job is not None:
+                    self._drop(job)
+                self.jobs[tk] = self._start(tk, due.copy())
+
+    def _start(self, t: int, bands: np.ndarray):
+        from evchain.kernels.scene_render import render_row_set
+
+        frame, v2 = self.free.pop() if self.free else (np.empty(self.shape, np.float32),
+                                                       np.zeros(self.shape[0]))
+        e = self.edges
+        rows = np.concatenate([np.arange(e[b], e[b + 1]) for b in np.flatnonzero(bands)])
+        scene = self.scene
+
+        def render() -> None:
+            args = scene._frame_args(t * 1e-6, frame, scene._scratch())
+            render_row_set(*args, rows, 0, 1, v2)
+
+        return bands, self.pool.submit(render), frame, v2
+
+    def _drop(self, job) -> None:
+        """Forget a render; its buffers are reused only if it never started."""
+        if job[1].cancel():
+            self.free.append((job[2], job[3]))
+
+    def take(self, t: int, out: np.ndarray, rows: np.ndarray, row_v2: np.ndarray
+             ) -> np.ndarray:
+        """Copy the rows of ``rows`` rendered ahead at t into ``out`` and their bounds into
+        ``row_v2``; returns the rows still to render."""
+        for tj in [tj for tj in self.jobs if tj < t]:
+            self._drop(self.jobs.pop(tj))
+        job = self.jobs.pop(t, None)
+        if job is None:
+            return rows
+        bands, future, frame, v2 = job
+        future.result()
+        have = bands[np.searchsorted(self.edges, rows, side="right") - 1]
+        got = rows[have]
+        out[got] = frame[got]
+        row_v2[got] = v2[got]
+        self.free.append((frame, v2))
+        return rows[~have]
+
+    def close(self) -> None:
+        for job in self.jobs.values():
+            job[1].cancel()
+        self.jobs.clear()
 
 
 def _runs(rows: np.ndarray) -> list[tuple[int, int]]:

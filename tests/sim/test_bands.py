@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from evchain.filters.scene import SceneSource
-from evchain.kernels.scene_bands import interpolate_band
+from evchain.kernels.scene_bands import StepRule, interpolate_band, predict, step_us
 from evchain.kernels.scene_render import render_row_set
 from evchain.sim.bands import BandFrames
 from evchain.sim.drive import Scene
@@ -95,15 +95,69 @@ def test_render_row_set_vs_naive(kw):
 
 
 def _dt_rule(max_motion_px=0.5, dt_min=5, dt_max=10_000):
-    def next_dt(v):
-        if v <= 0:
-            return dt_max
-        return int(min(max(int(np.floor(max_motion_px / v * 1e6)), dt_min), dt_max))
-    return next_dt
+    return StepRule(max_motion_px, dt_min, dt_max)
 
 
-def _whole(sc, end_us, next_dt):
-    return [(t, f) for t, f, _ in sc.frames(0, end_us, next_dt)]
+def _whole(sc, end_us, rule):
+    return [(t, f) for t, f, _ in sc.frames(0, end_us, lambda v: int(step_us(rule, v)))]
+
+
+def test_step_rule_vs_naive():
+    """The step kernel against the plain rule: at rest, tiny and huge speeds, both clips."""
+    rng = np.random.default_rng(3)
+    speeds = [0.0, -1.0, 1e-12, 1e-3, 49.99, 50.0, 1e5, 1e6, 1e300, *rng.uniform(0, 2e5, 200)]
+    for mm, lo, hi in [(0.5, 5, 10_000), (0.125, 1, 100), (2.0, 20, 20)]:
+        rule = StepRule(mm, lo, hi)
+        for v in speeds:
+            assert int(step_us(rule, v)) == NB.step_us(mm, lo, hi, v), (mm, v)
+
+
+def test_predict_vs_naive():
+    """The prediction of the next frames' due bands against the rule applied frame by frame:
+    random states, a ring about to fill, the end of the drive within the horizon."""
+    rng = np.random.default_rng(4)
+    for _ in range(300):
+        nb = int(rng.integers(1, 12))
+        cap = int(rng.integers(1, 10))
+        t = int(rng.integers(0, 5000))
+        dt = int(rng.integers(1, 500))
+        end = t + int(rng.integers(1, 12 * dt))
+        last = np.where(rng.random(nb) < 0.1, -1, t - rng.integers(1, 3000, nb)).astype(np.int64)
+        band_dt = rng.integers(1, 3000, nb).astype(np.int64)
+        nwait = int(rng.integers(0, cap))
+        waiting = np.sort(t - rng.integers(1, 2000, nwait)).astype(np.int64)
+        masks = np.zeros((int(rng.integers(1, 6)), nb), bool)
+        n = predict(t, dt, end, cap, waiting, last, band_dt, masks)
+        want = NB.predict(t, dt, end, cap, waiting, last, band_dt, masks.shape[0])
+        assert n == len(want)
+        np.testing.assert_array_equal(masks[:n], want)
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+@pytest.mark.parametrize("band_rows, capacity, dynamics",
+                         [(16, 64, "constant"), (7, 4, "constant"), (1, 1, "constant"),
+                          (4, 8, "pitch")])
+def test_schedule_vs_naive(threads, band_rows, capacity, dynamics):
+    """The schedule (compiled rule; with two threads also the renders predicted ahead) gives
+    the plain schedule's frames, steps and renders, bit for bit: bands of several sizes, a
+    ring that fills (capacity 4) or holds one frame, a pitching camera whose speeds change."""
+    kw = dict(SMALL, dynamics=dynamics, start_m=0.0 if dynamics == "pitch" else 200.0)
+    sc = Scene.from_params(threads=threads, **kw)
+    rule = _dt_rule()
+    bands = BandFrames(sc, band_rows, capacity)
+    log = _log_renders(bands)
+    got = list(bands.frames(0, 30_000, rule))
+    ref = Scene.from_params(**kw)
+
+    def render(t, out, rows, row_v2):
+        render_row_set(*ref._frame_args(t * 1e-6, out, ref._scratch()), rows, 0, 1, row_v2)
+
+    want, renders = NB.band_frames(render, 30, 40, bands.edges, capacity, 0, 30_000,
+                                   lambda v: NB.step_us(0.5, 5, 10_000, v))
+    assert [(g[0], g[2]) for g in got] == [(w[0], w[2]) for w in want] and len(got) > 5
+    for g, w in zip(got, want, strict=True):
+        np.testing.assert_array_equal(g[1], w[1])
+    assert [(t, sorted(rows)) for t, rows in log] == renders
 
 
 @pytest.mark.parametrize("band_rows", [16, 7, 1])
@@ -114,10 +168,9 @@ def test_bands_render_where_due_and_interpolate_between(band_rows):
     render), the image's height (30) is not a multiple of every band size, and the global
     times are the fastest band's."""
     sc = Scene.from_params(**SMALL)
-    next_dt = _dt_rule()
     bands = BandFrames(sc, band_rows, capacity=64)
     rendered = _log_renders(bands)
-    got = list(bands.frames(0, 30_000, next_dt))
+    got = list(bands.frames(0, 30_000, _dt_rule()))
     t = np.array([g[0] for g in got])
     assert t[0] == 0 and np.all(np.diff(t) > 0) and t[-1] < 30_000
     assert all(g[0] + g[2] == h[0] for g, h in zip(got[:-1], got[1:], strict=True))
@@ -172,9 +225,8 @@ def sc_flow(sc, xs, ys, t_us):
 def test_one_band_is_the_whole_frame():
     """A band as tall as the image renders every frame whole: the same times and bits."""
     sc = Scene.from_params(**SMALL)
-    next_dt = _dt_rule()
-    got = list(BandFrames(sc, 30, capacity=8).frames(0, 20_000, next_dt))
-    want = _whole(sc, 20_000, next_dt)
+    got = list(BandFrames(sc, 30, capacity=8).frames(0, 20_000, _dt_rule()))
+    want = _whole(sc, 20_000, _dt_rule())
     assert [g[0] for g in got] == [w[0] for w in want]
     for g, w in zip(got, want, strict=True):
         np.testing.assert_array_equal(g[1], w[1])
