@@ -93,8 +93,9 @@ class LKFlow(Filter):
             "is estimated again with min(max_window_us, slow_px / speed) (max_window_us after a "
             "failure; at most 3 estimates); a longer window's estimate is kept only if the edge "
             "is slow enough to need it, µs. It sets the slowest edge resolved, slow_px / "
-            "max_window_us px/s, so null: 300 ms x 380.6 px / f (chosen on the reference "
-            "drive); off in faithful mode"))
+            "max_window_us px/s, so null: 600 ms x 380.6 px / f (5 px/s on the reference "
+            "camera: a far obstacle's edges 15 px from the FOE at 3 s to contact; chosen on "
+            "the tuning set); off in faithful mode"))
         slow_px: float = Field(3.0, gt=0.0, le=100.0, description=(
             "calibrated mode with max_window_us: the distance, px of the grid, an edge must "
             "cross within its window to be resolved (3 exceeds the ~2 events a pixel fires "
@@ -133,7 +134,7 @@ class LKFlow(Filter):
 
         q = self.params
         window = derived_us(q.window_us, 80_000, geometry)
-        longest = 0 if q.mode == "faithful" else derived_us(q.max_window_us, 300_000, geometry)
+        longest = 0 if q.mode == "faithful" else derived_us(q.max_window_us, 600_000, geometry)
         check_window_order("lk_flow", window, longest, q.min_window_us, geometry)
         return record(
             LKParams, r=q.search_distance, window_us=window,

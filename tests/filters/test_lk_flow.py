@@ -253,13 +253,13 @@ def test_adaptive_window_bad_settings_are_refused(bad, says):
 @pytest.mark.parametrize("scale", [1.0, 2.0, 0.5])
 def test_windows_and_speeds_follow_the_focal_length(scale):
     """Left null, the windows and the refractory period are the reference camera's (80, 150,
-    300 ms) over f / 380.6 px, the speed ceiling 1e5 px/s times it; the grid's lengths stay."""
+    600 ms) over f / 380.6 px, the speed ceiling 1e5 px/s times it; the grid's lengths stay."""
     f = LKFlow()
     f.setup(LKFlow.Params(), Context())
     q = f.kernel_params(Geometry(int(320 * scale), int(240 * scale),
                                  f=scale * REFERENCE_FOCAL_PX))
     assert (q.window_us, q.refractory_us, q.max_window_us) == (
-        round(80_000 / scale), round(150_000 / scale), round(300_000 / scale))
+        round(80_000 / scale), round(150_000 / scale), round(600_000 / scale))
     assert q.max_speed_pxs == pytest.approx(1e5 * scale, rel=1e-12)
     assert (q.r, q.slow_px, q.centre_check_px) == (2, 3.0, 0.5)
 
