@@ -16,7 +16,7 @@ from evchain.filters.plane_flow import PlaneFlow
 @pytest.mark.parametrize("bad, says", [
     (dict(max_window_us=80_000), "must exceed window_us"),
     (dict(min_window_us=80_000), "must be shorter than window_us"),
-    (dict(window_us=500_000), "must exceed window_us"),
+    (dict(window_us=700_000), "must exceed window_us"),
 ])
 def test_adaptive_window_bad_settings_on_the_camera_are_refused(flow, bad, says):
     """Settings that are valid alone fail once the null ones are derived from the camera (80 ms
