@@ -32,7 +32,7 @@ from evchain.sim.drive import Scene
 #: evaluation cell speed-27 differed from whole frames' by a median of 12 µs, at 1.5 by 0)
 BAND_SPEED_MARGIN = 1.5
 #: frames whose renders are predicted and started ahead of the schedule (threads > 1)
-AHEAD = 4
+AHEAD = 8
 
 
 class BandFrames:
