@@ -37,27 +37,35 @@ def _due(t, dt, end_us, force, last, band_dt, b):
 
 
 @njit(cache=True, nogil=True)
-def plan(t, end_us, force, done, last, band_dt, v, rule, edges, rows):
-    """The global step after the frame at t (from the fastest band's speed ``v``) and the
-    bands that render at t and are not ``done`` yet: their rows into ``rows``. Returns (dt,
-    number of rows)."""
+def plan(t, end_us, force, done, last, band_dt, v, rule, due):
+    """The global step after the frame at t (from the fastest band's speed ``v``), returned,
+    and in ``due`` the bands that render at t and are not ``done`` yet."""
     dt = step_us(rule, v.max())
-    n = 0
     for b in range(done.shape[0]):
-        if not done[b] and _due(t, dt, end_us, force, last, band_dt, b):
-            for r in range(edges[b], edges[b + 1]):
-                rows[n] = r
-                n += 1
-    return dt, n
+        due[b] = not done[b] and _due(t, dt, end_us, force, last, band_dt, b)
+    return dt
 
 
 @njit(cache=True, nogil=True)
-def band_steps(t, end_us, force, dt, done, last, band_dt, v, rule, margin, edges, row_v2):
-    """After the bands :func:`plan` chose (for the step dt) rendered: each one's speed (the
-    square root of its rows' largest ``row_v2``) into ``v``, its own step (for ``margin``
-    times that speed) into ``band_dt``, and it is marked ``done``."""
-    for b in range(done.shape[0]):
-        if not done[b] and _due(t, dt, end_us, force, last, band_dt, b):
+def rows_of(bands, edges, rows):
+    """The rows of the bands marked in ``bands`` (bands b has rows edges[b] .. edges[b + 1] -
+    1) into ``rows``, in order; returns their number."""
+    n = 0
+    for b in range(bands.shape[0]):
+        if bands[b]:
+            for r in range(edges[b], edges[b + 1]):
+                rows[n] = r
+                n += 1
+    return n
+
+
+@njit(cache=True, nogil=True)
+def band_steps(due, edges, row_v2, v, band_dt, rule, margin, done):
+    """After the ``due`` bands rendered: each one's speed (the square root of its rows'
+    largest ``row_v2``) into ``v``, its own step (for ``margin`` times that speed) into
+    ``band_dt``, and it is marked ``done``."""
+    for b in range(due.shape[0]):
+        if due[b]:
             m = row_v2[edges[b]]
             for r in range(edges[b] + 1, edges[b + 1]):
                 m = max(m, row_v2[r])

@@ -24,7 +24,14 @@ from concurrent.futures import Future
 
 import numpy as np
 
-from evchain.kernels.scene_bands import StepRule, band_steps, plan, predict, settle
+from evchain.kernels.scene_bands import (
+    StepRule,
+    band_steps,
+    plan,
+    predict,
+    rows_of,
+    settle,
+)
 from evchain.sim.drive import Scene
 
 #: a band's step is the frame step for its fastest pixel's speed times this: a band moves at
@@ -71,6 +78,7 @@ class BandFrames:
         row_v2 = np.zeros(h)
         rows = np.empty(h, np.int64)
         done = np.zeros(nb, bool)
+        due = np.zeros(nb, bool)
         self._ahead = _Ahead(self.scene, h, w, edges) if self.scene._nthreads() > 1 else None
         head = count = 0
         t = t_us
@@ -81,12 +89,12 @@ class BandFrames:
                 done[:] = False
                 force = count + 1 == cap        # the ring is full after this frame
                 while True:
-                    dt, n = plan(t, end_us, force, done, last_t, band_dt, v, rule, edges, rows)
+                    dt = plan(t, end_us, force, done, last_t, band_dt, v, rule, due)
+                    n = rows_of(due, edges, rows)
                     if n == 0:
                         break
-                    self._render_rows(t, ring[slot], rows[:n].copy(), row_v2)
-                    band_steps(t, end_us, force, dt, done, last_t, band_dt, v, rule,
-                               BAND_SPEED_MARGIN, edges, row_v2)
+                    self._render_rows(t, ring[slot], rows[:n], row_v2)
+                    band_steps(due, edges, row_v2, v, band_dt, rule, BAND_SPEED_MARGIN, done)
                 ring_dt[slot] = dt
                 n_out = settle(ring, ring_t, head, count, slot, t, done, last_t, edges, start)
                 count += 1
@@ -170,8 +178,8 @@ class _Ahead:
 
         frame, v2 = self.free.pop() if self.free else (np.empty(self.shape, np.float32),
                                                        np.zeros(self.shape[0]))
-        e = self.edges
-        rows = np.concatenate([np.arange(e[b], e[b + 1]) for b in np.flatnonzero(bands)])
+        rows = np.empty(self.shape[0], np.int64)
+        rows = rows[:rows_of(bands, self.edges, rows)]
         scene = self.scene
 
         def render() -> None:

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from evchain.filters.scene import SceneSource
-from evchain.kernels.scene_bands import StepRule, interpolate_band, predict, step_us
+from evchain.kernels.scene_bands import StepRule, interpolate_band, predict, rows_of, step_us
 from evchain.kernels.scene_render import render_row_set
 from evchain.sim.bands import BandFrames
 from evchain.sim.drive import Scene
@@ -110,6 +110,19 @@ def test_step_rule_vs_naive():
         rule = StepRule(mm, lo, hi)
         for v in speeds:
             assert int(step_us(rule, v)) == NB.step_us(mm, lo, hi, v), (mm, v)
+
+
+def test_rows_of_vs_naive():
+    """The rows of marked bands: none, all, a last band shorter than the others, one row."""
+    rng = np.random.default_rng(6)
+    for edges in ([0, 16, 30], [0, 1, 2, 3], [0, 7, 14, 21, 28, 30], [0, 30]):
+        edges = np.array(edges, np.int64)
+        nb = len(edges) - 1
+        for bands in (np.zeros(nb, bool), np.ones(nb, bool), *(rng.random((20, nb)) < 0.5)):
+            rows = np.full(40, -1, np.int64)
+            n = rows_of(bands, edges, rows)
+            want = [r for b in np.flatnonzero(bands) for r in range(edges[b], edges[b + 1])]
+            assert rows[:n].tolist() == want and (rows[n:] == -1).all()
 
 
 def test_predict_vs_naive():
