@@ -86,11 +86,15 @@ class SceneSource(Filter):
         return (IMU,) if params.imu_rate_hz > 0 else ()
 
     def setup(self, params, context) -> None:
+        from evchain.kernels.scene_bands import StepRule
         from evchain.sim.drive import Scene
         from evchain.sim.renderer import SceneRenderer
         from evchain.sim.truth import SceneTruth
 
         check_memory(params)
+        #: the adaptive step's rule (``next_dt_us``; the row bands' schedule)
+        self.step_rule = StepRule(float(params.max_motion_px), int(params.dt_min_us),
+                                  int(params.dt_max_us))
         self.scene = Scene(params, threads=params.threads)
         self.truth = SceneTruth(self.scene)
         self.duration_us = int(round(self.scene.duration_s * 1e6))
@@ -117,20 +121,11 @@ class SceneSource(Filter):
 
     def next_dt_us(self, vmax_pxs: float) -> int:
         """Frame interval after a frame whose fastest sample moves at ``vmax_pxs``."""
-        p = self.params
-        if p.dt_us is not None:
-            return p.dt_us
+        if self.params.dt_us is not None:
+            return self.params.dt_us
         from evchain.kernels.scene_bands import step_us
 
         return int(step_us(self.step_rule, float(vmax_pxs)))
-
-    @property
-    def step_rule(self):
-        """The adaptive step's rule (:class:`~evchain.kernels.scene_bands.StepRule`)."""
-        from evchain.kernels.scene_bands import StepRule
-
-        p = self.params
-        return StepRule(float(p.max_motion_px), int(p.dt_min_us), int(p.dt_max_us))
 
     def _imu(self, t_start: int, t_end: int) -> np.ndarray | None:
         """The simulated IMU's samples in ``[t_start, t_end)`` (None without an IMU), on the
