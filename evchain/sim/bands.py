@@ -14,7 +14,11 @@ With more than one render thread, the schedule is predicted :data:`AHEAD` frames
 every band's speed as at its last render, and the bands each predicted frame needs render
 on the scene's threads meanwhile (:class:`_Ahead`). The schedule itself is decided as
 without: a predicted render is used only where the schedule asks for those rows at that
-time, and the others are dropped, so the frames do not depend on the threads.
+time, and the others are dropped, so the frames do not depend on the threads. Where the
+global step keeps changing (the obstacle near, its image speeding up from frame to frame)
+the predicted times miss: after a frame that had no render ahead the predictions pause (for
+``AHEAD`` frames, doubling while they keep missing) and each frame's rows are split over the
+threads instead, so that the threads do not render frames nobody asks for.
 """
 
 from __future__ import annotations
@@ -40,6 +44,8 @@ from evchain.sim.drive import Scene
 BAND_SPEED_MARGIN = 1.5
 #: frames whose renders are predicted and started ahead of the schedule (threads > 1)
 AHEAD = 8
+#: the longest pause of the predictions after they missed, in frames
+MAX_PAUSE = 256
 
 
 class BandFrames:
@@ -98,7 +104,7 @@ class BandFrames:
                 ring_dt[slot] = dt
                 n_out = settle(ring, ring_t, head, count, slot, t, done, last_t, edges, start)
                 count += 1
-                if self._ahead is not None:
+                if self._ahead is not None and self._ahead.predicting():
                     waiting = ring_t[np.arange(head + n_out, head + count) % cap]
                     self._ahead.predict(t + dt, dt, end_us, cap, waiting, last_t, band_dt)
                 for _ in range(n_out):
@@ -120,10 +126,12 @@ class BandFrames:
         from evchain.kernels.scene_render import render_row_set
 
         scene = self.scene
-        todo = rows if self._ahead is None else self._ahead.take(t_us, out, rows, row_v2)
+        ahead = self._ahead
+        todo = rows if ahead is None else ahead.take(t_us, out, rows, row_v2)
         if len(todo):
             frame, world, _ = scene._frame_args(t_us * 1e-6, out, scene._scratch())
-            nt = 1 if self._ahead is not None else min(scene._nthreads(), max(1, len(todo) // 8))
+            nt = (1 if ahead is not None and ahead.predicting()
+                  else min(scene._nthreads(), max(1, len(todo) // 8)))
             if nt == 1:
                 render_row_set(frame, world, out, todo, 0, 1, row_v2)
             else:
@@ -146,7 +154,11 @@ class _Ahead:
     every band's step and the global step as they are now, and starts a render of each
     predicted frame's due rows that is not already under way (a render predicted with other
     rows is replaced). :meth:`take` hands the schedule the rows it asks for at a time from
-    that time's render, if any; renders of earlier times are dropped."""
+    that time's render, if any; renders of earlier times are dropped. A time predicted
+    for and not asked for, or asked for and not predicted, is a miss: the predictions pause
+    (:meth:`predicting` false) for ``AHEAD`` frames, twice as long after each further miss
+    (at most :data:`MAX_PAUSE`), and the pause ends the count of misses once a prediction
+    holds again."""
 
     def __init__(self, scene: Scene, height: int, width: int, edges: np.ndarray):
         self.scene = scene
@@ -157,6 +169,13 @@ class _Ahead:
         #: time -> (the bands rendered, future, frame, row_v2)
         self.jobs: dict[int, tuple[np.ndarray, Future, np.ndarray, np.ndarray]] = {}
         self.free: list[tuple[np.ndarray, np.ndarray]] = []
+        self.pause = 0          # frames left without predictions
+        self.misses = 0         # misses in a row
+        self.asked = -1         # the last time asked for
+
+    def predicting(self) -> bool:
+        """Whether predictions run (not paused after misses)."""
+        return self.pause == 0
 
     def predict(self, t: int, dt: int, end_us: int, cap: int, waiting: np.ndarray,
                 last_t: np.ndarray, band_dt: np.ndarray) -> None:
@@ -170,8 +189,9 @@ class _Ahead:
             job = self.jobs.get(tk)
             if job is None or not np.array_equal(job[0], due):
                 if job is not None:
-                    self._drop(job)
-                self.jobs[tk] = self._start(tk, due.copy())
+                    self._drop(self.jobs.pop(tk))
+                if due.any():       # a frame that renders nothing needs no job
+                    self.jobs[tk] = self._start(tk, due.copy())
 
     def _start(self, t: int, bands: np.ndarray):
         from evchain.kernels.scene_render import render_row_set
@@ -197,9 +217,19 @@ class _Ahead:
              ) -> np.ndarray:
         """Copy the rows of ``rows`` rendered ahead at t into ``out`` and their bounds into
         ``row_v2``; returns the rows still to render."""
-        for tj in [tj for tj in self.jobs if tj < t]:
+        stale = [tj for tj in self.jobs if tj < t]
+        for tj in stale:
             self._drop(self.jobs.pop(tj))
         job = self.jobs.pop(t, None)
+        if t != self.asked:      # a frame's first rows (more can follow as speeds change)
+            self.asked = t
+            if self.pause:
+                self.pause -= 1
+            elif job is None or stale:
+                self.pause = min(MAX_PAUSE, AHEAD << min(self.misses, 5))
+                self.misses += 1
+            else:
+                self.misses = 0
         if job is None:
             return rows
         bands, future, frame, v2 = job

@@ -9,7 +9,7 @@ import pytest
 from evchain.filters.scene import SceneSource
 from evchain.kernels.scene_bands import StepRule, interpolate_band, predict, rows_of, step_us
 from evchain.kernels.scene_render import render_row_set
-from evchain.sim.bands import BandFrames
+from evchain.sim.bands import AHEAD, MAX_PAUSE, BandFrames, _Ahead
 from evchain.sim.drive import Scene
 from evchain.testing.contract import make_context
 from tests.naive import scene_bands as NB
@@ -301,3 +301,44 @@ def test_banded_events_agree_with_whole_frames():
     assert abs(res["count_rel_diff"]) <= 0.005
     assert res["pixels_differing"] < 0.01
     assert res["median_abs_dt_us"] <= 1.0
+
+
+def test_predictions_pause_after_misses_and_resume_on_a_hit():
+    """A frame asked for without a render ahead (or with renders of earlier times left) is a
+    miss: no predictions for AHEAD frames, twice as long after each further miss (at most
+    MAX_PAUSE); asking again for the same frame is not another miss; a render ahead that
+    holds ends the count."""
+    from concurrent.futures import Future, ThreadPoolExecutor
+
+    class Stub:
+        def _nthreads(self):
+            return 2
+
+        def _pool_of(self, n):
+            return ThreadPoolExecutor(1)
+
+    ahead = _Ahead(Stub(), 4, 3, np.array([0, 2, 4]))
+    out, v2, rows = np.zeros((4, 3), np.float32), np.zeros(4), np.arange(4)
+    t = 0
+    pauses = []
+    for _ in range(7):
+        assert ahead.predicting()
+        np.testing.assert_array_equal(ahead.take(t, out, rows, v2), rows)   # a miss
+        ahead.take(t, out, rows[:2], v2)                                    # same frame
+        n = 0
+        while not ahead.predicting():
+            t += 10
+            ahead.take(t, out, rows, v2)
+            n += 1
+        pauses.append(n)
+        t += 10
+    assert pauses == [min(MAX_PAUSE, AHEAD << k) for k in range(7)]
+    # a hit: the rows of its bands come from the render ahead, and the count starts over
+    done = Future()
+    done.set_result(None)
+    frame = np.full((4, 3), 7, np.float32)
+    ahead.jobs[t] = (np.array([True, False]), done, frame, np.full(4, 3.0))
+    np.testing.assert_array_equal(ahead.take(t, out, rows, v2), [2, 3])
+    assert (out[:2] == 7).all() and ahead.predicting() and ahead.misses == 0
+    ahead.take(t + 10, out, rows, v2)
+    assert not ahead.predicting() and ahead.pause == AHEAD
