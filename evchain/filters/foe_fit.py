@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 import statistics
 from collections import deque
+from typing import Literal
 
 import numpy as np
 from pydantic import Field
@@ -15,8 +16,11 @@ from evchain.core.filter import Filter, FilterParams
 from evchain.core.packets import FlowPacket, Geometry
 from evchain.core.series import FOE, FOE_VOTES
 from evchain.errors import DataError
+from evchain.imu.gyro import GyroTrack
 
 _COLUMNS = ("x", "y", "nx", "ny", "s", "e", "c0", "c1", "c2")
+#: rotation_source imu: the gyro's rate is averaged over each slab at this many times
+GYRO_POINTS = 16
 #: the modes of :class:`FoeFit`: no rotation, or the rotation axis that is free (its index)
 LEVEL, PITCHING, TURNING = -1, 0, 1
 
@@ -108,6 +112,14 @@ class FoeFit(Filter):
     adds_series = (FOE, FOE_VOTES)
 
     class Params(FilterParams):
+        rotation_source: Literal["flow", "imu"] = Field(
+            "flow", description="where the camera's rotation comes from: fitted to the flow "
+            "(flow), or the gyro of the series imu (imu: a DAVIS camera's IMU, or the "
+            "simulated one of scene.imu_rate_hz), each slab's rotation the gyro's mean rate "
+            "over it, less gyro_bias_dps; then only the FOE and the scales are fitted")
+        gyro_bias_dps: tuple[float, float, float] = Field(
+            (0.0, 0.0, 0.0), description="rotation_source imu: the gyro's bias, deg/s (x, y, "
+            "z in the camera's axes), subtracted from its readings")
         tau_ms: float = Field(200.0, gt=0, description="decay time constant of the events' "
                               "weights; events older than 3 tau are dropped")
         estimate_every_us: int = Field(10000, ge=1, description="period of the fits; the "
@@ -187,6 +199,9 @@ class FoeFit(Filter):
         self._road_held: tuple[float, float] | None = None  # (FOE row, road scale) held
         self._warm_since: int | None = None  # time of the first fit since the last cold start
         self._counts = {"fit times": 0, "fits": 0, "votes": 0, "no voting estimate": 0}
+        if p.rotation_source == "imu":
+            self._counts["slabs without gyro"] = 0
+        self._gyro = GyroTrack()
 
     def _start(self, geometry: Geometry) -> None:
         from evchain.kernels import foe_fit as k
@@ -195,6 +210,10 @@ class FoeFit(Filter):
         p = self.params
         self._geometry = geometry
         self._rotation = geometry.f is not None
+        self._imu = p.rotation_source == "imu"
+        if self._imu and not self._rotation:
+            raise DataError(f"{self.id}: rotation_source imu needs the camera's focal length "
+                            "(the geometry has none)")
         scale = px_scale(geometry)
         self._max_deviation = derived(p.max_deviation_px, 40.0, geometry)
         # a Gauss-Newton step moves the FOE by at most 3 px, and a fit has converged once it
@@ -222,6 +241,15 @@ class FoeFit(Filter):
         p = self.params
         period, tau_us = int(p.estimate_every_us), p.tau_ms * 1000.0
         votes = packet.series.get("foe", np.zeros(0, FOE.dtype))
+        if self._imu:
+            imu = packet.series.get("imu")
+            if imu is None and packet.t_end > packet.t_start:  # (a flush's slice is empty)
+                raise DataError(f"{self.id}: rotation_source imu needs the series imu in every "
+                                "packet (a recording with its IMU, or scene.imu_rate_hz > 0), "
+                                f"none in the packet at {packet.t_start} µs")
+            if imu is not None:
+                self._gyro.append(imu["t"], np.stack([imu["gx"], imu["gy"], imu["gz"]], 1))
+            self._gyro.trim(packet.t_start - int(3 * tau_us) - 2 * period)
         vx, vy = packet.vx.astype(np.float64), packet.vy.astype(np.float64)
         s = np.hypot(vx, vy)
         ok = s > 0
@@ -299,6 +327,8 @@ class FoeFit(Filter):
 
     def _free(self) -> np.ndarray:
         """The unknowns of the mode: FOE column, pitch, yaw, roll (:func:`fit`'s ``free``)."""
+        if self._imu:    # the rotation is the gyro's
+            return np.array([True, False, False, False])
         if self._mode == TURNING:
             return np.array([math.isnan(self._held_x), False, True, False])
         return np.array([True, self._mode == PITCHING, False, False])
@@ -310,7 +340,9 @@ class FoeFit(Filter):
         t_vote, vx, vy = self._vote
         if T - t_vote > tau_us:  # the flow has shown no FOE for tau: wait, resume from here
             return None
-        self._shift_slabs(T)
+        new_slabs = self._shift_slabs(T)
+        if self._imu:
+            self._gyro_slabs(T, new_slabs)
         warm = not math.isnan(self._th[k.FOE_X])
         if not warm:
             self._th = k.initial_theta(vx, vy, p.facade_bands)
@@ -375,7 +407,7 @@ class FoeFit(Filter):
                 self._remember_road(T, th[k.FOE_Y], th[k.ROAD])
             if not warm:
                 self._warm_since = T
-            if self._rotation:
+            if self._rotation and not self._imu:
                 self._update_mode(T, th[k.FOE_X], found,
                                   lambda: self._turn_explains(run, th, om, inl),
                                   lambda: self._pitch_start(run, th, om, inl))
@@ -423,6 +455,9 @@ class FoeFit(Filter):
         self.context.metrics[self.metrics_key("foe_fit")] = {
             "fit_times": c["fit times"], "fits_kept": c["fits"], "voting_estimates": c["votes"],
             "no_estimate": {"no recent voting estimate": c["no voting estimate"]}}
+        if self.params.rotation_source == "imu":
+            self.context.metrics[self.metrics_key("foe_fit")]["slabs_without_gyro"] = (
+                c["slabs without gyro"])
         return None
 
     def _turn_explains(self, run, th, om, inl) -> bool:
@@ -538,9 +573,10 @@ class FoeFit(Filter):
                 self._level_x.clear()
             self._mode, self._held_x, self._level_fit = LEVEL, math.nan, None
 
-    def _shift_slabs(self, T: int) -> None:
+    def _shift_slabs(self, T: int) -> int:
         """Move the slabs' rotations to fit time T: each slab's by the whole slabs since the
-        last fit; new slabs start with the latest rotation, 0 on the axes the mode holds."""
+        last fit; new slabs start with the latest rotation, 0 on the axes the mode holds.
+        Returns how many slabs are new (all of them at the first fit)."""
         if self._om_t is not None:
             m = (T - self._om_t) // self.params.estimate_every_us
             latest = self._om[0] * self._free()[1:]
@@ -550,5 +586,20 @@ class FoeFit(Filter):
                 self._om[m:] = self._om[:-m].copy()
                 self._om[:m] = latest
             self._om_t += m * self.params.estimate_every_us
-        else:
-            self._om_t = T
+            return min(int(m), len(self._om))
+        self._om_t = T
+        return len(self._om)
+
+    def _gyro_slabs(self, T: int, n: int) -> None:
+        """The newest ``n`` slabs' rotations (Om = f w, px/s) from the gyro: its mean rate
+        over each slab (at :data:`GYRO_POINTS` evenly spread times, linear between samples:
+        the model's rotation is constant within a slab, and the mean averages the gyro's noise
+        down), less the bias; a slab the gyro does not cover (no samples around it) keeps 0
+        and is counted."""
+        P = self.params.estimate_every_us
+        at = T - P * (np.arange(n)[:, None] + (np.arange(GYRO_POINTS) + 0.5) / GYRO_POINTS)
+        w, covered = self._gyro.rate(at, np.asarray(self.params.gyro_bias_dps, np.float64),
+                                     np.ones(3))
+        full = covered.all(axis=1)
+        self._om[:n] = np.where(full[:, None], w.mean(axis=1) * self._prm.f, 0.0)
+        self._counts["slabs without gyro"] += int(n - full.sum())

@@ -18,7 +18,7 @@ from evchain.core.truth import (
     RotationTruth,
     TtcTruth,
 )
-from evchain.sim.config import SceneConfig
+from evchain.sim.config import ImuParams, SceneConfig
 
 
 class SceneSource(Filter):
@@ -44,7 +44,7 @@ class SceneSource(Filter):
     provides_truth = (FlowTruth, FoeTruth, RotationTruth, TtcTruth, DepthTruth,
                       ObjectTruth)
 
-    class Params(SceneConfig):
+    class Params(SceneConfig, ImuParams):
         packet_us: int = Field(10_000, ge=1, le=10_000_000, description="slice per packet, µs")
         max_motion_px: float = Field(
             0.5, gt=0, le=10, description="largest image motion of any pixel between frames")
@@ -64,15 +64,6 @@ class SceneSource(Filter):
         threads: int = Field(
             1, ge=0, le=1024, description="render threads (frames ahead at a steady step, "
             "else rows in parallel; same frames); 0: all cores")
-        imu_rate_hz: float = Field(0.0, ge=0, le=100_000, description=(
-            "samples per second of the camera's simulated IMU (series imu: true gyro and "
-            "accelerometer, camera axes); 0: no IMU"))
-        imu_gyro_bias_dps: tuple[float, float, float] = Field(
-            (0.0, 0.0, 0.0), description="gyro bias added to every sample, deg/s (x, y, z)")
-        imu_gyro_noise_dps: float = Field(0.0, ge=0, description=(
-            "gyro noise, standard deviation per sample, deg/s (seeded)"))
-        imu_accel_noise_g: float = Field(0.0, ge=0, description=(
-            "accelerometer noise, standard deviation per sample, g (seeded)"))
 
         @model_validator(mode="after")
         def _check_dt(self):
@@ -128,19 +119,12 @@ class SceneSource(Filter):
         return int(step_us(self.step_rule, float(vmax_pxs)))
 
     def _imu(self, t_start: int, t_end: int) -> np.ndarray | None:
-        """The simulated IMU's samples in ``[t_start, t_end)`` (None without an IMU), on the
-        grid ``k / imu_rate_hz``."""
-        from evchain.sim.imu import imu_samples
+        """The simulated IMU's samples in ``[t_start, t_end)`` (None without an IMU)."""
+        from evchain.sim.imu import imu_between
 
         p = self.params
-        if p.imu_rate_hz <= 0:
-            return None
-        step = 1e6 / p.imu_rate_hz
-        k = np.arange(np.ceil(t_start / step), np.ceil(t_end / step))
-        t = np.unique(np.rint(k * step).astype(np.int64))
-        t = t[(t >= t_start) & (t < t_end)]
-        return imu_samples(self.scene, t, self._imu_rng, p.imu_gyro_noise_dps,
-                           p.imu_gyro_bias_dps, p.imu_accel_noise_g)
+        return imu_between(self.scene, t_start, t_end, p.imu_rate_hz, self._imu_rng,
+                           p.imu_gyro_noise_dps, p.imu_gyro_bias_dps, p.imu_accel_noise_g)
 
     def packets(self) -> Iterator[FramePacket]:
         self._imu_rng = self.context.rng(f"{self.id}.imu")

@@ -11,6 +11,7 @@ from pydantic import Field
 
 from evchain.core.filter import Context, Filter
 from evchain.core.packets import EventPacket
+from evchain.core.series import IMU
 from evchain.core.truth import (
     DepthTruth,
     FlowTruth,
@@ -20,7 +21,7 @@ from evchain.core.truth import (
     TtcTruth,
 )
 from evchain.errors import DataError
-from evchain.sim.config import SceneConfig
+from evchain.sim.config import ImuParams, SceneConfig
 
 
 class SceneEvents(Filter):
@@ -32,7 +33,10 @@ class SceneEvents(Filter):
     them, not read from the file. Sets ``context.geometry`` (with f, cx, cy) and
     ``context.truth`` (flow, FOE, camera rotation, TTC, depth, object ids). Packets cover the
     file's events in ``packet_us`` slices from the first; a file without events gives empty
-    slices over the drive's duration.
+    slices over the drive's duration. With ``imu_rate_hz`` the packets carry the simulated
+    IMU as the ``scene`` source's do (series ``imu``: the true readings at the same sample
+    times, bias and noise from the seeded stream ``scene.imu``): the IMU does not change the
+    events, so it can be added to a replay of a recording made without one.
     """
 
     name = "scene_events"
@@ -41,8 +45,9 @@ class SceneEvents(Filter):
     provides_truth = (FlowTruth, FoeTruth, RotationTruth, TtcTruth, DepthTruth,
                       ObjectTruth)
     input_paths = ("path",)
+    adds_series = (IMU,)
 
-    class Params(SceneConfig):
+    class Params(SceneConfig, ImuParams):
         path: str = Field(description="AEDAT 2.0 file written by a run of this scene")
         packet_us: int = Field(10_000, ge=1, description="duration of one output slice in µs")
 
@@ -52,6 +57,7 @@ class SceneEvents(Filter):
         from evchain.sim.truth import SceneTruth
 
         scene = Scene(params)
+        self.scene = scene
         self.reader = AedatSource()
         self.reader.id = f"{self.id}.reader"
         self.reader.setup(AedatSource.Params(path=params.path, packet_us=params.packet_us),
@@ -71,15 +77,30 @@ class SceneEvents(Filter):
     def time_span_us(self) -> tuple[int, int] | None:
         return self.reader.time_span_us()
 
+    @classmethod
+    def series_added(cls, params):
+        """``imu`` when ``imu_rate_hz`` > 0."""
+        return (IMU,) if params.imu_rate_hz > 0 else ()
+
     def packets(self) -> Iterator[EventPacket]:
+        from evchain.sim.imu import imu_between
+
+        p = self.params
+        rng = self.context.rng("scene.imu")
+
+        def with_imu(packet: EventPacket) -> EventPacket:
+            imu = imu_between(self.scene, packet.t_start, packet.t_end, p.imu_rate_hz, rng,
+                              p.imu_gyro_noise_dps, p.imu_gyro_bias_dps, p.imu_accel_noise_g)
+            return packet if imu is None else packet.with_series(IMU.name, imu)
+
         empty = True
         for packet in self.reader.packets():
             empty = False
-            yield packet.replace(geometry=self.geometry)
+            yield with_imu(packet.replace(geometry=self.geometry))
         if empty:  # a drive without events (e.g. a uniform scene): its time still passes
-            P = self.params.packet_us
+            P = p.packet_us
             for t in range(0, self.duration_us, P):
-                yield EventPacket.empty(self.geometry, t, min(t + P, self.duration_us))
+                yield with_imu(EventPacket.empty(self.geometry, t, min(t + P, self.duration_us)))
 
     def close(self) -> None:
         reader = getattr(self, "reader", None)
@@ -87,8 +108,9 @@ class SceneEvents(Filter):
             reader.close()
 
 
-#: scene parameters that change how fast frames render, not which events the emulator emits
-RENDER_ONLY = ("threads", "max_frames_per_packet", "packet_us")
+#: scene parameters that change how fast frames render or only the IMU series beside the
+#: events, not which events the emulator emits
+RENDER_ONLY = ("threads", "max_frames_per_packet", "packet_us", *ImuParams.model_fields)
 
 
 def replay_spec(spec, events_path: str | Path, check_recording: bool = True):
@@ -117,7 +139,9 @@ def replay_spec(spec, events_path: str | Path, check_recording: bool = True):
         _check_recording(spec, recorded)
     scene = stages[0].params
     params = SceneEvents.Params(path=str(events_path), packet_us=scene.packet_us,
-                                **{k: getattr(scene, k) for k in SceneConfig.model_fields})
+                                **{k: getattr(scene, k) for k in SceneConfig.model_fields},
+                                **{k: getattr(scene, k) for k in ImuParams.model_fields
+                                   if hasattr(scene, k)})
     first = StageSpec(use=SceneEvents.name, id=SceneEvents.name, cls=SceneEvents,
                       params=params, mark=stages[0].mark)
     return dataclasses.replace(spec, stages=[first, *stages[2:]])

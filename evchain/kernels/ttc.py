@@ -5,7 +5,9 @@ State (:class:`TtcState`, from :func:`new_state`): the clusters (a structured ar
 its variance, ground ratio), each with a ring of its recent samples (time, tau, tau * dy); the
 carried scalars (a one-record array of :data:`CARRY`: the FOE, the next tick, the next cluster
 id, the ground constant and its votes, the last selected cluster); each pixel's last flow-event
-time (for the baseline tau); the ground histogram. Constants: :class:`TtcParams`.
+time (for the baseline tau); the ground histogram; the camera's rotation angle since the first
+FOE entry, at each entry (the angular velocities integrated: a baseline spans several of them).
+Constants: :class:`TtcParams`.
 
 Ground plane: for a road point at ``dy = y - y_foe`` rows below the FOE, seen by a level camera
 at height h moving at speed V, ``tau * dy = f h / V =: K`` (the same for all road points). An
@@ -42,12 +44,14 @@ CLUSTER_STATE = np.dtype([("id", "i8"), ("active", "i8"), ("n_samples", "i8"), (
 #: the number of votes for it and their weights' reference time (µs); the id of the last
 #: selected cluster (-1: none); the ticks without an obstacle row, by reason
 #: (:data:`NO_TTC_REASONS`); ``no_slot``: the events that would have started a cluster while
-#: every slot held a live one
+#: every slot held a live one; ``n_angles``: the entries of the rotation history, ``turned``: 1
+#: once an entry carried a rotation
 CARRY = np.dtype([("has_foe", "f8"), ("foe_x", "f8"), ("foe_y", "f8"), ("foe_wx", "f8"),
                   ("foe_wy", "f8"), ("foe_wz", "f8"), ("next_tick", "f8"),
                   ("next_id", "f8"), ("k_ground", "f8"), ("n_votes", "f8"), ("held_id", "f8"),
                   ("votes_t_ref", "f8"), ("no_foe", "f8"), ("no_cluster", "f8"),
-                  ("not_credible", "f8"), ("on_road", "f8"), ("no_slot", "f8")])
+                  ("not_credible", "f8"), ("on_road", "f8"), ("no_slot", "f8"),
+                  ("n_angles", "f8"), ("turned", "f8")])
 #: the fields of :data:`CARRY` counting ticks without a TTC: no FOE yet; no cluster with a tau
 #: active enough (and in the corridor); no credible one (:func:`_credible`); only clusters on the
 #: road (ground test without fallback)
@@ -60,6 +64,9 @@ KG_BINS = 1024              # up to 0.01 e^20.48 ~ 8e6 s px
 AGREEMENT = 0.2
 #: a time after every FOE entry (µs)
 _FOREVER = np.iinfo(np.int64).max
+#: FOE entries the rotation history holds at most (41 s of ``foe_fit``'s 10 ms fits); entries
+#: older than the longest baseline are dropped first
+ANGLE_HISTORY = 4096
 
 
 class TtcParams(NamedTuple):
@@ -114,6 +121,8 @@ class TtcState(NamedTuple):
     carry: np.ndarray        #: CARRY [1]
     last_t: np.ndarray       #: float64 [2, H, W] (or [2, 0, 0]): last flow event's edge arrival, µs
     ground_hist: np.ndarray  #: float64 [KG_BINS]: the ground votes
+    angle_t: np.ndarray      #: float64 [ANGLE_HISTORY]: times of the FOE entries kept, µs
+    angle: np.ndarray        #: float64 [ANGLE_HISTORY, 3]: the rotation angle at each, rad
 
 
 def new_state(max_clusters: int, ring: int, height: int, width: int,
@@ -126,7 +135,7 @@ def new_state(max_clusters: int, ring: int, height: int, width: int,
                     np.zeros((max_clusters, ring)), np.zeros((max_clusters, ring)),
                     np.zeros((max_clusters, ring)), np.zeros((max_clusters, ring)), carry,
                     np.full((2, height, width) if baseline else (2, 0, 0), -1e300),
-                    np.zeros(KG_BINS))
+                    np.zeros(KG_BINS), np.zeros(ANGLE_HISTORY), np.zeros((ANGLE_HISTORY, 3)))
 
 
 def start(state: TtcState, first_tick_us: int) -> None:
@@ -195,7 +204,62 @@ def event_tau(px, py, vx, vy, fx, fy, prm):
 
 
 @njit(cache=True)
-def baseline_tau(S, pol, px, py, nx, ny, d0, rot, ti, max_px, max_age_us, width):
+def record_angle(angle_t, angle, g, t_us, wx, wy, wz, keep_us):
+    """Append the FOE entry at ``t_us`` to the rotation history: the angle at the entry before
+    plus its angular velocity (rad/s, that of the stretch up to ``t_us``) times the time since
+    (0 at the first entry). When the history is full, the entries older than ``keep_us``
+    before ``t_us`` are dropped but the newest of them (it brackets the oldest time still
+    asked for), or the older half if none is."""
+    n = int(g.n_angles)
+    if n == angle_t.shape[0]:
+        k = 0
+        while k < n - 1 and angle_t[k + 1] <= t_us - keep_us:
+            k += 1
+        if k == 0:
+            k = n // 2
+        angle_t[:n - k] = angle_t[k:n].copy()
+        angle[:n - k] = angle[k:n].copy()
+        n -= k
+    if n == 0:
+        a0 = a1 = a2 = 0.0
+    else:
+        dt = (t_us - angle_t[n - 1]) * 1e-6
+        a0 = angle[n - 1, 0] + wx * dt
+        a1 = angle[n - 1, 1] + wy * dt
+        a2 = angle[n - 1, 2] + wz * dt
+    angle_t[n] = t_us
+    angle[n, 0] = a0
+    angle[n, 1] = a1
+    angle[n, 2] = a2
+    g.n_angles = n + 1
+    if wx != 0.0 or wy != 0.0 or wz != 0.0:
+        g.turned = 1.0
+
+
+@njit(cache=True)
+def angle_at(angle_t, angle, n, t_us, wx, wy, wz):
+    """The rotation angle (rad, 3 axes) at ``t_us`` from the history's first ``n`` entries: the
+    angular velocity of each entry holds over the stretch up to it, so linear between entries;
+    after the newest entry its angular velocity (wx, wy, wz) goes on, before the oldest the
+    oldest's angle holds; 0 without entries."""
+    if n == 0:
+        return 0.0, 0.0, 0.0
+    if t_us >= angle_t[n - 1]:
+        dt = (t_us - angle_t[n - 1]) * 1e-6
+        return (angle[n - 1, 0] + wx * dt, angle[n - 1, 1] + wy * dt,
+                angle[n - 1, 2] + wz * dt)
+    if t_us <= angle_t[0]:
+        return angle[0, 0], angle[0, 1], angle[0, 2]
+    k = np.searchsorted(angle_t[:n], t_us)  # angle_t[k - 1] < t_us <= angle_t[k]
+    s = (t_us - angle_t[k - 1]) / (angle_t[k] - angle_t[k - 1])
+    return (angle[k - 1, 0] + s * (angle[k, 0] - angle[k - 1, 0]),
+            angle[k - 1, 1] + s * (angle[k, 1] - angle[k - 1, 1]),
+            angle[k - 1, 2] + s * (angle[k, 2] - angle[k - 1, 2]))
+
+
+@njit(cache=True)
+def baseline_tau(S, pol, px, py, nx, ny, d0, ti, max_px, max_age_us, width, turns, angle_t,
+                 angle, n_angles, wx, wy, wz, f, cx, cy):
     """tau from where the edge through (px, py) was earlier, or -1 when nothing qualifies.
 
     ``S[pol]`` holds the edge arrival time (µs) of each pixel's last flow event; ``ti`` is
@@ -207,17 +271,24 @@ def baseline_tau(S, pol, px, py, nx, ny, d0, rot, ti, max_px, max_age_us, width)
     edge crosses a pixel row in bursts that cover only part of the row, so the pixel straight
     behind p often did not fire when the edge crossed its row. For the farthest step q
     (``dd = (p - q).n`` px earlier, at time tq) an edge approaching at constant speed has the
-    translational part of its position ``d(t) = D / (t_c - t)``; the camera's rotation adds
-    ``rot`` px/s along n (its rotational normal speed), so the translational part moved
-    ``dd - rot dt`` in ``dt = ti - tq`` and ``tau = (d0 - dd + rot dt) dt / (dd - rot dt)``,
-    which must be positive with the edge on the same side of the FOE at tq
-    (``(d0 - dd + rot dt) d0 > 0``): positions and times only, over a baseline as long as the
-    edge took, no flow magnitude. Without rotation (``rot`` 0) ``tau = (d0 - dd) dt / dd``.
+    translational part of its position ``d(t) = D / (t_c - t)``. With ``turns`` the camera's
+    rotation between tq and ti moved the edge along n by ``shift``: the rotational flow of p
+    for the angle turned (:func:`angle_at` of the history, the newest entry's angular velocity
+    wx, wy, wz after it; focal length f, principal point cx, cy), which over a baseline of
+    several tenths of a second is not the latest angular velocity times the time (the pitch
+    of a car's body swings at about 2 Hz). So the translational part moved ``dd - shift`` in
+    ``dt = ti - tq`` and ``tau = (d0 - dd + shift) dt / (dd - shift)``, which must be
+    positive with the edge on the same side of the FOE at tq (``(d0 - dd + shift) d0 > 0``):
+    positions and times only, over a baseline as long as the edge took, no flow magnitude.
+    Without rotation ``tau = (d0 - dd) dt / dd``.
     """
     h = S.shape[1]
     w = S.shape[2]
     ix = int(math.floor(px + 0.5))
     iy = int(math.floor(py + 0.5))
+    ai0 = ai1 = ai2 = 0.0
+    if turns:
+        ai0, ai1, ai2 = angle_at(angle_t, angle, n_angles, ti, wx, wy, wz)
     tprev = ti
     tau = -1.0
     for k in range(1, max_px + 1):
@@ -229,19 +300,23 @@ def baseline_tau(S, pol, px, py, nx, ny, d0, rot, ti, max_px, max_age_us, width)
         qx = -1
         qy = -1
         for j in range(-width, width + 1):
-            cx = int(math.floor(bx - j * ny + 0.5))
-            cy = int(math.floor(by + j * nx + 0.5))
-            if cx < 0 or cy < 0 or cx >= w or cy >= h or (cx == ix and cy == iy):
+            cx_ = int(math.floor(bx - j * ny + 0.5))
+            cy_ = int(math.floor(by + j * nx + 0.5))
+            if cx_ < 0 or cy_ < 0 or cx_ >= w or cy_ >= h or (cx_ == ix and cy_ == iy):
                 continue
-            tc = S[pol, cy, cx]
+            tc = S[pol, cy_, cx_]
             if tc < tprev and ti - tc <= max_age_us and tc > tq:
                 tq = tc
-                qx = cx
-                qy = cy
+                qx = cx_
+                qy = cy_
         if qx < 0:
             break
         dd = (px - qx) * nx + (py - qy) * ny
-        shift = rot * ((ti - tq) * 1e-6)
+        shift = 0.0
+        if turns:
+            aq0, aq1, aq2 = angle_at(angle_t, angle, n_angles, tq, wx, wy, wz)
+            shift = rotational_speed(px, py, nx, ny, ai0 - aq0, ai1 - aq1, ai2 - aq2, f, cx,
+                                     cy)
         dk = d0 - dd + shift
         dt = dd - shift
         if not (dd > 0.0) or not (dk * d0 > 0.0) or not (dt * d0 > 0.0):
@@ -545,7 +620,7 @@ def _tick(state, prm, half_bins, buf, ttc_out, no, clusters_out, nc):
     """The tick at ``next_tick``: the ground constant, every live cluster's decay, estimate and
     row, the obstacle's row; moves ``next_tick`` on by a period. Returns the rows written
     (no, nc)."""
-    cl, ST, SV, SK, SX, SY, carry, _, hist = state
+    cl, ST, SV, SK, SX, SY, carry, _, hist, _, _ = state
     g = carry[0]
     T = g.next_tick
     if g.n_votes >= prm.ground_min_events:
@@ -623,9 +698,10 @@ def _tick(state, prm, half_bins, buf, ttc_out, no, clusters_out, nc):
 
 
 @njit(cache=True)
-def _apply_foe(foe, j, t_us, g):
+def _apply_foe(foe, j, t_us, g, angle_t, angle, keep_us):
     """Take the FOE entries from j on with time <= ``t_us`` (NaN entries are skipped), with
-    their angular velocities; returns the index of the first one left."""
+    their angular velocities, each added to the rotation history (:func:`record_angle`);
+    returns the index of the first one left."""
     foe_t, foe_x, foe_y, foe_wx, foe_wy, foe_wz = foe
     while j < foe_t.shape[0] and foe_t[j] <= t_us:
         if foe_x[j] == foe_x[j] and foe_y[j] == foe_y[j]:
@@ -635,6 +711,8 @@ def _apply_foe(foe, j, t_us, g):
             g.foe_wx = foe_wx[j]
             g.foe_wy = foe_wy[j]
             g.foe_wz = foe_wz[j]
+            record_angle(angle_t, angle, g, float(foe_t[j]), foe_wx[j], foe_wy[j], foe_wz[j],
+                         keep_us)
         j += 1
     return j
 
@@ -774,7 +852,7 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
     x, y, t, pol, vx, vy, te = events
     # the state's arrays as locals, passed on one by one (a tuple of arrays passed on costs
     # reference counts per event)
-    cl, ST, SV, SK, SX, SY, carry, last_t, hist = state
+    cl, ST, SV, SK, SX, SY, carry, last_t, hist, angle_t, angle = state
     g = carry[0]
     half_bins = int(round(math.log(1.0 + prm.ground_tol) / KG_BIN))
     buf = np.empty(3 * ST.shape[1], np.float64)  # a ring's values, or three (agreeing)
@@ -790,7 +868,7 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
         if i >= n:
             break
         ti = t[i]
-        j = _apply_foe(foe, j, ti, g)
+        j = _apply_foe(foe, j, ti, g, angle_t, angle, prm.base_age_us)
         px = float(x[i])
         py = float(y[i])
         evx = np.float64(vx[i])
@@ -817,7 +895,10 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
         if tau > 0.0 and prm.base_px > 0:  # from where the edge was earlier
             d0 = tau * (sp - rot)  # (p - foe).n
             tau = baseline_tau(last_t, 1 if pol[i] > 0 else 0, px, py, evx / sp, evy / sp,
-                               d0, rot, ta, prm.base_px, prm.base_age_us, prm.base_width)
+                               d0, ta, prm.base_px, prm.base_age_us, prm.base_width,
+                               prm.f > 0.0 and g.turned > 0.0, angle_t, angle,
+                               int(g.n_angles), g.foe_wx, g.foe_wy, g.foe_wz, prm.f, prm.cx,
+                               prm.cy)
             if tau > 0.0:
                 tau -= (ti - ta) * 1e-6  # moved forward from the arrival to the event
             if tau < prm.min_tau or tau > prm.max_tau:
@@ -840,7 +921,7 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
                     ground_vote(hist, carry, kg, float(ti), prm.ground_memory_us)
         _remember_time(last_t, x[i], y[i], pol[i], ta)
         i += 1
-    _apply_foe(foe, j, _FOREVER, g)  # entries after the last event count next
+    _apply_foe(foe, j, _FOREVER, g, angle_t, angle, prm.base_age_us)  # they count next
     return no, nc
 
 

@@ -33,6 +33,21 @@ CURVES_ROUTE = (
 )
 
 
+class ImuParams(FilterParams):
+    """The simulated camera's IMU (:mod:`evchain.sim.imu`), of the ``scene`` source and of its
+    replay ``scene_events``: the same samples for the same parameters and seed."""
+
+    imu_rate_hz: float = Field(0.0, ge=0, le=100_000, description=(
+        "samples per second of the camera's simulated IMU (series imu: true gyro and "
+        "accelerometer, camera axes); 0: no IMU"))
+    imu_gyro_bias_dps: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0), description="gyro bias added to every sample, deg/s (x, y, z)")
+    imu_gyro_noise_dps: float = Field(0.0, ge=0, description=(
+        "gyro noise, standard deviation per sample, deg/s (seeded)"))
+    imu_accel_noise_g: float = Field(0.0, ge=0, description=(
+        "accelerometer noise, standard deviation per sample, g (seeded)"))
+
+
 class SceneConfig(FilterParams):
     """Scenario, ego motion and camera of the simulated drive."""
 

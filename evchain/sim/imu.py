@@ -57,3 +57,17 @@ def imu_samples(scene, t_us, rng: np.random.Generator | None = None,
         accel = accel + rng.normal(0.0, accel_noise_g, accel.shape)
     return IMU.array(t=t, ax=accel[:, 0], ay=accel[:, 1], az=accel[:, 2], gx=gyro[:, 0],
                      gy=gyro[:, 1], gz=gyro[:, 2], temperature_c=np.full(len(t), temperature_c))
+
+
+def imu_between(scene, t_start: int, t_end: int, rate_hz: float, rng: np.random.Generator,
+                gyro_noise_dps: float = 0.0, gyro_bias_dps=(0.0, 0.0, 0.0),
+                accel_noise_g: float = 0.0) -> np.ndarray | None:
+    """The IMU series entries of :func:`imu_samples` in ``[t_start, t_end)`` on the grid
+    ``k / rate_hz`` (µs, rounded); None when ``rate_hz`` is 0 (no IMU)."""
+    if rate_hz <= 0:
+        return None
+    step = 1e6 / rate_hz
+    k = np.arange(np.ceil(t_start / step), np.ceil(t_end / step))
+    t = np.unique(np.rint(k * step).astype(np.int64))
+    t = t[(t >= t_start) & (t < t_end)]
+    return imu_samples(scene, t, rng, gyro_noise_dps, gyro_bias_dps, accel_noise_g)

@@ -551,3 +551,69 @@ def test_a_held_row_is_not_measured_against_the_votes_row(monkeypatch):
     late = s["t"] >= 1_300_000
     assert len(held_fits) > 20 and not restarts
     assert late.sum() == 70 and np.abs(s["y"][late] - foe[1]).max() < 2.0
+
+
+def _with_gyro(pk, om_of_t, rate_hz=1000.0, bias_dps=(0.0, 0.0, 0.0), gap=None):
+    """The packets with the series ``imu``: the gyro reading the camera's rotation
+    ``om_of_t`` (Om = f w px/s, as :func:`rotating_packets`) at ``rate_hz``, plus a bias;
+    ``gap`` (t0, t1) µs: no samples there."""
+    from evchain.core.series import IMU
+
+    out = []
+    for p in pk:
+        t = np.arange(p.t_start, p.t_end, int(1e6 / rate_hz), dtype=np.int64)
+        if gap is not None:
+            t = t[(t < gap[0]) | (t >= gap[1])]
+        w = np.degrees([np.asarray(om_of_t(ti * 1e-6)) / G.f for ti in t]).reshape(-1, 3)
+        w = w + np.asarray(bias_dps)
+        z = np.zeros(len(t))
+        out.append(p.with_series("imu", IMU.array(t=t, ax=z, ay=z - 1, az=z, gx=w[:, 0],
+                                                  gy=w[:, 1], gz=w[:, 2], temperature_c=z)))
+    return out
+
+
+def _pitching(t):
+    amp = np.radians(8.0) * G.f
+    return (amp * np.sin(2 * np.pi * 2.0 * (t - 1.0)) if t >= 1.0 else 0.0, 0.0, 0.0)
+
+
+@pytest.mark.parametrize("bias", [(0.0, 0.0, 0.0), (1.5, -2.0, 0.5)])
+def test_the_rotation_from_the_gyro(bias):
+    """rotation_source imu: each slab's rotation is the gyro's mean over it (less the bias
+    given), from the first fit on, and the heading is followed as the pitch moves it; no
+    mode is needed, so
+    the pitch is there from the first fit after the gear shift (the flow's fit follows it
+    a few fits later)."""
+    pk, times, fx, fy = rotating_packets(_pitching)
+    s = _fit_stream(_with_gyro(pk, _pitching, bias_dps=bias), rotation_source="imu",
+                    gyro_bias_dps=bias)
+    true_wx = np.degrees([_pitching((t - 5_000) * 1e-6)[0] / G.f for t in s["t"]])
+    fit = s["rotation"] == 1  # (not the votes' estimate, given at the cold start)
+    assert fit.mean() > 0.95 and fit[-1]
+    assert np.abs(s["wx_deg_s"][fit] - true_wx[fit]).max() < 0.01
+    assert np.all(s["wy_deg_s"] == 0) and np.all(s["wz_deg_s"] == 0)
+    late = s["t"] >= 1_150_000
+    assert np.median(np.abs(s["y"][late] - _at(s[late], times, fy))) < 0.35
+    assert np.median(np.abs(s["x"][late] - _at(s[late], times, fx))) < 0.3
+
+
+def test_the_gyro_missing_is_an_error_and_its_gaps_are_counted():
+    from evchain.errors import DataError
+
+    pk, _, _, _ = rotating_packets(_pitching, duration_us=600_000)
+    f = FoeFit()
+    f.setup(FoeFit.Params(rotation_source="imu"), Context())
+    with pytest.raises(DataError, match="rotation_source imu needs the series imu"):
+        f.process(pk[0])
+    f = FoeFit()
+    ctx = Context()
+    f.setup(FoeFit.Params(rotation_source="imu"), ctx)
+    for p in _with_gyro(pk, _pitching, gap=(200_000, 300_000)):
+        f.process(p)
+    f.flush()
+    # the slabs of the gap's middle (farther than 5 ms from a sample) keep 0 and are counted
+    assert ctx.metrics["foe_fit"]["slabs_without_gyro"] >= 5
+    f = FoeFit()
+    f.setup(FoeFit.Params(rotation_source="imu"), Context())
+    with pytest.raises(DataError, match="focal length"):
+        f.process(pk[0].replace(geometry=Geometry(320, 240)))

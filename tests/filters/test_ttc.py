@@ -460,23 +460,83 @@ def test_baseline_tau_matches_reference():
         ang = rng.uniform(0, 2 * np.pi) if i % 3 else rng.integers(0, 4) * np.pi / 2
         nx, ny = np.cos(ang), np.sin(ang)
         d0 = float(rng.uniform(-5, 60))
-        rot = 0.0 if i % 3 == 1 else float(rng.normal(0, 20))
         ti = float(rng.integers(500_000, 1_100_000))
-        args = (px, py, nx, ny, d0, rot, ti, int(rng.integers(1, 10)),
+        args = (px, py, nx, ny, d0, ti, int(rng.integers(1, 10)),
                 float(rng.integers(1, 9e5)), int(rng.integers(0, 4)))
-        got_any += _baseline_agrees(S, pol, args) > 0
+        turns = None if i % 3 == 1 else _angle_history(rng, 0, 1_200_000)
+        got_any += _baseline_agrees(S, pol, args, turns) > 0
     assert got_any > 200
 
 
-def _baseline_agrees(S, pol, args) -> float:
-    """The kernel's baseline tau equals the reference's (finite); returns the reference's."""
-    from evchain.kernels.ttc import baseline_tau
+def _angle_history(rng, t0, t1, n_max=40):
+    """A random rotation history (entry times in [t0, t1], angles rad) and the newest angular
+    velocity (rad/s): (times, angles, w)."""
+    n = int(rng.integers(1, n_max))
+    times = np.unique(rng.integers(t0, t1, n)).astype(np.float64)
+    angles = np.cumsum(rng.normal(0, 0.02, (len(times), 3)), axis=0)
+    return times, angles, rng.normal(0, 0.3, 3)
 
-    want = baseline_tau_naive(S[pol], *args)
-    got = baseline_tau(S, pol, *args)
+
+def _baseline_agrees(S, pol, args, turns=None, f=150.0, cx=60.0, cy=45.0) -> float:
+    """The kernel's baseline tau equals the reference's (finite); returns the reference's.
+    ``turns``: a rotation history (:func:`_angle_history`) or None."""
+    from evchain.kernels.ttc import baseline_tau
+    from tests.naive.ttc import angle_naive, rotational_speed_naive
+
+    px, py, nx, ny, _, ti = args[:6]
+    if turns is None:
+        want = baseline_tau_naive(S[pol], *args)
+        got = baseline_tau(S, pol, *args, False, np.zeros(1), np.zeros((1, 3)), 0, 0.0, 0.0,
+                           0.0, 0.0, 0.0, 0.0)
+    else:
+        times, angles, w = turns
+        history = list(zip(times, angles, strict=True))
+
+        def shift_of(tq):
+            turned = angle_naive(history, ti, w) - angle_naive(history, tq, w)
+            return rotational_speed_naive(px, py, nx, ny, turned, f, cx, cy)
+
+        want = baseline_tau_naive(S[pol], *args, shift_of)
+        padded_t = np.concatenate([times, np.full(3, np.nan)])
+        padded = np.concatenate([angles, np.full((3, 3), np.nan)])
+        got = baseline_tau(S, pol, *args, True, padded_t, padded, len(times), *w, f, cx, cy)
     assert np.isfinite(got)
     assert got == pytest.approx(want, rel=1e-12, abs=1e-15)
     return want
+
+
+def test_angle_history_matches_reference():
+    """The rotation history kept by ``record_angle`` gives the reference's angles (over all
+    entries) at every time from its oldest kept entry on, and keeps every time within the
+    longest baseline of the newest entry while it has room for them (else it drops the older
+    half); hard cases: one entry, times before the oldest, at an entry, after the newest, zero
+    angular velocities, a history of two entries."""
+    from evchain.kernels.ttc import CARRY, angle_at, record_angle
+    from tests.naive.ttc import angle_naive
+
+    rng = np.random.default_rng(11)
+    for case in range(24):
+        # entries 1-7 ms apart and keep <= 9 ms: 12 entries always hold the last 9 ms
+        cap = 12 if case % 3 else int(rng.integers(2, 6))
+        keep = float(rng.integers(1, 10)) * 1000.0
+        angle_t, angle = np.zeros(cap), np.zeros((cap, 3))
+        carry = np.zeros(1, CARRY)
+        history, t = [], 0.0
+        for _ in range(int(rng.integers(1, 60))):
+            t += float(rng.integers(1, 8)) * 1000.0
+            w = np.zeros(3) if case % 4 == 0 else rng.normal(0, 0.5, 3)
+            record_angle(angle_t, angle, carry[0], t, *w, keep)
+            history.append((t, angle_naive(history, t, w)))
+            n = int(carry[0]["n_angles"])
+            assert 1 <= n <= cap and angle_t[n - 1] == t
+            if cap == 12:
+                assert angle_t[0] <= max(t - keep, history[0][0])
+            for tq in [t, t - keep, t + 2500.0, *rng.uniform(t - keep, t, 5), *angle_t[:n]]:
+                if tq >= angle_t[0]:
+                    got = angle_at(angle_t, angle, n, tq, *w)
+                    want = angle_naive(history, tq, w)
+                    assert np.allclose(got, want, rtol=1e-12, atol=1e-15)
+        assert carry[0]["turned"] == (0.0 if case % 4 == 0 else 1.0)
 
 
 def test_baseline_tau_matches_reference_on_ties_and_borders():
@@ -493,10 +553,10 @@ def test_baseline_tau_matches_reference_on_ties_and_borders():
         px = float(rng.choice([0, 15, rng.uniform(-0.4, 15.4), rng.integers(0, 16)]))
         py = float(rng.choice([0, 11, rng.uniform(-0.4, 11.4), rng.integers(0, 12)]))
         ang = rng.uniform(0, 2 * np.pi) if i % 2 else rng.integers(0, 8) * np.pi / 4
-        args = (px, py, np.cos(ang), np.sin(ang), float(rng.uniform(-3, 20)),
-                0.0 if i % 3 else float(rng.normal(0, 5)), 600_000.0,
+        args = (px, py, np.cos(ang), np.sin(ang), float(rng.uniform(-3, 20)), 600_000.0,
                 int(rng.integers(1, 8)), 1e6, int(rng.integers(0, 5)))
-        got_any += _baseline_agrees(S, pol, args) > 0
+        turns = _angle_history(rng, 0, 700_000, 6) if i % 3 == 0 else None
+        got_any += _baseline_agrees(S, pol, args, turns, 10.0, 8.0, 6.0) > 0
     assert got_any > 100
 
 

@@ -65,18 +65,35 @@ def rotational_speed_naive(px, py, nx, ny, w, f, cx, cy) -> float:
     return float(np.array([nx, ny]) @ (B @ np.asarray(w, np.float64)))
 
 
-def baseline_tau_naive(last_t, px, py, nx, ny, d0, rot, ti, max_px, max_age_us,
-                       width=0) -> float:
+def angle_naive(history, t, w_last) -> np.ndarray:
+    """The camera's rotation angle (rad) at t from the FOE entries so far, ``history`` a list
+    of (time µs, angle): piecewise linear between entries (each entry's angular velocity holds
+    over the stretch up to it), after the newest going on at ``w_last`` (its angular velocity),
+    before the oldest the oldest's angle; 0 without entries."""
+    if not history:
+        return np.zeros(3)
+    times = [h[0] for h in history]
+    if t >= times[-1]:
+        return history[-1][1] + np.asarray(w_last) * ((t - times[-1]) * 1e-6)
+    if t <= times[0]:
+        return history[0][1]
+    k = next(i for i, tk in enumerate(times) if tk >= t)
+    (t0, a0), (t1, a1) = history[k - 1], history[k]
+    return a0 + (t - t0) / (t1 - t0) * (a1 - a0)
+
+
+def baseline_tau_naive(last_t, px, py, nx, ny, d0, ti, max_px, max_age_us, width=0,
+                       shift_of=None) -> float:
     """tau from the pixel the edge through p crossed earliest within the walk: step back
     k = 1..max_px px against the unit normal n (skip a step whose nearest pixel is p's own);
     at each step take, among the nearest pixels of the points j px beside it along the
     tangent (-ny, nx), |j| <= ``width``, inside the image and not p's own, those strictly
     older than the previous step's time and at most ``max_age_us`` old, the newest; stop at a
     step without one, or where the translational part of the edge's position (its position
-    less the rotation's ``rot`` px/s over the time back) is not between the FOE and p;
-    tau = d_tq dt / (d0 - d_tq) with d_tq = d0 - dd + rot dt the translational distance from
-    the FOE at tq, for the last pixel taken (dd its distance behind p along n), -1 when there
-    is none."""
+    less the rotation's displacement along n since tq, ``shift_of(tq)`` px, 0 without it) is
+    not between the FOE and p; tau = d_tq dt / (d0 - d_tq) with d_tq = d0 - dd + shift the
+    translational distance from the FOE at tq, for the last pixel taken (dd its distance
+    behind p along n), -1 when there is none."""
     h, w = last_t.shape
     own = (int(np.floor(px + 0.5)), int(np.floor(py + 0.5)))
     tprev, tau = ti, -1.0
@@ -98,7 +115,7 @@ def baseline_tau_naive(last_t, px, py, nx, ny, d0, rot, ti, max_px, max_age_us,
         tq, _, q = max(found, key=lambda c: (c[0], c[1]))
         dd = (px - q[0]) * nx + (py - q[1]) * ny
         dt = (ti - tq) * 1e-6
-        d_tq = d0 - dd + rot * dt
+        d_tq = d0 - dd + (shift_of(tq) if shift_of else 0.0)
         if not (dd > 0 and d_tq * d0 > 0 and (d0 - d_tq) * d0 > 0):
             break
         tau, tprev = d_tq * dt / (d0 - d_tq), tq
@@ -161,6 +178,7 @@ def ttc_naive(packets, q, width, height, no_ttc=None, f=None, cx=None, cy=None):
     next_id = 0
     foe = None
     omega = np.zeros(3)  # the latest entry's angular velocity, rad/s
+    angles = []          # (time, rotation angle) at every FOE entry
     votes_kg, votes_t = [], []
     k_ground = 0.0
     held = -1
@@ -177,6 +195,7 @@ def ttc_naive(packets, q, width, height, no_ttc=None, f=None, cx=None, cy=None):
             ft, fx, fy, w = entries.pop(0)
             if fx == fx and fy == fy:
                 foe, omega = (fx, fy), w
+                angles.append((ft, angle_naive(angles, ft, w)))
 
     def do_tick(T):
         nonlocal k_ground, held
@@ -325,10 +344,16 @@ def ttc_naive(packets, q, width, height, no_ttc=None, f=None, cx=None, cy=None):
                                     q.min_tau_s, q.max_tau_s)[0])
         if tau > 0.0 and q.baseline_px > 0:
             d0 = (px - foe[0]) * vx / sp + (py - foe[1]) * vy / sp
+            shift_of = None
+            if f:
+                # the rotation's displacement along n between tq and the arrival ta
+                def shift_of(tq):
+                    turned = angle_naive(angles, ta, omega) - angle_naive(angles, tq, omega)
+                    return rotational_speed_naive(px, py, vx / sp, vy / sp, turned, f, cx, cy)
             # compared at the edge's arrival at p, then moved forward to the event's time
-            tau = baseline_tau_naive(last_t[pol], px, py, vx / sp, vy / sp, d0, rot,
-                                     float(ta), q.baseline_px, q.baseline_max_ms * 1000.0,
-                                     q.baseline_width_px)
+            tau = baseline_tau_naive(last_t[pol], px, py, vx / sp, vy / sp, d0, float(ta),
+                                     q.baseline_px, q.baseline_max_ms * 1000.0,
+                                     q.baseline_width_px, shift_of)
             if tau > 0.0:
                 tau -= (ti - ta) * 1e-6
             if tau < q.min_tau_s or tau > q.max_tau_s:

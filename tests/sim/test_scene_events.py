@@ -142,3 +142,28 @@ def test_replay_takes_a_parameter_the_recording_predates_as_its_default(recorded
     spec = load_pipeline(_flow_pipeline(tmp_path / "f.yaml"), registry, ["scene.contrast=0.5"])
     with pytest.raises(ConfigError, match=r"contrast: None there, 0\.5 here"):
         replay_spec(spec, old / "events.aedat")
+
+
+def test_replay_adds_the_simulated_imu(recorded, tmp_path):
+    """A replay with imu_rate_hz carries the series imu over the drive: the scene's true
+    readings at the same times (the recording was made without an IMU: the IMU does not
+    change the events, so the replay accepts it); without noise, the scene's samples."""
+    from evchain.core.config import load_pipeline
+    from evchain.core.registry import make_registry
+    from evchain.filters.scene import SceneSource
+    from evchain.filters.scene_events import replay_spec
+
+    packets, _ = run_source(SceneEvents, {**SCENE, "path": str(recorded), "imu_rate_hz": 500},
+                            tmp_path)
+    imu = np.concatenate([p.series["imu"] for p in packets])
+    assert len(imu) >= 25 and np.all(np.diff(imu["t"]) == 2000)
+    frames, _ = run_source(SceneSource, {**SCENE, "imu_rate_hz": 500}, tmp_path)
+    want = np.concatenate([p.series["imu"] for p in frames])
+    common = np.isin(want["t"], imu["t"])
+    assert common.sum() == len(imu)
+    assert np.array_equal(want[common], imu)
+    spec = load_pipeline(_flow_pipeline(tmp_path / "f.yaml"), make_registry(),
+                         ["scene.imu_rate_hz=1000", "scene.imu_gyro_noise_dps=0.1"])
+    first = replay_spec(spec, recorded).stages[0]
+    assert first.use == "scene_events" and first.params.imu_rate_hz == 1000
+    assert first.params.imu_gyro_noise_dps == 0.1
