@@ -76,6 +76,11 @@ class FoeFit(Filter):
     column shift in proportion to their inverse time to contact); while turning the level fit
     is kept alongside and takes over once the turning fit no longer explains more.
     Roll is not fitted (held at 0).
+    With ``rotation_source`` imu the rotation is the gyro's instead (series ``imu``: each
+    slab's mean rate, less ``gyro_bias_dps``), from the first fit on, and only the FOE and the
+    scales are fitted; while the gyro yaws faster than ``rotation_threshold_deg_s`` the FOE's
+    column is held as in the turning mode (the median of the settled fits over the last
+    ``heading_memory_s``), until 3 ``tau_ms`` after the yaw fell below it.
 
     The road's scale ``a0 = V / (f h)`` changes only with the car's speed. As an obstacle
     fills the lower view its rows (a fronto-parallel surface, one inverse time to contact)
@@ -327,8 +332,8 @@ class FoeFit(Filter):
 
     def _free(self) -> np.ndarray:
         """The unknowns of the mode: FOE column, pitch, yaw, roll (:func:`fit`'s ``free``)."""
-        if self._imu:    # the rotation is the gyro's
-            return np.array([True, False, False, False])
+        if self._imu:    # the rotation is the gyro's; turning holds the column
+            return np.array([self._mode != TURNING, False, False, False])
         if self._mode == TURNING:
             return np.array([math.isnan(self._held_x), False, True, False])
         return np.array([True, self._mode == PITCHING, False, False])
@@ -407,7 +412,9 @@ class FoeFit(Filter):
                 self._remember_road(T, th[k.FOE_Y], th[k.ROAD])
             if not warm:
                 self._warm_since = T
-            if self._rotation and not self._imu:
+            if self._imu:
+                self._update_gyro_turn(T, th[k.FOE_X])
+            elif self._rotation:
                 self._update_mode(T, th[k.FOE_X], found,
                                   lambda: self._turn_explains(run, th, om, inl),
                                   lambda: self._pitch_start(run, th, om, inl))
@@ -572,6 +579,33 @@ class FoeFit(Filter):
             if self._mode == TURNING:
                 self._level_x.clear()
             self._mode, self._held_x, self._level_fit = LEVEL, math.nan, None
+
+    def _update_gyro_turn(self, T: int, x: float) -> None:
+        """rotation_source imu: record the fit's FOE column while not turning, and hold the
+        column while the gyro turns about the yaw axis faster than the threshold, as with the
+        flow's rotation (under a fast yaw the flow's errors, a share of its speed, pass for
+        shifts of the column): at the median of the settled fits' columns over the last
+        ``heading_memory_s``, entered once the fits have run warm for 3 tau with a full memory,
+        left 3 tau after the yaw fell below the threshold."""
+        p = self.params
+        memory = int(p.heading_memory_s * 1e6)
+        window = 3 * p.tau_ms * 1000.0
+        settled = T - self._warm_since >= window
+        turns = abs(self._om[0, TURNING]) > self._turn_pxs
+        if self._mode == TURNING:
+            if turns:
+                self._moved = T
+            elif T - self._moved >= window:
+                self._mode, self._held_x = LEVEL, math.nan
+                self._level_x.clear()
+            return
+        if settled:
+            self._level_x.append((T, x))
+            while self._level_x[0][0] < T - memory:
+                self._level_x.popleft()
+        if turns and settled and T - self._level_x[0][0] >= 0.9 * memory:
+            self._mode, self._moved = TURNING, T
+            self._held_x = float(np.median([c for _, c in self._level_x]))
 
     def _shift_slabs(self, T: int) -> int:
         """Move the slabs' rotations to fit time T: each slab's by the whole slabs since the

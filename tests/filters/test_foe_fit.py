@@ -617,3 +617,33 @@ def test_the_gyro_missing_is_an_error_and_its_gaps_are_counted():
     f.setup(FoeFit.Params(rotation_source="imu"), Context())
     with pytest.raises(DataError, match="focal length"):
         f.process(pk[0].replace(geometry=Geometry(320, 240)))
+
+
+def test_the_gyro_turning_holds_the_column():
+    """rotation_source imu: while the gyro yaws faster than the threshold the FOE's column is
+    held at the median of the fits of the last heading_memory_s before the turn (the fits'
+    column, free, would follow the flow's errors, a share of its speed under the yaw's
+    rotational flow); the yaw reported is the gyro's; 3 tau after the turn the column is
+    free again. The column's noise: the flow's speeds err by 30 % here."""
+    yaw = np.radians(15.0) * G.f
+
+    def om(t):
+        return (0.0, yaw if 1.0 <= t < 1.8 else 0.0, 0.0)
+
+    pk, _, _, _ = rotating_packets(om, duration_us=3_000_000)
+    noisy = []
+    rng = np.random.default_rng(3)
+    for p in pk:
+        k = rng.normal(1.0, 0.3, len(p)).astype(np.float32)
+        noisy.append(p.replace(vx=p.vx * k, vy=p.vy * k))
+    s = _fit_stream(_with_gyro(noisy, om), rotation_source="imu")
+    before = (s["t"] >= 600_000) & (s["t"] < 1_000_000)
+    # held from the first fit with a full memory of settled columns (0.45 s of them: the
+    # fits settle 3 tau = 0.6 s after the cold start)
+    turning = (s["t"] >= 1_070_000) & (s["t"] < 1_800_000)
+    assert np.median(np.abs(s["wy_deg_s"][turning] - 15.0)) < 0.05
+    assert np.ptp(s["x"][turning]) == 0.0  # held ...
+    assert s["x"][turning][0] == pytest.approx(np.median(s["x"][before]), abs=0.2)
+    assert np.abs(s["x"][turning] - 159.5).max() < 0.5
+    after = s["t"] >= 2_500_000  # ... and free again
+    assert np.ptp(s["x"][after]) > 0.0 and np.abs(s["x"][after] - 159.5).max() < 1.0
