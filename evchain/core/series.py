@@ -62,7 +62,8 @@ FOE = SeriesDef("foe", [("t", "i8"), ("x", "f8"), ("y", "f8"), ("support", "f8")
                         ("rotation", "i1")],
                 "focus of expansion (the heading) estimates: x, y in px, support and total "
                 "weight of the estimate; the camera's angular velocity wx, wy, wz in deg/s "
-                "where rotation is 1 (estimated), else 0 and rotation 0")
+                "where rotation is 1 (fitted to the flow) or 2 (measured: the gyro's), else "
+                "0 and rotation 0")
 FOE_VOTES = FOE.renamed("foe_votes", "the voting FOE estimates (foe_map's foe entries) that "
                         "foe_fit refined")
 

@@ -99,8 +99,8 @@ class FoeFit(Filter):
     move to series ``foe_votes``; series ``foe`` gets one entry per fit (t, x, y, support =
     decayed inlier weight, total = decayed weight of modelled events, the angular velocity wx,
     wy, wz of the latest ``estimate_every_us`` in deg/s, 0 on an axis the mode holds, and
-    ``rotation`` 1; 0 and ``rotation`` 0 when the votes are emitted or the geometry has no
-    focal length).
+    ``rotation`` 1, or 2 when it is the gyro's; 0 and ``rotation`` 0 when the votes are
+    emitted or the geometry has no focal length).
 
     A fit needs a voting estimate at most ``tau_ms`` old: with none yet, or none for longer
     (``foe_map`` withholds its estimates while the flow's directions agree no better than
@@ -418,8 +418,9 @@ class FoeFit(Filter):
                 self._update_mode(T, th[k.FOE_X], found,
                                   lambda: self._turn_explains(run, th, om, inl),
                                   lambda: self._pitch_start(run, th, om, inl))
-            if self._rotation:
-                return (th[k.FOE_X], th[k.FOE_Y], inl, tot, *np.degrees(om[0] / self._prm.f), 1)
+            if self._rotation:  # rotation 2: measured by the gyro, 1: fitted to the flow
+                return (th[k.FOE_X], th[k.FOE_Y], inl, tot, *np.degrees(om[0] / self._prm.f),
+                        2 if self._imu else 1)
             return (th[k.FOE_X], th[k.FOE_Y], inl, tot, 0.0, 0.0, 0.0, 0)
         self._th[:] = np.nan
         self._won = -math.inf

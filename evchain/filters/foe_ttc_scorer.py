@@ -266,7 +266,7 @@ class FoeTtcScorer(Filter):
             for i, c in enumerate(ROTATION_FIELDS):
                 err[c] = w[:, i]
                 err[c.replace("_deg", "_true_deg")] = wt[:, i]
-            err["rotation_error_deg_s"] = np.where((foe["rotation"] == 1) & known,
+            err["rotation_error_deg_s"] = np.where((foe["rotation"] > 0) & known,
                                                    np.linalg.norm(w - wt, axis=1), -1.0)
             self._foe.append(err)
             self._last_foe = (float(x[-1]), float(y[-1]))

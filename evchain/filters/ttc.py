@@ -230,7 +230,8 @@ class Ttc(Filter):
                    np.ascontiguousarray(foe["x"], np.float64),
                    np.ascontiguousarray(foe["y"], np.float64),
                    *(np.where(rotating, np.radians(foe[c].astype(np.float64)), 0.0)
-                     for c in ROTATION_FIELDS))
+                     for c in ROTATION_FIELDS),
+                   (foe["rotation"] == 2).astype(np.float64))
         n_ticks = max(0, -(-(packet.t_end - kern.next_tick(self._state)) // period))
         ttc = np.zeros(n_ticks, TTC_DTYPE)
         cl = np.zeros(n_ticks * p.max_clusters, CLUSTER_DTYPE)

@@ -45,13 +45,14 @@ CLUSTER_STATE = np.dtype([("id", "i8"), ("active", "i8"), ("n_samples", "i8"), (
 #: selected cluster (-1: none); the ticks without an obstacle row, by reason
 #: (:data:`NO_TTC_REASONS`); ``no_slot``: the events that would have started a cluster while
 #: every slot held a live one; ``n_angles``: the entries of the rotation history, ``turned``: 1
-#: once an entry carried a rotation
+#: once an entry carried a rotation, ``measured``: 1 while the latest entry's rotation is
+#: measured (the gyro's), not fitted to the flow
 CARRY = np.dtype([("has_foe", "f8"), ("foe_x", "f8"), ("foe_y", "f8"), ("foe_wx", "f8"),
                   ("foe_wy", "f8"), ("foe_wz", "f8"), ("next_tick", "f8"),
                   ("next_id", "f8"), ("k_ground", "f8"), ("n_votes", "f8"), ("held_id", "f8"),
                   ("votes_t_ref", "f8"), ("no_foe", "f8"), ("no_cluster", "f8"),
                   ("not_credible", "f8"), ("on_road", "f8"), ("no_slot", "f8"),
-                  ("n_angles", "f8"), ("turned", "f8")])
+                  ("n_angles", "f8"), ("turned", "f8"), ("measured", "f8")])
 #: the fields of :data:`CARRY` counting ticks without a TTC: no FOE yet; no cluster with a tau
 #: active enough (and in the corridor); no credible one (:func:`_credible`); only clusters on the
 #: road (ground test without fallback)
@@ -258,8 +259,8 @@ def angle_at(angle_t, angle, n, t_us, wx, wy, wz):
 
 
 @njit(cache=True)
-def baseline_tau(S, pol, px, py, nx, ny, d0, ti, max_px, max_age_us, width, turns, angle_t,
-                 angle, n_angles, wx, wy, wz, f, cx, cy):
+def baseline_tau(S, pol, px, py, nx, ny, d0, rot, ti, max_px, max_age_us, width, turns,
+                 angle_t, angle, n_angles, wx, wy, wz, f, cx, cy):
     """tau from where the edge through (px, py) was earlier, or -1 when nothing qualifies.
 
     ``S[pol]`` holds the edge arrival time (µs) of each pixel's last flow event; ``ti`` is
@@ -271,12 +272,14 @@ def baseline_tau(S, pol, px, py, nx, ny, d0, ti, max_px, max_age_us, width, turn
     edge crosses a pixel row in bursts that cover only part of the row, so the pixel straight
     behind p often did not fire when the edge crossed its row. For the farthest step q
     (``dd = (p - q).n`` px earlier, at time tq) an edge approaching at constant speed has the
-    translational part of its position ``d(t) = D / (t_c - t)``. With ``turns`` the camera's
-    rotation between tq and ti moved the edge along n by ``shift``: the rotational flow of p
-    for the angle turned (:func:`angle_at` of the history, the newest entry's angular velocity
-    wx, wy, wz after it; focal length f, principal point cx, cy), which over a baseline of
-    several tenths of a second is not the latest angular velocity times the time (the pitch
-    of a car's body swings at about 2 Hz). So the translational part moved ``dd - shift`` in
+    translational part of its position ``d(t) = D / (t_c - t)``. The camera's rotation between
+    tq and ti moved the edge along n by ``shift``: with ``turns`` (a measured rotation) the
+    rotational flow of p for the angle turned (:func:`angle_at` of the history, the newest
+    entry's angular velocity wx, wy, wz after it; focal length f, principal point cx, cy),
+    which over a baseline of several tenths of a second is not the latest angular velocity
+    times the time (the pitch of a car's body swings at about 2 Hz); else ``rot dt``, ``rot``
+    the latest rotational normal speed (px/s; with a rotation fitted to the flow, whose
+    per-slab errors the angle would add up). So the translational part moved ``dd - shift`` in
     ``dt = ti - tq`` and ``tau = (d0 - dd + shift) dt / (dd - shift)``, which must be
     positive with the edge on the same side of the FOE at tq (``(d0 - dd + shift) d0 > 0``):
     positions and times only, over a baseline as long as the edge took, no flow magnitude.
@@ -312,11 +315,12 @@ def baseline_tau(S, pol, px, py, nx, ny, d0, ti, max_px, max_age_us, width, turn
         if qx < 0:
             break
         dd = (px - qx) * nx + (py - qy) * ny
-        shift = 0.0
         if turns:
             aq0, aq1, aq2 = angle_at(angle_t, angle, n_angles, tq, wx, wy, wz)
             shift = rotational_speed(px, py, nx, ny, ai0 - aq0, ai1 - aq1, ai2 - aq2, f, cx,
                                      cy)
+        else:
+            shift = rot * ((ti - tq) * 1e-6)
         dk = d0 - dd + shift
         dt = dd - shift
         if not (dd > 0.0) or not (dk * d0 > 0.0) or not (dt * d0 > 0.0):
@@ -702,7 +706,7 @@ def _apply_foe(foe, j, t_us, g, angle_t, angle, keep_us):
     """Take the FOE entries from j on with time <= ``t_us`` (NaN entries are skipped), with
     their angular velocities, each added to the rotation history (:func:`record_angle`);
     returns the index of the first one left."""
-    foe_t, foe_x, foe_y, foe_wx, foe_wy, foe_wz = foe
+    foe_t, foe_x, foe_y, foe_wx, foe_wy, foe_wz, measured = foe
     while j < foe_t.shape[0] and foe_t[j] <= t_us:
         if foe_x[j] == foe_x[j] and foe_y[j] == foe_y[j]:
             g.has_foe = 1.0
@@ -711,6 +715,7 @@ def _apply_foe(foe, j, t_us, g, angle_t, angle, keep_us):
             g.foe_wx = foe_wx[j]
             g.foe_wy = foe_wy[j]
             g.foe_wz = foe_wz[j]
+            g.measured = measured[j]
             record_angle(angle_t, angle, g, float(foe_t[j]), foe_wx[j], foe_wy[j], foe_wz[j],
                          keep_us)
         j += 1
@@ -829,9 +834,10 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
         The flow events in time order: x, y uint16 [n] px; t int64 [n] µs; p int8 [n]
         polarity; vx, vy float32 [n] flow, px/s; t_edge int64 [n] µs, when the event's edge
         reached its pixel (the baseline compares these).
-    foe : tuple (t, x, y, wx, wy, wz)
+    foe : tuple (t, x, y, wx, wy, wz, measured)
         FOE entries: t int64 [m] µs, x, y float64 [m] px (NaN: no estimate), the camera's
-        angular velocity wx, wy, wz float64 [m] rad/s (0 where not estimated).
+        angular velocity wx, wy, wz float64 [m] rad/s (0 where not estimated), measured
+        float64 [m]: 1 where it is measured (the gyro's), 0 where fitted to the flow.
     state : TtcState
         Updated in place (:func:`new_state`, :func:`start`).
     prm : TtcParams
@@ -895,8 +901,9 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
         if tau > 0.0 and prm.base_px > 0:  # from where the edge was earlier
             d0 = tau * (sp - rot)  # (p - foe).n
             tau = baseline_tau(last_t, 1 if pol[i] > 0 else 0, px, py, evx / sp, evy / sp,
-                               d0, ta, prm.base_px, prm.base_age_us, prm.base_width,
-                               prm.f > 0.0 and g.turned > 0.0, angle_t, angle,
+                               d0, rot, ta, prm.base_px, prm.base_age_us, prm.base_width,
+                               prm.f > 0.0 and g.turned > 0.0 and g.measured > 0.0, angle_t,
+                               angle,
                                int(g.n_angles), g.foe_wx, g.foe_wy, g.foe_wz, prm.f, prm.cx,
                                prm.cy)
             if tau > 0.0:

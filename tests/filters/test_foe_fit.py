@@ -588,7 +588,7 @@ def test_the_rotation_from_the_gyro(bias):
     s = _fit_stream(_with_gyro(pk, _pitching, bias_dps=bias), rotation_source="imu",
                     gyro_bias_dps=bias)
     true_wx = np.degrees([_pitching((t - 5_000) * 1e-6)[0] / G.f for t in s["t"]])
-    fit = s["rotation"] == 1  # (not the votes' estimate, given at the cold start)
+    fit = s["rotation"] == 2  # measured (the votes' estimate at the cold start: 0)
     assert fit.mean() > 0.95 and fit[-1]
     assert np.abs(s["wx_deg_s"][fit] - true_wx[fit]).max() < 0.01
     assert np.all(s["wy_deg_s"] == 0) and np.all(s["wz_deg_s"] == 0)

@@ -60,8 +60,8 @@ def random_stream(seed, duration_us=600_000, n_packets=8, n_blobs=5, n=1500, nan
     """Blobs below the FOE, each with its own time to contact (falling 1 s/s), some outliers;
     the FOE given per packet (jittered, now and then NaN), now and then an empty packet. With
     ``rotation`` the camera turns (a random angular velocity per packet, its flow added to
-    the events, the entries carrying it with a little error; now and then an entry without
-    one: rotation 0)."""
+    the events, the entries carrying it with a little error, as fitted to the flow (rotation
+    1) or measured (2); now and then an entry without one: rotation 0)."""
     rng = np.random.default_rng(seed)
     cx = rng.uniform(10, 86, n_blobs)
     cy = rng.uniform(28, 68, n_blobs)
@@ -91,7 +91,9 @@ def random_stream(seed, duration_us=600_000, n_packets=8, n_blobs=5, n=1500, nan
                     FOE[0] + rng.normal(0, 1), FOE[1] + rng.normal(0, 1))]
         if rotation:
             w = np.degrees(omega[k] * (1 + rng.normal(0, 0.05, 3)))
-            entries = [(*entries[0], *w, int(rng.random() < 0.85))]
+            # rotation 1: fitted to the flow, 2: measured (the baseline then integrates the
+            # angle), 0: none
+            entries = [(*entries[0], *w, int(rng.choice([0, 1, 2], p=[0.15, 0.45, 0.4])))]
         if nan_foe and rng.random() < 0.3:
             entries.append((entries[0][0] + 1, np.nan, np.nan, *entries[0][3:]))
         packets.append(packet(int(cuts[k]), int(cuts[k + 1]), x[lo:hi], y[lo:hi], t[lo:hi],

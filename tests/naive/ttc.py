@@ -178,6 +178,7 @@ def ttc_naive(packets, q, width, height, no_ttc=None, f=None, cx=None, cy=None):
     next_id = 0
     foe = None
     omega = np.zeros(3)  # the latest entry's angular velocity, rad/s
+    measured = False     # whether it is measured (the gyro's), not fitted to the flow
     angles = []          # (time, rotation angle) at every FOE entry
     votes_kg, votes_t = [], []
     k_ground = 0.0
@@ -190,11 +191,11 @@ def ttc_naive(packets, q, width, height, no_ttc=None, f=None, cx=None, cy=None):
     max_spread = math.inf if q.max_rel_spread is None else q.max_rel_spread
 
     def apply_foe(entries, upto):
-        nonlocal foe, omega
+        nonlocal foe, omega, measured
         while entries and entries[0][0] <= upto:
-            ft, fx, fy, w = entries.pop(0)
+            ft, fx, fy, w, meas = entries.pop(0)
             if fx == fx and fy == fy:
-                foe, omega = (fx, fy), w
+                foe, omega, measured = (fx, fy), w, meas
                 angles.append((ft, angle_naive(angles, ft, w)))
 
     def do_tick(T):
@@ -344,12 +345,13 @@ def ttc_naive(packets, q, width, height, no_ttc=None, f=None, cx=None, cy=None):
                                     q.min_tau_s, q.max_tau_s)[0])
         if tau > 0.0 and q.baseline_px > 0:
             d0 = (px - foe[0]) * vx / sp + (py - foe[1]) * vy / sp
-            shift_of = None
-            if f:
-                # the rotation's displacement along n between tq and the arrival ta
-                def shift_of(tq):
+            # the rotation's displacement along n between tq and the arrival ta: the angle
+            # turned where the rotation is measured, else the latest rotational speed x time
+            def shift_of(tq):
+                if f and measured:
                     turned = angle_naive(angles, ta, omega) - angle_naive(angles, tq, omega)
                     return rotational_speed_naive(px, py, vx / sp, vy / sp, turned, f, cx, cy)
+                return rot * (ta - tq) * 1e-6
             # compared at the edge's arrival at p, then moved forward to the event's time
             tau = baseline_tau_naive(last_t[pol], px, py, vx / sp, vy / sp, d0, float(ta),
                                      q.baseline_px, q.baseline_max_ms * 1000.0,
@@ -369,8 +371,9 @@ def ttc_naive(packets, q, width, height, no_ttc=None, f=None, cx=None, cy=None):
             w = np.radians(np.stack([series[c] for c in ("wx_deg_s", "wy_deg_s", "wz_deg_s")],
                                     1).astype(np.float64))
             w[series["rotation"] == 0] = 0.0
-            entries = [(int(a), float(b), float(c), wa) for a, b, c, wa in
-                       zip(series["t"], series["x"], series["y"], w, strict=True)]
+            entries = [(int(a), float(b), float(c), wa, bool(r == 2)) for a, b, c, wa, r in
+                       zip(series["t"], series["x"], series["y"], w, series["rotation"],
+                           strict=True)]
         for i in range(len(pk.t)):
             ti = int(pk.t[i])
             while tick <= ti:
