@@ -856,6 +856,7 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
         The rows written into ``ttc_out`` and ``clusters_out``.
     """
     x, y, t, pol, vx, vy, te = events
+    foe_t = foe[0]
     # the state's arrays as locals, passed on one by one (a tuple of arrays passed on costs
     # reference counts per event)
     cl, ST, SV, SK, SX, SY, carry, last_t, hist, angle_t, angle = state
@@ -874,7 +875,9 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
         if i >= n:
             break
         ti = t[i]
-        j = _apply_foe(foe, j, ti, g, angle_t, angle, prm.base_age_us)
+        if j < foe_t.shape[0] and foe_t[j] <= ti:  # (a call per event costs the arrays'
+            # reference counts: the entries come once per 10 ms)
+            j = _apply_foe(foe, j, ti, g, angle_t, angle, prm.base_age_us)
         px = float(x[i])
         py = float(y[i])
         evx = np.float64(vx[i])
