@@ -549,9 +549,7 @@ class FoeFit(Filter):
         window = 3 * p.tau_ms * 1000.0
         settled = T - self._warm_since >= window
         if self._mode != TURNING and settled:
-            self._level_x.append((T, x))
-            while self._level_x[0][0] < T - memory:
-                self._level_x.popleft()
+            self._remember_column(T, x)
         self._probes.append(probe)
         rate = [abs(_median([q[a] for q in self._probes])) for a in range(2)]
         self._pitch_probes.append((T, float(probe[PITCHING])))
@@ -569,10 +567,9 @@ class FoeFit(Filter):
             return
         if not settled:
             return
-        if (self._mode != TURNING and rate[TURNING] > self._turn_pxs and self._level_x
-                and T - self._level_x[0][0] >= 0.9 * memory and turn_explains()):
-            self._mode, self._moved = TURNING, T
-            self._held_x = float(np.median([c for _, c in self._level_x]))
+        if (self._mode != TURNING and rate[TURNING] > self._turn_pxs
+                and self._column_memory_full(T) and turn_explains()):
+            self._hold_column(T)
         elif self._mode == LEVEL and rate[PITCHING] > self._turn_pxs and not one_way:
             self._mode, self._moved = PITCHING, T
             pitch_start()
@@ -588,9 +585,7 @@ class FoeFit(Filter):
         shifts of the column): at the median of the settled fits' columns over the last
         ``heading_memory_s``, entered once the fits have run warm for 3 tau with a full memory,
         left 3 tau after the yaw fell below the threshold."""
-        p = self.params
-        memory = int(p.heading_memory_s * 1e6)
-        window = 3 * p.tau_ms * 1000.0
+        window = 3 * self.params.tau_ms * 1000.0
         settled = T - self._warm_since >= window
         turns = abs(self._om[0, TURNING]) > self._turn_pxs
         if self._mode == TURNING:
@@ -601,12 +596,25 @@ class FoeFit(Filter):
                 self._level_x.clear()
             return
         if settled:
-            self._level_x.append((T, x))
-            while self._level_x[0][0] < T - memory:
-                self._level_x.popleft()
-        if turns and settled and T - self._level_x[0][0] >= 0.9 * memory:
-            self._mode, self._moved = TURNING, T
-            self._held_x = float(np.median([c for _, c in self._level_x]))
+            self._remember_column(T, x)
+        if turns and settled and self._column_memory_full(T):
+            self._hold_column(T)
+
+    def _remember_column(self, T: int, x: float) -> None:
+        """Record a settled fit's FOE column, over the last ``heading_memory_s``."""
+        self._level_x.append((T, x))
+        while self._level_x[0][0] < T - int(self.params.heading_memory_s * 1e6):
+            self._level_x.popleft()
+
+    def _column_memory_full(self, T: int) -> bool:
+        """Whether the recorded columns span (nearly) ``heading_memory_s`` up to T."""
+        return bool(self._level_x) and (
+            T - self._level_x[0][0] >= 0.9 * int(self.params.heading_memory_s * 1e6))
+
+    def _hold_column(self, T: int) -> None:
+        """Enter the turning mode at T with the FOE's column held at the recorded median."""
+        self._mode, self._moved = TURNING, T
+        self._held_x = float(np.median([c for _, c in self._level_x]))
 
     def _shift_slabs(self, T: int) -> int:
         """Move the slabs' rotations to fit time T: each slab's by the whole slabs since the

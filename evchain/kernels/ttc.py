@@ -44,15 +44,15 @@ CLUSTER_STATE = np.dtype([("id", "i8"), ("active", "i8"), ("n_samples", "i8"), (
 #: the number of votes for it and their weights' reference time (µs); the id of the last
 #: selected cluster (-1: none); the ticks without an obstacle row, by reason
 #: (:data:`NO_TTC_REASONS`); ``no_slot``: the events that would have started a cluster while
-#: every slot held a live one; ``n_angles``: the entries of the rotation history, ``turned``: 1
-#: once an entry carried a rotation, ``measured``: 1 while the latest entry's rotation is
-#: measured (the gyro's), not fitted to the flow
+#: every slot held a live one; ``n_angles``: the entries of the rotation history,
+#: ``measured``: 1 while the latest entry's rotation is measured (the gyro's), not fitted to
+#: the flow
 CARRY = np.dtype([("has_foe", "f8"), ("foe_x", "f8"), ("foe_y", "f8"), ("foe_wx", "f8"),
                   ("foe_wy", "f8"), ("foe_wz", "f8"), ("next_tick", "f8"),
                   ("next_id", "f8"), ("k_ground", "f8"), ("n_votes", "f8"), ("held_id", "f8"),
                   ("votes_t_ref", "f8"), ("no_foe", "f8"), ("no_cluster", "f8"),
                   ("not_credible", "f8"), ("on_road", "f8"), ("no_slot", "f8"),
-                  ("n_angles", "f8"), ("turned", "f8"), ("measured", "f8")])
+                  ("n_angles", "f8"), ("measured", "f8")])
 #: the fields of :data:`CARRY` counting ticks without a TTC: no FOE yet; no cluster with a tau
 #: active enough (and in the corridor); no credible one (:func:`_credible`); only clusters on the
 #: road (ground test without fallback)
@@ -233,8 +233,6 @@ def record_angle(angle_t, angle, g, t_us, wx, wy, wz, keep_us):
     angle[n, 1] = a1
     angle[n, 2] = a2
     g.n_angles = n + 1
-    if wx != 0.0 or wy != 0.0 or wz != 0.0:
-        g.turned = 1.0
 
 
 @njit(cache=True)
@@ -905,8 +903,7 @@ def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
             d0 = tau * (sp - rot)  # (p - foe).n
             tau = baseline_tau(last_t, 1 if pol[i] > 0 else 0, px, py, evx / sp, evy / sp,
                                d0, rot, ta, prm.base_px, prm.base_age_us, prm.base_width,
-                               prm.f > 0.0 and g.turned > 0.0 and g.measured > 0.0, angle_t,
-                               angle,
+                               prm.f > 0.0 and g.measured > 0.0, angle_t, angle,
                                int(g.n_angles), g.foe_wx, g.foe_wy, g.foe_wz, prm.f, prm.cx,
                                prm.cy)
             if tau > 0.0:
