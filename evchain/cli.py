@@ -146,12 +146,13 @@ def cmd_bench(args) -> int:
 def cmd_sweep(args) -> int:
     from evchain.sweep import load_sweep, run_sweep
 
-    sweep = load_sweep(args.sweep)
+    sweep = load_sweep(args.sweep, args.set)
     if args.replay:
         sweep.replay, sweep.record = Path(args.replay), None
     out = Path(args.out) if args.out else Path("out") / "sweeps" / sweep.name
     print(f"sweep {sweep.name}: {len(sweep.runs())} runs of "
-          f"{', '.join(str(b) for b in sweep.bases.values())} -> {out}/")
+          f"{', '.join(str(b) for b in sweep.bases.values())}"
+          + (f" with {' '.join(sweep.extra_set)}" if sweep.extra_set else "") + f" -> {out}/")
     run_sweep(sweep, out, workers=args.workers, scheduler=args.scheduler)
     print(f"table: {out}/sweep.md")
     return 0
@@ -228,6 +229,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     sw = add("sweep", help="run variations of a pipeline, cached, as one table")
     sw.add_argument("sweep")
+    sw.add_argument("--set", action="append", default=[], metavar="STAGE.PARAM=VALUE",
+                    help="append to the sweep's 'set' (every run, before each variation's "
+                         "own overrides); repeatable")
     sw.add_argument("--out", help="output folder (default out/sweeps/NAME)")
     sw.add_argument("--workers", type=int, default=2, help="local processes (1: in-process)")
     sw.add_argument("--replay", metavar="EVENTS.aedat",

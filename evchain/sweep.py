@@ -11,6 +11,10 @@ A sweep file::
       emulator.threshold_on,emulator.threshold_off: [[10, 10], [20, 20], [40, 40]]
     report: [foe.dx_mean_px, foe.dy_mean_px, ttc.median_rel_error_last3s]
 
+``evchain sweep --set STAGE.PARAM=VALUE`` (repeatable) appends to ``set`` for this run of the
+sweep: a variant of a whole sweep without a copy of its file (each variation's own overrides
+still come after it; give ``--out`` to keep the variant's table apart).
+
 ``report`` keys name metrics (``GROUP.NAME`` of ``report.json``'s ``metrics``) or the run's CPU
 time after the sensor (``cpu.cpu_s_per_simulated_s``, ``cpu.cpu_s``: ``report.json``'s ``cpu``).
 
@@ -76,7 +80,7 @@ import logging
 import os
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -118,6 +122,8 @@ class SweepSpec:
     repeats: list[list[str]] = field(default_factory=lambda: [[]])
     description: str = ""
     base_sets: dict[str, list[str]] = field(default_factory=dict)
+    #: overrides given on the command line (``--set``), already part of every variation's
+    extra_set: list[str] = field(default_factory=list)
 
     @property
     def base(self) -> Path:
@@ -158,8 +164,9 @@ def looks_like_sweep(path: str | Path) -> bool:
     return isinstance(data, dict) and "chain" not in data and ("base" in data or "bases" in data)
 
 
-def load_sweep(path: str | Path) -> SweepSpec:
-    """Read and check a sweep file (errors name file:line:column and the key)."""
+def load_sweep(path: str | Path, extra_set: Sequence[str] = ()) -> SweepSpec:
+    """Read and check a sweep file (errors name file:line:column and the key); ``extra_set``
+    (``STAGE.PARAM=VALUE``) is appended to the file's ``set``."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
@@ -207,7 +214,10 @@ def load_sweep(path: str | Path) -> SweepSpec:
     common = data.get("set", []) or []
     if not isinstance(common, list):
         fail("must be a list of STAGE.PARAM=VALUE overrides", "set")
-    common = [str(c) for c in common]
+    for o in extra_set:
+        if "=" not in o or not o.split("=", 1)[0].strip():
+            raise ConfigError(f"--set {o!r}: expected STAGE.PARAM=VALUE", file=str(path))
+    common = [str(c) for c in common] + list(extra_set)
     variations = []
     if "vary" in data:
         vary = data["vary"]
@@ -242,7 +252,7 @@ def load_sweep(path: str | Path) -> SweepSpec:
                      record=None if data.get("record") is None else path.parent / data["record"],
                      repeats=[[str(o) for o in r] for r in repeats],
                      description=str(data.get("description") or "").strip(),
-                     base_sets=base_sets)
+                     base_sets=base_sets, extra_set=list(extra_set))
 
 
 def _cell(label: str, value: Any, common: list[str], fail: Callable) -> Variation:
@@ -618,7 +628,8 @@ def run_sweep(sweep: SweepSpec, out_dir: str | Path, workers: int = 2,
     machine = machine_info()
     machine["load_before"] = load_before
     summary = {"sweep": sweep.name, "file": Path(sweep.file).as_posix(),
-               "description": sweep.description, "report": sweep.report,
+               "description": sweep.description, "extra_set": sweep.extra_set,
+               "report": sweep.report,
                "bases": {k: Path(p).as_posix() for k, p in sweep.bases.items()},
                "wall_s": round(time.perf_counter() - started, 1), "machine": machine,
                "rows": rows}

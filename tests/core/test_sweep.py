@@ -32,6 +32,25 @@ def test_one_at_a_time_and_cache(tmp_path, registry):
     assert (tmp_path / "out" / "sweep.md").read_text().startswith("| variation |")
 
 
+def test_set_from_the_command_line_joins_the_sweeps_set(tmp_path, registry):
+    """``--set`` comes after the file's ``set`` (it wins over it) and before each variation's
+    own overrides (they still win); the table's JSON says which were given."""
+    p = write(tmp_path, "base: base.yaml\nset: [toy_source.packets=2]\nvary:\n"
+                        "  toy_source.events_per_packet: [5, 7]\n  toy_source.packets: [1]\n"
+                        "report: [toy.count]\n")
+    sweep = load_sweep(p, ["toy_source.packets=3", "toy_source.width=40"])
+    assert sweep.variations[0].overrides == [
+        "toy_source.packets=2", "toy_source.packets=3", "toy_source.width=40",
+        "toy_source.events_per_packet=5"]
+    rows = run_sweep(sweep, tmp_path / "out", workers=1, registry=registry, echo=lambda s: None)
+    assert [r["toy.count"] for r in rows] == [15, 21, 100]  # 3 x 5, 3 x 7, the cell's 1 x 100
+    assert json.loads((tmp_path / "out" / "sweep.json").read_text())["extra_set"] == [
+        "toy_source.packets=3", "toy_source.width=40"]
+    with pytest.raises(ConfigError, match=r"s.yaml: --set 'toy_source.packets': expected "
+                                          r"STAGE.PARAM=VALUE"):
+        load_sweep(p, ["toy_source.packets"])
+
+
 def test_grid(tmp_path):
     p = write(tmp_path, "base: base.yaml\nmode: grid\nvary:\n  a.x: [1, 2]\n  b.y: [3, 4, 5]\n")
     assert len(load_sweep(p).variations) == 6
@@ -338,6 +357,22 @@ def test_cli_sweep_exits_non_zero_naming_failed_runs(tmp_path, capsys):
     captured = capsys.readouterr()
     assert "evchain: error: 2 of 2 runs failed: refractory.period_us=100 [" in captured.err
     assert captured.out.count("FAILED: ") == 2 and "truncated last record" in captured.out
+
+
+def test_cli_sweep_set(tmp_path, capsys):
+    from evchain import cli
+
+    p = file_sweep(tmp_path)  # refractory.period_us: [100, 1000000] on 400 events
+    out = tmp_path / "out"
+    assert cli.main(["sweep", str(p), "--set", "aedat_writer.path=other.aedat", "--out",
+                     str(out), "--workers", "1"]) == 0
+    assert "with aedat_writer.path=other.aedat ->" in capsys.readouterr().out
+    runs = json.loads((out / "sweep.json").read_text())["rows"]
+    assert all((out / r["run"] / "other.aedat").exists() for r in runs)
+    # an unknown parameter fails before any run, naming it
+    assert cli.main(["sweep", str(p), "--set", "refractory.nope=1", "--out",
+                     str(tmp_path / "bad"), "--workers", "1"]) != 0
+    assert "refractory.nope" in capsys.readouterr().err and not (tmp_path / "bad").exists()
 
 
 def test_lookup_reads_metrics_and_the_runs_cpu():
