@@ -647,3 +647,23 @@ def test_the_gyro_turning_holds_the_column():
     assert np.abs(s["x"][turning] - 159.5).max() < 0.5
     after = s["t"] >= 2_500_000  # ... and free again
     assert np.ptp(s["x"][after]) > 0.0 and np.abs(s["x"][after] - 159.5).max() < 1.0
+
+
+def test_a_fit_left_behind_by_a_moved_foe_is_challenged_beyond_the_deviation():
+    """A warm fit is a local search: when the FOE moves 20 px at once (votes following it), the
+    old FOE keeps explaining the older events of the window and the fit stays there until they
+    have decayed away, unless it is farther than ``max_deviation_px`` from the votes: then a fit
+    started from them is compared, and wins once the new events weigh more. The same stuck fit, for 0.2-0.9 s, made the
+    evaluation's threshold-0.3 cell's LK |dx| 6 px (docs/explanation/foe_ttc.md)."""
+    a, b = (139.5, 119.5), (159.5, 119.5)
+    first = packets(a, G, n=30000, duration_us=300_000, n_packets=30, noise=0.2, outliers=0.1)
+    moved = [p.replace(t=p.t + 300_000, t_start=p.t_start + 300_000, t_end=p.t_end + 300_000)
+             for p in packets(b, G, n=60000, duration_us=600_000, n_packets=60, noise=0.2,
+                              outliers=0.1, seed=1)]
+    pk = _with_votes(first + moved, lambda t: a if t < 300_000 else b)
+    after = slice(55, 75)  # 250-450 ms after the move
+    stuck = _fits(pk, max_deviation_px=40.0)
+    assert np.all(np.abs(stuck["x"][after] - a[0]) < 1.0)
+    challenged = _fits(pk, max_deviation_px=10.0)
+    assert np.all(np.abs(challenged["x"][after] - b[0]) < 1.0)
+    assert np.all(np.abs(challenged["y"][after] - b[1]) < 1.0)
