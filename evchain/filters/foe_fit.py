@@ -151,7 +151,7 @@ class FoeFit(Filter):
             None, gt=0, description="a fit farther than this from the voting estimate is "
             "checked against a fit started from the votes and falls back to them if that one "
             "has the larger inlier weight (the votes can err by tens of px for seconds), px; "
-            "null: 20 px x f / 380.6 px")
+            "null: 40 px x f / 380.6 px")
         min_inliers: float = Field(50.0, ge=0, description="fall back when the decayed "
                                    "inlier weight is below this")
         facade_bands: int = Field(
@@ -220,7 +220,7 @@ class FoeFit(Filter):
             raise DataError(f"{self.id}: rotation_source imu needs the camera's focal length "
                             "(the geometry has none)")
         scale = px_scale(geometry)
-        self._max_deviation = derived(p.max_deviation_px, 20.0, geometry)
+        self._max_deviation = derived(p.max_deviation_px, 40.0, geometry)
         # a Gauss-Newton step moves the FOE by at most 3 px, and a fit has converged once it
         # moves less than 0.05 px (on the reference camera)
         self._prm = record(k.FitParams, margin=derived(p.margin_px, 10.0, geometry),
