@@ -653,8 +653,9 @@ def test_a_fit_left_behind_by_a_moved_foe_is_challenged_beyond_the_deviation():
     """A warm fit is a local search: when the FOE moves 20 px at once (votes following it), the
     old FOE keeps explaining the older events of the window and the fit stays there until they
     have decayed away, unless it is farther than ``max_deviation_px`` from the votes: then a fit
-    started from them is compared, and wins once the new events weigh more. The same stuck fit, for 0.2-0.9 s, made the
-    evaluation's threshold-0.3 cell's LK |dx| 6 px (docs/explanation/foe_ttc.md)."""
+    started from them is compared, and wins once the new events weigh more. The evaluation's
+    threshold-0.3 cell has such a fit for 0.1-0.9 s (docs/explanation/foe_ttc.md, "Tried and not
+    kept": a tighter ``max_deviation_px``)."""
     a, b = (139.5, 119.5), (159.5, 119.5)
     first = packets(a, G, n=30000, duration_us=300_000, n_packets=30, noise=0.2, outliers=0.1)
     moved = [p.replace(t=p.t + 300_000, t_start=p.t_start + 300_000, t_end=p.t_end + 300_000)
