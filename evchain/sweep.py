@@ -122,7 +122,7 @@ class SweepSpec:
     repeats: list[list[str]] = field(default_factory=lambda: [[]])
     description: str = ""
     base_sets: dict[str, list[str]] = field(default_factory=dict)
-    #: overrides given on the command line (``--set``), already part of every variation's
+    #: overrides given on the command line (``--set``), already in every variation's overrides
     extra_set: list[str] = field(default_factory=list)
 
     @property
