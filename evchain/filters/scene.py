@@ -118,14 +118,6 @@ class SceneSource(Filter):
 
         return int(step_us(self.step_rule, float(vmax_pxs)))
 
-    def _imu(self, t_start: int, t_end: int) -> np.ndarray | None:
-        """The simulated IMU's samples in ``[t_start, t_end)`` (None without an IMU)."""
-        from evchain.sim.imu import imu_between
-
-        p = self.params
-        return imu_between(self.scene, t_start, t_end, p.imu_rate_hz, self._imu_rng,
-                           p.imu_gyro_noise_dps, p.imu_gyro_bias_dps, p.imu_accel_noise_g)
-
     def packets(self) -> Iterator[FramePacket]:
         self._imu_rng = self.context.rng(f"{self.id}.imu")
         if self.params.threads == 1:
@@ -213,7 +205,7 @@ class SceneSource(Filter):
             self.frames_emitted += len(times)
             packet = FramePacket(geometry=geom, t_start=t_start, t_end=t_end, frames=stack,
                                  t=np.array(times, np.int64))
-            imu = self._imu(t_start, t_end)
+            imu = self.params.imu_between(self.scene, t_start, t_end, self._imu_rng)
             yield packet if imu is None else packet.with_series(IMU.name, imu)
             t_start = t_end
         metrics = {

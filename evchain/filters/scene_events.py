@@ -83,14 +83,11 @@ class SceneEvents(Filter):
         return (IMU,) if params.imu_rate_hz > 0 else ()
 
     def packets(self) -> Iterator[EventPacket]:
-        from evchain.sim.imu import imu_between
-
         p = self.params
         rng = self.context.rng("scene.imu")
 
         def with_imu(packet: EventPacket) -> EventPacket:
-            imu = imu_between(self.scene, packet.t_start, packet.t_end, p.imu_rate_hz, rng,
-                              p.imu_gyro_noise_dps, p.imu_gyro_bias_dps, p.imu_accel_noise_g)
+            imu = p.imu_between(self.scene, packet.t_start, packet.t_end, rng)
             return packet if imu is None else packet.with_series(IMU.name, imu)
 
         empty = True
@@ -139,9 +136,8 @@ def replay_spec(spec, events_path: str | Path, check_recording: bool = True):
         _check_recording(spec, recorded)
     scene = stages[0].params
     params = SceneEvents.Params(path=str(events_path), packet_us=scene.packet_us,
-                                **{k: getattr(scene, k) for k in SceneConfig.model_fields},
-                                **{k: getattr(scene, k) for k in ImuParams.model_fields
-                                   if hasattr(scene, k)})
+                                **{k: getattr(scene, k) for k in (*SceneConfig.model_fields,
+                                                                  *ImuParams.model_fields)})
     first = StageSpec(use=SceneEvents.name, id=SceneEvents.name, cls=SceneEvents,
                       params=params, mark=stages[0].mark)
     return dataclasses.replace(spec, stages=[first, *stages[2:]])
