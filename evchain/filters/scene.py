@@ -119,7 +119,9 @@ class SceneSource(Filter):
         return int(step_us(self.step_rule, float(vmax_pxs)))
 
     def packets(self) -> Iterator[FramePacket]:
-        self._imu_rng = self.context.rng(f"{self.id}.imu")
+        from evchain.sim.imu import noise_key
+
+        self._imu_key = noise_key(self.context.rng(f"{self.id}.imu"))
         if self.params.threads == 1:
             yield from self._render_packets()
         else:
@@ -205,7 +207,7 @@ class SceneSource(Filter):
             self.frames_emitted += len(times)
             packet = FramePacket(geometry=geom, t_start=t_start, t_end=t_end, frames=stack,
                                  t=np.array(times, np.int64))
-            imu = self.params.imu_between(self.scene, t_start, t_end, self._imu_rng)
+            imu = self.params.imu_between(self.scene, t_start, t_end, self._imu_key)
             yield packet if imu is None else packet.with_series(IMU.name, imu)
             t_start = t_end
         metrics = {

@@ -35,8 +35,10 @@ class SceneEvents(Filter):
     file's events in ``packet_us`` slices from the first; a file without events gives empty
     slices over the drive's duration. With ``imu_rate_hz`` the packets carry the simulated
     IMU as the ``scene`` source's do (series ``imu``: the true readings at the same sample
-    times, bias and noise from the seeded stream ``scene.imu``): the IMU does not change the
-    events, so it can be added to a replay of a recording made without one.
+    times, bias and noise keyed by the seed and the stage id as the ``scene`` source's, each
+    sample's noise a function of the key and its time: a replay under the recording's scene id
+    and seed has its IMU, whatever the packets; ``--replay`` gives it that id): the IMU does
+    not change the events, so it can be added to a replay of a recording made without one.
     """
 
     name = "scene_events"
@@ -84,10 +86,12 @@ class SceneEvents(Filter):
 
     def packets(self) -> Iterator[EventPacket]:
         p = self.params
-        rng = self.context.rng("scene.imu")
+        from evchain.sim.imu import noise_key
+
+        key = noise_key(self.context.rng(f"{self.id}.imu"))
 
         def with_imu(packet: EventPacket) -> EventPacket:
-            imu = p.imu_between(self.scene, packet.t_start, packet.t_end, rng)
+            imu = p.imu_between(self.scene, packet.t_start, packet.t_end, key)
             return packet if imu is None else packet.with_series(IMU.name, imu)
 
         empty = True
@@ -118,7 +122,8 @@ def replay_spec(spec, events_path: str | Path, check_recording: bool = True):
     emulator parameters, else the events would not be the ones this pipeline makes (a
     parameter the recording does not name, one added since, counts with its default).
     ``check_recording`` False skips that check, for a recording still to be made. The path is
-    made absolute (relative to the current folder)."""
+    made absolute (relative to the current folder). The replay keeps the scene stage's id, so
+    its IMU noise (seeded by the id) is the recording's."""
     import os
 
     from evchain.core.config import StageSpec
@@ -138,7 +143,7 @@ def replay_spec(spec, events_path: str | Path, check_recording: bool = True):
     params = SceneEvents.Params(path=str(events_path), packet_us=scene.packet_us,
                                 **{k: getattr(scene, k) for k in (*SceneConfig.model_fields,
                                                                   *ImuParams.model_fields)})
-    first = StageSpec(use=SceneEvents.name, id=SceneEvents.name, cls=SceneEvents,
+    first = StageSpec(use=SceneEvents.name, id=stages[0].id, cls=SceneEvents,
                       params=params, mark=stages[0].mark)
     return dataclasses.replace(spec, stages=[first, *stages[2:]])
 

@@ -47,12 +47,12 @@ class ImuParams(FilterParams):
     imu_accel_noise_g: float = Field(0.0, ge=0, description=(
         "accelerometer noise, standard deviation per sample, g (seeded)"))
 
-    def imu_between(self, scene, t_start: int, t_end: int, rng):
-        """The IMU series entries in ``[t_start, t_end)`` with these parameters
-        (:func:`evchain.sim.imu.imu_between`); None without an IMU."""
+    def imu_between(self, scene, t_start: int, t_end: int, key: int):
+        """The IMU series entries in ``[t_start, t_end)`` with these parameters and the noise
+        key ``key`` (:func:`evchain.sim.imu.imu_between`); None without an IMU."""
         from evchain.sim.imu import imu_between
 
-        return imu_between(scene, t_start, t_end, self.imu_rate_hz, rng,
+        return imu_between(scene, t_start, t_end, self.imu_rate_hz, key,
                            self.imu_gyro_noise_dps, self.imu_gyro_bias_dps,
                            self.imu_accel_noise_g)
 

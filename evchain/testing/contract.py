@@ -118,11 +118,12 @@ def run_filter(f: Filter, packets: list[Packet], check: bool = True) -> list[Pac
     return outs
 
 
-def run_source(cls: type[Filter], params: dict[str, Any],
-               out_dir: Path) -> tuple[list[Packet], Context]:
-    """Every packet of the source ``cls`` with ``params``, and the context it filled in."""
+def run_source(cls: type[Filter], params: dict[str, Any], out_dir: Path,
+               stage_id: str | None = None) -> tuple[list[Packet], Context]:
+    """Every packet of the source ``cls`` with ``params`` (stage id ``stage_id``, default its
+    name), and the context it filled in."""
     src = cls()
-    src.id = cls.name
+    src.id = stage_id or cls.name
     context = Context(out_dir=Path(out_dir))
     src.setup(cls.Params(**params), context)
     try:

@@ -167,3 +167,30 @@ def test_replay_adds_the_simulated_imu(recorded, tmp_path):
     first = replay_spec(spec, recorded).stages[0]
     assert first.use == "scene_events" and first.params.imu_rate_hz == 1000
     assert first.params.imu_gyro_noise_dps == 0.1
+
+
+def test_a_replay_with_the_recordings_scene_id_has_its_imu_noise(recorded, tmp_path):
+    """The IMU noise is seeded by the stage id (``<id>.imu``), as the scene source's: a
+    replay under the recording's scene id draws the same noisy samples, under another id
+    other ones; ``--replay`` keeps the scene stage's id."""
+    from evchain.core.config import load_pipeline
+    from evchain.core.registry import make_registry
+    from evchain.filters.scene import SceneSource
+    from evchain.filters.scene_events import replay_spec
+
+    noisy = {**SCENE, "imu_rate_hz": 500, "imu_gyro_noise_dps": 0.5, "imu_accel_noise_g": 0.01}
+
+    def imu(cls, stage_id, **more):
+        packets, _ = run_source(cls, {**noisy, **more}, tmp_path, stage_id=stage_id)
+        return np.concatenate([p.series["imu"] for p in packets])
+
+    want = imu(SceneSource, "cam")
+    same = imu(SceneEvents, "cam", path=str(recorded))
+    other = imu(SceneEvents, "scene", path=str(recorded))
+    common = np.isin(want["t"], same["t"])
+    assert common.sum() == len(same) >= 25
+    assert np.array_equal(want[common], same)
+    assert not np.array_equal(want[common], other)
+    pipeline = _flow_pipeline(tmp_path / "f.yaml")
+    spec = load_pipeline(pipeline, make_registry())
+    assert replay_spec(spec, recorded).stages[0].id == spec.stages[0].id

@@ -14,7 +14,7 @@ from evchain.filters.emulator import Emulator
 from evchain.filters.imu_truth import ImuTruth
 from evchain.filters.scene import SceneSource
 from evchain.sim.drive import Scene
-from evchain.sim.imu import true_imu
+from evchain.sim.imu import imu_between, sample_normals, true_imu
 from evchain.testing.contract import check_source
 
 ROTATION = dict(scenario="high-rise", start_m=120.0, dynamics="rotation", speed_mps=0.0,
@@ -70,6 +70,41 @@ def test_scene_source_emits_the_imu_series():
     np.testing.assert_array_equal(again, imu)                      # seeded
     check_source(SceneSource, {**ROTATION, "width": 32, "height": 24, "duration_s": 0.05,
                                "imu_rate_hz": 500})
+
+
+def test_imu_noise_is_standard_normal_per_sample_and_column():
+    """Counter-based noise: standard normal (Kolmogorov-Smirnov against N(0, 1)), columns
+    and neighbouring samples uncorrelated, other keys other values, the same key and time the
+    same values whichever other samples are drawn with them."""
+    from scipy import stats
+
+    t = np.arange(0, 200_000_000, 1000, dtype=np.int64)          # 200 000 samples at 1 kHz
+    z = sample_normals(12345, t, 6)
+    assert z.shape == (len(t), 6) and np.isfinite(z).all()
+    for j in range(6):
+        assert stats.kstest(z[:, j], "norm").pvalue > 1e-3
+    corr = np.corrcoef(np.hstack([z[1:], z[:-1]]).T)
+    np.fill_diagonal(corr, 0.0)
+    assert np.abs(corr).max() < 0.015                             # ~3 sigma of 1/sqrt(n)
+    assert np.abs(z - sample_normals(12346, t, 6)).min(axis=1).max() > 0
+    np.testing.assert_array_equal(sample_normals(12345, t[::7], 6), z[::7])
+    # the extremes of a 53-bit uniform stay finite: u = 0 gives r = 0, u -> 1 a large r
+    assert np.isfinite(sample_normals(0, np.array([0, -1, 2**62]), 5)).all()
+
+
+def test_imu_noise_does_not_depend_on_the_packets():
+    """The same drive cut into other slices has the same noisy samples (what lets a replay,
+    whose packets are fixed slices, carry its recording's IMU)."""
+    scene = Scene.from_params(**{**ROTATION, "width": 16, "height": 12})
+    noise = (1000.0, 99, 0.3, (0.5, 0.0, 0.0), 0.02)     # rate, key, gyro noise, bias, accel
+    whole = imu_between(scene, 0, 600_000, *noise)
+    cuts = [0, 7_000, 123_456, 300_001, 600_000]
+    parts = np.concatenate([imu_between(scene, a, b, *noise)
+                            for a, b in zip(cuts[:-1], cuts[1:], strict=True)])
+    np.testing.assert_array_equal(parts, whole)
+    quiet = imu_between(scene, 0, 600_000, 1000.0, 99)
+    assert 0.25 < np.std(whole["gx"] - quiet["gx"]) < 0.35
+    assert 0.015 < np.std(whole["az"] - quiet["az"]) < 0.025
 
 
 def through_imu_truth(packets, ctx, **params):
