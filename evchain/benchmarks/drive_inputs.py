@@ -9,12 +9,17 @@
 * :func:`drive_aps`: the frames of the ``scene`` and ``aps`` stages of a frame pipeline
   (pipelines/frames-reference.yaml) on a stretch of its drive.
 
-Loading gives the packets and a context with the scene's geometry and exact ground truth (set
-up from the stored scene parameters; that renders nothing).
+Each takes ``overrides`` (``STAGE.PARAM=VALUE``, as ``evchain run --set``) for other drives
+of the same pipeline. Loading gives the packets and a context with the scene's geometry and
+exact ground truth (set up from the stored scene parameters; that renders nothing); where the
+scene has an IMU (``imu_rate_hz`` > 0), event and flow packets carry its series ``imu`` over
+their slices, the samples the scene source gives (each sample's noise depends only on the
+seed, the stage id and its time, so they need not be stored).
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -41,25 +46,32 @@ def relative(path: Path) -> str:
         return str(path)
 
 
-def pipeline_spec(path: Path, start_m: float, duration_s: float):
-    """The pipeline file ``path``, loaded, with its scene set to the stretch."""
+def pipeline_spec(path: Path, start_m: float, duration_s: float, overrides: Sequence[str] = ()):
+    """The pipeline file ``path``, loaded with ``overrides``, its scene set to the stretch."""
     from evchain.core.config import load_pipeline
     from evchain.core.registry import make_registry
 
-    return load_pipeline(path, make_registry(),
-                         [f"scene.start_m={start_m!r}", f"scene.duration_s={duration_s!r}"])
+    return load_pipeline(path, make_registry(), [*overrides, f"scene.start_m={start_m!r}",
+                                                 f"scene.duration_s={duration_s!r}"])
 
 
 def stretch_label(scene: dict[str, Any]) -> str:
-    """``reference-drive T0-T1 s``: the stretch of the drive that ``scene``'s parameters set."""
+    """``reference-drive T0-T1 s``: the stretch of the drive that ``scene``'s parameters set
+    (with its dynamics when not constant, and its IMU's rate)."""
     t0 = scene["start_m"] / scene["speed_mps"] if scene["speed_mps"] else 0.0
-    return f"reference-drive {t0:g}-{t0 + scene['duration_s']:g} s"
+    label = f"reference-drive {t0:g}-{t0 + scene['duration_s']:g} s"
+    if scene.get("dynamics", "constant") != "constant":
+        label += f", {scene['dynamics']}"
+    if scene.get("imu_rate_hz"):
+        label += f", IMU {scene['imu_rate_hz']:g} Hz"
+    return label
 
 
-def drive_events(pipeline: Path, start_m: float, duration_s: float) -> BenchInput:
+def drive_events(pipeline: Path, start_m: float, duration_s: float,
+                 overrides: Sequence[str] = ()) -> BenchInput:
     """Events of the drive of ``pipeline`` (its ``scene`` and ``emulator`` stages) from
     ``start_m`` for ``duration_s``."""
-    spec = pipeline_spec(pipeline, start_m, duration_s)
+    spec = pipeline_spec(pipeline, start_m, duration_s, overrides)
     emulator = spec.stage("emulator")
     params = _scene_and(spec, "emulator")
 
@@ -105,17 +117,18 @@ def _bounds(outs: list) -> np.ndarray:
     return np.array([o.t_start for o in outs] + [outs[-1].t_end], np.int64)
 
 
-def drive_flow(pipeline: Path, start_m: float, duration_s: float) -> BenchInput:
+def drive_flow(pipeline: Path, start_m: float, duration_s: float,
+               overrides: Sequence[str] = ()) -> BenchInput:
     """Output of the flow stage of ``pipeline`` on :func:`drive_events` of the same stretch
     (``frame_flow``: on :func:`drive_aps`)."""
-    spec = pipeline_spec(pipeline, start_m, duration_s)
+    spec = pipeline_spec(pipeline, start_m, duration_s, overrides)
     stage = next((s for s in spec.stages if s.use in FLOW_STAGES), None)
     if stage is None:
         from evchain.errors import ConfigError
 
         raise ConfigError(f"no flow stage ({' or '.join(FLOW_STAGES)})", file=spec.file)
     frames = stage.use == "frame_flow"
-    source = (drive_aps if frames else drive_events)(pipeline, start_m, duration_s)
+    source = (drive_aps if frames else drive_events)(pipeline, start_m, duration_s, overrides)
     params = {"use": stage.use, "id": stage.id, "flow": stage.params.model_dump(mode="json")}
 
     def make() -> dict[str, np.ndarray]:
@@ -138,10 +151,11 @@ def drive_flow(pipeline: Path, start_m: float, duration_s: float) -> BenchInput:
     return BenchInput("drive-flow", label, params, sources, make, (source,))
 
 
-def drive_aps(pipeline: Path, start_m: float, duration_s: float) -> BenchInput:
+def drive_aps(pipeline: Path, start_m: float, duration_s: float,
+              overrides: Sequence[str] = ()) -> BenchInput:
     """Frames of the ``aps`` stage of ``pipeline`` on its ``scene`` (as configured there) from
     ``start_m`` for ``duration_s``."""
-    spec = pipeline_spec(pipeline, start_m, duration_s)
+    spec = pipeline_spec(pipeline, start_m, duration_s, overrides)
     aps = spec.stage("aps")
     params = _scene_and(spec, "aps")
 
@@ -167,12 +181,21 @@ def _scene(params: dict[str, Any], ctx: Context, threads: int = 1):
     return scene
 
 
-def _packets(cls, d: dict[str, np.ndarray], columns, geometry) -> list:
+def _packets(cls, d: dict[str, np.ndarray], columns, scene) -> list:
+    """The stored packets, with the scene's IMU series where it has one."""
+    from evchain.core.series import IMU
+    from evchain.sim.imu import noise_key
+
     b = d["bounds"]
     idx = np.searchsorted(d["t"], b)
-    return [cls(geometry=geometry, t_start=int(b0), t_end=int(b1),
-                **{c: d[c][i:j] for c in columns})
-            for b0, b1, i, j in zip(b[:-1], b[1:], idx[:-1], idx[1:], strict=True)]
+    packets = [cls(geometry=scene.context.geometry, t_start=int(b0), t_end=int(b1),
+                   **{c: d[c][i:j] for c in columns})
+               for b0, b1, i, j in zip(b[:-1], b[1:], idx[:-1], idx[1:], strict=True)]
+    if scene.params.imu_rate_hz <= 0:
+        return packets
+    key = noise_key(scene.context.rng(f"{scene.id}.imu"))
+    return [p.with_series(IMU.name, scene.params.imu_between(scene.scene, p.t_start, p.t_end,
+                                                             key)) for p in packets]
 
 
 def load_events(inp: BenchInput) -> tuple[list, Context]:
@@ -181,8 +204,9 @@ def load_events(inp: BenchInput) -> tuple[list, Context]:
 
     d = inp.load()
     ctx = Context(seed=inp.params["seed"])
-    _scene(inp.params, ctx).close()
-    return _packets(EventPacket, d, EVENT_COLUMNS, ctx.geometry), ctx
+    scene = _scene(inp.params, ctx)
+    scene.close()
+    return _packets(EventPacket, d, EVENT_COLUMNS, scene), ctx
 
 
 def load_aps(inp: BenchInput) -> tuple[list, Context]:
@@ -191,8 +215,9 @@ def load_aps(inp: BenchInput) -> tuple[list, Context]:
 
     d = inp.load()
     ctx = Context(seed=inp.params["seed"])
-    _scene(inp.params, ctx).close()
-    return _packets(ApsFramePacket, d, ("frames", "t", "t_exposure_start"), ctx.geometry), ctx
+    scene = _scene(inp.params, ctx)
+    scene.close()
+    return _packets(ApsFramePacket, d, ("frames", "t", "t_exposure_start"), scene), ctx
 
 
 def load_flow(inp: BenchInput) -> tuple[list, Context]:
@@ -202,5 +227,6 @@ def load_flow(inp: BenchInput) -> tuple[list, Context]:
     d = inp.load()
     source = inp.needs[0]
     ctx = Context(seed=source.params["seed"])
-    _scene(source.params, ctx).close()
-    return _packets(FlowPacket, d, FLOW_COLUMNS, ctx.geometry), ctx
+    scene = _scene(source.params, ctx)
+    scene.close()
+    return _packets(FlowPacket, d, FLOW_COLUMNS, scene), ctx

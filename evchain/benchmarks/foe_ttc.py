@@ -26,6 +26,11 @@ these rows use beyond ``foe_map``'s defaults is read from that file (``params_fr
   (tau 100 ms, an estimate every 10 ms).
 * ``foe-fit-pipeline-lk`` / ``-plane``: ``foe_fit`` of the pipeline alone on the votes of the
   pipeline's ``foe_map`` (run once, not timed); error = FOE mean |dy|.
+* ``foe-fit-pitch-lk`` / ``-plane``: the same on the drive pitching (``scene.dynamics=pitch``)
+  with its simulated IMU (1 kHz, 0.1 deg/s noise: pipelines/sweeps/evaluation-gyro.yaml's), two
+  rows side by side on the same flow: ``foe-fit-pitch-*`` fits the rotation to the flow (the
+  default), ``foe-fit-pitch-gyro-*`` takes it from the gyro (``rotation_source: imu``); extras:
+  |dx| and the median rotation rate error (deg/s).
 * ``chain-reference-lk`` / ``-plane``: events/s (emulator output events) of the pipeline's
   stages after the emulator (flow -> foe_map -> foe_fit -> ttc); errors from its
   ``foe_ttc_scorer`` (not timed): TTC median relative error over the last 3 s, FOE mean |dx|,
@@ -131,11 +136,11 @@ def events_input(flow: str, quick: bool) -> BenchInput:
     return drive_events(pipeline_file(flow), *stretch(quick))
 
 
-def _pipeline(flow: str):
+def _pipeline(flow: str, overrides: tuple[str, ...] = ()):
     from evchain.core.config import load_pipeline
     from evchain.core.registry import make_registry
 
-    return load_pipeline(pipeline_file(flow), make_registry())
+    return load_pipeline(pipeline_file(flow), make_registry(), list(overrides))
 
 
 def _foe_errors(series: list[np.ndarray], t_start: int, quick: bool, truth):
@@ -185,11 +190,38 @@ def foe_fit_pipeline_rows(flow: str, quick: bool) -> list[BenchRow]:
     ``foe_map`` run once (not timed), then ``foe_fit``, all as configured in
     pipelines/reference-*.yaml; error = mean |dy| against the true FOE after the warm-up (the
     vertical error is what it corrects), |dx| in the extras."""
-    inp = flow_input(flow, quick)
+    name = "lk" if flow == "lk_flow" else "plane"
+    return [_foe_fit_row(f"foe-fit-pipeline-{name}", flow_input(flow, quick), _pipeline(flow),
+                         flow, quick)]
+
+
+#: the pitching drive of the ``foe-fit-pitch`` rows: the evaluation's pitch cell with its IMU
+#: (pipelines/sweeps/evaluation-gyro.yaml)
+PITCH = ("scene.dynamics=pitch", "scene.imu_rate_hz=1000", "scene.imu_gyro_noise_dps=0.1")
+
+
+def pitch_flow_input(flow: str, quick: bool) -> BenchInput:
+    """The flow of pipelines/reference-*.yaml's flow stage on :func:`stretch` of its drive
+    pitching (:data:`PITCH`), the packets with the scene's IMU."""
+    return drive_flow(pipeline_file(flow), *stretch(quick), PITCH)
+
+
+def foe_fit_pitch_rows(flow: str, quick: bool) -> list[BenchRow]:
+    """``foe_fit`` of the pipeline alone on a pitching drive, its rotation fitted to the flow
+    (``foe-fit-pitch-*``, the default) and taken from the gyro (``foe-fit-pitch-gyro-*``,
+    ``rotation_source: imu``), side by side on the same flow and votes; error = mean |dy|,
+    |dx| and the median rotation rate error in the extras."""
+    name = "lk" if flow == "lk_flow" else "plane"
+    inp = pitch_flow_input(flow, quick)
+    return [_foe_fit_row(f"foe-fit-pitch-{name}", inp, _pipeline(flow, PITCH), flow, quick),
+            _foe_fit_row(f"foe-fit-pitch-gyro-{name}", inp,
+                         _pipeline(flow, (*PITCH, "foe_fit.rotation_source=imu")), flow, quick)]
+
+
+def _foe_fit_row(row: str, inp: BenchInput, spec, flow: str, quick: bool) -> BenchRow:
+    """``foe_fit`` of ``spec`` on the flow ``inp`` after ``spec``'s ``foe_map`` (not timed)."""
     packets, ctx = load_flow(inp)
     n = sum(len(p) for p in packets)
-    name = "lk" if flow == "lk_flow" else "plane"
-    spec = _pipeline(flow)
 
     def make(use):
         st = spec.stage(use)
@@ -211,14 +243,32 @@ def foe_fit_pipeline_rows(flow: str, quick: bool) -> list[BenchRow]:
     adx, ady = _foe_errors(series, packets[0].t_start, quick, ctx.truth)
     params = {use: spec.stage(use).params.model_dump(mode="json")
               for use in ("foe_map", "foe_fit")}
-    return [BenchRow(f"foe-fit-pipeline-{name}", "foe_fit", n / cpu, "flow ev/s (CPU)",
-                     float(ady.mean()), "foe_dy_mean_px", None,
-                     {"events": n, "stretch": "{:g} m + {:g} s".format(*stretch(quick)),
-                      "params": params,
-                      "foe_dx_mean_px": float(adx.mean()), "foe_dx_std_px": float(adx.std()),
-                      "foe_dy_mean_px": float(ady.mean()), "foe_dy_std_px": float(ady.std())},
-                     data=f"{inp.describe()}; foe_map and foe_fit of the pipeline",
-                     params_from=relative(pipeline_file(flow)))]
+    extra = {"events": n, "stretch": "{:g} m + {:g} s".format(*stretch(quick)),
+             "params": params,
+             "foe_dx_mean_px": float(adx.mean()), "foe_dx_std_px": float(adx.std()),
+             "foe_dy_mean_px": float(ady.mean()), "foe_dy_std_px": float(ady.std())}
+    rotation = _rotation_error(series, packets[0].t_start, quick, ctx.truth)
+    if rotation is not None:
+        extra["rotation_rate_error_deg_s"] = rotation
+    return BenchRow(row, "foe_fit", n / cpu, "flow ev/s (CPU)", float(ady.mean()),
+                    "foe_dy_mean_px", None, extra,
+                    data=f"{inp.describe()}; foe_map and foe_fit of the pipeline",
+                    params_from=relative(pipeline_file(flow)))
+
+
+def _rotation_error(series: list[np.ndarray], t_start: int, quick: bool,
+                    truth) -> float | None:
+    """Median norm (deg/s) of the estimated minus the true angular velocity over the
+    estimates after the warm-up that carry a rotation; None when none does."""
+    from evchain.core.series import ROTATION_FIELDS
+
+    s = np.concatenate(series)
+    s = s[(s["t"] >= t_start + (1_000_000 if not quick else 200_000)) & (s["rotation"] > 0)]
+    if not len(s):
+        return None
+    w = np.stack([s[c] for c in ROTATION_FIELDS], 1)
+    wt = np.degrees(np.stack(truth.angular_velocity(s["t"].astype(np.float64)), 1))
+    return float(np.median(np.linalg.norm(w - wt, axis=1)))
 
 
 def ttc_rows(quick: bool) -> list[BenchRow]:
@@ -338,6 +388,10 @@ WORKLOADS = {
     "foe-fit-pipeline-lk": _on_flow("lk_flow", lambda q: foe_fit_pipeline_rows("lk_flow", q)),
     "foe-fit-pipeline-plane": _on_flow("plane_flow",
                                        lambda q: foe_fit_pipeline_rows("plane_flow", q)),
+    "foe-fit-pitch-lk": Workload(lambda q: foe_fit_pitch_rows("lk_flow", q),
+                                 lambda quick: [pitch_flow_input("lk_flow", quick)]),
+    "foe-fit-pitch-plane": Workload(lambda q: foe_fit_pitch_rows("plane_flow", q),
+                                    lambda quick: [pitch_flow_input("plane_flow", quick)]),
     "ttc-synthetic": ttc_rows,
     "chain-reference-lk": _on_events("lk_flow", lambda q: chain_rows("lk_flow", q)),
     "chain-reference-plane": _on_events("plane_flow", lambda q: chain_rows("plane_flow", q)),

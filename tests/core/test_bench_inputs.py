@@ -107,9 +107,9 @@ def test_the_cached_flow_is_the_pipeline_stage_on_the_cached_events(path, use):
         assert np.array_equal(a, b)
 
 
-def _fake_flow(path, quick):
+def _fake_flow(path, quick, overrides=()):
     """Store expansion flow (FOE at the image centre) as the flow input of the quick stretch."""
-    inp = drive_flow(path, *foe_ttc.stretch(quick))
+    inp = drive_flow(path, *foe_ttc.stretch(quick), overrides)
     packets = approach_flow_packets(foe=(159.5, 119.5), tau_s=5.0, n=20_000,
                                     geometry=Geometry(320, 240), duration_us=1_000_000,
                                     n_packets=100, normal_only=True)
@@ -156,6 +156,24 @@ def test_the_foe_rows_use_the_pipeline(monkeypatch):
     [row] = foe_ttc.WORKLOADS["foe-map-reference-lk"](True)   # the row's settings, and says so
     assert "foe_map with 1 ms reads and 300 ms decay" in row.data and inp.key in row.data
     assert all(p == type(p)(**foe_ttc.ROW_SETTINGS) for p in seen["foe_map"])
+
+
+def test_the_pitch_rows_fit_the_rotation_and_take_the_gyro_on_the_same_flow(monkeypatch):
+    """``foe-fit-pitch-lk``: two rows on one input, the pitching drive's flow with the scene's
+    IMU attached on loading; the gyro row's rotation is the gyro's (within its noise of the
+    truth), the other row fits it."""
+    inp = _fake_flow(LK, True, foe_ttc.PITCH)
+    assert inp.key != drive_flow(LK, *foe_ttc.stretch(True)).key
+    packets, ctx = load_flow(inp)
+    imu = np.concatenate([p.series["imu"] for p in packets])
+    assert np.array_equal(imu["t"], np.arange(packets[0].t_start, packets[-1].t_end, 1000))
+    seen = _spy(monkeypatch, ["foe_fit"])
+    fit, gyro = foe_ttc.WORKLOADS["foe-fit-pitch-lk"](True)
+    assert (fit.workload, gyro.workload) == ("foe-fit-pitch-lk", "foe-fit-pitch-gyro-lk")
+    assert inp.key in fit.data and inp.key in gyro.data
+    assert {p.rotation_source for p in seen["foe_fit"]} == {"flow", "imu"}
+    assert gyro.extra["params"]["foe_fit"]["rotation_source"] == "imu"
+    assert gyro.extra["rotation_rate_error_deg_s"] < 0.5
 
 
 def test_the_chain_row_runs_the_pipeline_stages(monkeypatch):
