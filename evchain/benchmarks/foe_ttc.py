@@ -305,8 +305,8 @@ def ttc_rows(quick: bool) -> list[BenchRow]:
 
 # -- the whole chain on the reference scene ------------------------------------------------
 
-#: the chain rows run the stages of pipelines/reference-*.yaml that follow the emulator
-SCORERS = ("flow_scorer", "foe_ttc_scorer")
+#: the chain rows run the stages of pipelines/reference-*.yaml that follow the emulator,
+#: scorers (``Filter.scorer``) untimed
 
 
 def chain_rows(flow: str, quick: bool) -> list[BenchRow]:
@@ -321,7 +321,7 @@ def chain_rows(flow: str, quick: bool) -> list[BenchRow]:
     def build(with_scorer: bool):
         fs = []
         for st in stages:
-            if st.use in SCORERS and not with_scorer:
+            if st.cls.scorer and not with_scorer:
                 continue
             f = st.cls()
             f.id = st.id
@@ -346,7 +346,7 @@ def chain_rows(flow: str, quick: bool) -> list[BenchRow]:
     for f in fs:
         f.flush()
     fm, tm = ctx.metrics.get("foe", {}), ctx.metrics.get("ttc", {})
-    timed = "+".join(st.use for st in stages if st.use not in SCORERS)
+    timed = "+".join(st.use for st in stages if not st.cls.scorer)
     return [BenchRow(f"chain-reference-{name}", timed, n_events / t, "events/s",
                      tm.get("median_rel_error_last3s"), "ttc_median_rel_err_last3s", None,
                      {"events": n_events, "throughput_cpu": n_events / cpu,
