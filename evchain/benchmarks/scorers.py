@@ -1,9 +1,14 @@
-"""Scorer throughput: ``flow_scorer`` in flow events/s, scoring a pure expansion whose flow
-carries Gaussian noise of a known size, so the AEE it must report is known analytically.
+"""Scorer throughput.
 
-Noise of ``NOISE_FRAC`` x the local speed on each component has a Rayleigh-distributed length
-with mean ``NOISE_FRAC * speed * sqrt(pi / 2)``; the row's error is the relative deviation of the
-scorer's AEE from that expectation (sampling noise, about 1/sqrt(events)).
+* ``scorer-flow``: ``flow_scorer`` in flow events/s, scoring a pure expansion whose flow carries
+  Gaussian noise of a known size, so the AEE it must report is known analytically. Noise of
+  ``NOISE_FRAC`` x the local speed on each component has a Rayleigh-distributed length with
+  mean ``NOISE_FRAC * speed * sqrt(pi / 2)``; the row's error is the relative deviation of the
+  scorer's AEE from that expectation (sampling noise, about 1/sqrt(events)).
+* ``scorer-events``: ``event_scorer`` in events/s on random events over an approach whose
+  obstacle fills the left half of the view, with no event in one 100 ms bin
+  (:data:`GAP_US`): the bin sets ``obstacle_events_since_s`` exactly; the row's error is the
+  reported value's distance from it, s.
 """
 
 from __future__ import annotations
@@ -58,4 +63,61 @@ def flow_scorer(quick: bool) -> list[BenchRow]:
                           f"{NOISE_FRAC * 100:g} % Gaussian noise")]
 
 
-WORKLOADS = {"scorer-flow": flow_scorer}
+#: event_scorer's row: contact after CONTACT_S; no event in GAP_US (true TTC 2.0-1.9 s), so the
+#: covered bins up to the end start at a true TTC of 1.9 s
+CONTACT_S = 4.0
+GAP_US = (2_000_000, 2_100_000)
+EXPECTED_SINCE_S = 1.9
+
+
+class _HalfObstacle(ExpansionTruth):
+    """An approach whose obstacle (id 1) fills x < 120; elsewhere the road (id 0)."""
+
+    obstacle_ids = np.array([1], np.int64)
+
+    def object_id(self, x, y, t_us):
+        return (np.asarray(x, np.float64) < 120).astype(np.int64)
+
+
+def event_scorer(quick: bool) -> list[BenchRow]:
+    from evchain.bench import cut_every
+    from evchain.core.packets import EventPacket, Geometry
+    from evchain.filters.event_scorer import EventScorer
+
+    n = 200_000 if quick else 2_000_000
+    g = Geometry(240, 180)
+    rng = np.random.default_rng(0)
+    t = np.sort(rng.integers(0, int(CONTACT_S * 1e6), n))
+    t = t[(t < GAP_US[0]) | (t >= GAP_US[1])]
+    m = len(t)
+    ev = EventPacket(geometry=g, t_start=0, t_end=int(CONTACT_S * 1e6),
+                     x=rng.integers(0, g.width, m).astype(np.uint16),
+                     y=rng.integers(0, g.height, m).astype(np.uint16), t=t,
+                     p=rng.choice(np.array([-1, 1], np.int8), m))
+    packets = cut_every(ev, 20_000)
+    truth = _HalfObstacle(FOE, t_collision_s=CONTACT_S)
+    context = make_context(g, truth)
+    got = {}
+
+    def stage():
+        f = EventScorer()
+        f.id = "event_scorer"
+        f.setup(EventScorer.Params(), context)
+        for p in packets:
+            f.process(p)
+        f.flush()
+        got.update(context.metrics["events"])
+
+    t_stage = best_time(stage)
+    cpu = best_cpu_time(stage)
+    error = abs(got["obstacle_events_since_s"] - EXPECTED_SINCE_S)
+    return [BenchRow("scorer-events", "event_scorer", m / t_stage, "events/s", error,
+                     "|obstacle_events_since_s - 1.9 s| (s)", None,
+                     {"events": m, "obstacle_events_since_s": got["obstacle_events_since_s"],
+                      "obstacle_events_coverage": got["obstacle_events_coverage"],
+                      "cpu_time_eps": m / cpu},
+                     data=f"random events {m / 1e6:.3g} M over a 4 s approach, 240x180, the "
+                          "obstacle the left half, one 100 ms bin without events")]
+
+
+WORKLOADS = {"scorer-flow": flow_scorer, "scorer-events": event_scorer}

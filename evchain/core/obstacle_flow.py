@@ -93,7 +93,7 @@ class ObstacleFlow:
             return {}
         if t_end_us <= t_start_us:
             return {"obstacle_flow_since_s": None,
-                    "why_none": {"obstacle_flow_since_s": "no flow stream to score"}}
+                    "why_none": {"obstacle_flow_since_s": "the stream spans no time"}}
         ks = np.arange(t_start_us // self.bin_us, (t_end_us - 1) // self.bin_us + 1)
         with np.errstate(invalid="ignore"):
             tau_mid = self._tau((ks + 0.5) * self.bin_us)

@@ -64,7 +64,6 @@ class EventScorer(Filter):
             m["obstacle_n_events"] = ob.get("obstacle_n_flow")
             why = ob.get("why_none", {}).get("obstacle_flow_since_s")
             if why is not None:
-                m["why_none"] = {"obstacle_events_since_s": why.replace("flow stream",
-                                                                         "event stream")}
+                m["why_none"] = {"obstacle_events_since_s": why}
         self.context.metrics[self.metrics_key("events")] = m
         return None

@@ -142,3 +142,13 @@ def test_workloads_run_with_blas_on_one_thread():
     bench.run({"probe": workload}, echo=lambda s: None)
     assert seen and set(seen) == {1}
     assert blas_threads() == before
+
+
+def test_event_scorer_row_finds_the_bin_without_events():
+    """``scorer-events``: the one 100 ms bin without events sets the reported
+    ``obstacle_events_since_s`` (1.9 s) and leaves 29 of the window's 30 bins covered."""
+    from evchain.benchmarks import scorers
+
+    [row] = scorers.WORKLOADS["scorer-events"](True)
+    assert row.error == pytest.approx(0.0, abs=1e-9) and row.throughput > 0
+    assert row.extra["obstacle_events_coverage"] == pytest.approx(29 / 30)
