@@ -103,9 +103,7 @@ def event_scorer(quick: bool) -> list[BenchRow]:
         f = EventScorer()
         f.id = "event_scorer"
         f.setup(EventScorer.Params(), context)
-        for p in packets:
-            f.process(p)
-        f.flush()
+        run_filter(f, packets, check=False)
         got.update(context.metrics["events"])
 
     t_stage = best_time(stage)
