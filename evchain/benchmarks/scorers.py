@@ -29,6 +29,23 @@ TAU_S = 20.0  # time to collision at t = 0; the stream ends before it (at most 1
 NOISE_FRAC = 0.1
 
 
+def _timed(cls, packets, truth, key: str) -> tuple[dict, float, float]:
+    """The scorer ``cls`` (defaults) on ``packets`` against ``truth``: its ``metrics[key]``,
+    best wall time and CPU time of a whole run (set-up, packets, flush)."""
+    got: dict = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        context = make_context(packets[0].geometry, truth, Path(tmp))
+
+        def stage():
+            f = cls()
+            f.id = cls.name
+            f.setup(cls.Params(), context)
+            run_filter(f, packets, check=False)
+            got.update(context.metrics[key])
+
+        return got, best_time(stage), best_cpu_time(stage)
+
+
 def flow_scorer(quick: bool) -> list[BenchRow]:
     from evchain.filters.flow_scorer import FlowScorer
 
@@ -41,19 +58,7 @@ def flow_scorer(quick: bool) -> list[BenchRow]:
     flow = FlowPacket.concat(packets)
     speed = np.hypot(flow.x - FOE[0], flow.y - FOE[1]) / truth.ttc(flow.t)
     expected_aee = NOISE_FRAC * math.sqrt(math.pi / 2) * float(speed.mean())
-    with tempfile.TemporaryDirectory() as tmp:
-        context = make_context(packets[0].geometry, truth, Path(tmp))
-        got = {}
-
-        def stage():
-            f = FlowScorer()
-            f.id = "flow_scorer"
-            f.setup(FlowScorer.Params(), context)
-            run_filter(f, packets, check=False)
-            got.update(context.metrics["flow"])
-
-        t_stage = best_time(stage)
-        cpu = best_cpu_time(stage)
+    got, t_stage, cpu = _timed(FlowScorer, packets, truth, "flow")
     error = abs(got["aee_pxs"] / expected_aee - 1)
     return [BenchRow("scorer-flow", "flow_scorer", n / t_stage, "events/s", error,
                      "rel. deviation of AEE", None,
@@ -95,19 +100,7 @@ def event_scorer(quick: bool) -> list[BenchRow]:
                      y=rng.integers(0, g.height, m).astype(np.uint16), t=t,
                      p=rng.choice(np.array([-1, 1], np.int8), m))
     packets = cut_every(ev, 20_000)
-    truth = _HalfObstacle(FOE, t_collision_s=CONTACT_S)
-    context = make_context(g, truth)
-    got = {}
-
-    def stage():
-        f = EventScorer()
-        f.id = "event_scorer"
-        f.setup(EventScorer.Params(), context)
-        run_filter(f, packets, check=False)
-        got.update(context.metrics["events"])
-
-    t_stage = best_time(stage)
-    cpu = best_cpu_time(stage)
+    got, t_stage, cpu = _timed(EventScorer, packets, _HalfObstacle(FOE, CONTACT_S), "events")
     error = abs(got["obstacle_events_since_s"] - EXPECTED_SINCE_S)
     return [BenchRow("scorer-events", "event_scorer", m / t_stage, "events/s", error,
                      "|obstacle_events_since_s - 1.9 s| (s)", None,
