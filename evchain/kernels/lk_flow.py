@@ -429,8 +429,7 @@ def _estimate_calibrated(last, second, fifo, k, xe, ye, te, window_us, w_inv, w_
     """Calibrated flow of one event from the timestamps of age < ``window_us`` (``w_inv`` =
     1 / window_us, ``w_inv_s`` = 1e6 / window_us): gather, fit (Savitzky-Golay plane or finite
     differences), centre check, speed ceiling. Returns (vx, vy, ok); ok False when there is no
-    usable estimate. ``F`` .. ``GY``: the scratch arrays of :func:`lk_flow_run` (one by one: a
-    tuple of arrays, or a division here, would cost reference counts per event)."""
+    usable estimate. ``F`` .. ``GY``: the scratch arrays of :func:`_lk_events`."""
     m_list = _gather_calibrated(last, second, fifo, k, xe, ye, te, te - (window_us - 1), w_inv,
                                 R, S, d, F, V, LI, LJ, PU, PW, FV, keep)
     if m_list < min_active:
@@ -575,6 +574,24 @@ def lk_flow_run(x, y, t, p, state, prm, out_idx, out_vx, out_vy):
     int
         The number of emitted events (the filled length of ``out_*``).
     """
+    d, R, S = _stencil(prm.gradient, prm.r)
+    n = S * S  # scratch: see _lk_events
+    return _lk_events(x, y, t, p, state, prm, out_idx, out_vx, out_vy,
+                      np.zeros((S, S), np.int64), np.zeros((S, S)), np.zeros((S, S)),
+                      np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n, np.bool_),
+                      np.zeros(n, np.int64), np.zeros(n, np.int64), np.zeros(n), np.zeros(n))
+
+
+@njit(cache=True, _nrt=False)
+def _lk_events(x, y, t, p, state, prm, out_idx, out_vx, out_vy, N, F, V, GX, GY, FV, keep, LI,
+               LJ, PU, PW):
+    """:func:`lk_flow_run` with its scratch arrays given: faithful counts N; calibrated onset
+    image F and its validity V; the fits' finite differences GX, GY; the active pixels' F there
+    FV, kept rows ``keep``, indices LI, LJ and offsets PU, PW.
+
+    Compiled without reference counting: numba counts a reference for every array passed to or
+    bound in the inlined helpers, per event, atomic operations that its pruning pass keeps where
+    they straddle branches (30 % of this loop's time). It allocates nothing."""
     last, second, fifo, speed = state
     height = last.shape[1]
     width = last.shape[2]
@@ -582,21 +599,6 @@ def lk_flow_run(x, y, t, p, state, prm, out_idx, out_vx, out_vy):
     deep = fifo.shape[3]
     gradient = prm.gradient
     d, R, S = _stencil(gradient, prm.r)
-    # scratch, allocated here (fresh allocations: the compiler knows they alias nothing) and
-    # passed one by one (a tuple of arrays costs reference counts per event): faithful counts
-    # N; calibrated onset image F and its validity V; the active pixels' indices LI, LJ,
-    # offsets PU, PW and F there FV; the fits' kept rows and finite differences GX, GY
-    N = np.zeros((S, S), np.int64)
-    F = np.zeros((S, S), np.float64)
-    V = np.zeros((S, S), np.float64)
-    GX = np.zeros(S * S, np.float64)
-    GY = np.zeros(S * S, np.float64)
-    FV = np.zeros(S * S, np.float64)
-    keep = np.zeros(S * S, np.bool_)
-    LI = np.zeros(S * S, np.int64)
-    LJ = np.zeros(S * S, np.int64)
-    PU = np.zeros(S * S, np.float64)
-    PW = np.zeros(S * S, np.float64)
     adaptive = not prm.faithful and prm.max_window_us > prm.window_us
     extra_passes = MAX_PASSES - 1 if adaptive else 0
     wlim = _memory_window(prm, adaptive)
