@@ -28,6 +28,10 @@ from evchain.kernels.scene_shading import (
 
 _J = dict(cache=True, error_model="numpy")
 _I = dict(cache=True, error_model="numpy", inline="always")   # helpers of the hot loops
+# kernels called per row with array arguments: compiled without reference counting (numba's
+# counts on every array argument, atomic operations that its pruning pass keeps where they
+# straddle branches, cost 7 % of the frame rate); they allocate nothing
+_R = dict(cache=True, error_model="numpy", _nrt=False)
 
 
 @njit(**_J)
@@ -46,7 +50,7 @@ def flow_terms(xbs, vc, wc):
     return tm
 
 
-@njit(**_J)
+@njit(**_R)
 def row_vmax2(tm, yb, tb, f, vc, wc, m2):
     """Largest squared motion-field magnitude (px/s)^2 over the samples of a row at yb with
     depths tb[c] (the columns' terms tm from :func:`flow_terms`: the same operations as
@@ -131,7 +135,7 @@ def row_work(n):
             np.full(2, np.nan))
 
 
-@njit(**_J)
+@njit(**_R)
 def render_row(j, pos, rot, vc, wc, f, cx, cy, k, boxes, box_mat, box_par, segs, ground, light,
                lit, tex, tex_inv, tex_off, vis, minz, bbox, vcol, xbs, tm, pcol, fw, iw, bmax,
                rprev, lv_inv, lv_off, lv_mask, acc, out):

@@ -15,6 +15,10 @@ from evchain.kernels.scene_geometry import road_coords_nrc
 
 _J = dict(cache=True, error_model="numpy")
 _I = dict(cache=True, error_model="numpy", inline="always")   # helpers of the hot loops
+# kernels called per row with array arguments: compiled without reference counting (numba's
+# counts on every array argument, atomic operations that its pruning pass keeps where they
+# straddle branches, cost 7 % of the frame rate); they allocate nothing
+_R = dict(cache=True, error_model="numpy", _nrt=False)
 # Floors used as floats are np.floor: numba's math.floor returns an int, and the conversions
 # to int and back on every sample are measurable (same values below 2^53).
 
@@ -40,7 +44,7 @@ def hash3(i, j, s):
     return (h & 0xFFFFFF) / 16777216.0
 
 
-@njit(**_J)
+@njit(**_R)
 def ground_levels(fp, tex_inv, tex_off, lv_inv, lv_off, lv_mask):
     """Mip level of each ground texture for a sample footprint fp (m): the finest level whose
     texels are at least fp wide. Writes its inverse texel size, offset and index mask."""
@@ -73,7 +77,7 @@ def periodic_cover(a, b, lo, hi):
     return cb - ca
 
 
-@njit(**_J)
+@njit(**_R)
 def box_albedo(mat, p0, p1, p2, p3, bid, u, z, wu):
     """Albedo of a box face at face-horizontal coordinate u and height z (materials:
     0 plain, 1 grey window grid, 2 orange facade, 3 orange with extra vertical lines, 4 car),
@@ -145,7 +149,7 @@ def face_light(light):
     return lit
 
 
-@njit(**_J)
+@njit(**_R)
 def ground_pass(kd, dxs, dys, tg, ox, oy, pcol, segs, ground, light, tex, lv_inv, lv_off,
                 lv_mask, acc):
     """acc[pcol[c]] += ground intensity at world (ox + tg dxs[c], oy + tg dys[c]) for every
@@ -222,7 +226,7 @@ def ground_pass(kd, dxs, dys, tg, ox, oy, pcol, segs, ground, light, tex, lv_inv
         acc[pcol[c]] += a * lit
 
 
-@njit(**_J)
+@njit(**_R)
 def box_pass(kd, tb, hid, fc, dxs, dys, gxs, gys, ox, oy, oz, dz, pcol, box_mat, box_par, lit,
              acc):
     """acc[pcol[c]] += intensity of the box hit by sample c of a row, for every c with
