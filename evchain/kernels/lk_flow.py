@@ -574,7 +574,7 @@ def lk_flow_run(x, y, t, p, state, prm, out_idx, out_vx, out_vy):
     int
         The number of emitted events (the filled length of ``out_*``).
     """
-    d, R, S = _stencil(prm.gradient, prm.r)
+    S = _stencil(prm.gradient, prm.r)[2]
     n = S * S  # scratch: see _lk_events
     return _lk_events(x, y, t, p, state, prm, out_idx, out_vx, out_vy,
                       np.zeros((S, S), np.int64), np.zeros((S, S)), np.zeros((S, S)),
@@ -591,7 +591,8 @@ def _lk_events(x, y, t, p, state, prm, out_idx, out_vx, out_vy, N, F, V, GX, GY,
 
     Compiled without reference counting: numba counts a reference for every array passed to or
     bound in the inlined helpers, per event, atomic operations that its pruning pass keeps where
-    they straddle branches (30 % of this loop's time). It allocates nothing."""
+    they straddle branches (docs/explanation/lk_flow.md, "Memory layout and speed"). It
+    allocates nothing."""
     last, second, fifo, speed = state
     height = last.shape[1]
     width = last.shape[2]

@@ -30,7 +30,7 @@ _J = dict(cache=True, error_model="numpy")
 _I = dict(cache=True, error_model="numpy", inline="always")   # helpers of the hot loops
 # kernels called per row with array arguments: compiled without reference counting (numba's
 # counts on every array argument, atomic operations that its pruning pass keeps where they
-# straddle branches, cost 7 % of the frame rate); they allocate nothing
+# straddle branches; docs/explanation/scene.md, "Rendering"); they allocate nothing
 _R = dict(cache=True, error_model="numpy", _nrt=False)
 
 
