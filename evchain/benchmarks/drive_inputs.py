@@ -193,7 +193,7 @@ def _packets(cls, d: dict[str, np.ndarray], columns, scene) -> list:
                for b0, b1, i, j in zip(b[:-1], b[1:], idx[:-1], idx[1:], strict=True)]
     if scene.params.imu_rate_hz <= 0:
         return packets
-    key = noise_key(scene.context.rng(f"{scene.id}.imu"))
+    key = noise_key(scene.context, scene.id)
     return [p.with_series(IMU.name, scene.params.imu_between(scene.scene, p.t_start, p.t_end,
                                                              key)) for p in packets]
 

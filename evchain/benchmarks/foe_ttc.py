@@ -143,10 +143,15 @@ def _pipeline(flow: str, overrides: tuple[str, ...] = ()):
     return load_pipeline(pipeline_file(flow), make_registry(), list(overrides))
 
 
-def _foe_errors(series: list[np.ndarray], t_start: int, quick: bool, truth):
-    """|dx|, |dy| of the FOE estimates after the warm-up (1 s; ``quick``: 0.2 s)."""
+def _after_warmup(series: list[np.ndarray], t_start: int, quick: bool) -> np.ndarray:
+    """The FOE estimates after the warm-up (1 s; ``quick``: 0.2 s), joined."""
     s = np.concatenate(series)
-    s = s[s["t"] >= t_start + (1_000_000 if not quick else 200_000)]
+    return s[s["t"] >= t_start + (1_000_000 if not quick else 200_000)]
+
+
+def _foe_errors(series: list[np.ndarray], t_start: int, quick: bool, truth):
+    """|dx|, |dy| of the FOE estimates after the warm-up."""
+    s = _after_warmup(series, t_start, quick)
     xt, yt = truth.foe(s["t"].astype(np.float64))
     return np.abs(s["x"] - xt), np.abs(s["y"] - yt)
 
@@ -266,8 +271,8 @@ def _rotation_error(series: list[np.ndarray], t_start: int, quick: bool,
     estimates after the warm-up that carry a rotation; None when none does."""
     from evchain.core.series import ROTATION_FIELDS
 
-    s = np.concatenate(series)
-    s = s[(s["t"] >= t_start + (1_000_000 if not quick else 200_000)) & (s["rotation"] > 0)]
+    s = _after_warmup(series, t_start, quick)
+    s = s[s["rotation"] > 0]
     if not len(s):
         return None
     w = np.stack([s[c] for c in ROTATION_FIELDS], 1)

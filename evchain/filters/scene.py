@@ -121,7 +121,7 @@ class SceneSource(Filter):
     def packets(self) -> Iterator[FramePacket]:
         from evchain.sim.imu import noise_key
 
-        self._imu_key = noise_key(self.context.rng(f"{self.id}.imu"))
+        self._imu_key = noise_key(self.context, self.id)
         if self.params.threads == 1:
             yield from self._render_packets()
         else:

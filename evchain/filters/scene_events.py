@@ -88,7 +88,7 @@ class SceneEvents(Filter):
         p = self.params
         from evchain.sim.imu import noise_key
 
-        key = noise_key(self.context.rng(f"{self.id}.imu"))
+        key = noise_key(self.context, self.id)
 
         def with_imu(packet: EventPacket) -> EventPacket:
             imu = p.imu_between(self.scene, packet.t_start, packet.t_end, key)

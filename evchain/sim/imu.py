@@ -52,9 +52,11 @@ _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _MIX1, _MIX2 = np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB)
 
 
-def noise_key(rng: np.random.Generator) -> int:
-    """A 63-bit key for :func:`sample_normals`, drawn once from a stage's seeded stream."""
-    return int(rng.integers(0, 2**63))
+def noise_key(context, stage_id: str) -> int:
+    """The 63-bit key for :func:`sample_normals` of the stage ``stage_id``: drawn from the
+    run's seeded stream ``STAGE_ID.imu`` (``context.rng``), so the ``scene`` source, a replay
+    under the same id and the bench inputs all get the same noise."""
+    return int(context.rng(f"{stage_id}.imu").integers(0, 2**63))
 
 
 def sample_normals(key: int, t_us, n: int) -> np.ndarray:
