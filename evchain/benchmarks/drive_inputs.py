@@ -181,52 +181,45 @@ def _scene(params: dict[str, Any], ctx: Context, threads: int = 1):
     return scene
 
 
-def _packets(cls, d: dict[str, np.ndarray], columns, scene) -> list:
-    """The stored packets, with the scene's IMU series where it has one."""
+def _loaded(cls, d: dict[str, np.ndarray], columns, params: dict[str, Any]
+            ) -> tuple[list, Context]:
+    """The stored packets of a drive whose scene has ``params`` (with the scene's IMU series
+    where it has one), and a context with its geometry and truth (the scene is set up, which
+    renders nothing, and closed)."""
     from evchain.core.series import IMU
     from evchain.sim.imu import noise_key
 
+    ctx = Context(seed=params["seed"])
+    scene = _scene(params, ctx)
+    scene.close()
     b = d["bounds"]
     idx = np.searchsorted(d["t"], b)
-    packets = [cls(geometry=scene.context.geometry, t_start=int(b0), t_end=int(b1),
+    packets = [cls(geometry=ctx.geometry, t_start=int(b0), t_end=int(b1),
                    **{c: d[c][i:j] for c in columns})
                for b0, b1, i, j in zip(b[:-1], b[1:], idx[:-1], idx[1:], strict=True)]
     if scene.params.imu_rate_hz <= 0:
-        return packets
-    key = noise_key(scene.context, scene.id)
+        return packets, ctx
+    key = noise_key(ctx, scene.id)
     return [p.with_series(IMU.name, scene.params.imu_between(scene.scene, p.t_start, p.t_end,
-                                                             key)) for p in packets]
+                                                             key)) for p in packets], ctx
 
 
 def load_events(inp: BenchInput) -> tuple[list, Context]:
     """(event packets as the emulator made them, context with geometry and truth)."""
     from evchain.core.packets import EventPacket
 
-    d = inp.load()
-    ctx = Context(seed=inp.params["seed"])
-    scene = _scene(inp.params, ctx)
-    scene.close()
-    return _packets(EventPacket, d, EVENT_COLUMNS, scene), ctx
+    return _loaded(EventPacket, inp.load(), EVENT_COLUMNS, inp.params)
 
 
 def load_aps(inp: BenchInput) -> tuple[list, Context]:
     """(aps frame packets as the ``aps`` stage made them, context with geometry and truth)."""
     from evchain.core.packets import ApsFramePacket
 
-    d = inp.load()
-    ctx = Context(seed=inp.params["seed"])
-    scene = _scene(inp.params, ctx)
-    scene.close()
-    return _packets(ApsFramePacket, d, ("frames", "t", "t_exposure_start"), scene), ctx
+    return _loaded(ApsFramePacket, inp.load(), ("frames", "t", "t_exposure_start"), inp.params)
 
 
 def load_flow(inp: BenchInput) -> tuple[list, Context]:
     """(flow packets as the flow stage made them, context with geometry and truth)."""
     from evchain.core.packets import FlowPacket
 
-    d = inp.load()
-    source = inp.needs[0]
-    ctx = Context(seed=source.params["seed"])
-    scene = _scene(source.params, ctx)
-    scene.close()
-    return _packets(FlowPacket, d, FLOW_COLUMNS, scene), ctx
+    return _loaded(FlowPacket, inp.load(), FLOW_COLUMNS, inp.needs[0].params)
