@@ -39,7 +39,7 @@ def cmd_run(args) -> int:
     interrupted = None
     try:
         result = run_pipeline(spec, registry, out, progress=not args.no_progress,
-                              debug=args.debug)
+                              debug=args.debug, threads=not args.serial)
     except RunInterrupted as exc:  # finished cleanly after Ctrl-C: say what was written
         result, interrupted = exc.result, exc
     rep = result.report
@@ -212,6 +212,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "of the same pipeline start (its folder's events.aedat), with the "
                         "scene's exact ground truth")
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
+    r.add_argument("--serial", action="store_true",
+                   help="every stage on one thread (for debuggers and profilers; the same "
+                        "results); by default each stage runs on a thread of its own")
     r.set_defaults(fn=cmd_run)
 
     v = add("validate", help="check pipelines (or sweeps: every run) without "

@@ -1,16 +1,18 @@
 """Running a chain: packets stream from the source through every filter in bounded memory.
 
-The chain times each filter (wall time, and CPU time of the calling thread) and counts what goes
-in and out (``len(packet)``: events, or frames for frame packets), streams the series of the
-last stage's packets to CSV files as they come (memory does not grow with the recording), shows
-a progress bar over the source's time span, and writes ``report.json`` (with the CPU time of the
-stages after the sensor, scorers left out, per simulated second: ``cpu``) and the resolved
-pipeline atomically. A run first marks its folder as in progress (``report.json`` says
-``running``; the files it will write are removed). On any error every filter's ``close()``
-still runs and the message names the filter and the slice.
+Each stage runs on a thread of its own, joined to the next by a bounded queue
+(:mod:`evchain.core.stage_threads`; ``threads=False``: all on the calling thread, the same
+results). The chain times each filter (wall time, and CPU time of the thread that runs it) and
+counts what goes in and out (``len(packet)``: events, or frames for frame packets), streams the
+series of the last stage's packets to CSV files as they come (memory does not grow with the
+recording), shows a progress bar over the source's time span, and writes ``report.json`` (with
+the CPU time of the stages after the sensor, scorers left out, per simulated second: ``cpu``)
+and the resolved pipeline atomically. A run first marks its folder as in progress
+(``report.json`` says ``running``; the files it will write are removed). On any error every
+filter's ``close()`` still runs and the message names the filter and the slice.
 
 Ctrl-C (SIGINT) stops a run cleanly, whatever the source: the first one sets
-``Context.stop``, the chain ends the stream after the packet in flight, flushes and closes
+``Context.stop``, the chain ends the stream after the packets in flight, flushes and closes
 every filter, so that the outputs are complete up to there; ``report.json`` says
 ``interrupted`` and :class:`~evchain.errors.RunInterrupted` is raised. A second Ctrl-C aborts
 at once, as a failure (outputs left as ``.partial``).
@@ -27,7 +29,7 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import closing, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -39,6 +41,7 @@ from evchain.core.config import PipelineSpec
 from evchain.core.filter import Context, Filter
 from evchain.core.packets import FramePacket, Packet
 from evchain.core.registry import Registry
+from evchain.core.stage_threads import StageThreads, in_order
 from evchain.errors import ConfigError, EvchainError, FilterError, RunInterrupted
 from evchain.io.atomic import atomic_write_text, partial_path
 from evchain.io.series_csv import SeriesCsvWriter, remove_series
@@ -72,9 +75,11 @@ class RunResult:
 
 
 class Chain:
-    """Filters set up from a validated pipeline, ready to stream."""
+    """Filters set up from a validated pipeline, ready to stream. With ``threads`` each stage
+    runs on a thread of its own (:mod:`evchain.core.stage_threads`), every call of its filter
+    from set-up to close; else every stage on the calling thread."""
 
-    def __init__(self, spec: PipelineSpec, context: Context):
+    def __init__(self, spec: PipelineSpec, context: Context, threads: bool = True):
         self.spec = spec
         self.context = context
         self.filters: list[Filter] = []
@@ -86,71 +91,59 @@ class Chain:
             f.id = stage.id
             self.filters.append(f)
             self.stats.append(StageStats(stage.use, stage.id))
+        self._threads = StageThreads(len(self.filters)) if threads else None
+
+    def _call(self, i: int, fn, *args):
+        """``fn(*args)`` for stage i: on its thread, or here without threads."""
+        return fn(*args) if self._threads is None else self._threads.call(i, fn, *args)
 
     def setup(self) -> None:
-        for f, stage in zip(self.filters, self.spec.stages, strict=True):
-            _guard(f, None, "setup", f.setup, stage.params, self.context)
+        for i, (f, stage) in enumerate(zip(self.filters, self.spec.stages, strict=True)):
+            self._call(i, _guard, f, None, "setup", f.setup, stage.params, self.context)
 
     def stream(self, progress: bool = False) -> Iterator[Packet]:
-        """Yield the last stage's packets; the chain's flush packets come last. Once
+        """Yield the last stage's packets; the chain's flush packets come last (each stage's
+        flushed once the stream has passed every stage, with or without threads). Once
         ``context.stop`` is set no further packet is taken from the source (its iterator is
         closed; a source that ``ends_on_stop`` ends its stream itself) and the filters are
         flushed as at the end of the stream."""
         from evchain.core.progress import RunProgress
 
-        source, rest = self.filters[0], self.filters[1:]
-        bar = RunProgress(source.id, source.time_span_us(), progress)
-        it = source.packets()
-        stop = self.context.stop
+        bar = RunProgress(self.filters[0].id, self.filters[0].time_span_us(), progress)
+        stages = [_Timed(f, st, self.context.debug)
+                  for f, st in zip(self.filters[1:], self.stats[1:], strict=True)]
         try:
-            while source.ends_on_stop or not stop.is_set():
-                t0, c0 = time.perf_counter(), time.thread_time()
-                packet = _guard(source, None, "packets", next, it, None)
-                self.stats[0].wall_s += time.perf_counter() - t0
-                self.stats[0].cpu_s += time.thread_time() - c0
-                if packet is None:
-                    break
-                if self.span_us is None:
-                    self.span_us = [packet.t_start, packet.t_end]
-                self.span_us[1] = packet.t_end
-                if self.context.debug:
-                    packet.validate(f"output of {source.id!r}")
-                self.stats[0].events_out += len(packet)
-                bar.update(packet.t_end)
-                out = self._through(packet, 1)
-                if out is not None:
-                    yield out
-            if stop.is_set():
-                self.stopped = True
-                if hasattr(it, "close"):  # a generator's finally blocks run now
-                    _guard(source, None, "packets", it.close)
-            for i, f in enumerate(rest, start=1):
-                t0, c0 = time.perf_counter(), time.thread_time()
-                packet = _guard(f, None, "flush", f.flush)
-                self.stats[i].wall_s += time.perf_counter() - t0
-                self.stats[i].cpu_s += time.thread_time() - c0
-                if packet is not None:
-                    self.stats[i].events_out += len(packet)
-                    out = self._through(packet, i + 1)
-                    if out is not None:
-                        yield out
+            if self._threads is None:
+                yield from in_order(self._source(bar), stages)
+            else:
+                yield from self._threads.stream(lambda: self._source(bar), stages)
         finally:
             bar.close()
 
-    def _through(self, packet: Packet, start: int) -> Packet:
-        for i in range(start, len(self.filters)):
-            f, st = self.filters[i], self.stats[i]
-            st.events_in += len(packet)
-            if isinstance(packet, FramePacket):
-                st.unit_in = "frames"
+    def _source(self, bar) -> Iterator[Packet]:
+        """The source's packets, timed and counted, until its end or ``context.stop``."""
+        source = self.filters[0]
+        it = source.packets()
+        stop = self.context.stop
+        while source.ends_on_stop or not stop.is_set():
             t0, c0 = time.perf_counter(), time.thread_time()
-            packet = _guard(f, packet, "process", f.process, packet)
-            st.wall_s += time.perf_counter() - t0
-            st.cpu_s += time.thread_time() - c0
+            packet = _guard(source, None, "packets", next, it, None)
+            self.stats[0].wall_s += time.perf_counter() - t0
+            self.stats[0].cpu_s += time.thread_time() - c0
+            if packet is None:
+                break
+            if self.span_us is None:
+                self.span_us = [packet.t_start, packet.t_end]
+            self.span_us[1] = packet.t_end
             if self.context.debug:
-                packet.validate(f"output of {f.id!r}")
-            st.events_out += len(packet)
-        return packet
+                packet.validate(f"output of {source.id!r}")
+            self.stats[0].events_out += len(packet)
+            bar.update(packet.t_end)
+            yield packet
+        if stop.is_set():
+            self.stopped = True
+            if hasattr(it, "close"):  # a generator's finally blocks run now
+                _guard(source, None, "packets", it.close)
 
     def cpu_after_sensor(self) -> dict[str, Any]:
         """CPU time of the stages after the sensor (the last stage that is the source or
@@ -165,13 +158,50 @@ class Chain:
                 "cpu_s_per_simulated_s": cpu / sim_s if sim_s > 0 else None}
 
     def close(self) -> list[BaseException]:
+        """Close every filter (on its thread), whatever the others do; the errors raised. The
+        stage threads end here."""
         errors = []
-        for f in self.filters:
+        for i, f in enumerate(self.filters):
             try:
-                f.close()
-            except BaseException as exc:  # every filter gets closed, whatever the others do
+                self._call(i, f.close)
+            except BaseException as exc:
                 errors.append(exc)
+        if self._threads is not None:
+            self._threads.__exit__(None, None, None)
+            self._threads = None
         return errors
+
+
+class _Timed:
+    """A filter as a stage of :mod:`evchain.core.stage_threads`: each call timed (wall, and
+    CPU of the thread that runs it), counted and guarded (:func:`_guard`)."""
+
+    def __init__(self, f: Filter, stats: StageStats, debug: bool):
+        self.f, self.stats, self.debug = f, stats, debug
+
+    def process(self, packet: Packet) -> Packet:
+        f, st = self.f, self.stats
+        st.events_in += len(packet)
+        if isinstance(packet, FramePacket):
+            st.unit_in = "frames"
+        t0, c0 = time.perf_counter(), time.thread_time()
+        out = _guard(f, packet, "process", f.process, packet)
+        st.wall_s += time.perf_counter() - t0
+        st.cpu_s += time.thread_time() - c0
+        if self.debug:
+            out.validate(f"output of {f.id!r}")
+        st.events_out += len(out)
+        return out
+
+    def flush(self) -> Packet | None:
+        f, st = self.f, self.stats
+        t0, c0 = time.perf_counter(), time.thread_time()
+        out = _guard(f, None, "flush", f.flush)
+        st.wall_s += time.perf_counter() - t0
+        st.cpu_s += time.thread_time() - c0
+        if out is not None:
+            st.events_out += len(out)
+        return out
 
 
 def _guard(f: Filter, packet: Packet | None, what: str, fn, *args):
@@ -211,13 +241,16 @@ def versions(registry: Registry) -> dict[str, Any]:
 
 
 def run_pipeline(spec: PipelineSpec, registry: Registry, out_dir: str | Path,
-                 progress: bool = False, debug: bool = False) -> RunResult:
+                 progress: bool = False, debug: bool = False,
+                 threads: bool = True) -> RunResult:
     """Run ``spec`` writing into ``out_dir``; returns the report (with what made the run: the
     resolved pipeline, each input file's SHA-256 and the versions and source hashes of the
-    code). The folder is marked as in progress first (:func:`start_run_folder`); series are
-    written as they come. Raises on failure after closing every filter and writing a report
-    marked ``"status": "failed"``; after a Ctrl-C, raises :class:`RunInterrupted` once every
-    filter was flushed and closed and the report says ``"status": "interrupted"``."""
+    code). ``threads``: each stage on a thread of its own (:class:`Chain`; the same
+    results), else every stage on the calling thread. The folder is marked as in progress
+    first (:func:`start_run_folder`); series are written as they come. Raises on failure
+    after closing every filter and writing a report marked ``"status": "failed"``; after a
+    Ctrl-C, raises :class:`RunInterrupted` once every filter was flushed and closed and the
+    report says ``"status": "interrupted"``."""
     out = Path(out_dir)
     _make_run_folder(out)
     resolved = spec.resolved()
@@ -226,15 +259,16 @@ def run_pipeline(spec: PipelineSpec, registry: Registry, out_dir: str | Path,
     start_run_folder(spec, out, made_by)
     atomic_write_text(out / "pipeline.resolved.yaml", yaml.safe_dump(resolved, sort_keys=False))
     context = Context(seed=spec.seed, out_dir=out, debug=debug)
-    chain = Chain(spec, context)
+    chain = Chain(spec, context, threads=threads)
     series = SeriesCsvWriter(out / "series")
     t0 = time.perf_counter()
     status, error = "ok", None
     try:
         with stop_on_interrupt(context.stop):
             chain.setup()
-            for packet in chain.stream(progress=progress):
-                series.append(packet.series)
+            with closing(chain.stream(progress=progress)) as packets:
+                for packet in packets:  # closed (its threads joined) before the filters
+                    series.append(packet.series)
         if chain.stopped:
             status = "interrupted"
             end = f" at {chain.span_us[1]} us" if chain.span_us else " before the first packet"
@@ -286,7 +320,7 @@ def stop_on_interrupt(stop: threading.Event):
             raise KeyboardInterrupt
         stop.set()
         logging.getLogger("evchain").warning(
-            "stopping: finishing the packet in flight and writing the outputs "
+            "stopping: finishing the packets in flight and writing the outputs "
             "(Ctrl-C again to abort)")
 
     previous = signal.signal(signal.SIGINT, handler)

@@ -17,7 +17,7 @@ def _bswap(v):
             | ((v >> np.uint32(8)) & np.uint32(0xFF00)) | (v >> np.uint32(24)))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def decode(words, layout, width, height, offset, last_t, x, y, t, p):
     """Decode ``len(words) // 2`` records into the DVS events' ``x, y`` (evchain top-left),
     ``t = raw timestamp + offset`` (int64) and ``p`` (±1), skipping non-DVS records.
@@ -68,7 +68,7 @@ def decode(words, layout, width, height, offset, last_t, x, y, t, p):
     return k, -1, back, skipped
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def encode(x, y, t, p, layout, width, height, prev_t, words):
     """Write events as records into ``words`` (``2 n`` uint32 whose bytes are big-endian).
 

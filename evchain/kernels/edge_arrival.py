@@ -18,7 +18,7 @@ def new_state(height: int, width: int) -> tuple[np.ndarray, np.ndarray, np.ndarr
             np.zeros((height, width), np.int64))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def arrivals(x, y, t, p, last_t, last_p, start, gap_us, out):
     """``out[i]``: the start of event i's pixel's run of same-polarity events, event i's
     included (its own time when it starts one). The state arrays are updated in place."""

@@ -774,7 +774,7 @@ def _window(events, i0, i1, T, lo, hi, om, prm):
     return (xw, yw, mx, my, s, e, c0, c1, c2)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def fit(events, i0, i1, T, g, th, om, free, probe, prm):
     """Fit the shared unknowns ``th`` and the slabs' rotations ``om`` to the events
     ``i0..i1``; robust Gauss-Newton (module docstring).

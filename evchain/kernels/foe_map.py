@@ -487,7 +487,7 @@ def _above_noise(sup, tot, total, total2, prm):
     return n > 0.0 and sup > (0.5 + math.sqrt(prm.log_m_alpha / (2.0 * n))) * tot
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", nogil=True)
 def process(x, y, t, vx, vy, state, prm, t_end, out):
     """Vote with every flow event of a packet; read estimates at multiples of ``period_us``.
 

@@ -535,7 +535,7 @@ def _stencil_norm(gradient, r):
     return 1.0
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def lk_flow_run(x, y, t, p, state, prm, out_idx, out_vx, out_vy):
     """Process events in order; write the flow of the emitted events into ``out_*``.
 

@@ -612,7 +612,7 @@ def event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, adaptive, gather):
     return n_out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def plane_flow_adaptive_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy):
     """:func:`plane_flow_kernel` with the speed-adaptive window (the loop with the refits); the
     same arguments and result."""
@@ -624,7 +624,7 @@ def plane_flow_adaptive_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy):
     return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, True, POINTS)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def plane_flow_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy):
     """Process events in order, updating ``ts`` in place; returns the number of flow events.
 

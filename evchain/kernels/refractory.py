@@ -5,7 +5,7 @@ from __future__ import annotations
 from numba import njit
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def refractory(x, y, t, p, last, period_us, per_polarity, keep):
     """Mark in ``keep`` the events that come at least ``period_us`` after the last *passed*
     event of their pixel (and polarity, if ``per_polarity``); update ``last`` ([C, H, W] int64,

@@ -810,7 +810,7 @@ def _add_sample(c, ST, SV, SK, SX, SY, k, ti, tau, kg, px, py):
         c.n_samples += 1
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def process(events, foe, state, prm, t_end, ttc_out, clusters_out):
     """Process one packet; returns (rows of ``ttc_out``, rows of ``clusters_out``) written.
 

@@ -18,6 +18,16 @@ from tests.core import toy_filters
 STREAM_ENDED: list[str] = []  # sources whose packets() generator finished or was closed
 
 
+def ctrl_c(context, times: int = 1) -> None:
+    """SIGINT, as from Ctrl-C. Its handler runs on the main thread; a source runs on a thread of
+    its own, so it waits here until the first signal was handled, as a source that is busy
+    while the user presses Ctrl-C would see it."""
+    signal.raise_signal(signal.SIGINT)
+    assert context.stop.wait(10)
+    for _ in range(times - 1):
+        signal.raise_signal(signal.SIGINT)
+
+
 class SigintSource(toy_filters.ToySource):
     """Random events in packets of 10 ms; sends SIGINT (Ctrl-C) to this process on request."""
 
@@ -33,8 +43,7 @@ class SigintSource(toy_filters.ToySource):
         try:
             for i in range(self.params.packets):
                 if i == self.params.sigint_at_packet:
-                    for _ in range(self.params.sigints):
-                        signal.raise_signal(signal.SIGINT)
+                    ctrl_c(self.context, self.params.sigints)
                 if self.params.checks_stop and self.context.stop.is_set():
                     return
                 yield toy_filters.random_events(self.params.events_per_packet,
@@ -55,7 +64,7 @@ class Holding(toy_filters.ToySource):
         g = self.context.geometry
         for i in range(self.params.packets):
             if i == self.params.sigint_at_packet:
-                signal.raise_signal(signal.SIGINT)
+                ctrl_c(self.context)
             if self.context.stop.is_set():
                 yield toy_filters.random_events(7, g, i * 10_000, i * 10_000 + 1, seed=i)
                 return
