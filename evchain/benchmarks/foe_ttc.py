@@ -31,14 +31,18 @@ these rows use beyond ``foe_map``'s defaults is read from that file (``params_fr
   rows side by side on the same flow: ``foe-fit-pitch-*`` fits the rotation to the flow (the
   default), ``foe-fit-pitch-gyro-*`` takes it from the gyro (``rotation_source: imu``); extras:
   |dx| and the median rotation rate error (deg/s).
-* ``chain-reference-lk`` / ``-plane``: events/s (emulator output events) of the pipeline's
-  stages after the emulator (flow -> foe_map -> foe_fit -> ttc); errors from its
-  ``foe_ttc_scorer`` (not timed): TTC median relative error over the last 3 s, FOE mean |dx|,
-  |dy| in the extras.
+* ``chain-reference-lk`` / ``-plane``: events/s (emulator output events, per wall second) of
+  the pipeline's stages after the emulator (flow -> foe_map -> foe_fit -> ttc) on one thread;
+  ``chain-reference-lk-threads`` / ``-plane-threads``: the same with each stage on a thread of
+  its own, as ``evchain run`` runs them (:mod:`evchain.core.stage_threads`), the two measured
+  alternately in one run; ``throughput_cpu`` per CPU second of all threads. Errors from the
+  pipeline's ``foe_ttc_scorer`` (not timed; the same for both): TTC median relative error over
+  the last 3 s, FOE mean |dx|, |dy| in the extras.
 """
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
 import numpy as np
@@ -55,6 +59,7 @@ from evchain.benchmarks.drive_inputs import (
 )
 from evchain.core.filter import Context
 from evchain.core.packets import Geometry
+from evchain.core.stage_threads import in_order, in_threads
 from evchain.testing.synthetic import approach_flow_packets
 
 G = Geometry(320, 240, f=380.6)
@@ -62,15 +67,6 @@ G = Geometry(320, 240, f=380.6)
 #: with 100 ms; the rows keep the heavier load they have always measured)
 ROW_SETTINGS = {"tau_ms": 300.0, "estimate_every_us": 1000}
 CENTRE = (159.5, 119.5)
-
-
-def _run(filters, packets):
-    out = None
-    for p in packets:
-        for f in filters:
-            p = f.process(p)
-        out = p
-    return out
 
 
 def _foe_map_stage(packets, cell_px: int, params=None):
@@ -342,34 +338,45 @@ def chain_rows(flow: str, quick: bool) -> list[BenchRow]:
             fs.append(f)
         return fs
 
-    def stage():
-        fs = build(False)
-        _run(fs, events)
-        for f in fs:
-            f.flush()
+    def timed(run):
+        def stage():
+            for _ in run(iter(events), build(False)):
+                pass
+        return stage
 
-    t = best_time(stage, repeat=1 if not quick else 2)
-    cpu = best_cpu_time(stage, repeat=1)
-    fs = build(True)  # once more with the scorer (not timed) for the errors
-    _run(fs, events)
-    for f in fs:
-        f.flush()
+    # one thread and stage threads side by side: the two runs alternate, the best of each
+    ways = {"": in_order, "-threads": in_threads}
+    for run in ways.values():
+        timed(run)()  # warm-up (compiles)
+    wall = {k: float("inf") for k in ways}
+    cpu = dict(wall)
+    for _ in range(1 if quick else 2):
+        for k, run in ways.items():
+            t0, c0 = time.perf_counter(), time.process_time()
+            timed(run)()
+            wall[k] = min(wall[k], time.perf_counter() - t0)
+            cpu[k] = min(cpu[k], time.process_time() - c0)
+    for _ in in_order(iter(events), build(True)):  # once more with the scorer, for the errors
+        pass
     fm, tm = ctx.metrics.get("foe", {}), ctx.metrics.get("ttc", {})
-    timed = "+".join(st.use for st in stages if not st.cls.scorer)
-    return [BenchRow(f"chain-reference-{name}", timed, n_events / t, "events/s",
-                     tm.get("median_rel_error_last3s"), "ttc_median_rel_err_last3s", None,
-                     {"events": n_events, "throughput_cpu": n_events / cpu,
-                      "stretch": "{:g} m + {:g} s".format(*stretch(quick)),
-                      "params": {st.id: st.params.model_dump(mode="json") for st in stages},
-                      "foe_dx_mean_px": fm.get("dx_mean_px"),
-                      "foe_dy_mean_px": fm.get("dy_mean_px"),
-                      "foe_dx_std_px": fm.get("dx_std_px"),
-                      "foe_dy_std_px": fm.get("dy_std_px"),
-                      "ttc_share_on_obstacle_within_20pct":
-                          tm.get("share_on_obstacle_within_20pct"),
-                      "ttc_share_within_20pct": tm.get("share_within_20pct"),
-                      "ttc_share_within_10pct": tm.get("share_within_10pct")},
-                     data=inp.describe(), params_from=relative(pipeline_file(flow)))]
+    timed_stages = "+".join(st.use for st in stages if not st.cls.scorer)
+    extra = {"events": n_events, "stretch": "{:g} m + {:g} s".format(*stretch(quick)),
+             "params": {st.id: st.params.model_dump(mode="json") for st in stages},
+             "foe_dx_mean_px": fm.get("dx_mean_px"),
+             "foe_dy_mean_px": fm.get("dy_mean_px"),
+             "foe_dx_std_px": fm.get("dx_std_px"),
+             "foe_dy_std_px": fm.get("dy_std_px"),
+             "ttc_share_on_obstacle_within_20pct": tm.get("share_on_obstacle_within_20pct"),
+             "ttc_share_within_20pct": tm.get("share_within_20pct"),
+             "ttc_share_within_10pct": tm.get("share_within_10pct")}
+    return [BenchRow(f"chain-reference-{name}{k}", timed_stages, n_events / wall[k],
+                     "events/s", tm.get("median_rel_error_last3s"),
+                     "ttc_median_rel_err_last3s", None,
+                     {**extra, "threads": "stage threads" if k else "one",
+                      "throughput_cpu": n_events / cpu[k],
+                      "speedup_over_one_thread": wall[""] / wall[k]},
+                     data=inp.describe(), params_from=relative(pipeline_file(flow)))
+            for k in ways]
 
 
 def _on_flow(flow: str, rows):

@@ -180,10 +180,15 @@ def test_the_chain_row_runs_the_pipeline_stages(monkeypatch):
     inp = _fake_events(LK, *foe_ttc.stretch(True), n_segments=200)
     timed = ["lk_flow", "foe_map", "foe_fit", "ttc"]
     seen = _spy(monkeypatch, timed)
-    [row] = foe_ttc.WORKLOADS["chain-reference-lk"](True)
-    assert row.params_from == "pipelines/reference-lk.yaml" and row.data == inp.describe()
-    assert row.stage == "+".join(timed)
-    for use in timed:
-        want = _stage(LK, use).params
-        assert seen[use] and all(p == want for p in seen[use]), use
-        assert row.extra["params"][use] == want.model_dump(mode="json")
+    rows = foe_ttc.WORKLOADS["chain-reference-lk"](True)
+    # one thread and stage threads, side by side on the same input with the same stages
+    assert [r.workload for r in rows] == ["chain-reference-lk", "chain-reference-lk-threads"]
+    assert [r.extra["threads"] for r in rows] == ["one", "stage threads"]
+    assert rows[0].error == rows[1].error  # the scorer's run, once for both
+    for row in rows:
+        assert row.params_from == "pipelines/reference-lk.yaml" and row.data == inp.describe()
+        assert row.stage == "+".join(timed)
+        for use in timed:
+            want = _stage(LK, use).params
+            assert seen[use] and all(p == want for p in seen[use]), use
+            assert row.extra["params"][use] == want.model_dump(mode="json")
