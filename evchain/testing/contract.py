@@ -91,9 +91,17 @@ def _same_arrays(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> list[str
     return [k for k in a if not _equal(a[k], b[k])]
 
 
+#: folders of contexts made without ``out_dir``; removed when the interpreter exits
+_TEMPORARY: list[tempfile.TemporaryDirectory] = []
+
+
 def make_context(geometry, truth=None, out_dir: Path | None = None, seed: int = 0) -> Context:
-    out = Path(out_dir) if out_dir else Path(tempfile.mkdtemp(prefix="evchain-contract-"))
-    return Context(seed=seed, out_dir=out, geometry=geometry, truth=truth, debug=True)
+    """A checking context (``debug``) writing into ``out_dir``, else into a temporary folder
+    removed when the interpreter exits."""
+    if out_dir is None:
+        _TEMPORARY.append(tempfile.TemporaryDirectory(prefix="evchain-contract-"))
+        out_dir = _TEMPORARY[-1].name
+    return Context(seed=seed, out_dir=Path(out_dir), geometry=geometry, truth=truth, debug=True)
 
 
 def run_filter(f: Filter, packets: list[Packet], check: bool = True) -> list[Packet]:
