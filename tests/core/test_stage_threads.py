@@ -199,3 +199,23 @@ def test_every_call_of_a_filter_runs_on_one_thread(tmp_path, threads):
         assert THREADS_SEEN["a"] != THREADS_SEEN["b"] and main not in THREADS_SEEN.values()
     else:
         assert THREADS_SEEN["a"] == THREADS_SEEN["b"] == main
+
+
+def test_cli_serial_runs_on_one_thread_with_the_same_outputs(tmp_path, monkeypatch):
+    from evchain import cli
+
+    registry = make_registry(discover=False, plugins=(toy_filters, _Plugin()))
+    monkeypatch.setattr(cli, "_registry", lambda: registry)
+    pipe = tmp_path / "p.yaml"
+    pipe.write_text(PIPE + "  - use: toy_thread_affine\n    id: a\n")
+    files = {}
+    for flag in ([], ["--serial"]):
+        out = tmp_path / ("serial" if flag else "threads")
+        THREADS_SEEN.clear()
+        assert cli.main(["run", str(pipe), "--out", str(out), "--no-progress", *flag]) == 0
+        on_main = THREADS_SEEN["a"] == {threading.get_ident()}
+        assert on_main == bool(flag)
+        files[bool(flag)] = {p.relative_to(out).as_posix(): p.read_bytes()
+                             for p in sorted(out.rglob("*")) if p.is_file()
+                             and p.name != "report.json"}
+    assert files[True] == files[False] and "out/count.txt" in files[True]
