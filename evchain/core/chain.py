@@ -167,7 +167,7 @@ class Chain:
             except BaseException as exc:
                 errors.append(exc)
         if self._threads is not None:
-            self._threads.__exit__(None, None, None)
+            self._threads.close()
             self._threads = None
         return errors
 

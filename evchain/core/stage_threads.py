@@ -86,8 +86,8 @@ class _Call:
 
 class StageThreads:
     """``n`` threads, thread 0 for the source and thread i for stage i, each running the calls
-    and packets put in its inbox in order. Use as a context manager (the threads end on
-    exit)."""
+    and packets put in its inbox in order. :meth:`close` (or leaving it as a context
+    manager) ends them."""
 
     def __init__(self, n: int):
         self._inboxes = [queue.Queue(DEPTH) for _ in range(n)]
@@ -103,6 +103,10 @@ class StageThreads:
         return self
 
     def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """End every thread (after the calls already put in its inbox)."""
         self._abort.set()
         for box in self._inboxes:
             box.put(_QUIT)
