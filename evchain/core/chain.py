@@ -126,10 +126,7 @@ class Chain:
         it = source.packets()
         stop = self.context.stop
         while source.ends_on_stop or not stop.is_set():
-            t0, c0 = time.perf_counter(), time.thread_time()
-            packet = _guard(source, None, "packets", next, it, None)
-            self.stats[0].wall_s += time.perf_counter() - t0
-            self.stats[0].cpu_s += time.thread_time() - c0
+            packet = _timed(self.stats[0], source, None, "packets", next, it, None)
             if packet is None:
                 break
             if self.span_us is None:
@@ -184,10 +181,7 @@ class _Timed:
         st.events_in += len(packet)
         if isinstance(packet, FramePacket):
             st.unit_in = "frames"
-        t0, c0 = time.perf_counter(), time.thread_time()
-        out = _guard(f, packet, "process", f.process, packet)
-        st.wall_s += time.perf_counter() - t0
-        st.cpu_s += time.thread_time() - c0
+        out = _timed(st, f, packet, "process", f.process, packet)
         if self.debug:
             out.validate(f"output of {f.id!r}")
         st.events_out += len(out)
@@ -195,13 +189,19 @@ class _Timed:
 
     def flush(self) -> Packet | None:
         f, st = self.f, self.stats
-        t0, c0 = time.perf_counter(), time.thread_time()
-        out = _guard(f, None, "flush", f.flush)
-        st.wall_s += time.perf_counter() - t0
-        st.cpu_s += time.thread_time() - c0
+        out = _timed(st, f, None, "flush", f.flush)
         if out is not None:
             st.events_out += len(out)
         return out
+
+
+def _timed(st: StageStats, f: Filter, packet: Packet | None, what: str, fn, *args):
+    """:func:`_guard`, its wall time and the CPU time of the calling thread added to ``st``."""
+    t0, c0 = time.perf_counter(), time.thread_time()
+    out = _guard(f, packet, what, fn, *args)
+    st.wall_s += time.perf_counter() - t0
+    st.cpu_s += time.thread_time() - c0
+    return out
 
 
 def _guard(f: Filter, packet: Packet | None, what: str, fn, *args):

@@ -187,24 +187,18 @@ class StageThreads:
                 item.run()
             elif self._abort.is_set() or failed:
                 continue  # the stream was given up: drop what is in flight
-            elif item is _FLUSH:
-                try:
-                    out = self._stages[i - 1].flush()
-                except BaseException as exc:
-                    failed = True
-                    self._put(i, _Failed(exc))
-                    continue
-                if out is not None:
-                    self._put(i, out)
-                self._put(i, _FLUSHED)
             elif item is _END or item is _FLUSHED or isinstance(item, _Failed):
                 self._put(i, item)
                 failed = isinstance(item, _Failed)
-            else:
+            else:  # a packet, or _FLUSH: the stage's own flush
+                stage, flushing = self._stages[i - 1], item is _FLUSH
                 try:
-                    out = self._stages[i - 1].process(item)
+                    out = stage.flush() if flushing else stage.process(item)
                 except BaseException as exc:
                     failed = True
                     self._put(i, _Failed(exc))
                     continue
-                self._put(i, out)
+                if out is not None or not flushing:  # a flush may have nothing left
+                    self._put(i, out)
+                if flushing:
+                    self._put(i, _FLUSHED)
