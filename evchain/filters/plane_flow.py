@@ -27,11 +27,8 @@ class PlaneFlow(Filter):
     ``original`` (same, with the paper's biased per-component velocity -c/a, -c/b),
     ``savitzky_golay`` (mean pairwise slopes along rows and columns). Velocity v = g / |g|^2 with
     g = (dt/dx, dt/dy); flow faster than ``max_speed_pxs`` is dropped (jAER's th3). Every event
-    updates the surface; events within the refractory period of the previous one at their
-    pixel and polarity, and events within ``border_px`` of the border, get no flow. The period
-    is ``refractory_us``, or, once the pixel has had flow, the time its edge takes to move
-    ``refractory_px`` px at that flow's speed where that is shorter: a fast edge's pixel is
-    ready for the next edge, a slow edge's burst still gives one onset. With ``centre_check``
+    updates the surface; events within ``refractory_us`` of the previous one at their pixel and
+    polarity, and events within ``border_px`` of the border, get no flow. With ``centre_check``
     (default) an estimate is dropped when the event itself is more than ``th2_s`` off the
     fitted plane (the plane then describes older structure: the main source of flow pointing
     the wrong way on the reference scene). With ``max_window_us`` > ``window_us`` the window
@@ -65,8 +62,7 @@ class PlaneFlow(Filter):
                                     "/ f (camera_scale.derived_us)")
         refractory_us: int = Field(
             350_000, ge=0, description="no flow within this of the previous event at the pixel "
-                                       "and polarity [refractoryPeriodUs], µs (or within the "
-                                       "pixel's own period, refractory_px); longer than the "
+                                       "and polarity [refractoryPeriodUs], µs; longer than the "
                                        "bursts of slow edges near the FOE (chosen on the "
                                        "reference drive: the FOE error is flat from 300 to 400 "
                                        "ms; jAER and the thesis: 150 ms with surface updates). "
@@ -120,11 +116,6 @@ class PlaneFlow(Filter):
                                  "first fit stands when the shorter one fails; taken as given")
         fast_px: float = Field(3.0, gt=0, description="short window: the distance, px of the "
                                                       "grid")
-        refractory_px: float = Field(
-            0.0, ge=0, description="local refractory period: a flow event sets its pixel's "
-                                   "period to the time its edge takes to move this far at the "
-                                   "flow's speed, if shorter than refractory_us (px of the "
-                                   "grid; 0: off, refractory_us everywhere)")
 
         @model_validator(mode="after")
         def _adaptive_window(self):
@@ -163,11 +154,11 @@ class PlaneFlow(Filter):
             max_iter=q.max_iterations, min_spread=q.min_spread_px, centre_check=q.centre_check,
             max_window_us=longest, slow_px=q.slow_px, refit_failed=q.refit_failed,
             refractory_updates=q.refractory_updates, min_window_us=q.min_window_us,
-            fast_px=q.fast_px, refractory_px=q.refractory_px)
+            fast_px=q.fast_px)
 
     def reset(self) -> None:
         g = self.context.geometry
-        self._state = self._refractory = self._arrivals = self._prm = None
+        self._state = self._arrivals = self._prm = None
         if g is not None:
             self._new_state(g)
         self._density = DensityCounter(DENSITY_BIN_US)
@@ -178,7 +169,7 @@ class PlaneFlow(Filter):
         """The surface, the pixels' runs (``t_edge``) and the kernel's constants for ``g``."""
         from evchain.kernels.plane_flow import new_state
 
-        self._state, self._refractory = new_state(g.width, g.height)
+        self._state = new_state(g.width, g.height)
         self._arrivals = EdgeArrivals(g.height, g.width)
         self._prm = self.kernel_params(g)
 
@@ -196,7 +187,7 @@ class PlaneFlow(Filter):
         k = 0
         if n:
             k = plane_flow_kernel(packet.x, packet.y, packet.t, packet.p, self._state,
-                                  self._refractory, self._prm, idx, vx, vy)
+                                  self._prm, idx, vx, vy)
         idx = idx[:k]
         out = FlowPacket.from_events(packet, idx, vx[:k], vy[:k], self._arrivals.of(packet))
         self._end = packet.t_end

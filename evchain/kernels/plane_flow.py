@@ -1,11 +1,9 @@
 """Numba kernels of ``plane_flow``: local plane fits on the surface of active events.
 
 State: ``ts`` int64 ``[2, H, W]``, the latest timestamp per pixel and polarity (index 0 = OFF,
-1 = ON), :data:`NO_EVENT` where a pixel has not fired yet, and ``refr`` int64 ``[2, H, W]``, the
-refractory period a pixel's last flow set (``refractory_px``; 0 for none). Every event updates
-its own pixel (jAER's semantics); flow is computed for an event only if it is not inside the
-border margin and not within the refractory period of the previous event at the same pixel and
-polarity (``refractory_us``, or the pixel's own period where that is shorter).
+1 = ON), :data:`NO_EVENT` where a pixel has not fired yet. Every event updates its own pixel
+(jAER's semantics); flow is computed for an event only if it is not inside the border margin and
+not within ``refractory_us`` of the previous event at the same pixel and polarity.
 
 Neighbours: same-polarity pixels of the ``(2r+1)^2`` window (the current pixel included, at
 (0, 0, 0)) whose timestamp is valid and at most ``window_us`` old. Coordinates are centred on the
@@ -64,20 +62,17 @@ class PlaneParams(NamedTuple):
     refractory_updates: bool  #: a refractory event still updates the surface (jAER)
     min_window_us: int        #: shorter windows for fast edges down to this, µs (0: off)
     fast_px: float            #: short window: refit an edge that moved more than this, px
-    refractory_px: float      #: refractory ends once the pixel's edge moved this far, px (0: off)
 
 
-def new_state(width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """The surface of active events, all pixels empty, and the pixels' refractory periods.
+def new_state(width: int, height: int) -> np.ndarray:
+    """The surface of active events, all pixels empty.
 
     Returns
     -------
     ts : int64 ndarray, shape (2, height, width)
         Latest timestamp (µs) per polarity (0 OFF, 1 ON) and pixel, :data:`NO_EVENT` for none.
-    refractory : int64 ndarray, shape (2, height, width)
-        Per polarity and pixel, the refractory period that its last flow set (µs), 0 for none.
     """
-    return np.full((2, height, width), NO_EVENT, np.int64), np.zeros((2, height, width), np.int64)
+    return np.full((2, height, width), NO_EVENT, np.int64)
 
 
 @njit(cache=True)
@@ -508,7 +503,7 @@ def _gather_mode(variant, r):
 
 
 @njit(cache=True, inline="always")
-def event_loop(x, y, t, p, ts, refr, prm, out_idx, out_vx, out_vy, adaptive, gather):
+def event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, adaptive, gather):
     """The loop of :func:`plane_flow_kernel`: the speed-adaptive window's refits with
     ``adaptive``, the fits' gather ``gather`` (:func:`_gather_mode`). Inlined into the kernels
     with both constant, so that each copy of the loop compiles only its own gather and fits
@@ -545,10 +540,7 @@ def event_loop(x, y, t, p, ts, refr, prm, out_idx, out_vx, out_vy, adaptive, gat
         ti = t[i]
         pi = 1 if p[i] > 0 else 0
         prev = ts[pi, yi, xi]
-        period = prm.refractory_us
-        if 0 < refr[pi, yi, xi] < period:  # the edge's own time to move refractory_px
-            period = refr[pi, yi, xi]
-        refractory = prev != NO_EVENT and ti - prev < period
+        refractory = prev != NO_EVENT and ti - prev < prm.refractory_us
         if not refractory or prm.refractory_updates:
             ts[pi, yi, xi] = ti
         if refractory or not _gets_flow(xi, yi, width, height, prm.margin, r, variant):
@@ -613,9 +605,6 @@ def event_loop(x, y, t, p, ts, refr, prm, out_idx, out_vx, out_vy, adaptive, gat
             continue
         ok, vx, vy = _velocity(variant, gx, gy, prm.max_speed, g_min2)
         if ok:
-            if prm.refractory_px > 0.0:
-                period_f = prm.refractory_px * 1e6 / math.sqrt(vx * vx + vy * vy)
-                refr[pi, yi, xi] = max(1, np.int64(min(period_f, prm.refractory_us)))
             out_idx[n_out] = i
             out_vx[n_out] = vx
             out_vy[n_out] = vy
@@ -624,19 +613,19 @@ def event_loop(x, y, t, p, ts, refr, prm, out_idx, out_vx, out_vy, adaptive, gat
 
 
 @njit(cache=True, nogil=True)
-def plane_flow_adaptive_kernel(x, y, t, p, ts, refr, prm, out_idx, out_vx, out_vy):
+def plane_flow_adaptive_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy):
     """:func:`plane_flow_kernel` with the speed-adaptive window (the loop with the refits); the
     same arguments and result."""
     gather = _gather_mode(prm.variant, prm.r)
     if gather == MASKS:
-        return event_loop(x, y, t, p, ts, refr, prm, out_idx, out_vx, out_vy, True, MASKS)
+        return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, True, MASKS)
     if gather == WINDOW:
-        return event_loop(x, y, t, p, ts, refr, prm, out_idx, out_vx, out_vy, True, WINDOW)
-    return event_loop(x, y, t, p, ts, refr, prm, out_idx, out_vx, out_vy, True, POINTS)
+        return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, True, WINDOW)
+    return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, True, POINTS)
 
 
 @njit(cache=True, nogil=True)
-def plane_flow_kernel(x, y, t, p, ts, refr, prm, out_idx, out_vx, out_vy):
+def plane_flow_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy):
     """Process events in order, updating ``ts`` in place; returns the number of flow events.
 
     ``prm.min_spread`` (px): the neighbours' positions must spread at least this much (standard
@@ -663,11 +652,6 @@ def plane_flow_kernel(x, y, t, p, ts, refr, prm, out_idx, out_vx, out_vy):
     surface; false: it is dropped entirely (the thesis's description), so the surface holds the
     onset of each pixel's burst and the refractory period counts from the last onset.
 
-    Local refractory period (``refractory_px`` > 0): a flow event at a pixel sets that pixel's
-    and polarity's period to the time its edge takes to move ``refractory_px`` px at the
-    flow's speed (at least 1 µs); the period in force is the shorter of that and
-    ``refractory_us``.
-
     Parameters
     ----------
     x, y : uint16 ndarray, shape (n,)
@@ -678,9 +662,6 @@ def plane_flow_kernel(x, y, t, p, ts, refr, prm, out_idx, out_vx, out_vy):
         Polarities (> 0: ON).
     ts : int64 ndarray, shape (2, H, W)
         The surface of active events (:func:`new_state`), updated in place.
-    refr : int64 ndarray, shape (2, H, W)
-        The pixels' local refractory periods, µs, 0 for none (:func:`new_state`), updated in
-        place.
     prm : PlaneParams
         The constants.
     out_idx : int64 ndarray, shape (>= n,)
@@ -695,10 +676,10 @@ def plane_flow_kernel(x, y, t, p, ts, refr, prm, out_idx, out_vx, out_vy):
     """
     if (prm.max_window_us > prm.window_us or 0 < prm.min_window_us < prm.window_us) \
             and prm.variant != ORIGINAL:
-        return plane_flow_adaptive_kernel(x, y, t, p, ts, refr, prm, out_idx, out_vx, out_vy)
+        return plane_flow_adaptive_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy)
     gather = _gather_mode(prm.variant, prm.r)
     if gather == MASKS:
-        return event_loop(x, y, t, p, ts, refr, prm, out_idx, out_vx, out_vy, False, MASKS)
+        return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, False, MASKS)
     if gather == WINDOW:
-        return event_loop(x, y, t, p, ts, refr, prm, out_idx, out_vx, out_vy, False, WINDOW)
-    return event_loop(x, y, t, p, ts, refr, prm, out_idx, out_vx, out_vy, False, POINTS)
+        return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, False, WINDOW)
+    return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, False, POINTS)

@@ -27,22 +27,20 @@ from tests.naive.plane_flow import plane_flow_naive
 DEFAULTS = dict(variant="single", r=2, window_us=80_000, refractory_us=0, margin=None,
                 min_points=3, th1=1e-5, th2=0.01, max_speed=1e4, max_iter=10,
                 min_spread=0.0, centre_check=False, max_window_us=0, slow_px=2.0,
-                refit_failed=True, refractory_updates=True, min_window_us=0, fast_px=4.0,
-                refractory_px=0.0)
+                refit_failed=True, refractory_updates=True, min_window_us=0, fast_px=4.0)
 FITTING = ("single", "iterative", "robust", "savitzky_golay")
 
 
 def run_kernel(x, y, t, p, width, height, **kw):
     q = {**DEFAULTS, **kw}
-    ts, refr = new_state(width, height)
+    ts = new_state(width, height)
     n = len(t)
     idx, vx, vy = np.empty(n, np.int64), np.empty(n), np.empty(n)
     margin = q["r"] if q["margin"] is None else q["margin"]
     prm = record(PlaneParams, **{**{k: v for k, v in q.items() if k in PlaneParams._fields},
                                  "variant": VARIANTS[q["variant"]], "margin": margin})
     k = plane_flow_kernel(np.asarray(x, np.uint16), np.asarray(y, np.uint16),
-                          np.asarray(t, np.int64), np.asarray(p, np.int8), ts, refr, prm, idx,
-                          vx, vy)
+                          np.asarray(t, np.int64), np.asarray(p, np.int8), ts, prm, idx, vx, vy)
     return idx[:k], vx[:k], vy[:k]
 
 
@@ -53,7 +51,7 @@ def run_naive(x, y, t, p, width, height, **kw):
                             q["max_speed"], q["max_iter"], q["min_spread"],
                             q["centre_check"], q["max_window_us"], q["slow_px"],
                             q["refit_failed"], q["refractory_updates"], q["min_window_us"],
-                            q["fast_px"], q["refractory_px"])
+                            q["fast_px"])
 
 
 def assert_same(ev, width, height, **kw):
@@ -84,17 +82,14 @@ def test_random_stream_matches_reference(variant, centre_check):
        r=st.integers(1, 3), window_us=st.integers(5_000, 200_000),
        refractory_us=st.integers(0, 20_000), margin=st.integers(0, 4),
        min_points=st.integers(3, 8), th2=st.sampled_from([1e-3, 1e-2, 5e-2]),
-       min_spread=st.sampled_from([0.0, 0.3, 0.6]), centre_check=st.booleans(),
-       refractory_px=st.sampled_from([0.0, 0.5, 2.0]))
+       min_spread=st.sampled_from([0.0, 0.3, 0.6]), centre_check=st.booleans())
 def test_random_parameters_match_reference(seed, variant, r, window_us, refractory_us, margin,
-                                           min_points, th2, min_spread, centre_check,
-                                           refractory_px):
+                                           min_points, th2, min_spread, centre_check):
     g = Geometry(16, 14)
     ev = random_events(500, g, 0, 100_000, seed=seed)
     assert_same(ev, g.width, g.height, variant=variant, r=r, window_us=window_us,
                 refractory_us=refractory_us, margin=margin, min_points=min_points, th2=th2,
-                max_speed=200.0, min_spread=min_spread, centre_check=centre_check,
-                refractory_px=refractory_px)
+                max_speed=200.0, min_spread=min_spread, centre_check=centre_check)
 
 
 def test_spread_bound_tie_matches_reference():
@@ -365,54 +360,6 @@ def test_refractory_without_update_keeps_the_onset():
                     refractory_updates=False, th2=0.02, centre_check=True)
 
 
-def test_local_refractory_ends_when_the_edge_moved_on():
-    """refractory_px: a flow event sets its pixel's period to the time its edge takes to move
-    refractory_px px; a later event of the pixel within refractory_us but after that period is
-    a new onset and gets flow, one within it does not."""
-    # an edge along y moving +x at 100 px/s (10 ms per px) over an 11x11 sensor, one event
-    # per pixel, then the centre pixel (5, 5) fires again 25 and 45 ms after its onset
-    xs, ys, ts = [], [], []
-    for col in range(11):
-        for row in range(11):
-            xs.append(col)
-            ys.append(row)
-            ts.append(10_000 + 10_000 * col)
-    onset = 10_000 + 10_000 * 5
-    x = np.array(xs + [5, 5])
-    y = np.array(ys + [5, 5])
-    t = np.array(ts + [onset + 25_000, onset + 45_000])
-    o = np.argsort(t, kind="stable")
-    x, y, t = x[o], y[o], t[o]
-    later = [int(np.flatnonzero(t == onset + d)[0]) for d in (25_000, 45_000)]
-    kw = dict(r=1, refractory_us=300_000, refractory_updates=False, max_speed=1e4)
-    fixed = run_kernel(x, y, t, np.ones(len(t)), 11, 11, **kw)[0]
-    assert not set(later) & set(fixed)  # 300 ms: both are inside the burst's period
-    # 3 px at 100 px/s: a period of 30 ms; 25 ms is inside it, 45 ms after it
-    local = run_kernel(x, y, t, np.ones(len(t)), 11, 11, refractory_px=3.0, **kw)[0]
-    assert later[0] not in local and later[1] in local
-    np.testing.assert_array_equal(
-        local, run_naive(x, y, t, np.ones(len(t)), 11, 11, refractory_px=3.0, **kw)[0])
-
-
-@pytest.mark.parametrize("variant", list(VARIANTS))
-@pytest.mark.parametrize("updates", [False, True])
-def test_local_refractory_matches_reference(variant, updates):
-    """refractory_px on a random stream and a noisy edge, with and without surface updates,
-    the adaptive window on: the same events as the reference."""
-    g = Geometry(24, 20)
-    ev = random_events(1500, g, 0, 150_000, seed=17)
-    got = assert_same(ev, g.width, g.height, variant=variant, refractory_us=30_000,
-                      refractory_updates=updates, refractory_px=2.0, th2=0.02,
-                      centre_check=True)
-    assert len(got[0]) > 20
-    edge = moving_edge_events(60.0, 25.0, g, duration_us=400_000)
-    kw = dict(variant=variant, refractory_us=200_000, refractory_updates=updates,
-              refractory_px=1.5, window_us=100_000, th2=2e-3)
-    if variant != "original":
-        kw.update(max_window_us=300_000)
-    assert_same(edge, g.width, g.height, **kw)
-
-
 @pytest.mark.parametrize("size", [3, 5, 7])
 def test_sg_mask_tables_match_pairwise_slopes(size):
     """The tabulated Savitzky-Golay slopes equal the pairwise sums for random validity masks."""
@@ -461,13 +408,13 @@ def test_adaptive_loop_without_refits_equals_fixed_loop(variant, r):
                  refractory_us=3000, margin=r, min_points=3, th1=1e-5, th2=0.01, max_speed=1e4,
                  max_iter=10, min_spread=0.3, centre_check=True, max_window_us=20_000,
                  slow_px=2.0, refit_failed=False, refractory_updates=True, min_window_us=0,
-                 fast_px=4.0, refractory_px=2.0)
+                 fast_px=4.0)
     out = []
     for kernel in (plane_flow_kernel, plane_flow_adaptive_kernel):
-        ts, refr = new_state(g.width, g.height)
+        ts = new_state(g.width, g.height)
         idx, vx, vy = np.empty(len(ev), np.int64), np.empty(len(ev)), np.empty(len(ev))
-        k = kernel(*args, ts, refr, prm, idx, vx, vy)
-        out.append((idx[:k], vx[:k], vy[:k], ts, refr))
+        k = kernel(*args, ts, prm, idx, vx, vy)
+        out.append((idx[:k], vx[:k], vy[:k], ts))
     assert len(out[0][0]) > 20
     for a, b in zip(out[0], out[1], strict=True):
         np.testing.assert_array_equal(a, b)

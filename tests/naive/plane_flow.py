@@ -150,19 +150,11 @@ def _estimate(ts, xi, yi, ti, pi, width, height, variant, r, window_us, min_poin
     return -n[0] / n[2], -n[1] / n[2]
 
 
-def _set_period(period, key, vx, vy, refractory_px, refractory_us):
-    """The pixel's own refractory period after a flow event (vx, vy): the time the edge takes
-    to move ``refractory_px`` px, whole µs, at least 1, at most ``refractory_us``."""
-    if refractory_px > 0:
-        period[key] = max(1, int(min(refractory_px * 1e6 / math.hypot(vx, vy), refractory_us)))
-
-
 def plane_flow_naive(x, y, t, p, width, height, variant="single", r=2, window_us=80_000,
                      refractory_us=0, margin=None, min_points=3, th1=1e-5, th2=0.01,
                      max_speed=1000.0, max_iter=10, min_spread=0.0,
                      centre_check=False, max_window_us=0, slow_px=2.0, refit_failed=True,
-                     refractory_updates=True, min_window_us=0, fast_px=4.0,
-                     refractory_px=0.0):
+                     refractory_updates=True, min_window_us=0, fast_px=4.0):
     """Returns (index, vx, vy) lists of the events that got flow.
 
     Adaptive window (``max_window_us`` > ``window_us``, not ``original``): while the fit says
@@ -173,19 +165,15 @@ def plane_flow_naive(x, y, t, p, width, height, variant="single", r=2, window_us
     surface either. Short window (0 < ``min_window_us`` < ``window_us``, not ``original``): a
     first fit whose edge moved more than ``fast_px`` px within ``window_us`` is redone with
     max(min_window_us, fast_px |g|) instead of any longer refit; it replaces the first fit
-    when it succeeds. ``refractory_px`` > 0: a flow event sets its pixel's (and polarity's)
-    refractory period to the time its edge takes to move ``refractory_px`` px at the flow's
-    speed (at least 1 µs); the shorter of that and ``refractory_us`` applies.
+    when it succeeds.
     """
     margin = r if margin is None else margin
     ts = {}
-    period = {}  # (pi, x, y) -> the pixel's own refractory period, µs
     idx, vxs, vys = [], [], []
     for i in range(len(x)):
         xi, yi, ti, pi = int(x[i]), int(y[i]), int(t[i]), 1 if p[i] > 0 else 0
         prev = ts.get((pi, xi, yi))
-        own = period.get((pi, xi, yi), refractory_us)
-        if prev is not None and ti - prev < min(own, refractory_us):
+        if prev is not None and ti - prev < refractory_us:
             if refractory_updates:  # jAER: the memory still updates
                 ts[(pi, xi, yi)] = ti
             continue
@@ -228,7 +216,6 @@ def plane_flow_naive(x, y, t, p, width, height, variant="single", r=2, window_us
             vx, vy = est
             if vx * vx + vy * vy > max_speed ** 2:
                 continue
-            _set_period(period, (pi, xi, yi), vx, vy, refractory_px, refractory_us)
             idx.append(i)
             vxs.append(vx)
             vys.append(vy)
@@ -237,7 +224,6 @@ def plane_flow_naive(x, y, t, p, width, height, variant="single", r=2, window_us
         g2 = gx * gx + gy * gy
         if g2 == 0 or g2 < (1.0 / max_speed) ** 2:
             continue
-        _set_period(period, (pi, xi, yi), gx / g2, gy / g2, refractory_px, refractory_us)
         idx.append(i)
         vxs.append(gx / g2)
         vys.append(gy / g2)
