@@ -49,8 +49,11 @@ Each run writes into ``OUT/<hash of the resolved pipeline>/`` (recordings into
 ``OUT/record-<hash>/``). A run is not repeated when its folder holds an ``ok`` report of the same
 run: the same resolved pipeline, the same contents (SHA-256) of every input file it reads (a
 recording, a file source's ``path``, DVSFLOW16 ground truth), and the same code (the versions
-of evchain, the plugins, Python, numpy and numba, and a hash of the source files of evchain and
-of the plugins): a changed input or a changed kernel runs again.
+of evchain, the plugins, Python, numpy and numba, a hash of the source files of evchain that
+the run can execute, and of the plugins whose filters it uses): a changed input or a changed
+kernel runs again. The evchain files of a run are its filters' modules and the chain runner
+with everything they import, read from their sources (``provenance.import_closure``), so a
+change to a flow kernel repeats the runs that use it and no recording.
 
 Paths resolve before any work is sent: the sweep's ``base``/``bases``/``record``/``replay``
 relative to the sweep file, a pipeline's input files relative to the pipeline file, input files
@@ -415,8 +418,8 @@ def reusable_report(spec: PipelineSpec, registry: Registry,
                     out_dir: Path) -> tuple[dict | None, str | None]:
     """(the report in ``out_dir`` if it is of the same run, else None; why not, if a finished
     run is there). The same run: status ``ok``, the same resolved pipeline, the same contents
-    of every input file and the same code (versions and source hashes of evchain and the
-    plugins)."""
+    of every input file and the same code (versions, and source hashes of the code it can
+    execute)."""
     from evchain.core.chain import versions
     from evchain.provenance import input_digests
 
@@ -428,7 +431,7 @@ def reusable_report(spec: PipelineSpec, registry: Registry,
         return None, None
     if old.get("inputs") != input_digests(spec):
         return None, "an input file changed"
-    if old.get("versions") != versions(registry):
+    if old.get("versions") != versions(registry, spec):
         return None, "the code changed"
     return old, None
 

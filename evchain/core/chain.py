@@ -229,7 +229,10 @@ def _where(f: Filter, packet: Packet | None, what: str) -> str:
     return where + ": "
 
 
-def versions(registry: Registry) -> dict[str, Any]:
+def versions(registry: Registry, spec: PipelineSpec | None = None) -> dict[str, Any]:
+    """The versions of evchain, Python, numpy, numba and the plugins, and the source hashes
+    (:func:`evchain.provenance.source_stamps`: with ``spec``, of the code a run of it can
+    execute)."""
     import numba  # noqa: F401  (report the kernel compiler's version)
 
     from evchain import __version__
@@ -237,7 +240,7 @@ def versions(registry: Registry) -> dict[str, Any]:
     return {"evchain": __version__, "python": platform.python_version(),
             "numpy": np.__version__, "numba": sys.modules["numba"].__version__,
             "plugins": {d: v for d, v in registry.distributions.items() if d != "evchain"},
-            "source": source_stamps(registry)}
+            "source": source_stamps(registry, spec)}
 
 
 def run_pipeline(spec: PipelineSpec, registry: Registry, out_dir: str | Path,
@@ -254,8 +257,8 @@ def run_pipeline(spec: PipelineSpec, registry: Registry, out_dir: str | Path,
     out = Path(out_dir)
     _make_run_folder(out)
     resolved = spec.resolved()
-    made_by = {"pipeline": resolved, "inputs": input_digests(spec), "versions": versions(registry),
-               "seed": spec.seed}
+    made_by = {"pipeline": resolved, "inputs": input_digests(spec),
+               "versions": versions(registry, spec), "seed": spec.seed}
     start_run_folder(spec, out, made_by)
     atomic_write_text(out / "pipeline.resolved.yaml", yaml.safe_dump(resolved, sort_keys=False))
     context = Context(seed=spec.seed, out_dir=out, debug=debug)

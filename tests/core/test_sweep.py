@@ -220,6 +220,36 @@ def test_record_renders_each_variation_once_and_every_base_replays_it(tmp_path):
     assert all(r["cached"] for r in again)
 
 
+def test_a_change_outside_a_runs_code_keeps_it_cached(tmp_path, monkeypatch):
+    """The source hash of a run covers the code it can execute: a change that only the LK
+    chain's code sees (an lk_flow file, say) repeats the LK replays, not the recordings (scene,
+    emulator, writer) nor the plane replays."""
+    import evchain.provenance as provenance
+
+    (tmp_path / "record.yaml").write_text(RECORD)
+    (tmp_path / "lk.yaml").write_text(REPLAYED.format(flow="lk_flow"))
+    (tmp_path / "plane.yaml").write_text(REPLAYED.format(flow="plane_flow"))
+    p = tmp_path / "s.yaml"
+    p.write_text("bases: {lk: lk.yaml, plane: plane.yaml}\nrecord: record.yaml\n"
+                 "report: [flow.n_scored]\ncells:\n  ref: []\n")
+    out = tmp_path / "out"
+    run_sweep(load_sweep(p), out, workers=1, echo=lambda s: None)
+    recording = next(out.glob("record-*")) / "report.json"
+    written = recording.stat().st_mtime_ns
+    stamp = provenance.run_source_stamp
+
+    def lk_edited(spec):
+        edited = any(s.use == "lk_flow" for s in spec.stages)
+        return stamp(spec) + ("-edited" if edited else "")
+
+    monkeypatch.setattr(provenance, "run_source_stamp", lk_edited)
+    lines = []
+    again = run_sweep(load_sweep(p), out, workers=1, echo=lines.append)
+    assert [(r["base"], r["cached"]) for r in again] == [("lk", False), ("plane", True)]
+    assert recording.stat().st_mtime_ns == written       # not recorded again
+    assert sum("run again: the code changed" in line for line in lines) == 1
+
+
 def test_record_pipeline_must_write_events(tmp_path):
     (tmp_path / "record.yaml").write_text(RECORD.replace("  - use: aedat_writer\n"
                                                          "    path: events.aedat\n", ""))
@@ -284,8 +314,8 @@ def test_changed_code_is_not_answered_from_the_cache(tmp_path, monkeypatch):
     run_sweep(load_sweep(p), tmp_path / "out", workers=1, echo=lambda s: None)
     stamps = chain.source_stamps
 
-    def edited(registry):
-        out = stamps(registry)
+    def edited(registry, spec=None):
+        out = stamps(registry, spec)
         return {**out, "evchain": out["evchain"] + "-edited"}
 
     monkeypatch.setattr(chain, "source_stamps", edited)
