@@ -2,7 +2,8 @@
 computed from them), made once by ``evchain bench --prepare`` and read by the timed rows.
 
 An input is the file ``KIND-HASH.npz`` in the cache folder (``$EVCHAIN_CACHE``, default the
-user cache folder of ``evchain``, platformdirs). HASH covers the source files that make it, the
+user cache folder of ``evchain``, platformdirs). HASH covers the source files that make it (the
+modules that make it and everything they import, ``provenance.modules_stamp``), the
 parameters that make it and the hashes of the inputs it is made from: other code or other
 parameters look for another file, never reuse this one. Nothing substitutes a missing input:
 :meth:`BenchInput.load` raises :class:`~evchain.errors.MissingBenchInput`. Files are written
@@ -29,15 +30,7 @@ import numpy as np
 
 from evchain.errors import MissingBenchInput
 from evchain.io.atomic import AtomicFile
-
-_PACKAGE = Path(__file__).resolve().parent
-
-#: the sources that make the simulator's events
-SIMULATOR_SOURCES = (
-    "sim", "kernels/scene_geometry.py", "kernels/scene_culling.py", "kernels/scene_shading.py",
-    "kernels/scene_render.py", "kernels/scene_truth.py", "kernels/emulator.py",
-    "kernels/emulator_state.py", "kernels/emulator_crossings.py", "kernels/veclog.py",
-    "kernels/intrinsics.py", "filters/scene.py", "filters/emulator.py")
+from evchain.provenance import modules_stamp
 
 #: layout of the stored arrays; part of every hash
 FORMAT = 1
@@ -53,24 +46,13 @@ def cache_dir() -> Path:
     return Path(platformdirs.user_cache_dir("evchain"))
 
 
-def source_stamp(*sources: str) -> str:
-    """Short hash of the package's source files (``sources``: paths or folders relative to the
-    ``evchain`` package)."""
-    h = hashlib.sha256()
-    for rel in sources:
-        p = _PACKAGE / rel
-        for f in sorted(p.rglob("*.py")) if p.is_dir() else [p]:
-            h.update(f.relative_to(_PACKAGE).as_posix().encode())
-            h.update(f.read_bytes())
-    return h.hexdigest()[:10]
-
-
 @dataclass(frozen=True, eq=False)
 class BenchInput:
     """One cached input.
 
     ``kind`` names the file; ``label`` says what it is (e.g. ``reference-drive 0-2 s``);
-    ``params`` (JSON-able) and ``sources`` (see :func:`source_stamp`) are what makes it, with
+    ``params`` (JSON-able) and ``sources`` (evchain modules; they and all they import count)
+    are what makes it, with
     the inputs in ``needs``; ``make()`` returns the arrays to store (it may :meth:`load` the
     inputs in ``needs``, which :meth:`prepare` makes first).
     """
@@ -86,7 +68,7 @@ class BenchInput:
     def recipe(self) -> dict[str, Any]:
         """Everything the hash covers (stored in the file as ``recipe``)."""
         return {"kind": self.kind, "format": FORMAT, "params": self.params,
-                "code": source_stamp(*self.sources),
+                "code": modules_stamp(self.sources),
                 "needs": [n.key for n in self.needs]}
 
     @cached_property

@@ -58,8 +58,7 @@ def input_digests(spec) -> dict[str, dict[str, str]]:
 
 
 def tree_stamp(folder: Path) -> str:
-    """Short hash of the ``.py`` files under ``folder`` (relative names and bytes), as
-    :func:`evchain.bench_cache.source_stamp` does for parts of evchain."""
+    """Short hash of the ``.py`` files under ``folder`` (relative names and bytes)."""
     return files_stamp(folder.rglob("*.py"), folder)
 
 
@@ -128,15 +127,21 @@ def files_stamp(files: Iterable[Path], folder: Path) -> str:
     return h.hexdigest()[:10]
 
 
+def modules_stamp(modules: Iterable[str], package: str = "evchain") -> str:
+    """Short hash of the source files of ``modules`` of ``package`` and of all they import
+    (:func:`import_closure`)."""
+    root = Path(importlib.import_module(package).__file__).parent
+    return files_stamp(import_closure(modules, package), root)
+
+
 def run_source_stamp(spec) -> str:
     """Hash of the evchain source files a run of ``spec`` can execute: the chain runner and
     its stages' filters with everything they import (:func:`import_closure`). With a filter
     from a plugin, every source file of evchain (a plugin may call into any of it)."""
-    root = Path(importlib.import_module("evchain").__file__).parent
     modules = [s.cls.__module__ for s in spec.stages]
     if not all(m.startswith("evchain.") for m in modules):
-        return tree_stamp(root)
-    return files_stamp(import_closure(["evchain.core.chain", *modules]), root)
+        return tree_stamp(Path(importlib.import_module("evchain").__file__).parent)
+    return modules_stamp(["evchain.core.chain", *modules])
 
 
 def source_stamps(registry, spec=None) -> dict[str, Any]:

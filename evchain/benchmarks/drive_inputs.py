@@ -25,14 +25,16 @@ from typing import Any
 
 import numpy as np
 
-from evchain.bench_cache import SIMULATOR_SOURCES, BenchInput
+from evchain.bench_cache import BenchInput
 from evchain.core.filter import Context
 
 ROOT = Path(__file__).resolve().parents[2]
 PIPELINES = ROOT / "pipelines"
 FLOW_STAGES = ("lk_flow", "plane_flow", "frame_flow")
-#: the sources that make the scene's frames and the aps frames from them
-APS_SOURCES = (*(s for s in SIMULATOR_SOURCES if "emulator" not in s), "filters/aps.py")
+#: the modules that make the drive's events, and its aps frames (they and all they import count
+#: in an input's hash); a flow input adds its flow filter's module
+EVENT_SOURCES = (__name__, "evchain.filters.scene", "evchain.filters.emulator")
+APS_SOURCES = (__name__, "evchain.filters.scene", "evchain.filters.aps")
 EVENT_COLUMNS = ("x", "y", "t", "p")
 FLOW_COLUMNS = ("x", "y", "t", "p", "vx", "vy", "t_edge")
 
@@ -82,7 +84,7 @@ def drive_events(pipeline: Path, start_m: float, duration_s: float,
         ev = EventPacket.concat(outs)
         return {**{c: getattr(ev, c) for c in EVENT_COLUMNS}, "bounds": _bounds(outs)}
 
-    return BenchInput("drive-events", stretch_label(params["scene"]), params, SIMULATOR_SOURCES,
+    return BenchInput("drive-events", stretch_label(params["scene"]), params, EVENT_SOURCES,
                       make)
 
 
@@ -145,10 +147,8 @@ def drive_flow(pipeline: Path, start_m: float, duration_s: float,
                 "bounds": _bounds(outs)}
 
     label = f"{source.label}, {stage.use} of {Path(pipeline).name}"
-    sources = tuple(f for f in (f"filters/{stage.use}.py", f"kernels/{stage.use}.py",
-                                "core/edge_arrival.py", "kernels/edge_arrival.py")
-                    if (ROOT / "evchain" / f).is_file())
-    return BenchInput("drive-flow", label, params, sources, make, (source,))
+    return BenchInput("drive-flow", label, params, (__name__, stage.cls.__module__), make,
+                      (source,))
 
 
 def drive_aps(pipeline: Path, start_m: float, duration_s: float,

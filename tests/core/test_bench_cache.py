@@ -2,6 +2,7 @@
 substituted, made by ``evchain bench --prepare``."""
 
 import json
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -12,6 +13,7 @@ import evchain.cli as cli
 from evchain.bench import BenchRow
 from evchain.bench_cache import BenchInput, Workload
 from evchain.errors import MissingBenchInput
+from evchain.provenance import import_closure, modules_stamp
 
 
 @pytest.fixture(autouse=True)
@@ -21,26 +23,34 @@ def cache_dir(tmp_path, monkeypatch):
     return folder
 
 
-def test_source_stamp_follows_the_sources(tmp_path, monkeypatch):
-    (tmp_path / "sim").mkdir()
-    (tmp_path / "sim" / "a.py").write_text("x = 1\n")
-    (tmp_path / "k.py").write_text("y = 2\n")
-    monkeypatch.setattr(cache, "_PACKAGE", tmp_path)
-    before = cache.source_stamp("sim", "k.py")
-    assert before == cache.source_stamp("sim", "k.py")          # deterministic
-    assert before != cache.source_stamp("sim")                   # every source counts
-    (tmp_path / "sim" / "a.py").write_text("x = 3\n")            # an edit inside a folder
-    assert cache.source_stamp("sim", "k.py") != before
-    (tmp_path / "sim" / "a.py").write_text("x = 1\n")
-    assert cache.source_stamp("sim", "k.py") == before
-    (tmp_path / "sim" / "b.py").write_text("")                   # a new module
-    assert cache.source_stamp("sim", "k.py") != before
+def test_modules_stamp_follows_what_they_import(tmp_path, monkeypatch):
+    """An input's code hash covers its modules and all they import: an edit there gives
+    another hash, an edit of a module they do not import does not."""
+    pkg = tmp_path / "pkgy"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "maker.py").write_text("def make():\n    from pkgy import kernel\n    return kernel.k\n")
+    (pkg / "kernel.py").write_text("k = 1\n")
+    (pkg / "other.py").write_text("o = 1\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    before = modules_stamp(["pkgy.maker"], "pkgy")
+    assert len(before) == 10 and before == modules_stamp(["pkgy.maker"], "pkgy")
+    (pkg / "other.py").write_text("o = 2\n")
+    assert modules_stamp(["pkgy.maker"], "pkgy") == before
+    (pkg / "kernel.py").write_text("k = 2\n")
+    assert modules_stamp(["pkgy.maker"], "pkgy") != before
 
 
-def test_simulator_sources_exist():
-    for rel in cache.SIMULATOR_SOURCES:
-        assert (cache._PACKAGE / rel).exists(), rel
-    assert len(cache.source_stamp(*cache.SIMULATOR_SOURCES)) == 10
+def test_drive_inputs_cover_the_kernels_that_make_them():
+    """The drive's events depend on the renderer's and emulator's kernels; a flow input on its
+    flow's (checked on the modules' import closure that the hashes cover)."""
+    from evchain.benchmarks.drive_inputs import EVENT_SOURCES
+
+    files = {f.relative_to(Path(cache.__file__).parent).as_posix()
+             for f in import_closure(EVENT_SOURCES)}
+    assert {"kernels/scene_render.py", "kernels/scene_bands.py", "kernels/emulator.py",
+            "kernels/veclog.py", "sim/drive.py"} <= files
+    assert "kernels/lk_flow.py" not in files
 
 
 def test_cache_folder_is_evchain_cache(cache_dir, monkeypatch):
@@ -49,7 +59,7 @@ def test_cache_folder_is_evchain_cache(cache_dir, monkeypatch):
     assert cache.cache_dir().name.lower() == "evchain"
 
 
-def fake_input(n: int, made: list, sources=("bench_cache.py",), needs=()) -> BenchInput:
+def fake_input(n: int, made: list, sources=("evchain.bench_cache",), needs=()) -> BenchInput:
     def make():
         made.append(n)
         return {"values": np.arange(n)}
@@ -61,7 +71,7 @@ def test_the_hash_covers_parameters_code_and_needs(tmp_path, monkeypatch):
     a = fake_input(3, made)
     assert a.key == fake_input(3, made).key
     assert a.key != fake_input(4, made).key                                  # parameters
-    assert a.key != fake_input(3, made, sources=("bench.py",)).key           # code
+    assert a.key != fake_input(3, made, sources=("evchain.bench",)).key           # code
     assert a.key != fake_input(3, made, needs=(fake_input(1, made),)).key    # inputs
     assert a.path.name == f"fake-{a.key}.npz" and a.describe().endswith(f"@{a.key}")
 
@@ -82,7 +92,7 @@ def test_prepare_writes_atomically_and_once(cache_dir):
 def test_a_failed_make_leaves_no_entry(cache_dir):
     def make():
         raise RuntimeError("boom")
-    inp = BenchInput("fake", "fails", {}, ("bench_cache.py",), make)
+    inp = BenchInput("fake", "fails", {}, ("evchain.bench_cache",), make)
     with pytest.raises(RuntimeError):
         inp.prepare(echo=lambda s: None)
     assert not inp.exists()
@@ -94,7 +104,7 @@ class _Unwritable:
 
 
 def test_a_failed_write_leaves_only_the_partial_file(cache_dir):
-    inp = BenchInput("fake", "unwritable", {}, ("bench_cache.py",),
+    inp = BenchInput("fake", "unwritable", {}, ("evchain.bench_cache",),
                      lambda: {"values": _Unwritable()})
     with pytest.raises(RuntimeError, match="cannot convert"):
         inp.prepare(echo=lambda s: None)

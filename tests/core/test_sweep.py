@@ -326,11 +326,12 @@ def test_changed_code_is_not_answered_from_the_cache(tmp_path, monkeypatch):
 
 
 def test_source_stamps_follow_the_files(tmp_path, monkeypatch):
-    from evchain.bench_cache import source_stamp
+    import evchain
     from evchain.core.registry import make_registry
     from evchain.provenance import source_stamps, tree_stamp
 
-    assert source_stamps(make_registry(discover=False))["evchain"] == source_stamp(".")
+    whole = tree_stamp(Path(evchain.__file__).parent)
+    assert source_stamps(make_registry(discover=False))["evchain"] == whole
     pkg = tmp_path / "some_plugin"
     pkg.mkdir()
     (pkg / "__init__.py").write_text("")
