@@ -52,9 +52,8 @@ class BenchInput:
 
     ``kind`` names the file; ``label`` says what it is (e.g. ``reference-drive 0-2 s``);
     ``params`` (JSON-able) and ``sources`` (evchain modules; they and all they import count)
-    are what makes it, with
-    the inputs in ``needs``; ``make()`` returns the arrays to store (it may :meth:`load` the
-    inputs in ``needs``, which :meth:`prepare` makes first).
+    are what makes it, with the inputs in ``needs``; ``make()`` returns the arrays to store (it
+    may :meth:`load` the inputs in ``needs``, which :meth:`prepare` makes first).
     """
 
     kind: str

@@ -98,9 +98,9 @@ def _imported(file: Path, name: str, package: str) -> set[str]:
 def import_closure(modules: Iterable[str], package: str = "evchain") -> list[Path]:
     """The source files of ``modules`` (of ``package``) and of every module of ``package``
     they import, directly or through others, at the top or inside functions: what running
-    them can execute of ``package``. Read from the sources (no import); an import by a name
-    computed at run time is not seen, so the modules given must be all that is called by
-    name."""
+    them can execute of ``package``. Read from the sources (``modules`` are not imported); an
+    import by a name computed at run time is not seen, so the modules given must be all that
+    is called by name."""
     root = Path(importlib.import_module(package).__file__).parent
     todo = [".".join(m.split(".")[:i]) for m in modules
             if m == package or m.startswith(package + ".") for i in range(1, m.count(".") + 2)]
