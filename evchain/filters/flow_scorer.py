@@ -28,6 +28,8 @@ from evchain.core.truth import FlowTruth, FoeTruth, ObjectTruth, TtcTruth, not_s
 #: outlier thresholds
 OUTLIER_REL = 0.5  # relative endpoint error above 50 %
 OUTLIER_DEG = 45.0  # angular error above 45 degrees
+#: bins of the true normal speed |u_n| (px/s) for ``by_normal_speed``
+NORMAL_SPEED_BINS = (0.0, 2.0, 5.0, 10.0, 20.0, 50.0, 100.0, 200.0, 500.0, math.inf)
 
 
 def flow_errors(x, y, t, vx, vy, truth) -> dict[str, np.ndarray]:
@@ -35,8 +37,9 @@ def flow_errors(x, y, t, vx, vy, truth) -> dict[str, np.ndarray]:
 
     Keys: ``gt_ok`` (ground truth finite), ``ee`` |v - u| and ``ree`` |v - u| / |u| against the
     full ground truth u; ``ee_normal`` and ``ree_normal`` against u projected on the estimated
-    normal v/|v|; ``ae_deg`` the 2-D angle between v and u; ``invalid`` (1.0/0.0, NaN without an
-    FOE) whether v points more than 90 degrees away from p - foe (thesis Table 4.2).
+    normal v/|v|, whose length |u_n| is ``normal_speed``; ``ae_deg`` the 2-D angle between v and
+    u; ``invalid`` (1.0/0.0, NaN without an FOE) whether v points more than 90 degrees away from
+    p - foe (thesis Table 4.2).
     """
     x = np.asarray(x, np.float64)
     y = np.asarray(y, np.float64)
@@ -69,7 +72,7 @@ def flow_errors(x, y, t, vx, vy, truth) -> dict[str, np.ndarray]:
         defined = np.isfinite(dot) & ((x != fx) | (y != fy)) & (speed > 0)
         invalid = np.where(defined, (dot < 0).astype(np.float64), np.nan)
     return {"gt_ok": ok, "ee": ee, "ree": ree, "ee_normal": ee_n, "ree_normal": ree_n,
-            "ae_deg": ae, "invalid": invalid}
+            "normal_speed": np.where(ok, np.abs(un), np.nan), "ae_deg": ae, "invalid": invalid}
 
 
 SUM_KEYS = ("ee", "ree", "ee_normal", "ree_normal", "ae_deg", "invalid")
@@ -87,6 +90,14 @@ def partial_sums(errs: dict[str, np.ndarray]) -> dict[str, float]:
     out["n_ree_out"] = float(np.count_nonzero(errs["ree"] > OUTLIER_REL))
     out["n_ree_normal_out"] = float(np.count_nonzero(errs["ree_normal"] > OUTLIER_REL))
     out["n_ae_out"] = float(np.count_nonzero(errs["ae_deg"] > OUTLIER_DEG))
+    ree_n = errs["ree_normal"]
+    scored = np.isfinite(ree_n)
+    which = np.digitize(errs["normal_speed"][scored], NORMAL_SPEED_BINS[1:-1])
+    for b in range(len(NORMAL_SPEED_BINS) - 1):
+        r = ree_n[scored][which == b]
+        out[f"n_ree_normal_bin{b}"] = float(len(r))
+        out[f"sum_ree_normal_bin{b}"] = float(r.sum())
+        out[f"n_ree_normal_out_bin{b}"] = float(np.count_nonzero(r > OUTLIER_REL))
     return out
 
 
@@ -97,7 +108,7 @@ def merge_sums(parts: list[dict[str, float]]) -> dict[str, float]:
 
 def _empty_errs() -> dict[str, np.ndarray]:
     e = np.zeros(0)
-    return {"gt_ok": np.zeros(0, bool), **{k: e for k in SUM_KEYS}}
+    return {"gt_ok": np.zeros(0, bool), "normal_speed": e, **{k: e for k in SUM_KEYS}}
 
 
 def _mean(s: dict[str, float], key: str) -> float | None:
@@ -126,7 +137,29 @@ def metrics_from_sums(s: dict[str, float]) -> dict[str, Any]:
         "outliers_ree50": _share(s["n_ree_out"], s["n_ree"]),
         "outliers_ree_normal50": _share(s["n_ree_normal_out"], s["n_ree_normal"]),
         "outliers_ae45": _share(s["n_ae_out"], s["n_ae_deg"]),
+        "by_normal_speed": _by_normal_speed(s),
     }
+
+
+def _by_normal_speed(s: dict[str, float]) -> list[dict[str, Any]]:
+    """Per bin of the true normal speed |u_n| (:data:`NORMAL_SPEED_BINS`, px/s): the share of
+    the events with a normal error, their mean normal relative error and outlier share, and
+    what the bin adds to the run's mean and outlier share (its sum over all events)."""
+    n_all = s["n_ree_normal"]
+    out = []
+    for b, (lo, hi) in enumerate(zip(NORMAL_SPEED_BINS[:-1], NORMAL_SPEED_BINS[1:],
+                                     strict=True)):
+        n, total = s[f"n_ree_normal_bin{b}"], s[f"sum_ree_normal_bin{b}"]
+        n_out = s[f"n_ree_normal_out_bin{b}"]
+        out.append({
+            "normal_speed_pxs": [lo, None if math.isinf(hi) else hi],
+            "share": _share(n, n_all),
+            "ree_normal_pct": None if not n else 100.0 * total / n,
+            "outliers_ree_normal50": _share(n_out, n),
+            "adds_to_ree_normal_pct": None if not n_all else 100.0 * total / n_all,
+            "adds_to_outliers_ree_normal50": _share(n_out, n_all),
+        })
+    return out
 
 
 def summarize(errs: dict[str, np.ndarray]) -> dict[str, Any]:
@@ -151,7 +184,9 @@ class FlowScorer(Filter):
     holds the run's values; ``density`` = flow events / input events from the flow filter's
     ``flow_density`` series (None if it has none). The invalid rate needs the true FOE: without
     it, it is None and ``not_scored`` says why; without flow events to score the errors are
-    None and ``why_none`` says so.
+    None and ``why_none`` says so. ``by_normal_speed`` splits the normal relative error and
+    its outliers by the true normal speed (:data:`NORMAL_SPEED_BINS`), with what each bin adds
+    to the run's values.
 
     Flow on the obstacle before contact (a truth with object ids and a TTC, a scene with an
     obstacle): ``obstacle_flow_since_s``, from how many seconds of true TTC on every bin has

@@ -81,6 +81,19 @@ def test_exact_numbers():
     assert m["outliers_ae45"] == pytest.approx(2 / 4)
     assert m["density"] == pytest.approx(5 / 20)
     assert m["n_input_events"] == 20
+    # by true normal speed: the exact event (|u_n| 10) and the backwards one (10, ree 1.5) in
+    # 10-20 px/s, the 45-degree one (|u_n| 7.07, exact) in 5-10; u_n = 0 is not scored
+    bins = {tuple(b["normal_speed_pxs"]): b for b in m["by_normal_speed"]}
+    assert bins[(5.0, 10.0)]["share"] == pytest.approx(1 / 3)
+    assert bins[(5.0, 10.0)]["ree_normal_pct"] == pytest.approx(0.0, abs=1e-9)
+    assert bins[(10.0, 20.0)]["share"] == pytest.approx(2 / 3)
+    assert bins[(10.0, 20.0)]["ree_normal_pct"] == pytest.approx(75.0)
+    assert bins[(10.0, 20.0)]["outliers_ree_normal50"] == pytest.approx(0.5)
+    assert bins[(500.0, None)]["share"] == 0.0 and bins[(500.0, None)]["ree_normal_pct"] is None
+    assert sum(b["adds_to_ree_normal_pct"] for b in bins.values()) == pytest.approx(
+        m["ree_normal_pct"])
+    assert sum(b["adds_to_outliers_ree_normal50"] for b in bins.values()) == pytest.approx(
+        m["outliers_ree_normal50"])
     # pass-through: columns unchanged
     for a, b in zip(outs[:2], packets, strict=True):
         for c in FlowPacket.columns:
@@ -100,7 +113,12 @@ def test_score_flow_matches_scorer():
     direct = score_flow(x, y, t, vx, vy, ConstTruth())
     _, m = run_scorer([packet(EVENTS, 0, 200_000)])
     for k, v in direct.items():
-        assert m[k] == pytest.approx(v), k
+        if k == "by_normal_speed":  # a list of per-bin dicts
+            for a, b in zip(m[k], v, strict=True):
+                assert a == {q: b[q] if b[q] is None or isinstance(b[q], list)
+                             else pytest.approx(b[q]) for q in b}
+        else:
+            assert m[k] == pytest.approx(v), k
     assert m["density"] is None  # no flow_density series: unknown
 
 
