@@ -90,11 +90,11 @@ def partial_sums(errs: dict[str, np.ndarray]) -> dict[str, float]:
     out["n_ree_out"] = float(np.count_nonzero(errs["ree"] > OUTLIER_REL))
     out["n_ree_normal_out"] = float(np.count_nonzero(errs["ree_normal"] > OUTLIER_REL))
     out["n_ae_out"] = float(np.count_nonzero(errs["ae_deg"] > OUTLIER_DEG))
-    ree_n = errs["ree_normal"]
-    scored = np.isfinite(ree_n)
+    scored = np.isfinite(errs["ree_normal"])
+    ree_n = errs["ree_normal"][scored]
     which = np.digitize(errs["normal_speed"][scored], NORMAL_SPEED_BINS[1:-1])
     for b in range(len(NORMAL_SPEED_BINS) - 1):
-        r = ree_n[scored][which == b]
+        r = ree_n[which == b]
         out[f"n_ree_normal_bin{b}"] = float(len(r))
         out[f"sum_ree_normal_bin{b}"] = float(r.sum())
         out[f"n_ree_normal_out_bin{b}"] = float(np.count_nonzero(r > OUTLIER_REL))
