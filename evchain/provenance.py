@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 _digests: dict[tuple[str, int, int], str] = {}
+_imports: dict[tuple[str, str, int, int], frozenset[str]] = {}
 
 
 def file_digest(path: str | Path) -> str:
@@ -71,9 +72,19 @@ def _module_file(name: str, root: Path) -> Path | None:
     return base.with_suffix(".py") if base.with_suffix(".py").is_file() else None
 
 
-def _imported(file: Path, name: str, package: str) -> set[str]:
+def _imported(file: Path, name: str, package: str) -> frozenset[str]:
     """The modules of ``package`` that module ``name`` (source ``file``) may import anywhere
-    in its code, with their parent packages (whose ``__init__`` runs first)."""
+    in its code, with their parent packages (whose ``__init__`` runs first). Remembered per
+    file, size and modification time, so a sweep parses each source once per process."""
+    st = file.stat()
+    key = (str(file), package, st.st_size, st.st_mtime_ns)
+    if key not in _imports:
+        _imports[key] = frozenset(_parse_imports(file, name, package))
+    return _imports[key]
+
+
+def _parse_imports(file: Path, name: str, package: str) -> set[str]:
+    """:func:`_imported`, read from the source."""
     here = name if file.name == "__init__.py" else name.rpartition(".")[0]
     found: set[str] = set()
     for node in ast.walk(ast.parse(file.read_bytes(), str(file))):
