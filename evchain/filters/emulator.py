@@ -39,8 +39,8 @@ class Emulator(Filter):
     consumes = FramePacket
     produces = EventPacket
     sensor = True
-    #: pixels per strip of the event loop (a multiple of 64; default
-    #: ``emulator_state.STRIP``); the events do not depend on it
+    #: most pixels per strip of the event loop (default ``emulator_state.STRIP``; the image is
+    #: cut into strips of equal length, whole chunks of 64); the events do not depend on it
     strip_pixels: int | None = None
     #: frame intervals run strip by strip at a time (default ``emulator_state.BLOCK``)
     block_intervals: int | None = None
@@ -144,8 +144,7 @@ class Emulator(Filter):
         self._state = st
         self._eps = eps
         self._held = np.zeros((0, h, w), np.float32)
-        strip = self.strip_pixels or K.STRIP
-        self._strip = min(npix, strip) + (-min(npix, strip) % 64)   # whole chunks of the scan
+        self._strip = K.strip_length(npix, self.strip_pixels or K.STRIP)
         self._scratch = K.new_scratch(self._strip, 4096)
 
     @property

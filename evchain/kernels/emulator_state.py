@@ -71,13 +71,21 @@ ROW_PAD = 72
 CV_START = 4096
 #: pixels per chunk of the candidate scan, and per fill of state rows
 CHUNK = 64
-#: pixels per strip: the event loop runs a block of intervals on one strip before the next, so
-#: that the strip's state (gates 8 bytes, state row 64 bytes per pixel: 5.6 MiB) stays in
-#: the last-level cache from one interval to the next; 320x240 (76 800 pixels) is one strip
-STRIP = 81920
+#: most pixels per strip: the event loop runs a block of intervals on one strip before the
+#: next, so that the strip's state (gates 8 bytes, state row 64 bytes per pixel: 2.25 MiB)
+#: stays in a core's second-level cache from one interval to the next; the filter cuts an
+#: image into strips of equal length (320x240: three of 25 600 pixels)
+STRIP = 32768
 #: frame intervals run strip by strip at a time: their events wait in a list until every strip
 #: is done, so the list holds a block's events
 BLOCK = 8
+
+
+def strip_length(npix: int, most: int = STRIP) -> int:
+    """Pixels per strip: ``npix`` cut into the fewest strips of at most ``most`` pixels, all
+    of one length (the last one shorter by less than a chunk), in whole chunks of ``CHUNK``."""
+    strip = -(-npix // -(-npix // most))
+    return strip + (-strip % CHUNK)
 
 
 class Rule(NamedTuple):

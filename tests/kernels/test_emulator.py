@@ -327,6 +327,23 @@ def test_strips_match_naive(interpolation):
         np.testing.assert_array_equal(getattr(got, name), getattr(ref, name))
 
 
+@given(st.integers(1, 4_000_000), st.integers(1, 2000).map(lambda c: 64 * c))
+def test_strip_length_cuts_into_fewest_equal_strips(npix, most):
+    from evchain.kernels.emulator_state import CHUNK, strip_length
+    strip = strip_length(npix, most)
+    count = -(-npix // strip)
+    assert strip % CHUNK == 0 and strip <= max(most, CHUNK)
+    assert count == -(-npix // most)                   # no more strips than needed
+    assert npix - (count - 1) * strip > strip - CHUNK * count   # the last one nearly as long
+
+
+def test_strip_length_examples():
+    from evchain.kernels.emulator_state import strip_length
+    assert strip_length(320 * 240, 32768) == 25600     # three strips
+    assert strip_length(1280 * 720, 32768) == 31808    # 29 strips, the last 29 248 pixels
+    assert strip_length(510, 192) == 192
+
+
 @pytest.mark.parametrize("interpolation", ["linear", "cubic"])
 def test_rows_filled_on_first_use_match_naive(interpolation):
     # set-up writes only the gates; a chunk's state rows are filled when the scan first finds
