@@ -624,8 +624,7 @@ def _grow_events(sc, n):
     return Scratch(sc.cand, sc.g0, sc.gm, sc.gp, _grow(sc.ui, n), _grow(sc.utf, n),
                    _grow(sc.up_, n), _grow(sc.ub, n), np.empty((sc.piece.shape[0],
                                                                  2 * sc.piece.shape[1])),
-                   sc.perm, sc.buckets, sc.logs, sc.unc, _grow(sc.li, n), _grow(sc.ltf, n),
-                   _grow(sc.lp, n), sc.cv, sc.kind)
+                   sc.perm, sc.buckets, sc.logs, sc.unc, _grow(sc.lst, n), sc.cv, sc.kind)
 
 
 @njit(cache=True)
@@ -635,7 +634,7 @@ def _grow_cv(sc, n):
     m = max(2 * (sc.cv.shape[1] - ROW_PAD), n)
     m = (m + 511) // 512 * 512
     return Scratch(sc.cand, sc.g0, sc.gm, sc.gp, sc.ui, sc.utf, sc.up_, sc.ub, sc.piece,
-                   sc.perm, sc.buckets, sc.logs, sc.unc, sc.li, sc.ltf, sc.lp,
+                   sc.perm, sc.buckets, sc.logs, sc.unc, sc.lst,
                    np.empty((sc.cv.shape[0], m + ROW_PAD)), sc.kind)
 
 
@@ -666,7 +665,7 @@ def _sort_order(sc, u, it0, nb):
     else:
         perm = np.argsort(ub[:u], kind="mergesort")
     return Scratch(sc.cand, sc.g0, sc.gm, sc.gp, sc.ui, sc.utf, sc.up_, ub, sc.piece, perm,
-                   buckets, sc.logs, sc.unc, sc.li, sc.ltf, sc.lp, sc.cv, sc.kind), perm
+                   buckets, sc.logs, sc.unc, sc.lst, sc.cv, sc.kind), perm
 
 
 @njit(cache=True)
@@ -806,31 +805,23 @@ def emulate(frames, j_first, j_last, rule, pixels, noise, cap_hint, carry, keep_
         noise0 = seg[ns - 1, je - jb] - noise.off[k0]   # noise event q is at noise0 + q
         for k in range(je - jb):
             # pass B: the interval's events in generation order (strips in pixel order, then
-            # its noise) copied together, so that the sorted order below reads them from the
-            # cache (the block's event list, tens of MB at 1280x720, has left it), then sorted
-            # by rounded time
+            # its noise), listed by their place in the event list, sorted by rounded time
             j = jb + k
-            li = sc.li
-            ltf = sc.ltf
-            lp = sc.lp
+            lst = sc.lst
             ub = sc.ub
             it0 = np.int64(times[j])
             m = 0
             for st in range(ns):
                 for b in range(seg[st, k], seg[st, k + 1]):
-                    li[m] = ui[b]
-                    ltf[m] = utf[b]
-                    lp[m] = up_[b]
-                    ub[m] = np.int64(np.floor(utf[b] + 0.5)) - it0
+                    lst[m] = b
                     m += 1
             for b in range(noise0 + noise.off[k0 + k], noise0 + noise.off[k0 + k + 1]):
-                li[m] = ui[b]
-                ltf[m] = utf[b]
-                lp[m] = up_[b]
-                ub[m] = np.int64(np.floor(utf[b] + 0.5)) - it0
+                lst[m] = b
                 m += 1
             if m == 0:
                 continue
+            for q in range(np.uint64(m)):
+                ub[q] = np.int64(np.floor(utf[lst[q]] + 0.5)) - it0
             nb = np.int64(times[j + 1]) - it0 + 2
             if n + m > ox.shape[0]:
                 ox = _grow(ox, n + m)
@@ -841,9 +832,10 @@ def emulate(frames, j_first, j_last, rule, pixels, noise, cap_hint, carry, keep_
                 op = _grow(op, n + m)
             sc, perm = _sort_order(sc, m, it0, nb)
             for r in range(np.uint64(m)):        # unsigned indices: no wraparound tests
-                q = np.uint64(perm[r])
+                qq = np.uint64(perm[r])
+                q = np.uint64(lst[qq])
                 pos = np.uint64(n) + r
-                i = li[q]
+                i = ui[q]
                 # row i // w by the reciprocal, corrected to exact (an integer division
                 # per event cost ~10 % of the bar's time)
                 yy = np.int64(np.float64(i) * inv_w)
@@ -851,9 +843,9 @@ def emulate(frames, j_first, j_last, rule, pixels, noise, cap_hint, carry, keep_
                 yy += np.int64((yy + 1) * w <= i)
                 ox[pos] = i - yy * w
                 oy[pos] = yy
-                ot[pos] = ub[q] + it0
+                ot[pos] = ub[qq] + it0
                 if keep_tf:
-                    otf[pos] = ltf[q]
-                op[pos] = lp[q]
+                    otf[pos] = utf[q]
+                op[pos] = up_[q]
             n += m
     return ox, oy, ot, otf, op, n, ERR_NONE, 0, 0, 0, sc

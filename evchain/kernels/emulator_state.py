@@ -141,9 +141,8 @@ class Scratch(NamedTuple):
     needed: per candidate pixel of a strip (``cand``: their indices; ``g0``, ``gm``, ``gp``:
     their values in three frames; ``logs`` [5, strip]: their logarithms; ``unc``: those
     without cached logs), per event of a call (``ui``, ``utf``, ``up_``: pixel, float time and
-    polarity; ``li``, ``ltf``, ``lp``: the same of one interval's events, copied in
-    generation order; ``ub``: their rounded times; ``perm``: their sorted order), per
-    crossing of a strip and interval
+    polarity; ``lst``: one interval's events by their place in that list; ``ub``: their
+    rounded times; ``perm``: their sorted order), per crossing of a strip and interval
     (``piece`` [7, n]: its interpolation piece), ``buckets`` of the counting sort, and per
     candidate its state and the rule's first pass (``cv`` [CV_ROWS, capacity + ROW_PAD]: rows
     ``CV_*``;
@@ -162,9 +161,7 @@ class Scratch(NamedTuple):
     buckets: np.ndarray
     logs: np.ndarray
     unc: np.ndarray
-    li: np.ndarray
-    ltf: np.ndarray
-    lp: np.ndarray
+    lst: np.ndarray
     cv: np.ndarray
     kind: np.ndarray
 
@@ -279,7 +276,6 @@ def new_scratch(npix, ucap):
                    np.empty(ucap, np.int64), np.empty(ucap, np.float64), np.empty(ucap, np.int8),
                    np.empty(ucap, np.int64), np.empty((7, ucap)), np.empty(ucap, np.int64),
                    np.zeros(1, np.int64), np.empty((6, npix + ROW_PAD)), np.empty(npix, np.int64),
-                   np.empty(ucap, np.int64), np.empty(ucap, np.float64), np.empty(ucap, np.int8),
-                   np.empty((CV_ROWS, min(npix, CV_START) + ROW_PAD)),
+                   np.empty(ucap, np.int64), np.empty((CV_ROWS, min(npix, CV_START) + ROW_PAD)),
                    np.empty(npix, np.int8))
 
