@@ -260,7 +260,10 @@ def one_blas_thread():
     for a while after each matrix product, and CPU time (``time.process_time``) counts every
     thread of the process: a workload that makes its data with a matrix product (the
     emulator's textures) would otherwise charge their spinning to the stage it times (the
-    emulator's CPU time per frame on 100 textured frames came out 1.5-2 times its own)."""
+    emulator's CPU time per frame on 100 textured frames came out 1.5-2 times its own).
+    The limit covers the libraries loaded when it is set, so scipy's own OpenBLAS (scipy
+    imported by a workload, e.g. the bar's error function) is loaded first."""
+    import scipy.linalg  # noqa: F401
     from threadpoolctl import threadpool_limits
 
     return threadpool_limits(limits=1, user_api="blas")
