@@ -15,7 +15,8 @@ thread: the machine is shared, so wall time would count other processes' turns.
 emulator CPU time (1.0 = as fast as touching the frames once); ``ns_per_pixel_frame`` is the
 emulator's CPU time per pixel and frame. ``emulator-scaling`` states the linearity: each scene
 at the three sizes on the same number of frames, its time per pixel-frame at each size and
-the ratios to 320x240 (1.0 = cost linear in pixels).
+the ratios to 320x240 (1.0 = cost linear in pixels), and the same for the 320x240 frames tiled
+to the larger sizes (each pixel's input as at 320x240: only the image's size differs).
 """
 
 from __future__ import annotations
@@ -199,21 +200,33 @@ def bar(width: int, height: int):
     return workload
 
 
+def tiled(frames: np.ndarray, width: int, height: int) -> np.ndarray:
+    """320x240 ``frames`` repeated to ``width`` x ``height`` (multiples of 320 and 240): every
+    pixel sees what a pixel of the base image sees, so only the image's size differs."""
+    return np.ascontiguousarray(np.tile(frames, (1, height // H, width // W)))
+
+
 def scaling(quick: bool) -> list[BenchRow]:
     """One row per scene: its CPU time per pixel-frame at each size on the same number of
-    frames, in one run (throughput: pixel-frames/s at the largest size)."""
+    frames, in one run (throughput: pixel-frames/s at the largest size); ``tiled_*``: the
+    same for the 320x240 frames repeated to the larger sizes (the same content per pixel)."""
     n = SCALING_FRAMES[1 if quick else 0]
     params = {"threshold_on": 0.2, "threshold_off": 0.2, "eps": 1e-3}
+    repeat = 2 if quick else 3
     rows = []
     for scene in ("bar", "sparse", "textured"):
         ns = {}
+        base_frames, _ = scene_frames(scene, n, W, H)
         for width, height in SIZES:
             frames, times = scene_frames(scene, n, width, height)
-            _run(frames, times, params)
-            el = best_cpu_time(lambda f=frames, t=times: _run(f, t, params),
-                               repeat=2 if quick else 3)
-            ns[f"{width}x{height}"] = el / ((n - 1) * width * height) * 1e9
-            del frames
+            cases = {f"{width}x{height}": frames}
+            if (width, height) != (W, H):
+                cases[f"tiled_{width}x{height}"] = tiled(base_frames, width, height)
+            for key, f in cases.items():
+                _run(f, times, params)
+                el = best_cpu_time(lambda f=f, t=times: _run(f, t, params), repeat=repeat)
+                ns[key] = el / ((n - 1) * width * height) * 1e9
+            del frames, cases
         base = ns[f"{W}x{H}"]
         big = f"{SIZES[-1][0]}x{SIZES[-1][1]}"
         rows.append(BenchRow(
@@ -221,7 +234,8 @@ def scaling(quick: bool) -> list[BenchRow]:
             extra={"frames": n,
                    **{f"ns_per_pixel_frame_{k}": v for k, v in ns.items()},
                    **{f"per_pixel_ratio_{k}": v / base for k, v in ns.items() if k != f"{W}x{H}"}},
-            data=f"{scene} scene at {', '.join(ns)}, {n} frames each"))
+            data=f"{scene} scene at {', '.join(k for k in ns if not k.startswith('tiled'))}, "
+                 f"and its 320x240 frames tiled to the larger sizes, {n} frames each"))
     return rows
 
 

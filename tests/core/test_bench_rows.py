@@ -152,3 +152,12 @@ def test_event_scorer_row_finds_the_bin_without_events():
     [row] = scorers.WORKLOADS["scorer-events"](True)
     assert row.error == pytest.approx(0.0, abs=1e-9) and row.throughput > 0
     assert row.extra["obstacle_events_coverage"] == pytest.approx(29 / 30)
+
+
+def test_tiled_frames_give_each_pixel_the_base_pixels_input():
+    from evchain.benchmarks.emulator import textured_scene, tiled
+    base, _ = textured_scene(3, 200.0)
+    big = tiled(base, 1280, 720)
+    assert big.shape == (3, 720, 1280) and big.flags.c_contiguous
+    y, x = np.mgrid[0:720, 0:1280]
+    np.testing.assert_array_equal(big, base[:, y % 240, x % 320])
