@@ -340,7 +340,7 @@ def test_strip_length_cuts_into_fewest_equal_strips(npix, most):
 def test_strip_length_examples():
     from evchain.kernels.emulator_state import strip_length
     assert strip_length(320 * 240, 32768) == 25600     # three strips
-    assert strip_length(1280 * 720, 32768) == 31808    # 29 strips, the last 29 248 pixels
+    assert strip_length(1280 * 720, 32768) == 31808    # 29 strips, the last 30 976 pixels
     assert strip_length(510, 192) == 192
 
 
