@@ -82,9 +82,9 @@ BLOCK = 8
 
 
 def strip_length(npix: int, most: int = STRIP) -> int:
-    """Pixels per strip: ``npix`` cut into the fewest strips of at most ``most`` pixels, all
-    of one length in whole chunks of ``CHUNK`` (the last one shorter by less than a chunk per
-    strip)."""
+    """Pixels per strip: ``npix`` cut into the fewest strips of at most ``most`` pixels (a
+    multiple of ``CHUNK``; another ``most`` is rounded up to one), all of one length in whole
+    chunks (the last one shorter by less than a chunk per strip)."""
     strip = -(-npix // -(-npix // most))
     return strip + (-strip % CHUNK)
 
