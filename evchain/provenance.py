@@ -92,7 +92,7 @@ def _parse_imports(file: Path, name: str, package: str) -> set[str]:
             found.update(a.name for a in node.names)
         elif isinstance(node, ast.ImportFrom):
             if node.level:
-                base = ".".join(here.split(".")[:len(here.split(".")) - node.level + 1])
+                base = here.rsplit(".", node.level - 1)[0]
                 module = f"{base}.{node.module}" if node.module else base
             else:
                 module = node.module or ""
