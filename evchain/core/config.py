@@ -457,19 +457,26 @@ def _find_stage(items, key, names, mark):
 
 
 def _apply_override(item: str, stages: list[_RawStage], seed: int) -> int:
+    """Apply ``STAGE.PARAM=VALUE`` (or ``seed=N``) to the raw stages; ``STAGE.PARAM+=NUMBER``
+    adds to the value the pipeline or an earlier override set. Returns the seed."""
     where = Mark("--set")
     if "=" not in item:
         raise ConfigError(f"override {item!r} must look like STAGE.PARAM=VALUE or seed=N",
                           file="--set")
     target, value_text = item.split("=", 1)
+    add = target.endswith("+")
+    target = target.removesuffix("+")
     try:
         value = yaml.safe_load(value_text) if value_text.strip() else ""
     except yaml.YAMLError:
         value = value_text
+    if add and not _is_number(value):
+        raise ConfigError(f"override {item!r}: += adds a number, got {value_text!r}",
+                          file="--set", key=target)
     if target == "seed":
         if not isinstance(value, int) or isinstance(value, bool):
             raise ConfigError(f"seed must be an integer, got {value_text!r}", file="--set")
-        return value
+        return seed + value if add else value
     if "." not in target:
         raise ConfigError(f"override {item!r} must look like STAGE.PARAM=VALUE or seed=N",
                           file="--set")
@@ -478,6 +485,18 @@ def _apply_override(item: str, stages: list[_RawStage], seed: int) -> int:
                       lambda s: (str(s.values.get("id", s.values["use"])), s.values["use"]), where)
     if param in ("use", "id"):
         raise ConfigError(f"cannot override {param!r} of a stage", file="--set", key=target)
+    if add:
+        old = raw.values.get(param)
+        if not _is_number(old):
+            raise ConfigError(f"override {item!r}: += adds to a number set before (in the "
+                              f"pipeline or an earlier override), but {target} is "
+                              f"{'not set' if param not in raw.values else repr(old)}",
+                              file="--set", key=target)
+        value = old + value
     raw.values[param] = value
     raw.key_marks[param] = Mark(f"--set {item}")
     return seed
+
+
+def _is_number(value: object) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)

@@ -91,6 +91,23 @@ def test_overrides(registry):
     assert spec.seed == 9
 
 
+def test_override_adds_to_the_value_set_before(registry):
+    """``STAGE.PARAM+=NUMBER`` adds to the pipeline's value or an earlier override's (a sweep's
+    repeat shifting each cell's own value); without a number set before, or with a value that
+    is not a number, it says so."""
+    spec = load(GOOD, registry, ["toy_flow.gain+=0.25", "seed+=2"])
+    assert spec.stage("toy_flow").params.gain == 2.25
+    assert spec.seed == 5
+    spec = load(GOOD, registry, ["toy_source.width=40", "toy_source.width+=-8"])
+    assert spec.stage("toy_source").params.width == 32
+    with pytest.raises(ConfigError, match=r"toy_source.width is not set"):
+        load(GOOD, registry, ["toy_source.width+=1"])
+    with pytest.raises(ConfigError, match=r"adds a number, got 'x'"):
+        load(GOOD, registry, ["toy_flow.gain+=x"])
+    with pytest.raises(ConfigError, match=r"toy_source.fail_at_packet is None"):
+        load(GOOD, registry, ["toy_source.fail_at_packet=null", "toy_source.fail_at_packet+=1"])
+
+
 def test_override_by_id_and_errors(registry):
     text = ("chain:\n  - use: toy_source\n  - use: toy_writer\n    id: a\n"
             "  - use: toy_writer\n    id: b\n")
