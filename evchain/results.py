@@ -26,6 +26,7 @@ import json
 import math
 import statistics
 import time
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -459,13 +460,9 @@ def _evaluation_section(m: Manifest, src: _Sources) -> list[str]:
     keys = list(cfg.get("summary") or doc["report"])
     rows = doc["rows"]
     cells = [v for v in dict.fromkeys(r["variation"] for r in rows) if v != ref]
-    seeded = _seeded_cells(rows)
-    each = "each rendered once" if not seeded else (
-        f"each rendered once ({', '.join(seeded)}: once per seed, "
-        f"{'its' if len(seeded) == 1 else 'their'} value the median over the seeds)")
+    each = _renders_text(rows, cells)
     out += [doc.get("description", ""), "",
-            f"Sweep `{doc['file']}`: {len(cells)} cells, {each} and replayed "
-            f"through both flows; {doc['wall_s']:g} s wall on "
+            f"Sweep `{doc['file']}`: {len(cells)} cells, {each}; {doc['wall_s']:g} s wall on "
             f"{_machine_text(doc.get('machine'))}. Reproduce: `{doc['command']}`.", "",
             "### Summary", "",
             "Median and worst over the evaluation cells (the reference cell, from the tuning "
@@ -491,6 +488,28 @@ def _evaluation_section(m: Manifest, src: _Sources) -> list[str]:
         out.append("| " + " | ".join(cells_txt) + " |")
     out += ["", "### Every cell", ""]
     return out + _sweep_table(m, rows, doc["report"], ([ref] if ref else []) + cells) + [""]
+
+
+def _renders_text(rows: list[dict[str, Any]], cells: list[str]) -> str:
+    """How often each cell was rendered and replayed: once, or per repeat and seed (its value
+    then the median over them)."""
+    first = rows[0].get("base", "") if rows else ""
+    runs = Counter(r["variation"] for r in rows if r.get("base", "") == first)
+    seeded = _seeded_cells(rows)
+    plain = sorted({runs[c] for c in cells if c not in seeded})
+    per_seed = sorted({runs[c] for c in seeded})
+    if plain == [1] or not plain:
+        text = "each rendered once"
+    else:
+        text = "each rendered " + " or ".join(f"{n} times" for n in plain)
+    if seeded:
+        how = "once per seed" if plain == [1] or not plain else "once per seed and start"
+        text += (f" ({', '.join(seeded)}: {' or '.join(str(n) for n in per_seed)} times, "
+                 f"{how})")
+    text += " and replayed through both flows"
+    if max(runs.values(), default=1) > 1:
+        text += "; a cell's value is the median over its runs"
+    return text
 
 
 def _seeded_cells(rows: list[dict[str, Any]]) -> list[str]:

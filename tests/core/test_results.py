@@ -166,8 +166,23 @@ def test_cells_over_seeds_show_the_median_and_range(root):
     # the worst share is d's median 30 %
     assert "| FOE \\|dx\\| px | 2.00 | 3.50 | 5.00 (b) |" in text
     assert "| TTC share | 90.0% | 50.0% | 30.0% (d) |" in text
-    assert "4 cells, each rendered once (d: once per seed, its value the median over the " \
-           "seeds)" in text
+    assert "4 cells, each rendered once (d: 3 times, once per seed) and replayed through both " \
+           "flows; a cell's value is the median over its runs" in text
+
+
+def test_cells_over_starts_and_seeds_say_how_often_they_ran(root):
+    """A sweep that repeats every cell (three starts) says so: three runs per plain cell, nine
+    for a cell over three seeds as well."""
+    path = root / "results" / "sweeps" / "ev.json"
+    doc = json.loads(path.read_text())
+    rows = [{**r, "repeat": k, "seed": None} for r in doc["rows"] for k in range(3)]
+    rows += [{"variation": "d", "base": b, "repeat": k, "seed": k % 3, "foe.dx_mean_px": 2.0,
+              "ttc.share": 0.2} for b in ("lk", "plane") for k in range(9)]
+    doc["rows"] = rows
+    path.write_text(json.dumps(doc))
+    text = render(load_manifest(root))
+    assert "4 cells, each rendered 3 times (d: 9 times, once per seed and start) and " \
+           "replayed through both flows; a cell's value is the median over its runs" in text
 
 
 def test_a_workload_belongs_to_the_longest_prefix(root, monkeypatch):
