@@ -470,9 +470,11 @@ def _apply_override(item: str, stages: list[_RawStage], seed: int) -> int:
         value = yaml.safe_load(value_text) if value_text.strip() else ""
     except yaml.YAMLError:
         value = value_text
-    if add and not _is_number(value):
-        raise ConfigError(f"override {item!r}: += adds a number, got {value_text!r}",
-                          file="--set", key=target)
+    if add:
+        value = _number(value)
+        if value is None:
+            raise ConfigError(f"override {item!r}: += adds a number, got {value_text!r}",
+                              file="--set", key=target)
     if target == "seed":
         if not isinstance(value, int) or isinstance(value, bool):
             raise ConfigError(f"seed must be an integer, got {value_text!r}", file="--set")
@@ -486,11 +488,12 @@ def _apply_override(item: str, stages: list[_RawStage], seed: int) -> int:
     if param in ("use", "id"):
         raise ConfigError(f"cannot override {param!r} of a stage", file="--set", key=target)
     if add:
-        old = raw.values.get(param)
-        if not _is_number(old):
+        old = _number(raw.values.get(param))
+        if old is None:
+            now = raw.values.get(param)
             raise ConfigError(f"override {item!r}: += adds to a number set before (in the "
                               f"pipeline or an earlier override), but {target} is "
-                              f"{'not set' if param not in raw.values else repr(old)}",
+                              f"{'not set' if param not in raw.values else repr(now)}",
                               file="--set", key=target)
         value = old + value
     raw.values[param] = value
@@ -498,5 +501,13 @@ def _apply_override(item: str, stages: list[_RawStage], seed: int) -> int:
     return seed
 
 
-def _is_number(value: object) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool)
+def _number(value: object) -> int | float | None:
+    """``value`` as an int or float (YAML reads ``1e-3`` as a string), else None."""
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, int | float):
+        return value
+    try:
+        return float(value) if isinstance(value, str) else None
+    except ValueError:
+        return None

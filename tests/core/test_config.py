@@ -100,6 +100,8 @@ def test_override_adds_to_the_value_set_before(registry):
     assert spec.seed == 5
     spec = load(GOOD, registry, ["toy_source.width=40", "toy_source.width+=-8"])
     assert spec.stage("toy_source").params.width == 32
+    spec = load(GOOD, registry, ["toy_flow.gain=1e-3", "toy_flow.gain+=2e-3"])  # YAML strings
+    assert spec.stage("toy_flow").params.gain == pytest.approx(3e-3)
     with pytest.raises(ConfigError, match=r"toy_source.width is not set"):
         load(GOOD, registry, ["toy_source.width+=1"])
     with pytest.raises(ConfigError, match=r"adds a number, got 'x'"):
