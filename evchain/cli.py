@@ -205,7 +205,8 @@ def build_parser() -> argparse.ArgumentParser:
     r = add("run", help="run a pipeline")
     r.add_argument("pipeline")
     r.add_argument("--set", action="append", default=[], metavar="STAGE.PARAM=VALUE",
-                   help="override a parameter (stage by 'use' name or 'id'); repeatable")
+                   help="override a parameter (stage by 'use' name or 'id'; PARAM+=NUMBER "
+                        "adds to its value); repeatable")
     r.add_argument("--out", help="output folder (default out/NAME)")
     r.add_argument("--replay", metavar="EVENTS.aedat",
                    help="instead of scene -> emulator, read their events from an earlier run "
