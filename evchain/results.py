@@ -469,25 +469,66 @@ def _evaluation_section(m: Manifest, src: _Sources) -> list[str]:
             "set, beside them; a metric a cell does not define, such as TTC without an "
             "obstacle, is left out of that cell).", ""]
     bases = list(dict.fromkeys(r.get("base", "") for r in rows))
+    starts = _start_of(rows)
+    n_starts = len(set(starts.values()))
+    if n_starts > 1:
+        out += [f"In brackets: the range of the same value over the {n_starts} starts (each "
+                "cell's runs of one start only; over seeds, their median), the run-to-run "
+                "spread against which a goal's margin is judged.", ""]
     head = ["metric"] + [f"{b}: {col}" for b in bases for col in ("reference", "median",
                                                                   "worst (cell)")]
     out += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for k in keys:
         meta = _metric_meta(m, k)
+        fmt = meta["format"]
         cells_txt = [meta["label"]]
         for b in bases:
             sel = {"base": b} if b else {}
             r = collect(rows, {**sel, "variation": ref}, k) if ref else Value([])
-            per = [(c, collect(rows, {**sel, "variation": c}, k).median) for c in cells]
-            per = [(c, v) for c, v in per if v is not None]
-            med = statistics.median([v for _, v in per]) if per else None
-            worst = (max if meta["better"] == "lower" else min)(per, key=lambda cv: cv[1]) \
-                if per else None
-            cells_txt += [_fmt(r.median, meta["format"]), _fmt(med, meta["format"]),
-                          f"{_fmt(worst[1], meta['format'])} ({worst[0]})" if worst else "-"]
+            med, worst = _median_and_worst(rows, sel, cells, k, meta["better"])
+            spans = ["", ""]
+            if n_starts > 1 and worst:
+                each = [_median_and_worst([x for x in rows if starts[id(x)] == i], sel, cells,
+                                          k, meta["better"]) for i in sorted(set(starts.values()))]
+                for j, vals in enumerate(([e[0] for e in each], [e[1][1] for e in each if e[1]])):
+                    spans[j] = f"{_fmt(min(vals), fmt)}-{_fmt(max(vals), fmt)}"
+            cells_txt += [_fmt(r.median, fmt),
+                          _fmt(med, fmt) + (f" ({spans[0]})" if spans[0] else ""),
+                          f"{_fmt(worst[1], fmt)} ({worst[0]}{'; ' + spans[1] if spans[1] else ''})"
+                          if worst else "-"]
         out.append("| " + " | ".join(cells_txt) + " |")
     out += ["", "### Every cell", ""]
     return out + _sweep_table(m, rows, doc["report"], ([ref] if ref else []) + cells) + [""]
+
+
+def _median_and_worst(rows: list[dict[str, Any]], sel: dict[str, Any], cells: list[str],
+                      metric: str, better: str | None
+                      ) -> tuple[float | None, tuple[str, float] | None]:
+    """The median over ``cells`` of each cell's median of ``metric`` in ``rows`` (matching
+    ``sel``), and the worst cell with its value (cells without the metric left out)."""
+    per = [(c, collect(rows, {**sel, "variation": c}, metric).median) for c in cells]
+    per = [(c, v) for c, v in per if v is not None]
+    if not per:
+        return None, None
+    worst = (max if better == "lower" else min)(per, key=lambda cv: cv[1])
+    return statistics.median([v for _, v in per]), worst
+
+
+def _start_of(rows: list[dict[str, Any]]) -> dict[int, int]:
+    """Each row's start (``id(row)`` -> index of the sweep's repeat it ran with): a cell over
+    seeds runs every seed at every start, ``repeat`` = start x seeds + seed's place."""
+    seeds: dict[tuple[str, str], int] = Counter()
+    for r in rows:
+        if r.get("seed") is not None:
+            seeds[(r["variation"], r.get("base", ""))] += 1
+    starts_of_cell = Counter((r["variation"], r.get("base", "")) for r in rows
+                             if r.get("seed") is None)
+    n_starts = max(starts_of_cell.values(), default=1)
+    out = {}
+    for r in rows:
+        n_seeds = max(1, seeds[(r["variation"], r.get("base", ""))] // n_starts)
+        out[id(r)] = int(r.get("repeat") or 0) // n_seeds
+    return out
 
 
 def _renders_text(rows: list[dict[str, Any]], cells: list[str]) -> str:

@@ -171,18 +171,28 @@ def test_cells_over_seeds_show_the_median_and_range(root):
 
 
 def test_cells_over_starts_and_seeds_say_how_often_they_ran(root):
-    """A sweep that repeats every cell (three starts) says so: three runs per plain cell, nine
-    for a cell over three seeds as well."""
+    """A sweep that repeats every cell (three starts) says so (three runs per plain cell, nine
+    for a cell over three seeds as well), and the summary gives each value's range over the
+    starts: each start's cells alone (a seeded cell by its median over the seeds there)."""
     path = root / "results" / "sweeps" / "ev.json"
     doc = json.loads(path.read_text())
-    rows = [{**r, "repeat": k, "seed": None} for r in doc["rows"] for k in range(3)]
-    rows += [{"variation": "d", "base": b, "repeat": k, "seed": k % 3, "foe.dx_mean_px": 2.0,
-              "ttc.share": 0.2} for b in ("lk", "plane") for k in range(9)]
+    # start k adds k to every |dx|: a 3, b 5, c 4 -> 3 + k, 5 + k, 4 + k
+    rows = [{**r, "repeat": k, "seed": None, "foe.dx_mean_px": r["foe.dx_mean_px"] + k}
+            for r in doc["rows"] for k in range(3)]
+    # d: seeds 1, 2, 9 at start 0 (median 2), 2, 3, 9 at start 1 (3), 8, 9, 9 at start 2 (9)
+    dx_d = [1.0, 2.0, 9.0, 2.0, 3.0, 9.0, 8.0, 9.0, 9.0]
+    rows += [{"variation": "d", "base": b, "repeat": k, "seed": k % 3,
+              "foe.dx_mean_px": dx_d[k], "ttc.share": 0.2}
+             for b in ("lk", "plane") for k in range(9)]
     doc["rows"] = rows
     path.write_text(json.dumps(doc))
     text = render(load_manifest(root))
     assert "4 cells, each rendered 3 times (d: 9 times, once per seed and start) and " \
            "replayed through both flows; a cell's value is the median over its runs" in text
+    # all runs (reference 2 + k: 3): a 4, b 6, c 5, d 8 -> median 5.5, worst d 8; start 0:
+    # a 3, b 5, c 4, d 2 -> 3.5, worst b 5; start 1: 4, 6, 5, 3 -> 4.5, b 6; start 2: 5, 7, 6,
+    # 9 -> 6.5, d 9
+    assert "| FOE \\|dx\\| px | 3.00 | 5.50 (3.50-6.50) | 8.00 (d; 5.00-9.00) |" in text
 
 
 def test_a_workload_belongs_to_the_longest_prefix(root, monkeypatch):
