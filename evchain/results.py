@@ -469,8 +469,8 @@ def _evaluation_section(m: Manifest, src: _Sources) -> list[str]:
             "set, beside them; a metric a cell does not define, such as TTC without an "
             "obstacle, is left out of that cell).", ""]
     bases = list(dict.fromkeys(r.get("base", "") for r in rows))
-    starts = _start_of(rows)
-    n_starts = len(set(starts.values()))
+    starts = _starts(rows)
+    n_starts = len(set(starts))
     if n_starts > 1:
         out += [f"In brackets: the range of the same value over the {n_starts} starts (each "
                 "cell's runs of one start only; over seeds, their median), the run-to-run "
@@ -488,8 +488,9 @@ def _evaluation_section(m: Manifest, src: _Sources) -> list[str]:
             med, worst = _median_and_worst(rows, sel, cells, k, meta["better"])
             spans = ["", ""]
             if n_starts > 1 and worst:
-                each = [_median_and_worst([x for x in rows if starts[id(x)] == i], sel, cells,
-                                          k, meta["better"]) for i in sorted(set(starts.values()))]
+                each = [_median_and_worst([x for x, st in zip(rows, starts, strict=True)
+                                           if st == i], sel, cells, k, meta["better"])
+                        for i in sorted(set(starts))]
                 for j, vals in enumerate(([e[0] for e in each], [e[1][1] for e in each if e[1]])):
                     spans[j] = f"{_fmt(min(vals), fmt)}-{_fmt(max(vals), fmt)}"
             cells_txt += [_fmt(r.median, fmt),
@@ -514,21 +515,16 @@ def _median_and_worst(rows: list[dict[str, Any]], sel: dict[str, Any], cells: li
     return statistics.median([v for _, v in per]), worst
 
 
-def _start_of(rows: list[dict[str, Any]]) -> dict[int, int]:
-    """Each row's start (``id(row)`` -> index of the sweep's repeat it ran with): a cell over
-    seeds runs every seed at every start, ``repeat`` = start x seeds + seed's place."""
-    seeds: dict[tuple[str, str], int] = Counter()
-    for r in rows:
-        if r.get("seed") is not None:
-            seeds[(r["variation"], r.get("base", ""))] += 1
-    starts_of_cell = Counter((r["variation"], r.get("base", "")) for r in rows
-                             if r.get("seed") is None)
-    n_starts = max(starts_of_cell.values(), default=1)
-    out = {}
-    for r in rows:
-        n_seeds = max(1, seeds[(r["variation"], r.get("base", ""))] // n_starts)
-        out[id(r)] = int(r.get("repeat") or 0) // n_seeds
-    return out
+def _starts(rows: list[dict[str, Any]]) -> list[int]:
+    """Each row's start (the index of the sweep's repeat it ran with): a plain cell runs once
+    per start, a cell over seeds every seed at every start (``repeat`` = start x seeds + the
+    seed's place)."""
+    def cell(r):
+        return r["variation"], r.get("base", "")
+
+    runs = Counter(cell(r) for r in rows)
+    n_starts = max((runs[cell(r)] for r in rows if r.get("seed") is None), default=1)
+    return [int(r.get("repeat") or 0) // max(1, runs[cell(r)] // n_starts) for r in rows]
 
 
 def _renders_text(rows: list[dict[str, Any]], cells: list[str]) -> str:
