@@ -488,10 +488,11 @@ def _evaluation_section(m: Manifest, src: _Sources) -> list[str]:
             med, worst = _median_and_worst(rows, sel, cells, k, meta["better"])
             spans = ["", ""]
             if n_starts > 1 and worst:
-                each = [_median_and_worst([x for x, st in zip(rows, starts, strict=True)
-                                           if st == i], sel, cells, k, meta["better"])
-                        for i in sorted(set(starts))]
-                for j, vals in enumerate(([e[0] for e in each], [e[1][1] for e in each if e[1]])):
+                per_start = [_median_and_worst([x for x, st in zip(rows, starts, strict=True)
+                                                if st == i], sel, cells, k, meta["better"])
+                             for i in sorted(set(starts))]
+                for j, vals in enumerate(([e[0] for e in per_start],
+                                          [e[1][1] for e in per_start if e[1]])):
                     spans[j] = f"{_fmt(min(vals), fmt)}-{_fmt(max(vals), fmt)}"
             cells_txt += [_fmt(r.median, fmt),
                           _fmt(med, fmt) + (f" ({spans[0]})" if spans[0] else ""),
