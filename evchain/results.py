@@ -26,7 +26,6 @@ import json
 import math
 import statistics
 import time
-from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -460,7 +459,11 @@ def _evaluation_section(m: Manifest, src: _Sources) -> list[str]:
     keys = list(cfg.get("summary") or doc["report"])
     rows = doc["rows"]
     cells = [v for v in dict.fromkeys(r["variation"] for r in rows) if v != ref]
-    each = _renders_text(rows, cells)
+    starts = _starts(rows)
+    n_starts = len(set(starts))
+    by_start = [[r for r, st in zip(rows, starts, strict=True) if st == i]
+                for i in sorted(set(starts))]
+    each = _renders_text(rows, n_starts)
     out += [doc.get("description", ""), "",
             f"Sweep `{doc['file']}`: {len(cells)} cells, {each}; {doc['wall_s']:g} s wall on "
             f"{_machine_text(doc.get('machine'))}. Reproduce: `{doc['command']}`.", "",
@@ -469,8 +472,6 @@ def _evaluation_section(m: Manifest, src: _Sources) -> list[str]:
             "set, beside them; a metric a cell does not define, such as TTC without an "
             "obstacle, is left out of that cell).", ""]
     bases = list(dict.fromkeys(r.get("base", "") for r in rows))
-    starts = _starts(rows)
-    n_starts = len(set(starts))
     if n_starts > 1:
         out += [f"In brackets: the range of the same value over the {n_starts} starts (each "
                 "cell's runs of one start only; over seeds, their median), the run-to-run "
@@ -488,9 +489,8 @@ def _evaluation_section(m: Manifest, src: _Sources) -> list[str]:
             med, worst = _median_and_worst(rows, sel, cells, k, meta["better"])
             spans = ["", ""]
             if n_starts > 1 and worst:
-                per_start = [_median_and_worst([x for x, st in zip(rows, starts, strict=True)
-                                                if st == i], sel, cells, k, meta["better"])
-                             for i in sorted(set(starts))]
+                per_start = [_median_and_worst(these, sel, cells, k, meta["better"])
+                             for these in by_start]
                 for j, vals in enumerate(([e[0] for e in per_start],
                                           [e[1][1] for e in per_start if e[1]])):
                     spans[j] = f"{_fmt(min(vals), fmt)}-{_fmt(max(vals), fmt)}"
@@ -517,35 +517,27 @@ def _median_and_worst(rows: list[dict[str, Any]], sel: dict[str, Any], cells: li
 
 
 def _starts(rows: list[dict[str, Any]]) -> list[int]:
-    """Each row's start (the index of the sweep's repeat it ran with): a plain cell runs once
-    per start, a cell over seeds every seed at every start (``repeat`` = start x seeds + the
-    seed's place)."""
-    def cell(r):
-        return r["variation"], r.get("base", "")
+    """Each row's start: the index of the sweep's repeat it ran with. A cell over seeds runs
+    every seed at every start, its run ``repeat`` = start x seeds + the seed's place
+    (:meth:`evchain.sweep.SweepSpec.overrides`)."""
+    seeds: dict[tuple[str, str], set] = {}
+    for r in rows:
+        seeds.setdefault((r["variation"], r.get("base", "")), set()).add(r.get("seed"))
+    return [int(r.get("repeat") or 0) // len(seeds[(r["variation"], r.get("base", ""))])
+            for r in rows]
 
-    runs = Counter(cell(r) for r in rows)
-    n_starts = max((runs[cell(r)] for r in rows if r.get("seed") is None), default=1)
-    return [int(r.get("repeat") or 0) // max(1, runs[cell(r)] // n_starts) for r in rows]
 
-
-def _renders_text(rows: list[dict[str, Any]], cells: list[str]) -> str:
-    """How often each cell was rendered and replayed: once, or per repeat and seed (its value
-    then the median over them)."""
-    first = rows[0].get("base", "") if rows else ""
-    runs = Counter(r["variation"] for r in rows if r.get("base", "") == first)
+def _renders_text(rows: list[dict[str, Any]], n_starts: int) -> str:
+    """How often each cell was rendered and replayed: once per start, and once per seed and
+    start for a cell over seeds (its value then the median over its runs)."""
     seeded = _seeded_cells(rows)
-    plain = sorted({runs[c] for c in cells if c not in seeded})
-    per_seed = sorted({runs[c] for c in seeded})
-    if plain == [1] or not plain:
-        text = "each rendered once"
-    else:
-        text = "each rendered " + " or ".join(f"{n} times" for n in plain)
+    n_seeds = sorted({len({r.get("seed") for r in rows if r["variation"] == c}) for c in seeded})
+    text = "each rendered once" if n_starts == 1 else f"each rendered {n_starts} times"
     if seeded:
-        how = "once per seed" if plain == [1] or not plain else "once per seed and start"
-        text += (f" ({', '.join(seeded)}: {' or '.join(str(n) for n in per_seed)} times, "
-                 f"{how})")
+        text += (f" ({', '.join(seeded)}: {' or '.join(str(n * n_starts) for n in n_seeds)} "
+                 f"times, once per seed{' and start' if n_starts > 1 else ''})")
     text += " and replayed through both flows"
-    if max(runs.values(), default=1) > 1:
+    if n_starts > 1 or seeded:
         text += "; a cell's value is the median over its runs"
     return text
 
