@@ -216,9 +216,10 @@ def scaling(quick: bool) -> list[BenchRow]:
     rows = []
     for scene in ("bar", "sparse", "textured"):
         ns = {}
-        base_frames, _ = scene_frames(scene, n, W, H)
+        base_frames, base_times = scene_frames(scene, n, W, H)
         for width, height in SIZES:
-            frames, times = scene_frames(scene, n, width, height)
+            frames, times = (base_frames, base_times) if (width, height) == (W, H) \
+                else scene_frames(scene, n, width, height)
             cases = {f"{width}x{height}": frames}
             if (width, height) != (W, H):
                 cases[f"tiled_{width}x{height}"] = tiled(base_frames, width, height)
