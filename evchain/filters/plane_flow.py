@@ -108,12 +108,6 @@ class PlaneFlow(Filter):
             True, description="adaptive window: also refit with max_window_us when the fit "
                               "with window_us gives no estimate")
 
-        fit_times: Literal["events", "arrivals"] = Field(
-            "events", description="the times of the surface the planes are fitted to: each "
-                                  "onset's own time, or its edge's arrival at the pixel (the "
-                                  "start of the pixel's run of same-polarity events, as "
-                                  "t_edge), the event's plane centred at its own arrival")
-
         min_window_us: int = Field(
             0, ge=0, description="short window for fast edges (0: off; else shorter than "
                                  "window_us; needs no max_window_us): a first fit whose edge "
@@ -191,13 +185,11 @@ class PlaneFlow(Filter):
         vx = np.empty(n, np.float64)
         vy = np.empty(n, np.float64)
         k = 0
-        arrivals = self._arrivals.of(packet)
         if n:
-            fitted = arrivals if self.params.fit_times == "arrivals" else packet.t
-            k = plane_flow_kernel(packet.x, packet.y, packet.t, fitted, packet.p, self._state,
+            k = plane_flow_kernel(packet.x, packet.y, packet.t, packet.p, self._state,
                                   self._prm, idx, vx, vy)
         idx = idx[:k]
-        out = FlowPacket.from_events(packet, idx, vx[:k], vy[:k], arrivals)
+        out = FlowPacket.from_events(packet, idx, vx[:k], vy[:k], self._arrivals.of(packet))
         self._end = packet.t_end
         return out.with_series(DENSITY_SERIES, self._density.add(packet.t, packet.t[idx],
                                                                  packet.t_end))

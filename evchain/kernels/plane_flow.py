@@ -69,11 +69,10 @@ def new_state(width: int, height: int) -> np.ndarray:
 
     Returns
     -------
-    ts : int64 ndarray, shape (4, height, width)
-        Planes 0, 1: the fitted time (µs) per polarity (0 OFF, 1 ON) and pixel; planes 2, 3:
-        the latest event's time, for the refractory check; :data:`NO_EVENT` for none.
+    ts : int64 ndarray, shape (2, height, width)
+        Latest timestamp (µs) per polarity (0 OFF, 1 ON) and pixel, :data:`NO_EVENT` for none.
     """
-    return np.full((4, height, width), NO_EVENT, np.int64)
+    return np.full((2, height, width), NO_EVENT, np.int64)
 
 
 @njit(cache=True)
@@ -504,7 +503,7 @@ def _gather_mode(variant, r):
 
 
 @njit(cache=True, inline="always")
-def event_loop(x, y, t, te, p, ts, prm, out_idx, out_vx, out_vy, adaptive, gather):
+def event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, adaptive, gather):
     """The loop of :func:`plane_flow_kernel`: the speed-adaptive window's refits with
     ``adaptive``, the fits' gather ``gather`` (:func:`_gather_mode`). Inlined into the kernels
     with both constant, so that each copy of the loop compiles only its own gather and fits
@@ -538,12 +537,11 @@ def event_loop(x, y, t, te, p, ts, prm, out_idx, out_vx, out_vy, adaptive, gathe
     for i in range(len(x)):
         xi = np.int64(x[i])
         yi = np.int64(y[i])
+        ti = t[i]
         pi = 1 if p[i] > 0 else 0
-        prev = ts[2 + pi, yi, xi]
-        refractory = prev != NO_EVENT and t[i] - prev < prm.refractory_us
-        ti = te[i]  # the time fitted: the event's own, or its edge's arrival at the pixel
+        prev = ts[pi, yi, xi]
+        refractory = prev != NO_EVENT and ti - prev < prm.refractory_us
         if not refractory or prm.refractory_updates:
-            ts[2 + pi, yi, xi] = t[i]
             ts[pi, yi, xi] = ti
         if refractory or not _gets_flow(xi, yi, width, height, prm.margin, r, variant):
             continue
@@ -615,19 +613,19 @@ def event_loop(x, y, t, te, p, ts, prm, out_idx, out_vx, out_vy, adaptive, gathe
 
 
 @njit(cache=True, nogil=True)
-def plane_flow_adaptive_kernel(x, y, t, te, p, ts, prm, out_idx, out_vx, out_vy):
+def plane_flow_adaptive_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy):
     """:func:`plane_flow_kernel` with the speed-adaptive window (the loop with the refits); the
     same arguments and result."""
     gather = _gather_mode(prm.variant, prm.r)
     if gather == MASKS:
-        return event_loop(x, y, t, te, p, ts, prm, out_idx, out_vx, out_vy, True, MASKS)
+        return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, True, MASKS)
     if gather == WINDOW:
-        return event_loop(x, y, t, te, p, ts, prm, out_idx, out_vx, out_vy, True, WINDOW)
-    return event_loop(x, y, t, te, p, ts, prm, out_idx, out_vx, out_vy, True, POINTS)
+        return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, True, WINDOW)
+    return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, True, POINTS)
 
 
 @njit(cache=True, nogil=True)
-def plane_flow_kernel(x, y, t, te, p, ts, prm, out_idx, out_vx, out_vy):
+def plane_flow_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy):
     """Process events in order, updating ``ts`` in place; returns the number of flow events.
 
     ``prm.min_spread`` (px): the neighbours' positions must spread at least this much (standard
@@ -660,9 +658,6 @@ def plane_flow_kernel(x, y, t, te, p, ts, prm, out_idx, out_vx, out_vy):
         Pixel coordinates of the events, in time order.
     t : int64 ndarray, shape (n,)
         Timestamps, µs, non-decreasing.
-    te : int64 ndarray, shape (n,)
-        The times the fits use: ``t``, or each event's edge arrival (the start of its pixel's
-        run, :mod:`evchain.core.edge_arrival`); the refractory check uses ``t``.
     p : int8 ndarray, shape (n,)
         Polarities (> 0: ON).
     ts : int64 ndarray, shape (2, H, W)
@@ -681,10 +676,10 @@ def plane_flow_kernel(x, y, t, te, p, ts, prm, out_idx, out_vx, out_vy):
     """
     if (prm.max_window_us > prm.window_us or 0 < prm.min_window_us < prm.window_us) \
             and prm.variant != ORIGINAL:
-        return plane_flow_adaptive_kernel(x, y, t, te, p, ts, prm, out_idx, out_vx, out_vy)
+        return plane_flow_adaptive_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy)
     gather = _gather_mode(prm.variant, prm.r)
     if gather == MASKS:
-        return event_loop(x, y, t, te, p, ts, prm, out_idx, out_vx, out_vy, False, MASKS)
+        return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, False, MASKS)
     if gather == WINDOW:
-        return event_loop(x, y, t, te, p, ts, prm, out_idx, out_vx, out_vy, False, WINDOW)
-    return event_loop(x, y, t, te, p, ts, prm, out_idx, out_vx, out_vy, False, POINTS)
+        return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, False, WINDOW)
+    return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, False, POINTS)

@@ -39,9 +39,8 @@ def run_kernel(x, y, t, p, width, height, **kw):
     margin = q["r"] if q["margin"] is None else q["margin"]
     prm = record(PlaneParams, **{**{k: v for k, v in q.items() if k in PlaneParams._fields},
                                  "variant": VARIANTS[q["variant"]], "margin": margin})
-    t = np.asarray(t, np.int64)
-    k = plane_flow_kernel(np.asarray(x, np.uint16), np.asarray(y, np.uint16), t, t,
-                          np.asarray(p, np.int8), ts, prm, idx, vx, vy)
+    k = plane_flow_kernel(np.asarray(x, np.uint16), np.asarray(y, np.uint16),
+                          np.asarray(t, np.int64), np.asarray(p, np.int8), ts, prm, idx, vx, vy)
     return idx[:k], vx[:k], vy[:k]
 
 
@@ -404,7 +403,7 @@ def test_adaptive_loop_without_refits_equals_fixed_loop(variant, r):
     the adaptive copy gives exactly the fixed copy's flow and surface."""
     g = Geometry(24, 20)
     ev = random_events(3000, g, 0, 400_000, seed=5)
-    args = (ev.x, ev.y, ev.t, ev.t, ev.p)
+    args = (ev.x, ev.y, ev.t, ev.p)
     prm = record(PlaneParams, variant=VARIANTS[variant], r=r, window_us=20_000,
                  refractory_us=3000, margin=r, min_points=3, th1=1e-5, th2=0.01, max_speed=1e4,
                  max_iter=10, min_spread=0.3, centre_check=True, max_window_us=20_000,
