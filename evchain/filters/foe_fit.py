@@ -255,27 +255,24 @@ class FoeFit(Filter):
             if imu is not None:
                 self._gyro.append(imu["t"], np.stack([imu["gx"], imu["gy"], imu["gz"]], 1))
             self._gyro.trim(packet.t_start - int(3 * tau_us) - 2 * period)
-        vx, vy = packet.vx.astype(np.float64), packet.vy.astype(np.float64)
-        s = np.hypot(vx, vy)
-        ok = s > 0
-        if ok.all():  # the flow stages emit moving events only: no copies
-            ok = slice(None)
         if packet.t_end - self._tref > 4 * tau_us:  # keep e within exp(+-4) for the window
             tref = packet.t_end - int(2 * tau_us)
             v = self._buf["e"][self._lo:self._hi]
             v *= math.exp(-(tref - self._tref) / tau_us)
             self._tref = tref
-        x, y = packet.x[ok].astype(np.float64), packet.y[ok].astype(np.float64)
-        nx, ny = vx[ok] / s[ok], vy[ok] / s[ok]
-        g = self._geometry
-        if self._rotation:
-            c0, c1, c2 = k.rotation_coefficients(x, y, nx, ny, g.f, g.cx, g.cy)
-        else:
-            c0 = c1 = c2 = np.zeros(len(x))
-        new = {"x": x, "y": y, "nx": nx, "ny": ny, "s": s[ok],
-               "e": np.exp((packet.t[ok] - self._tref) / tau_us), "c0": c0, "c1": c1,
-               "c2": c2}
-        self._append(new, packet.t[ok], packet.t_start - int(3 * tau_us))
+        # the new events' columns, written straight into the buffer after its live events
+        n = len(packet)
+        hi = self._reserve(n, packet.t_start - int(3 * tau_us))
+        b, g = self._buf, self._geometry
+        f, cx, cy = (g.f, g.cx, g.cy) if self._rotation else (1.0, 0.0, 0.0)  # (f may be None)
+        keep = np.empty(n, np.bool_)
+        m = k.flow_columns(packet.x, packet.y, packet.vx, packet.vy, f, cx, cy, self._rotation,
+                           b["x"][hi:], b["y"][hi:], b["nx"][hi:], b["ny"][hi:], b["s"][hi:],
+                           b["c0"][hi:], b["c1"][hi:], b["c2"][hi:], keep)
+        t_new = packet.t if m == n else packet.t[keep]  # the flow stages emit moving events
+        np.exp((t_new - self._tref) / tau_us, out=b["e"][hi:hi + m])
+        self._t[hi:hi + m] = t_new
+        self._hi = hi + m
         if self._next is None:
             self._next = -(-packet.t_start // period) * period
         rows = []
@@ -300,11 +297,12 @@ class FoeFit(Filter):
         series["foe"] = out
         return packet.replace(series=series)
 
-    def _append(self, new: dict, t_new: np.ndarray, t_keep: int) -> None:
-        """Drop events before ``t_keep`` and append the new ones; the arrays grow by doubling and
-        are compacted only when full (amortised O(1) per event), in place while the live ones
-        and the new ones fill at most half (fresh arrays would cost page faults every time)."""
-        lo, hi, m = self._lo, self._hi, len(t_new)
+    def _reserve(self, m: int, t_keep: int) -> int:
+        """Drop events before ``t_keep`` and make room for ``m`` more after the live ones;
+        returns where they go (the live events end there). The arrays grow by doubling and are
+        compacted only when full (amortised O(1) per event), in place while the live ones and
+        the new ones fill at most half (fresh arrays would cost page faults every time)."""
+        lo, hi = self._lo, self._hi
         lo += int(np.searchsorted(self._t[lo:hi], t_keep))
         if hi + m > len(self._t):
             n = hi - lo
@@ -321,10 +319,8 @@ class FoeFit(Filter):
                 tt[:n] = self._t[lo:hi]
                 self._t = tt
             lo, hi = 0, n
-        for c, v in self._buf.items():
-            v[hi:hi + m] = new[c]
-        self._t[hi:hi + m] = t_new
-        self._lo, self._hi = lo, hi + m
+        self._lo, self._hi = lo, hi
+        return hi
 
     def _index(self, t_us: int) -> int:
         """The first live event at or after ``t_us``."""
@@ -452,9 +448,11 @@ class FoeFit(Filter):
         memory = self.params.heading_memory_s * 1e6
         if not self._road or self._road[-1][0] - self._road[0][0] < 0.9 * memory:
             return None
-        y = _median([r[1] for r in self._road])
         a0 = _median([r[2] for r in self._road])
-        if th[k.ROAD] < self.params.min_road_scale_ratio * a0 and th[k.FOE_Y] < y:
+        if not th[k.ROAD] < self.params.min_road_scale_ratio * a0:  # the row's median unneeded
+            return None
+        y = _median([r[1] for r in self._road])
+        if th[k.FOE_Y] < y:
             self._road_held = (y, a0)
         return self._road_held
 

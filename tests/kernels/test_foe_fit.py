@@ -654,3 +654,56 @@ def test_facade_bands_without_facade_events():
     err, th = _column_error(street, 6, keep=road_only)
     assert np.all(th[5:] == 1.0)
     assert np.array_equal(th[:5], th0, equal_nan=True)
+
+
+def _columns_numpy(x, y, vx, vy, rotation):
+    """The numpy expressions flow_columns replaces: the moving events' columns."""
+    vx, vy = vx.astype(np.float64), vy.astype(np.float64)
+    s = np.hypot(vx, vy)
+    ok = s > 0
+    xf, yf = x[ok].astype(np.float64), y[ok].astype(np.float64)
+    nx, ny = vx[ok] / s[ok], vy[ok] / s[ok]
+    if rotation:
+        c = k.rotation_coefficients(xf, yf, nx, ny, F, CX, CY)
+    else:
+        c = (np.zeros(len(xf)),) * 3
+    return ok, (xf, yf, nx, ny, s[ok], *c)
+
+
+def _columns_kernel(x, y, vx, vy, rotation):
+    n = len(x)
+    out = [np.full(n + 3, -7.0) for _ in range(8)]  # room to spare: nothing written past m
+    keep = np.empty(n, np.bool_)
+    m = k.flow_columns(x, y, vx, vy, F, CX, CY, rotation, *out, keep)
+    assert all((o[m:] == -7.0).all() for o in out)
+    return keep, tuple(o[:m] for o in out)
+
+
+@pytest.mark.parametrize("rotation", [True, False])
+@pytest.mark.parametrize("case", ["random", "hard", "empty"])
+def test_flow_columns_equal_the_numpy_expressions_bit_for_bit(case, rotation):
+    """The filter's per-packet columns from the kernel equal those of the numpy expressions
+    (np.hypot, divisions, rotation_coefficients) to the last bit, zero speeds left out."""
+    rng = np.random.default_rng(11)
+    n = {"random": 20_000, "hard": 12, "empty": 0}[case]
+    x = rng.integers(0, 320, n).astype(np.uint16)
+    y = rng.integers(0, 240, n).astype(np.uint16)
+    vx = rng.normal(0, 50, n).astype(np.float32)
+    vy = rng.normal(0, 50, n).astype(np.float32)
+    if case == "random":
+        vx[::7] = 0.0
+        vy[::7] = 0.0      # not moving: left out
+        vy[1::11] = 0.0    # edges along the axes
+        vx[2::13] = 0.0
+        vx[3::17] *= 1e-30  # tiny and huge speeds
+        vy[4::19] *= 1e30
+    if case == "hard":
+        vx[:] = [0, 0, 1e-45, -1e-45, 3e38, -3e38, 1, 0, -2, 5e-3, 0, 7]
+        vy[:] = [0, 1e-45, 0, 3e38, 3e38, 0, 0, -1, 0, 5e-3, 0, -7]
+        x[:] = [0, 319, 0, 319, 160, 0, 5, 6, 7, 8, 9, 10]
+        y[:] = [0, 239, 239, 0, 120, 1, 2, 3, 4, 5, 6, 7]
+    keep_ref, ref = _columns_numpy(x, y, vx, vy, rotation)
+    keep, got = _columns_kernel(x, y, vx, vy, rotation)
+    np.testing.assert_array_equal(keep, keep_ref)
+    for a, b in zip(got, ref, strict=True):
+        assert a.tobytes() == np.asarray(b, np.float64).tobytes()
