@@ -108,13 +108,6 @@ class PlaneFlow(Filter):
             True, description="adaptive window: also refit with max_window_us when the fit "
                               "with window_us gives no estimate")
 
-        previous_onset: bool = Field(
-            False, description="a pixel's onset before its latest stands for it in a fit "
-                                "while both lie in the window (LK's oldest event in the "
-                                "window): a slow edge's second onset at a pixel (a rendered "
-                                "edge steps over its sub-samples) is fitted with the row's "
-                                "first ones. Only windows longer than refractory_us differ")
-
         min_window_us: int = Field(
             0, ge=0, description="short window for fast edges (0: off; else shorter than "
                                  "window_us; needs no max_window_us): a first fit whose edge "
@@ -161,7 +154,7 @@ class PlaneFlow(Filter):
             max_iter=q.max_iterations, min_spread=q.min_spread_px, centre_check=q.centre_check,
             max_window_us=longest, slow_px=q.slow_px, refit_failed=q.refit_failed,
             refractory_updates=q.refractory_updates, min_window_us=q.min_window_us,
-            fast_px=q.fast_px, previous_onset=q.previous_onset)
+            fast_px=q.fast_px)
 
     def reset(self) -> None:
         g = self.context.geometry

@@ -62,7 +62,6 @@ class PlaneParams(NamedTuple):
     refractory_updates: bool  #: a refractory event still updates the surface (jAER)
     min_window_us: int        #: shorter windows for fast edges down to this, µs (0: off)
     fast_px: float            #: short window: refit an edge that moved more than this, px
-    previous_onset: bool      #: a pixel's previous onset stands for it while in the window
 
 
 def new_state(width: int, height: int) -> np.ndarray:
@@ -70,11 +69,10 @@ def new_state(width: int, height: int) -> np.ndarray:
 
     Returns
     -------
-    ts : int64 ndarray, shape (4, height, width)
-        Planes 0, 1: the latest onset (µs) per polarity (0 OFF, 1 ON) and pixel; planes 2, 3:
-        the onset before it; :data:`NO_EVENT` for none.
+    ts : int64 ndarray, shape (2, height, width)
+        Latest timestamp (µs) per polarity (0 OFF, 1 ON) and pixel, :data:`NO_EVENT` for none.
     """
-    return np.full((4, height, width), NO_EVENT, np.int64)
+    return np.full((2, height, width), NO_EVENT, np.int64)
 
 
 @njit(cache=True)
@@ -348,20 +346,7 @@ def _window_moments(wv, size, r, spread2):
 
 
 @njit(cache=True, inline="always")
-def _onset(ts, pi, yy, xx, now, w, previous_onset):
-    """The pixel's time in a window of ``w`` ending at ``now``: its latest onset, or with
-    ``previous_onset`` the onset before it where that lies in the window too."""
-    v = ts[pi, yy, xx]
-    if previous_onset:
-        vp = ts[2 + pi, yy, xx]
-        if now - vp <= w:
-            v = vp
-    return v
-
-
-@njit(cache=True, inline="always")
-def _gather_masks(ts, pi, xi, yi, now, ti, w, r, wt, rowmask, colmask, popcount, bitsum, spread2,
-                  po):
+def _gather_masks(ts, pi, xi, yi, ti, w, r, wt, rowmask, colmask, popcount, bitsum, spread2):
     """Savitzky-Golay with the mask tables: the window's times ``wt`` (µs before the event) and
     validity masks per row and column. Returns (n, st, sx, sy, sxx, syy, sxy): the number of
     valid pixels, the sum of their times (µs, <= 0) and of their offsets and (only with
@@ -376,11 +361,10 @@ def _gather_masks(ts, pi, xi, yi, now, ti, w, r, wt, rowmask, colmask, popcount,
         k0 = (dy + r) * size + r
         rm = 0
         for dx in range(-r, r + 1):
-            v = _onset(ts, pi, yi + dy, xi + dx, now, w, po) if po else row[xi + dx]
-            age = ti - v
+            age = ti - row[xi + dx]
             # invalid times stay in wt: the tables give them weight 0
             wt[k0 + dx] = -age
-            valid = np.int64(now - v <= w)  # branch-free: validity is unpredictable
+            valid = np.int64(age <= w)  # branch-free: validity is unpredictable
             st -= age * valid
             rm |= valid << (dx + r)
         rowmask[dy + r] = rm
@@ -397,7 +381,7 @@ def _gather_masks(ts, pi, xi, yi, now, ti, w, r, wt, rowmask, colmask, popcount,
 
 
 @njit(cache=True, inline="always")
-def _gather_window(ts, pi, xi, yi, now, ti, w, r, wt, wv, spread2, po):
+def _gather_window(ts, pi, xi, yi, ti, w, r, wt, wv, spread2):
     """Savitzky-Golay on a window too wide for the tables: its times ``wt`` (µs before the
     event, 0 where invalid) and validity ``wv``; returns as :func:`_gather_masks`."""
     size = 2 * r + 1
@@ -409,9 +393,8 @@ def _gather_window(ts, pi, xi, yi, now, ti, w, r, wt, wv, spread2, po):
         row = ts[pi, yi + dy]
         k0 = (dy + r) * size + r
         for dx in range(-r, r + 1):
-            v = _onset(ts, pi, yi + dy, xi + dx, now, w, po) if po else row[xi + dx]
-            age = ti - v
-            valid = 1 if now - v <= w else 0
+            age = ti - row[xi + dx]
+            valid = 1 if age <= w else 0
             wv[k0 + dx] = valid
             wt[k0 + dx] = -age * valid
             st -= age * valid
@@ -423,7 +406,7 @@ def _gather_window(ts, pi, xi, yi, now, ti, w, r, wt, wv, spread2, po):
 
 
 @njit(cache=True, inline="always")
-def _gather_points(ts, pi, xi, yi, now, ti, w, r, X, Y, T, use, po):
+def _gather_points(ts, pi, xi, yi, ti, w, r, X, Y, T, use):
     """The valid neighbours as points (the event itself included; branch-free): the first n
     entries of ``X``, ``Y`` (px), ``T`` (s, <= 0). Returns as :func:`_gather_masks` (st 0)."""
     height = ts.shape[1]
@@ -443,9 +426,8 @@ def _gather_points(ts, pi, xi, yi, now, ti, w, r, X, Y, T, use, po):
             xx = xi + dx
             if xx < 0 or xx >= width:
                 continue
-            v = _onset(ts, pi, yy, xx, now, w, po) if po else row[xx]
-            age = ti - v
-            valid = 1 if now - v <= w else 0
+            age = ti - row[xx]
+            valid = 1 if age <= w else 0
             X[n] = dx
             Y[n] = dy
             T[n] = -age * 1e-6
@@ -560,7 +542,6 @@ def event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, adaptive, gather):
         prev = ts[pi, yi, xi]
         refractory = prev != NO_EVENT and ti - prev < prm.refractory_us
         if not refractory or prm.refractory_updates:
-            ts[2 + pi, yi, xi] = prev
             ts[pi, yi, xi] = ti
         if refractory or not _gets_flow(xi, yi, width, height, prm.margin, r, variant):
             continue
@@ -584,19 +565,16 @@ def event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, adaptive, gather):
                     break
                 w = w_new
                 lim = prm.th2 * w / prm.window_us
-            # the times are fitted relative to the event's own pixel's time in the window
-            tc = _onset(ts, pi, yi, xi, ti, w, prm.previous_onset)
-            po = prm.previous_onset
             if gather == MASKS:
-                n, st, sx, sy, sxx, syy, sxy = _gather_masks(ts, pi, xi, yi, ti, tc, w, r,
-                                                             wt, rowmask, colmask, popcount,
-                                                             bitsum, spread2, po)
+                n, st, sx, sy, sxx, syy, sxy = _gather_masks(ts, pi, xi, yi, ti, w, r, wt,
+                                                             rowmask, colmask, popcount,
+                                                             bitsum, spread2)
             elif gather == WINDOW:
-                n, st, sx, sy, sxx, syy, sxy = _gather_window(ts, pi, xi, yi, ti, tc, w, r, wt,
-                                                              wv, spread2, po)
+                n, st, sx, sy, sxx, syy, sxy = _gather_window(ts, pi, xi, yi, ti, w, r, wt, wv,
+                                                              spread2)
             else:
-                n, st, sx, sy, sxx, syy, sxy = _gather_points(ts, pi, xi, yi, ti, tc, w, r, X, Y,
-                                                              T, use, po)
+                n, st, sx, sy, sxx, syy, sxy = _gather_points(ts, pi, xi, yi, ti, w, r, X, Y, T,
+                                                              use)
             ok = False
             if n < prm.min_points or n < 3:
                 continue

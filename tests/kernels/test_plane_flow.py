@@ -27,8 +27,7 @@ from tests.naive.plane_flow import plane_flow_naive
 DEFAULTS = dict(variant="single", r=2, window_us=80_000, refractory_us=0, margin=None,
                 min_points=3, th1=1e-5, th2=0.01, max_speed=1e4, max_iter=10,
                 min_spread=0.0, centre_check=False, max_window_us=0, slow_px=2.0,
-                refit_failed=True, refractory_updates=True, min_window_us=0, fast_px=4.0,
-                previous_onset=False)
+                refit_failed=True, refractory_updates=True, min_window_us=0, fast_px=4.0)
 FITTING = ("single", "iterative", "robust", "savitzky_golay")
 
 
@@ -52,7 +51,7 @@ def run_naive(x, y, t, p, width, height, **kw):
                             q["max_speed"], q["max_iter"], q["min_spread"],
                             q["centre_check"], q["max_window_us"], q["slow_px"],
                             q["refit_failed"], q["refractory_updates"], q["min_window_us"],
-                            q["fast_px"], q["previous_onset"])
+                            q["fast_px"])
 
 
 def assert_same(ev, width, height, **kw):
@@ -409,7 +408,7 @@ def test_adaptive_loop_without_refits_equals_fixed_loop(variant, r):
                  refractory_us=3000, margin=r, min_points=3, th1=1e-5, th2=0.01, max_speed=1e4,
                  max_iter=10, min_spread=0.3, centre_check=True, max_window_us=20_000,
                  slow_px=2.0, refit_failed=False, refractory_updates=True, min_window_us=0,
-                 fast_px=4.0, previous_onset=False)
+                 fast_px=4.0)
     out = []
     for kernel in (plane_flow_kernel, plane_flow_adaptive_kernel):
         ts = new_state(g.width, g.height)
@@ -427,69 +426,18 @@ def test_adaptive_loop_without_refits_equals_fixed_loop(variant, r):
        max_window_us=st.integers(0, 400_000), slow_px=st.sampled_from([0.5, 2.0, 3.0, 6.0]),
        refit_failed=st.booleans(), refractory_us=st.integers(0, 40_000),
        refractory_updates=st.booleans(), th2=st.sampled_from([1e-3, 1e-2, 5e-2]),
-       centre_check=st.booleans(), previous_onset=st.booleans())
+       centre_check=st.booleans())
 def test_adaptive_window_random_parameters_match_reference(seed, variant, r, window_us,
                                                            max_window_us, slow_px,
                                                            refit_failed, refractory_us,
                                                            refractory_updates, th2,
-                                                           centre_check, previous_onset):
+                                                           centre_check):
     g = Geometry(16, 14)
     ev = random_events(500, g, 0, 300_000, seed=seed)
     assert_same(ev, g.width, g.height, variant=variant, r=r, window_us=window_us,
                 max_window_us=max_window_us, slow_px=slow_px, refit_failed=refit_failed,
                 refractory_us=refractory_us, refractory_updates=refractory_updates, th2=th2,
-                max_speed=200.0, centre_check=centre_check, previous_onset=previous_onset)
-
-
-@pytest.mark.parametrize("variant", FITTING)
-@pytest.mark.parametrize("refractory_updates", [False, True])
-def test_previous_onset_random_stream_matches_reference(variant, refractory_updates):
-    """Windows longer than the refractory period, where a pixel's previous onset can lie in
-    the window: kernel and reference agree, and the option changes the output."""
-    g = Geometry(24, 20)
-    ev = random_events(2500, g, 0, 2_000_000, seed=8)
-    kw = dict(variant=variant, refractory_us=20_000, window_us=30_000, max_window_us=300_000,
-              slow_px=2.0, th2=0.02, max_speed=1e4, centre_check=True,
-              refractory_updates=refractory_updates)
-    on = assert_same(ev, g.width, g.height, previous_onset=True, **kw)
-    off = run_kernel(ev.x, ev.y, ev.t, ev.p, g.width, g.height, previous_onset=False, **kw)
-    assert len(on[0]) > 20
-    assert not (len(on[0]) == len(off[0]) and np.array_equal(on[0], off[0])
-                and np.array_equal(on[1], off[1]))
-
-
-def test_previous_onset_fits_a_rows_second_step_with_its_first():
-    """A horizontal edge moving down 2 px/s crosses a row every 0.5 s; each row fires twice,
-    0.3 s apart (two sub-samples). The second firing is a new onset (refractory 0.2 s). With a
-    1 s window its own row holds first and second onsets, and so does the row above:
-    the latest onsets give the event a plane through the wrong times (the centre check drops
-    it); the previous onsets put every pixel of the row at its first step, and the event gets
-    the edge's velocity."""
-    xs = np.arange(2, 9)
-    x, y, t = [], [], []
-    for row, t0 in ((3, 0), (4, 500_000)):  # the edge reaches row 3 at 0, row 4 at 0.5 s
-        for dt in (0, 300_000):
-            for xx in xs:
-                x.append(xx)
-                y.append(row)
-                t.append(t0 + dt + int(xx))  # the row's pixels within a few µs
-    order = np.argsort(t, kind="stable")
-    x, y, t = (np.asarray(a)[order] for a in (x, y, t))
-    p = np.ones(len(t))
-    kw = dict(variant="savitzky_golay", r=1, window_us=80_000, max_window_us=1_000_000,
-              slow_px=1.0, refractory_us=200_000, refractory_updates=False, th2=0.004,
-              centre_check=True, max_speed=1e4)
-    last = int(np.flatnonzero((y == 4) & (x == 5))[-1])  # row 4's second step, mid-row
-    for previous_onset in (False, True):
-        idx, vx, vy = run_kernel(x, y, t, p, 11, 8, previous_onset=previous_onset, **kw)
-        ref = run_naive(x, y, t, p, 11, 8, previous_onset=previous_onset, **kw)
-        np.testing.assert_array_equal(idx, ref[0])
-        got = dict(zip(idx.tolist(), zip(vx.tolist(), vy.tolist(), strict=True), strict=True))
-        if previous_onset:
-            assert last in got
-            assert abs(got[last][0]) < 0.1 and got[last][1] == pytest.approx(2.0, rel=0.01)
-        else:
-            assert last not in got
+                max_speed=200.0, centre_check=centre_check)
 
 
 @pytest.mark.parametrize("variant", FITTING)

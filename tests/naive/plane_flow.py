@@ -99,23 +99,14 @@ def _sg(win, valid):
 
 
 def _estimate(ts, xi, yi, ti, pi, width, height, variant, r, window_us, min_points, th1,
-              th2, max_iter, min_spread, centre_check, before=None):
-    """One event's fit: (a, b) = gradient (s/px), or (vx, vy) for ``original``; None if none.
-    ``before``: the pixels' onsets before their latest, which stand for them while in the
-    window; the times are then fitted relative to the event's own pixel's time."""
-    before = {} if before is None else before
-
-    def onset(key):
-        tt, tp = ts.get(key), before.get(key)
-        return tp if tp is not None and ti - tp <= window_us else tt
-
-    tc = onset((pi, xi, yi))
+              th2, max_iter, min_spread, centre_check):
+    """One event's fit: (a, b) = gradient (s/px), or (vx, vy) for ``original``; None if none."""
     pts = []
     for yy in range(yi - r, yi + r + 1):
         for xx in range(xi - r, xi + r + 1):
-            tt = onset((pi, xx, yy))
+            tt = ts.get((pi, xx, yy))
             if tt is not None and ti - tt <= window_us:
-                pts.append((xx - xi, yy - yi, (tt - tc) * 1e-6))
+                pts.append((xx - xi, yy - yi, (tt - ti) * 1e-6))
     if len(pts) < max(min_points, 3):
         return None
     if min_spread > 0 and not _spread_at_least([q[:2] for q in pts], min_spread):
@@ -124,7 +115,7 @@ def _estimate(ts, xi, yi, ti, pi, width, height, variant, r, window_us, min_poin
         win = np.zeros((2 * r + 1, 2 * r + 1))
         valid = np.zeros_like(win, bool)
         for (dx, dy, dt) in pts:
-            win[dy + r, dx + r] = tc + round(dt * 1e6)
+            win[dy + r, dx + r] = ti + round(dt * 1e6)
             valid[dy + r, dx + r] = True
         g = _sg(win, valid)
         if g is None:
@@ -163,8 +154,7 @@ def plane_flow_naive(x, y, t, p, width, height, variant="single", r=2, window_us
                      refractory_us=0, margin=None, min_points=3, th1=1e-5, th2=0.01,
                      max_speed=1000.0, max_iter=10, min_spread=0.0,
                      centre_check=False, max_window_us=0, slow_px=2.0, refit_failed=True,
-                     refractory_updates=True, min_window_us=0, fast_px=4.0,
-                     previous_onset=False):
+                     refractory_updates=True, min_window_us=0, fast_px=4.0):
     """Returns (index, vx, vy) lists of the events that got flow.
 
     Adaptive window (``max_window_us`` > ``window_us``, not ``original``): while the fit says
@@ -175,25 +165,18 @@ def plane_flow_naive(x, y, t, p, width, height, variant="single", r=2, window_us
     surface either. Short window (0 < ``min_window_us`` < ``window_us``, not ``original``): a
     first fit whose edge moved more than ``fast_px`` px within ``window_us`` is redone with
     max(min_window_us, fast_px |g|) instead of any longer refit; it replaces the first fit
-    when it succeeds. ``previous_onset``: a pixel's onset before its latest stands for it in
-    a fit while it lies in the window, and the times are fitted relative to the event's own
-    pixel's time (its previous onset, when that is in the window).
+    when it succeeds.
     """
     margin = r if margin is None else margin
     ts = {}
-    before = {} if previous_onset else None  # the onset before the latest, per pixel
     idx, vxs, vys = [], [], []
     for i in range(len(x)):
         xi, yi, ti, pi = int(x[i]), int(y[i]), int(t[i]), 1 if p[i] > 0 else 0
         prev = ts.get((pi, xi, yi))
         if prev is not None and ti - prev < refractory_us:
             if refractory_updates:  # jAER: the memory still updates
-                if before is not None:
-                    before[(pi, xi, yi)] = prev
                 ts[(pi, xi, yi)] = ti
             continue
-        if before is not None and prev is not None:
-            before[(pi, xi, yi)] = prev
         ts[(pi, xi, yi)] = ti
         if xi < margin or yi < margin or xi >= width - margin or yi >= height - margin:
             continue
@@ -202,7 +185,7 @@ def plane_flow_naive(x, y, t, p, width, height, variant="single", r=2, window_us
             continue
         args = (ts, xi, yi, ti, pi, width, height, variant, r)
         rest = (min_points, th1)
-        tail = (max_iter, min_spread, centre_check, before)
+        tail = (max_iter, min_spread, centre_check)
         est = _estimate(*args, window_us, *rest, th2, *tail)
         shrunk = False
         if 0 < min_window_us < window_us and variant != "original" and est is not None:
