@@ -39,7 +39,10 @@ class PlaneFlow(Filter):
     with the shorter window in which it moves ``fast_px`` (at least ``min_window_us``), so that
     older edges that crossed the neighbourhood leave the fit. Degenerate fits
     (collinear or too few points, flat surfaces) are skipped, never NaN. Appends the series
-    ``flow_density`` (t, n_in, n_out per 100 ms bin). Times and speeds left null follow the
+    ``flow_density`` (t, n_in, n_out per 100 ms bin). Reports ``metrics.plane_flow``: the
+    events, the flow events and, for the rest, why they got none (``no_flow``: refractory,
+    border, too few neighbours, too narrow, no plane, centre check, too fast; the last fit's
+    reason where the window adapted). Times and speeds left null follow the
     camera (their reference camera values scaled by ``camera_scale``: an image speed in px/s
     grows with the focal length, so the time in which an edge crosses so many pixels
     shrinks); lengths on the pixel grid do not.
@@ -164,6 +167,7 @@ class PlaneFlow(Filter):
         self._density = DensityCounter(DENSITY_BIN_US)
         self._end = None
         self._geometry = g
+        self._why = np.zeros(8, np.int64)  # the kernel's counts: why no flow, then flow
 
     def _new_state(self, g: Geometry) -> None:
         """The surface, the pixels' runs (``t_edge``) and the kernel's constants for ``g``."""
@@ -187,7 +191,7 @@ class PlaneFlow(Filter):
         k = 0
         if n:
             k = plane_flow_kernel(packet.x, packet.y, packet.t, packet.p, self._state,
-                                  self._prm, idx, vx, vy)
+                                  self._prm, idx, vx, vy, self._why)
         idx = idx[:k]
         out = FlowPacket.from_events(packet, idx, vx[:k], vy[:k], self._arrivals.of(packet))
         self._end = packet.t_end
@@ -195,6 +199,12 @@ class PlaneFlow(Filter):
                                                                  packet.t_end))
 
     def flush(self) -> FlowPacket | None:
+        from evchain.kernels.plane_flow import WHY_NO_FLOW
+
+        counts = self._why.tolist()
+        self.context.metrics[self.metrics_key("plane_flow")] = {
+            "events": sum(counts), "flow_events": counts[-1],
+            "no_flow": dict(zip(WHY_NO_FLOW, counts[:-1], strict=True))}
         if self._end is None:
             return None
         return FlowPacket.empty(self._geometry, self._end, self._end).with_series(

@@ -40,6 +40,14 @@ VARIANTS = {"single": SINGLE, "iterative": ITERATIVE, "robust": ROBUST, "origina
 # offsets a non-collinear set has at least 1 / (n^2 r^4) (~5e-6 for r = 3): well above.
 COLLINEAR_EPS = 1e-9
 
+#: why an event got no flow (indices of the kernel's ``counts``; the last counts the flow
+#: events): within the refractory period, at the border, fewer neighbours than needed, the
+#: neighbours too narrow (``min_spread``), no plane (degenerate or failed fit), the plane
+#: misses the event (centre check), faster than the speed ceiling (a flat plane included)
+WHY_NO_FLOW = ("refractory", "border", "too_few_neighbours", "too_narrow", "no_plane",
+               "centre_check", "too_fast")
+REFRACTORY, BORDER, TOO_FEW, TOO_NARROW, NO_PLANE, CENTRE, TOO_FAST, FLOW = range(8)
+
 
 class PlaneParams(NamedTuple):
     """Constants of :func:`plane_flow_kernel`; built by ``records.record``."""
@@ -503,7 +511,7 @@ def _gather_mode(variant, r):
 
 
 @njit(cache=True, inline="always")
-def event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, adaptive, gather):
+def event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, counts, adaptive, gather):
     """The loop of :func:`plane_flow_kernel`: the speed-adaptive window's refits with
     ``adaptive``, the fits' gather ``gather`` (:func:`_gather_mode`). Inlined into the kernels
     with both constant, so that each copy of the loop compiles only its own gather and fits
@@ -543,12 +551,17 @@ def event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, adaptive, gather):
         refractory = prev != NO_EVENT and ti - prev < prm.refractory_us
         if not refractory or prm.refractory_updates:
             ts[pi, yi, xi] = ti
-        if refractory or not _gets_flow(xi, yi, width, height, prm.margin, r, variant):
+        if refractory:
+            counts[REFRACTORY] += 1
+            continue
+        if not _gets_flow(xi, yi, width, height, prm.margin, r, variant):
+            counts[BORDER] += 1
             continue
         # fits with window w (µs) and residual / centre check limit lim (s); a failed fit
         # continues with the next, whose start decides whether to refit
         w, lim, ok, gx, gy = prm.window_us, prm.th2, False, 0.0, 0.0
         shrunk, g0x, g0y = False, 0.0, 0.0
+        why = NO_PLANE  # the last fit's failure
         for k in range(fits):
             if k > 0:  # adaptive: refit when the last fit asks for a longer window
                 w_new = _next_window(ok, gx, gy, w, prm.window_us, prm.max_window_us,
@@ -577,9 +590,12 @@ def event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, adaptive, gather):
                                                               use)
             ok = False
             if n < prm.min_points or n < 3:
+                why = TOO_FEW
                 continue
             if spread2 > 0.0 and not _spread_at_least(n, sx, sy, sxx, syy, sxy, spread2):
+                why = TOO_NARROW
                 continue
+            why = NO_PLANE
             # (gx, gy): the gradient (dt/dx, dt/dy) in s/px; for original its velocity
             if gather == MASKS:
                 ok, gx, gy = sg_gradient_masks(wt, rowmask, colmask, size, coef, pairs)
@@ -588,22 +604,32 @@ def event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, adaptive, gather):
             elif variant == SINGLE:
                 fit_ok, gx, gy, c = fit_explicit(X, Y, T, use, n)
                 ok = _centre_ok(fit_ok, c, lim, prm.centre_check)
+                if fit_ok and not ok:
+                    why = CENTRE
             elif variant == ITERATIVE:
                 fit_ok, gx, gy, c = iterate_explicit(X, Y, T, use, n, prm.th1, lim, prm.max_iter)
                 ok = _centre_ok(fit_ok, c, lim, prm.centre_check)
+                if fit_ok and not ok:
+                    why = CENTRE
             else:
                 fit_ok, nx, ny, nt, d = iterate_homogeneous(X, Y, T, use, n, prm.th1, lim,
                                                             prm.max_iter)
                 ok, gx, gy = _normal_gradient(fit_ok, nx, ny, nt, d, lim, prm.centre_check,
                                               variant == ORIGINAL)
+                if fit_ok and nt > 0.0 and prm.centre_check and abs(d) > lim:
+                    why = CENTRE
             if gather != POINTS and ok and prm.centre_check:
                 # the plane with these slopes through the points' centroid, at the event
                 ok = not abs((st * 1e-6 - gx * sx - gy * sy) / n) > lim
+                if not ok:
+                    why = CENTRE
         if shrunk and not ok:  # the shorter window gave no estimate: the first one stands
             ok, gx, gy = True, g0x, g0y
         if not ok:
+            counts[why] += 1
             continue
         ok, vx, vy = _velocity(variant, gx, gy, prm.max_speed, g_min2)
+        counts[FLOW if ok else TOO_FAST] += 1
         if ok:
             out_idx[n_out] = i
             out_vx[n_out] = vx
@@ -613,19 +639,19 @@ def event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, adaptive, gather):
 
 
 @njit(cache=True, nogil=True)
-def plane_flow_adaptive_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy):
+def plane_flow_adaptive_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, counts):
     """:func:`plane_flow_kernel` with the speed-adaptive window (the loop with the refits); the
     same arguments and result."""
     gather = _gather_mode(prm.variant, prm.r)
     if gather == MASKS:
-        return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, True, MASKS)
+        return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, counts, True, MASKS)
     if gather == WINDOW:
-        return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, True, WINDOW)
-    return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, True, POINTS)
+        return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, counts, True, WINDOW)
+    return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, counts, True, POINTS)
 
 
 @njit(cache=True, nogil=True)
-def plane_flow_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy):
+def plane_flow_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, counts):
     """Process events in order, updating ``ts`` in place; returns the number of flow events.
 
     ``prm.min_spread`` (px): the neighbours' positions must spread at least this much (standard
@@ -668,6 +694,9 @@ def plane_flow_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy):
         Out: indices of the events with flow.
     out_vx, out_vy : float64 ndarray, shape (>= n,)
         Out: their flow, px/s.
+    counts : int64 ndarray, shape (8,)
+        Added to: per event, why it got no flow (:data:`WHY_NO_FLOW`, the last fit's reason
+        where there were refits) or, last, that it got flow.
 
     Returns
     -------
@@ -676,10 +705,10 @@ def plane_flow_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy):
     """
     if (prm.max_window_us > prm.window_us or 0 < prm.min_window_us < prm.window_us) \
             and prm.variant != ORIGINAL:
-        return plane_flow_adaptive_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy)
+        return plane_flow_adaptive_kernel(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, counts)
     gather = _gather_mode(prm.variant, prm.r)
     if gather == MASKS:
-        return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, False, MASKS)
+        return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, counts, False, MASKS)
     if gather == WINDOW:
-        return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, False, WINDOW)
-    return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, False, POINTS)
+        return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, counts, False, WINDOW)
+    return event_loop(x, y, t, p, ts, prm, out_idx, out_vx, out_vy, counts, False, POINTS)

@@ -151,3 +151,30 @@ def test_windows_given_are_kept():
     q = f.kernel_params(Geometry(640, 480, f=2 * REFERENCE_FOCAL_PX))
     assert (q.window_us, q.refractory_us, q.max_window_us, q.th2, q.max_speed) == (
         50_000, 0, 0, 0.01, 300.0)
+
+
+def test_metrics_say_why_events_got_no_flow():
+    """metrics.plane_flow counts every event once: the flow events, and for the rest the
+    reason (refractory, border, too few neighbours ...); the same over any packet cuts. An empty
+    stream reports zeros."""
+    reports = []
+    for cuts in ([70_000, 150_000, 260_000], [10_000, 300_000]):
+        packets = recut(edge_stream(), cuts)
+        f = PlaneFlow()
+        ctx = Context(geometry=packets[0].geometry)
+        f.setup(PlaneFlow.Params(refractory_us=20_000, window_us=60_000), ctx)
+        n_flow = sum(len(f.process(p)) for p in packets)
+        f.flush()
+        m = ctx.metrics["plane_flow"]
+        assert m["events"] == sum(len(p) for p in packets)
+        assert m["flow_events"] == n_flow > 0
+        assert m["events"] == m["flow_events"] + sum(m["no_flow"].values())
+        assert m["no_flow"]["refractory"] > 0 and m["no_flow"]["border"] > 0
+        reports.append(m)
+    assert reports[0] == reports[1]
+    f = PlaneFlow()
+    ctx = Context(geometry=Geometry(8, 6))
+    f.setup(PlaneFlow.Params(), ctx)
+    f.flush()
+    assert ctx.metrics["plane_flow"]["events"] == 0
+    assert set(ctx.metrics["plane_flow"]["no_flow"].values()) == {0}

@@ -13,6 +13,7 @@ from hypothesis import strategies as st
 from evchain.core.packets import Geometry
 from evchain.kernels.plane_flow import (
     VARIANTS,
+    WHY_NO_FLOW,
     PlaneParams,
     fit_explicit,
     new_state,
@@ -31,7 +32,8 @@ DEFAULTS = dict(variant="single", r=2, window_us=80_000, refractory_us=0, margin
 FITTING = ("single", "iterative", "robust", "savitzky_golay")
 
 
-def run_kernel(x, y, t, p, width, height, **kw):
+def run_kernel(x, y, t, p, width, height, counts=None, **kw):
+    """The kernel's flow events (index, vx, vy); ``counts`` (int64[8]) is added to."""
     q = {**DEFAULTS, **kw}
     ts = new_state(width, height)
     n = len(t)
@@ -39,25 +41,32 @@ def run_kernel(x, y, t, p, width, height, **kw):
     margin = q["r"] if q["margin"] is None else q["margin"]
     prm = record(PlaneParams, **{**{k: v for k, v in q.items() if k in PlaneParams._fields},
                                  "variant": VARIANTS[q["variant"]], "margin": margin})
+    counts = np.zeros(len(WHY_NO_FLOW) + 1, np.int64) if counts is None else counts
     k = plane_flow_kernel(np.asarray(x, np.uint16), np.asarray(y, np.uint16),
-                          np.asarray(t, np.int64), np.asarray(p, np.int8), ts, prm, idx, vx, vy)
+                          np.asarray(t, np.int64), np.asarray(p, np.int8), ts, prm, idx, vx, vy,
+                          counts)
     return idx[:k], vx[:k], vy[:k]
 
 
-def run_naive(x, y, t, p, width, height, **kw):
+def run_naive(x, y, t, p, width, height, counts=None, **kw):
     q = {**DEFAULTS, **kw}
     return plane_flow_naive(x, y, t, p, width, height, q["variant"], q["r"], q["window_us"],
                             q["refractory_us"], q["margin"], q["min_points"], q["th1"], q["th2"],
                             q["max_speed"], q["max_iter"], q["min_spread"],
                             q["centre_check"], q["max_window_us"], q["slow_px"],
                             q["refit_failed"], q["refractory_updates"], q["min_window_us"],
-                            q["fast_px"])
+                            q["fast_px"], counts)
 
 
 def assert_same(ev, width, height, **kw):
-    a = run_kernel(ev.x, ev.y, ev.t, ev.p, width, height, **kw)
-    b = run_naive(ev.x, ev.y, ev.t, ev.p, width, height, **kw)
+    """Kernel and reference give the same flow events and the same reasons for the rest."""
+    counts, why = np.zeros(len(WHY_NO_FLOW) + 1, np.int64), {}
+    a = run_kernel(ev.x, ev.y, ev.t, ev.p, width, height, counts=counts, **kw)
+    b = run_naive(ev.x, ev.y, ev.t, ev.p, width, height, counts=why, **kw)
     np.testing.assert_array_equal(a[0], b[0])
+    assert counts.sum() == len(ev.t) and counts[-1] == len(a[0])
+    assert dict(zip((*WHY_NO_FLOW, "flow"), counts.tolist(), strict=True)) == {
+        k: why.get(k, 0) for k in (*WHY_NO_FLOW, "flow")}
     np.testing.assert_allclose(a[1], b[1], rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(a[2], b[2], rtol=1e-6, atol=1e-6)
     assert np.isfinite(a[1]).all() and np.isfinite(a[2]).all()
@@ -413,8 +422,9 @@ def test_adaptive_loop_without_refits_equals_fixed_loop(variant, r):
     for kernel in (plane_flow_kernel, plane_flow_adaptive_kernel):
         ts = new_state(g.width, g.height)
         idx, vx, vy = np.empty(len(ev), np.int64), np.empty(len(ev)), np.empty(len(ev))
-        k = kernel(*args, ts, prm, idx, vx, vy)
-        out.append((idx[:k], vx[:k], vy[:k], ts))
+        counts = np.zeros(len(WHY_NO_FLOW) + 1, np.int64)
+        k = kernel(*args, ts, prm, idx, vx, vy, counts)
+        out.append((idx[:k], vx[:k], vy[:k], ts, counts))
     assert len(out[0][0]) > 20
     for a, b in zip(out[0], out[1], strict=True):
         np.testing.assert_array_equal(a, b)

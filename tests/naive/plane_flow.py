@@ -100,7 +100,8 @@ def _sg(win, valid):
 
 def _estimate(ts, xi, yi, ti, pi, width, height, variant, r, window_us, min_points, th1,
               th2, max_iter, min_spread, centre_check):
-    """One event's fit: (a, b) = gradient (s/px), or (vx, vy) for ``original``; None if none."""
+    """One event's fit and why it failed: ((a, b) = gradient (s/px), or (vx, vy) for
+    ``original``; None), or (None, the kernel's WHY_NO_FLOW name)."""
     pts = []
     for yy in range(yi - r, yi + r + 1):
         for xx in range(xi - r, xi + r + 1):
@@ -108,9 +109,9 @@ def _estimate(ts, xi, yi, ti, pi, width, height, variant, r, window_us, min_poin
             if tt is not None and ti - tt <= window_us:
                 pts.append((xx - xi, yy - yi, (tt - ti) * 1e-6))
     if len(pts) < max(min_points, 3):
-        return None
+        return None, "too_few_neighbours"
     if min_spread > 0 and not _spread_at_least([q[:2] for q in pts], min_spread):
-        return None
+        return None, "too_narrow"
     if variant == "savitzky_golay":
         win = np.zeros((2 * r + 1, 2 * r + 1))
         valid = np.zeros_like(win, bool)
@@ -119,13 +120,13 @@ def _estimate(ts, xi, yi, ti, pi, width, height, variant, r, window_us, min_poin
             valid[dy + r, dx + r] = True
         g = _sg(win, valid)
         if g is None:
-            return None
+            return None, "no_plane"
         gx, gy = g
         P = np.asarray(pts, float)
         c = np.mean(P[:, 2] - gx * P[:, 0] - gy * P[:, 1])
         if centre_check and abs(c) > th2:
-            return None
-        return gx, gy
+            return None, "centre_check"
+        return (gx, gy), None
     if variant in ("single", "iterative"):
         if variant == "single":
             sol = _explicit(pts)
@@ -133,28 +134,32 @@ def _estimate(ts, xi, yi, ti, pi, width, height, variant, r, window_us, min_poin
             sol = _iterate(pts, _explicit, lambda s, q: q[2] - (s[0] * q[0] + s[1] * q[1]
                                                                 + s[2]),
                            lambda s: np.asarray(s), th1, th2, max_iter)
-        if sol is None or (centre_check and abs(sol[2]) > th2):
-            return None
-        return sol[0], sol[1]
+        if sol is None:
+            return None, "no_plane"
+        if centre_check and abs(sol[2]) > th2:
+            return None, "centre_check"
+        return (sol[0], sol[1]), None
     sol = _iterate(pts, _homogeneous, lambda s, q: s[0] @ np.asarray(q) - s[1],
                    lambda s: s[0], th1, th2, max_iter)
     if sol is None:
-        return None
+        return None, "no_plane"
     n = sol[0]
-    if n[2] <= 0 or (centre_check and abs(sol[1]) > th2):
-        return None
+    if n[2] <= 0:
+        return None, "no_plane"
+    if centre_check and abs(sol[1]) > th2:
+        return None, "centre_check"
     if variant == "original":
         if n[0] == 0 or n[1] == 0:
-            return None
-        return -n[2] / n[0], -n[2] / n[1]
-    return -n[0] / n[2], -n[1] / n[2]
+            return None, "no_plane"
+        return (-n[2] / n[0], -n[2] / n[1]), None
+    return (-n[0] / n[2], -n[1] / n[2]), None
 
 
 def plane_flow_naive(x, y, t, p, width, height, variant="single", r=2, window_us=80_000,
                      refractory_us=0, margin=None, min_points=3, th1=1e-5, th2=0.01,
                      max_speed=1000.0, max_iter=10, min_spread=0.0,
                      centre_check=False, max_window_us=0, slow_px=2.0, refit_failed=True,
-                     refractory_updates=True, min_window_us=0, fast_px=4.0):
+                     refractory_updates=True, min_window_us=0, fast_px=4.0, counts=None):
     """Returns (index, vx, vy) lists of the events that got flow.
 
     Adaptive window (``max_window_us`` > ``window_us``, not ``original``): while the fit says
@@ -165,8 +170,15 @@ def plane_flow_naive(x, y, t, p, width, height, variant="single", r=2, window_us
     surface either. Short window (0 < ``min_window_us`` < ``window_us``, not ``original``): a
     first fit whose edge moved more than ``fast_px`` px within ``window_us`` is redone with
     max(min_window_us, fast_px |g|) instead of any longer refit; it replaces the first fit
-    when it succeeds.
+    when it succeeds. ``counts`` (a dict, optional) is added to per event: why it got no flow
+    (the kernel's WHY_NO_FLOW names; the last fit's reason where there were refits) or
+    ``flow``.
     """
+    counts = {} if counts is None else counts
+
+    def count(why):
+        counts[why] = counts.get(why, 0) + 1
+
     margin = r if margin is None else margin
     ts = {}
     idx, vxs, vys = [], [], []
@@ -176,24 +188,27 @@ def plane_flow_naive(x, y, t, p, width, height, variant="single", r=2, window_us
         if prev is not None and ti - prev < refractory_us:
             if refractory_updates:  # jAER: the memory still updates
                 ts[(pi, xi, yi)] = ti
+            count("refractory")
             continue
         ts[(pi, xi, yi)] = ti
         if xi < margin or yi < margin or xi >= width - margin or yi >= height - margin:
+            count("border")
             continue
         if variant == "savitzky_golay" and not (xi - r >= 0 and yi - r >= 0
                                                 and xi + r < width and yi + r < height):
+            count("border")
             continue
         args = (ts, xi, yi, ti, pi, width, height, variant, r)
         rest = (min_points, th1)
         tail = (max_iter, min_spread, centre_check)
-        est = _estimate(*args, window_us, *rest, th2, *tail)
+        est, why = _estimate(*args, window_us, *rest, th2, *tail)
         shrunk = False
         if 0 < min_window_us < window_us and variant != "original" and est is not None:
             want = fast_px * 1e6 * math.sqrt(est[0] * est[0] + est[1] * est[1])
             if want < window_us and max(min_window_us, math.ceil(want)) < window_us:
                 shrunk = True
                 w = max(min_window_us, math.ceil(want))
-                est = _estimate(*args, w, *rest, th2 * w / window_us, *tail) or est
+                est = _estimate(*args, w, *rest, th2 * w / window_us, *tail)[0] or est
         if max_window_us > window_us and variant != "original" and not shrunk:
             w = window_us
             for _ in range(4):
@@ -209,13 +224,16 @@ def plane_flow_naive(x, y, t, p, width, height, variant="single", r=2, window_us
                 if w_new <= w:
                     break
                 w = w_new
-                est = _estimate(*args, w, *rest, th2 * w / window_us, *tail)
+                est, why = _estimate(*args, w, *rest, th2 * w / window_us, *tail)
         if est is None:
+            count(why)
             continue
         if variant == "original":
             vx, vy = est
             if vx * vx + vy * vy > max_speed ** 2:
+                count("too_fast")
                 continue
+            count("flow")
             idx.append(i)
             vxs.append(vx)
             vys.append(vy)
@@ -223,7 +241,9 @@ def plane_flow_naive(x, y, t, p, width, height, variant="single", r=2, window_us
         gx, gy = est
         g2 = gx * gx + gy * gy
         if g2 == 0 or g2 < (1.0 / max_speed) ** 2:
+            count("too_fast")
             continue
+        count("flow")
         idx.append(i)
         vxs.append(gx / g2)
         vys.append(gy / g2)
