@@ -167,7 +167,9 @@ class PlaneFlow(Filter):
         self._density = DensityCounter(DENSITY_BIN_US)
         self._end = None
         self._geometry = g
-        self._why = np.zeros(8, np.int64)  # the kernel's counts: why no flow, then flow
+        from evchain.kernels.plane_flow import WHY_NO_FLOW
+
+        self._why = np.zeros(len(WHY_NO_FLOW) + 1, np.int64)  # why no flow, then the flow
 
     def _new_state(self, g: Geometry) -> None:
         """The surface, the pixels' runs (``t_edge``) and the kernel's constants for ``g``."""

@@ -123,7 +123,9 @@ def rotation_coefficients(x, y, nx, ny, f: float, cx: float, cy: float):
     event at (x, y) with unit normal (nx, ny) is ``c0 Om_x + c1 Om_y + c2 Om_z``. With
     ``X = (x - cx) / f``, ``Y = (y - cy) / f`` the rotational flow is
     ``u = f (X Y wx - (1 + X^2) wy + Y wz)``, ``v = f ((1 + Y^2) wx - X Y wy - X wz)``
-    (Longuet-Higgins and Prazdny 1980; :class:`~evchain.core.truth.RotationTruth`)."""
+    (Longuet-Higgins and Prazdny 1980; :class:`~evchain.core.truth.RotationTruth`). The filter
+    gets them per packet from :func:`flow_columns`, whose copy of this expression
+    test_foe_fit.py holds to these values bit for bit."""
     X = (np.asarray(x, np.float64) - cx) / f
     Y = (np.asarray(y, np.float64) - cy) / f
     return (nx * X * Y + ny * (1.0 + Y * Y), -nx * (1.0 + X * X) - ny * X * Y, nx * Y - ny * X)
